@@ -1,5 +1,13 @@
-"""lerobot-pdp: Parameterized Diffusion Policies as a LeRobot policy plugin."""
+"""lerobot-pdp: Parameterized Diffusion Policies as a LeRobot policy plugin.
+
+``import lerobot_pdp`` registers ``--policy.type=pdp``, the ``lerobot_pdp/*-v0`` gym ids and the
+``--env.type=pdp_*`` LeRobot env configs.
+"""
 
 from lerobot_pdp import envs  # noqa: F401  (registers gym ids and `--env.type=pdp_*`)
+from lerobot_pdp.configuration_pdp import PDPConfig
+from lerobot_pdp.modeling_pdp import PDPPolicy
+from lerobot_pdp.processor_pdp import make_pdp_pre_post_processors
 
-__all__ = ["envs"]
+__all__ = ["PDPConfig", "PDPPolicy", "make_pdp_pre_post_processors"]
+__version__ = "0.1.0"

@@ -1,0 +1,286 @@
+"""Behavior traces X(tau) and the trajectory VAE that maps them to the behavior latent z.
+
+Data flow (paper Sec. 3.1): whole demonstrations -> behavior traces (selected state dims, optionally
+split into gripper phases, resampled to a fixed length) -> soft-DTW distance matrix delta^X (computed
+once per dataset) -> trajectory VAE trained with L_rec + beta_KL * L_KL + beta_geo * L_geo, where
+L_geo = mean over pairs (|mu_i - mu_j| - kappa * delta^X_ij)^2.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .envs.suite import parse_task_mode
+
+logger = logging.getLogger(__name__)
+
+UNLABELED = -1  # mode id of a behavior whose task string carries no "mode <id>: ..." label
+
+
+# ----------------------------------------------------------------------------- traces
+
+
+def resample(x: np.ndarray, length: int) -> np.ndarray:
+    """Linear-in-time resampling of a [T, d] sequence to [length, d] (T == 1 repeats the point)."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape[0] == 1:
+        return np.repeat(x, length, axis=0)
+    src = np.linspace(0.0, 1.0, x.shape[0])
+    dst = np.linspace(0.0, 1.0, length)
+    return np.stack([np.interp(dst, src, x[:, j]) for j in range(x.shape[1])], axis=1)
+
+
+def normalize_trace(x: np.ndarray, mode: str) -> np.ndarray:
+    """``none`` | ``start`` (subtract the start point) | ``endpoints`` (also divide by |end - start|)."""
+    if mode == "none":
+        return x
+    x = x - x[:1]
+    if mode == "endpoints":
+        span = float(np.linalg.norm(x[-1]))
+        x = x / max(span, 1e-6)
+    return x
+
+
+def gripper_segments(actions: np.ndarray, dim: int, threshold: float, min_length: int = 2) -> list[tuple[int, int]]:
+    """Split frames [0, T) into phases at changes of ``actions[:, dim] > threshold`` (open/close events).
+
+    Phases shorter than ``min_length`` frames (gripper chatter) are merged into the previous phase.
+    """
+    closed = np.asarray(actions)[:, dim] > threshold
+    cuts = [0] + [t for t in range(1, len(closed)) if closed[t] != closed[t - 1]] + [len(closed)]
+    segments: list[tuple[int, int]] = []
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        if segments and b - a < min_length:
+            segments[-1] = (segments[-1][0], b)
+        else:
+            segments.append((a, b))
+    if len(segments) > 1 and segments[0][1] - segments[0][0] < min_length:
+        segments[1] = (0, segments[1][1])
+        segments.pop(0)
+    return segments
+
+
+def make_trace(states: np.ndarray, dims: list[int] | None, length: int, normalize: str) -> np.ndarray:
+    """X(tau): the selected dims of ``states`` [T, D], normalised and resampled to [length, d]."""
+    x = np.asarray(states, dtype=np.float64)
+    if dims is not None:
+        x = x[:, dims]
+    return resample(normalize_trace(x, normalize), length)
+
+
+@dataclass
+class BehaviorTraces:
+    """All behaviors of a dataset: one per episode, or one per gripper phase of each episode."""
+
+    traces: np.ndarray  # [N, L, d] float64
+    episode_index: np.ndarray  # [N] dataset episode index
+    start: np.ndarray  # [N] first frame (inclusive) of the behavior in its episode
+    global_start: np.ndarray  # [N] the same frame as a dataset-wide `index` (what training batches carry)
+    end: np.ndarray  # [N] last frame (exclusive)
+    mode: np.ndarray  # [N] mode id from the task string, UNLABELED if none
+    mode_names: dict[int, str]
+
+    def __len__(self) -> int:
+        return len(self.traces)
+
+
+def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None) -> dict[int, dict]:
+    """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}}.
+
+    Reads the parquet files directly: the training loader only yields windows, but the behavior encoder
+    needs complete demonstrations.
+    """
+    import pandas as pd
+
+    root = Path(root)
+    files = sorted((root / "data").glob("**/*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"no parquet data files under {root / 'data'}; is {root} a LeRobotDataset v3?")
+    tasks_path = root / "meta" / "tasks.parquet"
+    task_by_index: dict[int, str] = {}
+    if tasks_path.is_file():
+        t = pd.read_parquet(tasks_path)
+        task_by_index = {int(i): str(task) for task, i in zip(t.index, t["task_index"], strict=True)}
+    cols = list(dict.fromkeys(["episode_index", "frame_index", "index", "task_index", *keys]))
+    frames = []
+    for f in files:
+        df = pd.read_parquet(f)
+        missing = [c for c in cols if c not in df.columns]
+        if missing:
+            raise KeyError(f"{f}: dataset has no column(s) {missing}; columns are {sorted(df.columns)}")
+        frames.append(df[cols])
+    df = pd.concat(frames, ignore_index=True)
+    if episodes is not None:
+        df = df[df["episode_index"].isin(list(episodes))]
+    out: dict[int, dict] = {}
+    for ep, g in df.groupby("episode_index", sort=True):
+        g = g.sort_values("frame_index")
+        item = {k: np.stack(g[k].to_numpy()).astype(np.float64) for k in keys}
+        item["task"] = task_by_index.get(int(g["task_index"].iloc[0]), "")
+        item["from_index"] = int(g["index"].iloc[0])  # global frame index of the episode's first frame
+        out[int(ep)] = item
+    return out
+
+
+def check_finite(name: str, array: np.ndarray, where: str) -> None:
+    """Raise naming the episode/key and the first bad frame if ``array`` has NaN or inf."""
+    bad = ~np.isfinite(array)
+    if bad.any():
+        frame = int(np.argwhere(bad)[0][0])
+        raise ValueError(f"{where}: '{name}' has non-finite values (first at frame {frame}: {array[frame].tolist()})")
+
+
+def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims: list[int] | None, length: int,
+                          normalize: str, gripper_dim: int | None = None, gripper_threshold: float = 0.0,
+                          min_length: int = 1) -> BehaviorTraces:
+    """Turn whole episodes into behaviors (split on gripper events when ``gripper_dim`` is set)."""
+    traces, ep_idx, starts, gstarts, ends, modes = [], [], [], [], [], []
+    names: dict[int, str] = {}
+    for ep, item in episodes.items():
+        states = item[trace_key]
+        check_finite(trace_key, states, f"episode {ep}")
+        if len(states) < min_length:
+            raise ValueError(f"episode {ep} has {len(states)} frames; PDP needs at least {min_length} (one chunk)")
+        mode = parse_task_mode(item.get("task", ""))
+        if isinstance(mode, int):
+            name = item["task"].split(":", 1)[1].strip() if ":" in item["task"] else str(mode)
+            names.setdefault(mode, name)
+        else:
+            mode = UNLABELED
+        segs = [(0, len(states))]
+        if gripper_dim is not None:
+            segs = gripper_segments(item["action"], gripper_dim, gripper_threshold)
+        for a, b in segs:
+            traces.append(make_trace(states[a:b], trace_dims, length, normalize))
+            ep_idx.append(ep)
+            starts.append(a)
+            gstarts.append(item.get("from_index", 0) + a)
+            ends.append(b)
+            modes.append(mode)
+    return BehaviorTraces(np.stack(traces), np.array(ep_idx), np.array(starts), np.array(gstarts), np.array(ends),
+                          np.array(modes), names)
+
+
+def trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir: str | Path | None = None,
+                    progress: bool = True) -> np.ndarray:
+    """delta^X: all-pairs soft-DTW between traces, cached on disk by content hash (traces are fixed data)."""
+    from .soft_dtw import soft_dtw_cdist
+
+    traces = np.ascontiguousarray(traces, dtype=np.float64)
+    key = hashlib.sha1(traces.tobytes() + f"{traces.shape}|{gamma}|{normalize}".encode()).hexdigest()[:16]
+    cache = None
+    if cache_dir is None:
+        cache_dir = os.environ.get("LEROBOT_PDP_CACHE", Path.home() / ".cache" / "lerobot_pdp")
+    try:
+        cache = Path(cache_dir) / f"trace_distances_{key}.npy"
+        if cache.is_file():
+            d = np.load(cache)
+            if d.shape == (len(traces), len(traces)):
+                return d
+    except OSError:
+        cache = None
+    d = np.asarray(soft_dtw_cdist(traces, gamma, normalize=normalize, progress=progress), dtype=np.float64)
+    d = np.maximum(d, 0.0)  # soft-DTW can dip a hair below 0 (-gamma*log #paths); distances are >= 0
+    np.fill_diagonal(d, 0.0)
+    if cache is not None:
+        try:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache.with_suffix(f".{os.getpid()}.tmp.npy")
+            np.save(tmp, d)
+            os.replace(tmp, cache)
+        except OSError as e:  # a read-only home must not stop training
+            logger.warning("could not cache trace distances at %s: %s", cache, e)
+    return d
+
+
+def prior_mean_distance(latent_dim: int) -> float:
+    """E|z - z'| for z, z' ~ N(0, I_d): |z - z'| / sqrt(2) is chi-distributed with d degrees of freedom."""
+    return 2.0 * math.exp(math.lgamma((latent_dim + 1) / 2) - math.lgamma(latent_dim / 2))
+
+
+def choose_kappa(distances: np.ndarray, latent_dim: int) -> float:
+    """kappa that puts the mean off-diagonal trace distance at the prior's mean pair distance.
+
+    Why: L_geo fixes latent distances to kappa * delta^X while L_KL pulls codes toward N(0, I). With this
+    kappa both terms ask for the same overall scale, so neither is fought by the other and z stays in
+    the region that fitting (with its |z|^2 prior term) and interpolation explore.
+    """
+    n = len(distances)
+    if n < 2:
+        return 1.0
+    off = distances[~np.eye(n, dtype=bool)]
+    mean = float(off.mean())
+    if not mean > 0:
+        return 1.0
+    return prior_mean_distance(latent_dim) / mean
+
+
+# ----------------------------------------------------------------------------- trajectory VAE
+
+
+def _mlp(dims: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(dims) - 2:
+            layers.append(nn.Mish())
+    return nn.Sequential(*layers)
+
+
+class TrajectoryVAE(nn.Module):
+    """E_phi: trace [L, d] -> N(mu, diag sigma^2) over z; D_psi: z -> trace (symmetric MLPs).
+
+    Traces are standardised per dim with statistics of the training traces (buffers, saved with the
+    policy), so the same encoder applies to new demonstrations at test time.
+    """
+
+    def __init__(self, trace_length: int, trace_dim: int, latent_dim: int, hidden_dims: tuple[int, ...]):
+        super().__init__()
+        self.trace_length, self.trace_dim, self.latent_dim = trace_length, trace_dim, latent_dim
+        flat = trace_length * trace_dim
+        self.encoder = _mlp([flat, *hidden_dims, 2 * latent_dim])
+        self.decoder = _mlp([latent_dim, *reversed(hidden_dims), flat])
+        self.register_buffer("trace_mean", torch.zeros(trace_dim))
+        self.register_buffer("trace_std", torch.ones(trace_dim))
+
+    def set_trace_stats(self, traces: Tensor) -> None:
+        self.trace_mean.copy_(traces.reshape(-1, self.trace_dim).mean(0))
+        self.trace_std.copy_(traces.reshape(-1, self.trace_dim).std(0).clamp_min(1e-3))
+
+    def standardize(self, traces: Tensor) -> Tensor:
+        return (traces - self.trace_mean) / self.trace_std
+
+    def encode(self, traces: Tensor) -> tuple[Tensor, Tensor]:
+        """traces [B, L, d] (raw units) -> (mu, logvar), each [B, d_z]."""
+        h = self.encoder(self.standardize(traces).flatten(1))
+        mu, logvar = h.chunk(2, dim=-1)
+        return mu, logvar.clamp(-12.0, 6.0)
+
+    def decode(self, z: Tensor) -> Tensor:
+        """z [B, d_z] -> standardised trace [B, L, d]."""
+        return self.decoder(z).view(-1, self.trace_length, self.trace_dim)
+
+    def loss(self, traces: Tensor, distances: Tensor, kappa: float, beta_kl: float, beta_geo: float
+             ) -> tuple[Tensor, dict[str, float]]:
+        """L_embed on a batch of behaviors; ``distances`` [B, B] are their delta^X."""
+        mu, logvar = self.encode(traces)
+        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
+        rec = (self.decode(z) - self.standardize(traces)).pow(2).mean()
+        kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).mean()
+        geo = mu.new_zeros(())
+        if len(mu) > 1 and beta_geo > 0:
+            iu = torch.triu_indices(len(mu), len(mu), offset=1, device=mu.device)
+            diff = mu[iu[0]] - mu[iu[1]]
+            dz = (diff.pow(2).sum(-1) + 1e-12).sqrt()  # eps: the norm's gradient is undefined at 0
+            geo = (dz - kappa * distances[iu[0], iu[1]]).pow(2).mean()
+        total = rec + beta_kl * kl + beta_geo * geo
+        return total, {"embed_rec": rec.item(), "embed_kl": kl.item(), "embed_geo": geo.item()}

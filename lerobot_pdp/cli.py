@@ -1,0 +1,136 @@
+"""``lerobot-pdp``: command-line entry point of the benchmark suite.
+
+Each subcommand is a ``cmd_<name>(args) -> int`` function registered by an ``add_<name>_parser`` helper,
+so further subcommands (e.g. ``benchmark``) plug in by adding one pair and listing it in ``SUBCOMMANDS``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+
+def _quiet_imports() -> None:
+    """torchcodec cannot load here (no FFmpeg) and prints a long warning on import; it is not used."""
+    warnings.filterwarnings("ignore", module=r"torchcodec.*")
+    warnings.filterwarnings("ignore", message=r".*torchcodec.*")
+
+
+def _env_names() -> list[str]:
+    import lerobot_pdp.envs as envs
+
+    return sorted(envs.SUITE)
+
+
+def _parse_modes(values: Sequence[str] | None) -> list[int | str] | None:
+    if not values:
+        return None
+    out: list[int | str] = []
+    for v in values:
+        for part in v.split(","):
+            part = part.strip()
+            if part:
+                out.append(int(part) if part.lstrip("-").isdigit() else part)
+    return out
+
+
+# ---- make-dataset ----------------------------------------------------------------------------------
+
+
+def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "make-dataset",
+        help="generate scripted demonstrations as a LeRobotDataset v3",
+        description="Run the scripted expert per mode (or along way-points) and write a state-only "
+        "LeRobotDataset whose episode task strings carry the mode label.",
+    )
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--scene", default="0", help="scene index 0-3 or a scene file (JSON/YAML); default 0")
+    p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="seed of all jitter; same seed -> same dataset")
+    p.add_argument("--out", required=True, type=Path, help="output dataset directory (must not exist)")
+    p.add_argument("--modes", nargs="+", default=None,
+                   help="subset of modes, by id or name (space- or comma-separated); default all")
+    p.add_argument("--waypoints", default=None,
+                   help="record along way-points instead of mode templates: a JSON/YAML file (a list of "
+                        "points or a scene file) or 'scene' for the scene's own")
+    p.add_argument("--max-attempts", type=int, default=20, help="tries per episode before giving up")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=cmd_make_dataset)
+
+
+def cmd_make_dataset(args: argparse.Namespace) -> int:
+    from lerobot_pdp.envs.recording import make_dataset
+
+    out = make_dataset(
+        args.env,
+        args.out,
+        scene=args.scene,
+        episodes_per_mode=args.episodes_per_mode,
+        seed=args.seed,
+        modes=_parse_modes(args.modes),
+        waypoints=args.waypoints,
+        progress=not args.no_progress,
+        max_attempts=args.max_attempts,
+    )
+    print(f"wrote {out}")
+    return 0
+
+
+# ---- plot-dataset ----------------------------------------------------------------------------------
+
+
+def add_plot_dataset_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plot-dataset",
+        help="plot a dataset's demonstrations coloured by mode over the scene",
+        description="Top view (plus side and front views for 3-D envs) of every episode, coloured by mode.",
+    )
+    p.add_argument("dataset", type=Path, help="dataset directory written by make-dataset")
+    p.add_argument("--out", required=True, type=Path, help="output PNG")
+    p.add_argument("--scene", default=None, help="scene to draw (default: the one the dataset was made in)")
+    p.add_argument("--env", default=None, help="env name, for datasets not made by make-dataset")
+    p.set_defaults(func=cmd_plot_dataset)
+
+
+def cmd_plot_dataset(args: argparse.Namespace) -> int:
+    from lerobot_pdp.envs.plotting import plot_dataset
+
+    out = plot_dataset(args.dataset, args.out, scene=args.scene, env=args.env)
+    print(f"wrote {out}")
+    return 0
+
+
+# ---- entry point -----------------------------------------------------------------------------------
+
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
+    add_make_dataset_parser,
+    add_plot_dataset_parser,
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="PDP benchmark suite tools")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    _quiet_imports()
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, KeyError, FileExistsError, FileNotFoundError, RuntimeError) as e:
+        # Expected user errors (bad scene, existing output, infeasible mode): one clear line, no traceback.
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"lerobot-pdp {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

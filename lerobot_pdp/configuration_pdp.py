@@ -1,0 +1,252 @@
+"""Configuration of Parameterized Diffusion Policies (PDP), registered with LeRobot as ``--policy.type=pdp``.
+
+Defaults follow the paper (Table "Training hyperparameters": d_z = 2, beta_KL = 1e-3, beta_geo = 1.0,
+soft-DTW gamma = 1e-5, K = 20 diffusion steps, both learning rates 1e-4, modulation MLP hidden [16, 32]),
+with a denoiser small enough to train on a CPU in minutes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.optim.optimizers import AdamConfig
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+LATENT_CONDITIONING = ("film", "concat", "none")
+LATENT_TYPES = ("continuous", "onehot")
+INFERENCE_LATENTS = ("episode", "prior", "zero")
+TRACE_NORMALIZE = ("none", "start", "endpoints")
+
+
+@PreTrainedConfig.register_subclass("pdp")
+@dataclass
+class PDPConfig(PreTrainedConfig):
+    """Configuration for :class:`~lerobot_pdp.modeling_pdp.PDPPolicy`.
+
+    Inputs: ``observation.state`` (required) and optionally ``observation.environment_state``; output:
+    ``action``. The behavior encoder reads whole demonstrations from the training dataset on disk.
+    """
+
+    # ---- Inputs / outputs (same meaning as LeRobot's diffusion policy) ----
+    # Observation frames that condition the denoiser (the current one and n_obs_steps - 1 before it).
+    n_obs_steps: int = 2
+    # Length of the generated action chunk; must be a multiple of 2 ** len(down_dims).
+    horizon: int = 16
+    # Actions executed from each chunk before a new one is generated (receding horizon).
+    n_action_steps: int = 8
+    # Training windows whose action chunk would mostly run past the episode end are not sampled.
+    drop_n_last_frames: int = 7
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "STATE": NormalizationMode.MIN_MAX,
+            "ENV": NormalizationMode.MIN_MAX,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+
+    # ---- Behavior trace X(tau) and its geometry ----
+    # Feature whose dims form the behavior trace (positions work best: DTW compares paths).
+    trace_key: str = OBS_STATE
+    # Indices into `trace_key` that form X(tau); None = all dims.
+    trace_dims: list[int] | None = None
+    # Every trace is resampled (linear in time) to this many points before encoding and soft-DTW, so
+    # episodes of any length share one encoder input; DTW already factors out speed.
+    trace_length: int = 64
+    # "none": absolute positions; "start": subtract the start point (shape, not location); "endpoints":
+    # also divide by the start-to-end distance (paper: phases "normalized by their start and end positions").
+    trace_normalize: str = "none"
+    # Split every episode into phases at gripper open/close events of this action dim (one latent per
+    # phase, paper Eq. 12). None = one behavior per episode.
+    segment_gripper_dim: int | None = None
+    # Raw (unnormalised) action value separating "open" (<=) from "closed" (>).
+    segment_gripper_threshold: float = 0.0
+    # Soft-DTW smoothing gamma for the trace distances delta^X (paper: 1e-5, i.e. essentially DTW).
+    sdtw_gamma: float = 1e-5
+    # Use the soft-DTW divergence (subtracts self-similarity terms) instead of the raw value.
+    sdtw_normalize: bool = False
+    # Geometry scale kappa in (|z_i - z_j| - kappa * delta^X_ij)^2. None = automatic: kappa makes the mean
+    # trace distance equal the mean distance of two draws from the N(0, I) prior, so the geometry term
+    # and the KL term agree on the latent scale (see behavior.choose_kappa).
+    geo_kappa: float | None = None
+
+    # ---- Behavior latent and trajectory VAE ----
+    latent_dim: int = 2
+    # "continuous" = the paper's VAE latent; "onehot" = ablation with a discrete one-hot mode latent.
+    latent_type: str = "continuous"
+    vae_hidden_dims: tuple[int, ...] = (256, 256)
+    beta_kl: float = 1e-3
+    beta_geo: float = 1.0
+    # Behaviors per embedding step (all pairs among them enter L_geo).
+    embed_batch_size: int = 64
+
+    # ---- Denoiser: 1-D conditional U-Net with FiLM ----
+    # "film": gamma(z) * h + beta(z) in every residual block (the paper); "concat": z appended to the
+    # global condition (ablation); "none": unconditioned diffusion policy (ablation).
+    latent_conditioning: str = "film"
+    down_dims: tuple[int, ...] = (32, 64, 128)
+    kernel_size: int = 5
+    n_groups: int = 8
+    diffusion_step_embed_dim: int = 64
+    # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]).
+    film_hidden_dims: tuple[int, ...] = (16, 32)
+
+    # ---- Diffusion ----
+    # K: diffusion steps of the training forward process (paper: 20).
+    num_train_timesteps: int = 20
+    # Deterministic DDIM steps at inference (evenly spaced over the K training steps).
+    num_inference_steps: int = 10
+    beta_schedule: str = "squaredcos_cap_v2"
+    clip_sample: bool = True
+    clip_sample_range: float = 1.0
+
+    # ---- Optimisation (one optimizer, two parameter groups) ----
+    optimizer_lr: float = 1e-4  # denoiser theta
+    embedding_lr: float = 1e-4  # encoder phi and decoder psi
+    optimizer_betas: tuple[float, float] = (0.95, 0.999)
+    optimizer_eps: float = 1e-8
+    optimizer_weight_decay: float = 1e-6
+    optimizer_grad_clip_norm: float = 10.0
+    scheduler_warmup_steps: int = 100
+
+    # ---- Latent fitting defaults (policy.fit_latent) ----
+    fit_steps: int = 100
+    fit_lr: float = 0.05
+    # lambda in L_fit = E|eps - eps_theta(A~^k, k, c~, z)|^2 + lambda |z|^2.
+    fit_lambda: float = 1e-3
+    # Demonstration chunks per fitting step (sampled from all chunks of the demonstration).
+    fit_batch_size: int = 64
+    # Noise draws (k, eps) per chunk per fitting step.
+    fit_noise_samples: int = 1
+
+    # ---- Inference-time steering (also settable from lerobot-eval: --policy.steer_latent=[..]) ----
+    # A fixed latent for every rollout.
+    steer_latent: list[float] | None = None
+    # Condition on the mean latent of this training mode (mode ids come from the episodes' task strings).
+    steer_mode: int | None = None
+    # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration).
+    steer_dataset_root: str | None = None
+    steer_episode_index: int | None = None
+    # With no steering set: "episode" = a random training behavior's latent per reset (multimodal, like
+    # DP); "prior" = a draw from N(0, I); "zero" = the prior mean.
+    inference_latent: str = "episode"
+
+    # ---- Filled in at training time from the dataset (saved with the checkpoint) ----
+    # Mode names by mode id, parsed from task strings "mode <id>: <name>".
+    mode_names: dict[str, str] | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        errors = []
+        if self.latent_dim < 1:
+            errors.append(f"latent_dim must be >= 1, got {self.latent_dim}")
+        if not self.sdtw_gamma > 0:
+            errors.append(f"sdtw_gamma must be > 0, got {self.sdtw_gamma}")
+        if self.latent_conditioning not in LATENT_CONDITIONING:
+            errors.append(f"latent_conditioning must be one of {LATENT_CONDITIONING}, got {self.latent_conditioning!r}")
+        if self.latent_type not in LATENT_TYPES:
+            errors.append(f"latent_type must be one of {LATENT_TYPES}, got {self.latent_type!r}")
+        if self.inference_latent not in INFERENCE_LATENTS:
+            errors.append(f"inference_latent must be one of {INFERENCE_LATENTS}, got {self.inference_latent!r}")
+        if self.trace_normalize not in TRACE_NORMALIZE:
+            errors.append(f"trace_normalize must be one of {TRACE_NORMALIZE}, got {self.trace_normalize!r}")
+        if self.beta_schedule not in ("squaredcos_cap_v2", "linear"):
+            errors.append(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
+        for name in ("beta_kl", "beta_geo", "fit_lambda"):
+            if getattr(self, name) < 0:
+                errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("n_obs_steps", "horizon", "n_action_steps", "trace_length", "num_train_timesteps",
+                     "num_inference_steps", "embed_batch_size", "fit_batch_size", "fit_noise_samples"):
+            if getattr(self, name) < 1:
+                errors.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.trace_length < 2:
+            errors.append(f"trace_length must be >= 2, got {self.trace_length}")
+        if self.fit_steps < 0:
+            errors.append(f"fit_steps must be >= 0, got {self.fit_steps}")
+        if self.num_inference_steps > self.num_train_timesteps:
+            errors.append(
+                f"num_inference_steps ({self.num_inference_steps}) must be <= num_train_timesteps "
+                f"({self.num_train_timesteps})"
+            )
+        if self.horizon % (2 ** len(self.down_dims)) != 0:
+            errors.append(
+                f"horizon ({self.horizon}) must be a multiple of 2 ** len(down_dims) = {2 ** len(self.down_dims)}"
+            )
+        if self.n_action_steps > self.horizon - self.n_obs_steps + 1:
+            errors.append(
+                f"n_action_steps ({self.n_action_steps}) must be <= horizon - n_obs_steps + 1 "
+                f"({self.horizon - self.n_obs_steps + 1})"
+            )
+        if self.steer_latent is not None and len(self.steer_latent) != self.latent_dim:
+            errors.append(f"steer_latent has {len(self.steer_latent)} values, latent_dim is {self.latent_dim}")
+        if (self.steer_dataset_root is None) != (self.steer_episode_index is None):
+            errors.append("steer_dataset_root and steer_episode_index must be given together")
+        if errors:
+            raise ValueError("Invalid PDPConfig: " + "; ".join(errors))
+
+    # ---- LeRobot contract ----
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return list(range(1 - self.n_obs_steps, 1))
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(1 - self.n_obs_steps, 1 - self.n_obs_steps + self.horizon))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> AdamConfig:
+        # The per-group learning rates come from PDPPolicy.get_optim_params (param-group "lr" wins).
+        return AdamConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            eps=self.optimizer_eps,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig:
+        # A multiplicative schedule, so each parameter group keeps its own peak learning rate.
+        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
+
+    def validate_features(self) -> None:
+        """Check the input/output features this policy needs; raise naming the key and shape."""
+        if self.robot_state_feature is None:
+            raise ValueError(f"PDP needs '{OBS_STATE}' among the input features; got {sorted(self.input_features)}")
+        if self.action_feature is None:
+            raise ValueError(f"PDP needs '{ACTION}' among the output features; got {sorted(self.output_features)}")
+        if self.image_features:
+            raise ValueError(
+                f"PDP is state-based; image inputs {sorted(self.image_features)} are not supported "
+                "(drop them with --policy.input_features or use a state-only dataset)"
+            )
+        for key, ft in [(OBS_STATE, self.robot_state_feature), (ACTION, self.action_feature)] + (
+            [(OBS_ENV_STATE, self.env_state_feature)] if self.env_state_feature else []
+        ):
+            if len(ft.shape) != 1:
+                raise ValueError(f"'{key}' must be a flat vector, got shape {tuple(ft.shape)}")
+        trace_ft = self.input_features.get(self.trace_key)
+        if trace_ft is None:
+            raise ValueError(f"trace_key '{self.trace_key}' is not an input feature; have {sorted(self.input_features)}")
+        if self.trace_dims is not None:
+            bad = [d for d in self.trace_dims if not 0 <= d < trace_ft.shape[0]]
+            if bad or not self.trace_dims:
+                raise ValueError(
+                    f"trace_dims {self.trace_dims} must be a non-empty list of indices into '{self.trace_key}' "
+                    f"of shape {tuple(trace_ft.shape)}"
+                )
+        if self.segment_gripper_dim is not None and not 0 <= self.segment_gripper_dim < self.action_feature.shape[0]:
+            raise ValueError(
+                f"segment_gripper_dim {self.segment_gripper_dim} is out of range for '{ACTION}' of shape "
+                f"{tuple(self.action_feature.shape)}"
+            )
+
+    @property
+    def trace_dim(self) -> int:
+        """Dimension d of the behavior trace X(tau)."""
+        if self.trace_dims is not None:
+            return len(self.trace_dims)
+        return self.input_features[self.trace_key].shape[0]

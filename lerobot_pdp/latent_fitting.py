@@ -1,0 +1,115 @@
+"""Test-time latent fitting (paper Sec. 3.3, Alg. 3): adapt to one demonstration by optimising z only.
+
+    L_fit(z) = E_{t,k,eps} |eps - eps_theta(A~_t^k, k, c~_t, z)|^2 + lambda |z|^2
+
+The demonstration is cut into the same (observation history, action chunk) windows the denoiser was
+trained on. Gradients are taken with ``torch.autograd.grad`` w.r.t. z alone, so no parameter of the
+policy is touched (not even its ``.grad``). With segments, each phase m has its own z^(m) and the
+objective is the sum of the per-phase losses (paper Eq. 12).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+@dataclass
+class DemoWindows:
+    """All training-style windows of one (normalised) demonstration."""
+
+    obs_cond: Tensor  # [N, n_obs_steps * (state + env)] flattened observation history
+    actions: Tensor  # [N, horizon, A]
+    is_pad: Tensor  # [N, horizon] True where the chunk ran past the episode end (copy-padded)
+    segment: Tensor  # [N] phase index of each window
+    n_segments: int
+
+
+def episode_windows(norm: dict[str, Tensor], n_obs_steps: int, horizon: int, state_key: str,
+                    env_key: str | None, segments: list[tuple[int, int]]) -> DemoWindows:
+    """Windows at every frame t: observations t-n_obs+1..t and actions t-n_obs+1..t-n_obs+horizon.
+
+    Indices outside the episode are clamped (copy padding), as LeRobotDataset does for training.
+    """
+    T = norm[state_key].shape[0]
+    t = torch.arange(T)
+    obs_idx = (t[:, None] + torch.arange(1 - n_obs_steps, 1)[None]).clamp(0, T - 1)
+    act_raw = t[:, None] + torch.arange(1 - n_obs_steps, 1 - n_obs_steps + horizon)[None]
+    act_idx = act_raw.clamp(0, T - 1)
+    feats = [norm[state_key][obs_idx]]
+    if env_key is not None:
+        feats.append(norm[env_key][obs_idx])
+    obs_cond = torch.cat(feats, dim=-1).flatten(1)
+    actions = norm["action"][act_idx]
+    is_pad = (act_raw < 0) | (act_raw > T - 1)
+    seg = torch.zeros(T, dtype=torch.long)
+    for m, (a, b) in enumerate(segments):
+        seg[a:b] = m
+    return DemoWindows(obs_cond.float(), actions.float(), is_pad, seg, len(segments))
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit_latent`."""
+
+    z: Tensor  # fitted latent(s), [M, d_z] (the policy squeezes M = 1)
+    z_init: Tensor  # starting point
+    losses: list[float] = field(default_factory=list)  # L_fit per step (first entry: at z_init)
+    steps: int = 0
+
+
+def _stratified_batch(segment: Tensor, n_segments: int, batch_size: int, g: torch.Generator) -> Tensor:
+    """Indices of ``batch_size`` windows spread evenly over the segments."""
+    per = max(1, batch_size // n_segments)
+    idx = []
+    for m in range(n_segments):
+        pool = torch.nonzero(segment == m).view(-1)
+        if len(pool) == 0:
+            continue
+        idx.append(pool[torch.randint(0, len(pool), (per,), generator=g)])
+    return torch.cat(idx)
+
+
+def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
+             lam: float, g: torch.Generator) -> Tensor:
+    """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2."""
+    device = z.device
+    idx = idx.repeat(noise_samples)
+    actions = windows.actions[idx].to(device)
+    eps = torch.randn(actions.shape, generator=g).to(device)
+    k = torch.randint(0, schedule.num_train_timesteps, (len(idx),), generator=g).to(device)
+    noisy = schedule.add_noise(actions, eps, k)
+    seg = windows.segment[idx].to(device)
+    pred = denoiser(noisy, k, windows.obs_cond[idx].to(device), z[seg])
+    err = (pred - eps).pow(2)
+    mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)
+    per_window = (err * mask).sum((1, 2)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)
+    seg_sum = torch.zeros(z.shape[0], device=device).index_add(0, seg, per_window)
+    seg_cnt = torch.zeros(z.shape[0], device=device).index_add(0, seg, torch.ones_like(per_window))
+    return (seg_sum / seg_cnt.clamp_min(1)).sum() + lam * z.pow(2).sum()
+
+
+def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int, lr: float, lam: float,
+               batch_size: int, noise_samples: int = 1, seed: int | None = 0, progress: bool = False) -> FitResult:
+    """Adam on z (weights frozen). Each step samples demonstration chunks and noise afresh (Alg. 3)."""
+    g = torch.Generator()
+    g.manual_seed(int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
+    z = z0.detach().clone().float().requires_grad_(True)
+    opt = torch.optim.Adam([z], lr=lr)
+    losses: list[float] = []
+    iterator = range(steps)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="fit_latent", leave=False)
+    for _ in iterator:
+        idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
+        loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g)
+        (grad,) = torch.autograd.grad(loss, z)
+        z.grad = grad
+        opt.step()
+        losses.append(float(loss.detach()))
+    return FitResult(z=z.detach().cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)

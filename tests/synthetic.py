@@ -1,0 +1,83 @@
+"""A small synthetic multimodal dataset written as a real LeRobotDataset v3: 2-D paths around an obstacle.
+
+A point moves from (0, -1) to (0, 1) around a disc at the origin, passing it on the left or right, tight
+or wide: 4 modes. Actions are per-step displacements / MAX_STEP, so a rollout is ``pos += a * MAX_STEP``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+START = np.array([0.0, -1.0])
+GOAL = np.array([0.0, 1.0])
+MAX_STEP = 0.08
+MODES = {0: ("left-tight", -0.45), 1: ("left-wide", -0.9), 2: ("right-tight", 0.45), 3: ("right-wide", 0.9)}
+
+
+def demo_path(mode: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [T, 2] and actions [T, 2] of one demonstration of ``mode`` (jittered via-point/speed)."""
+    x_via = MODES[mode][1] + rng.normal(0, 0.04)
+    via = np.array([x_via, rng.normal(0, 0.05)])
+    speed = MAX_STEP * rng.uniform(0.6, 0.8)
+    pts = [START, via, GOAL]
+    pos = [START.copy()]
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        n = int(np.ceil(np.linalg.norm(b - a) / speed))
+        for i in range(1, n + 1):
+            pos.append(a + (b - a) * i / n)
+    pos = np.array(pos)
+    # hold at the goal a few steps so chunks near the end are well defined
+    pos = np.concatenate([pos, np.repeat(pos[-1:], 4, axis=0)])
+    act = np.diff(pos, axis=0, append=pos[-1:]) / MAX_STEP
+    return pos.astype(np.float32), np.clip(act, -1, 1).astype(np.float32)
+
+
+def classify(path: np.ndarray) -> int:
+    """Mode of a path by where it crosses y = 0."""
+    i = int(np.argmin(np.abs(path[:, 1])))
+    x = path[i, 0]
+    side = 0 if x < 0 else 2
+    return side + (1 if abs(x) > 0.675 else 0)
+
+
+def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=(0, 1, 2, 3)) -> Path:
+    """Write the dataset to ``root`` (must not exist); task strings are ``"mode <id>: <name>"``."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    rng = np.random.default_rng(seed)
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "observation.environment_state": {"dtype": "float32", "shape": (2,), "names": ["goal_x", "goal_y"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["dx", "dy"]},
+    }
+    ds = LeRobotDataset.create(repo_id="local/synthetic", fps=10, features=features, root=root, use_videos=False)
+    for _ in range(episodes_per_mode):
+        for m in modes:
+            pos, act = demo_path(m, rng)
+            for p, a in zip(pos, act, strict=True):
+                ds.add_frame({"observation.state": p, "observation.environment_state": GOAL.astype(np.float32),
+                              "action": a, "task": f"mode {m}: {MODES[m][0]}"})
+            ds.save_episode()
+    ds.finalize()
+    return root
+
+
+def rollout(policy, preprocessor, postprocessor, steps: int = 60) -> np.ndarray:
+    """Closed-loop rollout of a LeRobot policy in the synthetic point world; returns positions [T, 2]."""
+    import torch
+
+    policy.reset()
+    pos = START.copy()
+    path = [pos.copy()]
+    for _ in range(steps):
+        obs = {"observation.state": torch.tensor(pos, dtype=torch.float32)[None],
+               "observation.environment_state": torch.tensor(GOAL, dtype=torch.float32)[None]}
+        with torch.no_grad():
+            a = postprocessor(policy.select_action(preprocessor(obs)))
+        pos = pos + np.clip(a[0].cpu().numpy(), -1, 1) * MAX_STEP
+        path.append(pos.copy())
+        if np.linalg.norm(pos - GOAL) < 0.05:
+            break
+    return np.array(path)

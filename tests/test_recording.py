@@ -1,0 +1,139 @@
+"""Dataset generation (LeRobotDataset v3 with mode task strings), plotting and the lerobot-pdp CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import lerobot_pdp.envs as envs
+from lerobot_pdp.cli import main as cli_main
+from lerobot_pdp.envs.recording import DemoGenerationError, make_dataset, read_dataset_meta
+
+
+def _data_table(root: Path):
+    files = sorted((root / "data").glob("*/*.parquet"))
+    return pq.read_table(files[0]).replace_schema_metadata(None)
+
+
+@pytest.fixture(scope="module")
+def reach_dataset(tmp_path_factory) -> Path:
+    return make_dataset("reach-around", tmp_path_factory.mktemp("ds") / "reach", episodes_per_mode=2, seed=0,
+                        progress=False)
+
+
+def test_dataset_loads_with_lerobot_and_carries_mode_tasks(reach_dataset):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/reach", root=reach_dataset)
+    suite = envs.get_suite_env("reach-around")
+    assert ds.num_episodes == 16 and ds.fps == 50
+    assert set(ds.meta.tasks.index) == {suite.task_string(m) for m in range(8)}
+    assert ds.features["observation.state"]["shape"] == (6,)
+    assert ds.features["observation.environment_state"]["shape"] == (6,)
+    assert ds.features["action"]["shape"] == (3,)
+    assert ds.features["observation.state"]["names"][:3] == ["ee_x", "ee_y", "ee_z"]
+    meta = read_dataset_meta(reach_dataset)
+    assert meta["env"] == "reach-around" and meta["scene"] == 0 and meta["episode_modes"] == [
+        m for m in range(8) for _ in range(2)]
+    # each episode's task string matches what the classifier says about its states
+    for ep in range(ds.num_episodes):
+        lo = int(ds.meta.episodes["dataset_from_index"][ep])
+        hi = int(ds.meta.episodes["dataset_to_index"][ep])
+        frames = [ds[i] for i in range(lo, hi)]
+        states = np.stack([f["observation.state"].numpy() for f in frames])
+        assert envs.parse_task_mode(frames[0]["task"]) == suite.classify_mode(states) == ep // 2
+        assert np.abs(np.stack([f["action"].numpy() for f in frames])).max() <= 1.0
+
+
+def test_same_seed_same_dataset_other_seed_differs(reach_dataset, tmp_path):
+    again = make_dataset("reach-around", tmp_path / "again", episodes_per_mode=2, seed=0, progress=False)
+    assert _data_table(again).equals(_data_table(reach_dataset))
+    other = make_dataset("reach-around", tmp_path / "other", modes=[0, 1], episodes_per_mode=2, seed=1,
+                         progress=False)
+    assert not _data_table(other).equals(_data_table(again).slice(0, _data_table(other).num_rows))
+
+
+def test_refuses_existing_output(reach_dataset):
+    before = sorted(p.name for p in reach_dataset.rglob("*"))
+    with pytest.raises(FileExistsError, match="already exists"):
+        make_dataset("reach-around", reach_dataset, episodes_per_mode=1, progress=False)
+    assert sorted(p.name for p in reach_dataset.rglob("*")) == before
+
+
+def test_infeasible_mode_fails_cleanly(tmp_path):
+    out = tmp_path / "sub" / "bad"
+    with pytest.raises(DemoGenerationError, match=r"mode 2 \(left-tight\).*3 attempts"):
+        make_dataset("reach-around", out, scene=1, modes=["left-tight"], episodes_per_mode=1, max_attempts=3,
+                     progress=False)
+    assert not out.exists()
+    assert list((tmp_path / "sub").iterdir()) == []  # no half-written temp dir left behind
+
+
+def test_waypoint_demos_in_scene3_are_labelled_novel(tmp_path):
+    out = make_dataset("avoiding", tmp_path / "av3", scene=3, waypoints="scene", episodes_per_mode=2,
+                       progress=False)
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/av3", root=out)
+    assert ds.num_episodes == 2 and list(ds.meta.tasks.index) == ["mode novel: novel"]
+    assert read_dataset_meta(out)["waypoints"][0] == [0.525, -0.28]
+
+
+def test_waypoints_from_file_and_argument_errors(tmp_path):
+    wp = tmp_path / "route.json"
+    wp.write_text(json.dumps([[0.0, -0.3, 0.4], [0.19, -0.12, 0.59], [0.19, 0.12, 0.59], [0.0, 0.3, 0.4]]))
+    out = make_dataset("reach-around", tmp_path / "wp", scene=3, waypoints=wp, episodes_per_mode=1,
+                       progress=False)
+    assert out.is_dir()
+    with pytest.raises(ValueError, match="either modes or waypoints"):
+        make_dataset("reach-around", tmp_path / "x", modes=[0], waypoints=wp, progress=False)
+    with pytest.raises(ValueError, match="unknown mode 'sideways'"):
+        make_dataset("reach-around", tmp_path / "x", modes=["sideways"], progress=False)
+    with pytest.raises(KeyError, match="unknown env 'nope'"):
+        make_dataset("nope", tmp_path / "x", progress=False)
+    with pytest.raises(envs.SceneError, match="has no 'waypoints'"):
+        make_dataset("reach-around", tmp_path / "x", scene=1, waypoints="scene", progress=False)
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("name", ["pick-place", "kitchen-microwave"])
+def test_other_suite_envs_record_through_the_suite_interface(name, tmp_path):
+    if name not in envs.SUITE:
+        pytest.skip(f"{name} is not registered in this checkout")
+    out = make_dataset(name, tmp_path / name, modes=[0], episodes_per_mode=1, progress=False)
+    meta = read_dataset_meta(out)
+    assert meta["env"] == name and meta["episode_modes"] == [0]
+
+
+def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):
+    import matplotlib.pyplot as plt
+
+    from lerobot_pdp.envs.plotting import draw_scene, plot_dataset, plot_trajectories
+
+    png = plot_dataset(reach_dataset, tmp_path / "fig" / "reach.png", scene=1)
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    fig, ax = plt.subplots()
+    draw_scene(ax, "avoiding", 3, "xy")
+    assert len(ax.patches) == 6 + 2 - 1 + 4  # posts + walls - removed post + sealing boxes
+    handles = plot_trajectories(ax, [np.zeros((3, 4)), np.ones((3, 4))], [5, "novel"], envs.SUITE["avoiding"].mode_names,
+                                "xy", (0, 1))
+    assert [h.get_label() for h in handles] == ["5: L-M-2", "novel"]
+    with pytest.raises(ValueError, match="plane"):
+        draw_scene(ax, "reach-around", 0, "xx")
+    plt.close(fig)
+
+
+def test_cli_make_and_plot(tmp_path, capsys):
+    out = tmp_path / "cli_ds"
+    rc = cli_main(["make-dataset", "--env", "reach-around", "--scene", "2", "--modes", "left-wide",
+                   "--episodes-per-mode", "2", "--seed", "3", "--out", str(out), "--no-progress"])
+    assert rc == 0 and (out / "meta" / "info.json").is_file()
+    assert read_dataset_meta(out)["episode_modes"] == [3, 3]
+    rc = cli_main(["plot-dataset", str(out), "--out", str(tmp_path / "p.png")])
+    assert rc == 0 and (tmp_path / "p.png").is_file()
+    rc = cli_main(["make-dataset", "--env", "reach-around", "--out", str(out), "--no-progress"])
+    assert rc == 2 and "already exists" in capsys.readouterr().err
