@@ -53,20 +53,23 @@ def normalize_trace(x: np.ndarray, mode: str) -> np.ndarray:
 def gripper_segments(actions: np.ndarray, dim: int, threshold: float, min_length: int = 2) -> list[tuple[int, int]]:
     """Split frames [0, T) into phases at changes of ``actions[:, dim] > threshold`` (open/close events).
 
-    Phases shorter than ``min_length`` frames (gripper chatter) are merged into the previous phase.
+    Runs shorter than ``min_length`` frames (gripper chatter) take the state of the run before them, so
+    a one-frame blip neither starts a phase nor cuts one in two.
     """
-    closed = np.asarray(actions)[:, dim] > threshold
-    cuts = [0] + [t for t in range(1, len(closed)) if closed[t] != closed[t - 1]] + [len(closed)]
-    segments: list[tuple[int, int]] = []
-    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-        if segments and b - a < min_length:
-            segments[-1] = (segments[-1][0], b)
+    closed = (np.asarray(actions)[:, dim] > threshold).copy()
+    t = 1
+    while t < len(closed):
+        if closed[t] != closed[t - 1]:
+            run_end = t
+            while run_end < len(closed) and closed[run_end] == closed[t]:
+                run_end += 1
+            if run_end - t < min_length and run_end < len(closed):
+                closed[t:run_end] = closed[t - 1]
+            t = run_end
         else:
-            segments.append((a, b))
-    if len(segments) > 1 and segments[0][1] - segments[0][0] < min_length:
-        segments[1] = (0, segments[1][1])
-        segments.pop(0)
-    return segments
+            t += 1
+    cuts = [0] + [t for t in range(1, len(closed)) if closed[t] != closed[t - 1]] + [len(closed)]
+    return list(zip(cuts[:-1], cuts[1:], strict=True))
 
 
 def make_trace(states: np.ndarray, dims: list[int] | None, length: int, normalize: str) -> np.ndarray:

@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import shutil
+import tempfile
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,6 +25,9 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812
+from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
+from huggingface_hub.serialization import save_torch_state_dict
+from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
 from lerobot.configs import FeatureType
@@ -518,7 +524,9 @@ class PDPPolicy(PreTrainedPolicy):
         where = "episode"
         if isinstance(episode, tuple):
             source, index = episode
-            root = getattr(source, "root", source)
+            root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
+            if root is None:
+                raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
             where = f"episode {index} of {root}"
             keys = [k for k in (OBS_STATE, OBS_ENV_STATE, ACTION, cfg.trace_key)
                     if k == OBS_STATE or k == ACTION or (k == OBS_ENV_STATE and self.env_dim) or k == cfg.trace_key]
@@ -555,10 +563,52 @@ class PDPPolicy(PreTrainedPolicy):
             raise ValueError(f"{where}: has {T} frames, shorter than one action chunk (horizon {cfg.horizon})")
         return out
 
-    def generate_model_card(self, *args, **kwargs):
-        """LeRobot's model card plus what PDP is and how to steer it."""
-        card = super().generate_model_card(*args, **kwargs)
+    def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
+        """Write config + weights into a temporary folder next to ``save_directory``, then move them in,
+        so a crash mid-write never leaves a half checkpoint (weights are moved last)."""
+        save_directory = Path(save_directory)
+        save_directory.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".pdp-save-", dir=save_directory.parent))
+        try:
+            self.config._save_pretrained(tmp)
+            if state_dict is None:
+                save_model_as_safetensor(self, str(tmp / SAFETENSORS_SINGLE_FILE))
+            else:
+                save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
+            names = sorted(p.name for p in tmp.iterdir())
+            for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
+                os.replace(tmp / name, save_directory / name)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if not any(save_directory.iterdir()):
+                save_directory.rmdir()
+
+    def generate_model_card(self, dataset_repo_id: str, model_type: str, license: str | None,
+                            tags: list[str] | None, cfg: Any = None, dataset_meta: Any = None):
+        """LeRobot's model card (same template and context) plus what PDP is and how to steer it.
+
+        Unlike the base class it validates the card against the Hub only when online, so cards can be
+        written and tested with ``HF_HUB_OFFLINE=1``.
+        """
+        from importlib.resources import files
+
+        from huggingface_hub import ModelCard, ModelCardData
+        from huggingface_hub.constants import HF_HUB_OFFLINE
+        from lerobot.policies.pretrained import _build_card_context
+
+        card_data = ModelCardData(
+            license=license or "apache-2.0", library_name="lerobot", pipeline_tag="robotics",
+            tags=sorted(set(tags or []) | {"robotics", "lerobot", model_type, "parameterized-diffusion-policy"}),
+            model_name=model_type, datasets=dataset_repo_id,
+        )
+        context = _build_card_context(cfg, dataset_meta, self.config.input_features, self.config.output_features)
+        context["policy_repo_id"] = getattr(self.config, "repo_id", None)
+        context["base_model"] = None
+        template = files("lerobot.templates").joinpath("lerobot_modelcard_template.md").read_text(encoding="utf-8")
+        card = ModelCard.from_template(card_data, template_str=template, **context)
         card.text = card.text + MODEL_CARD_PDP
+        if not HF_HUB_OFFLINE:
+            card.validate()
         return card
 
 

@@ -108,3 +108,15 @@ def test_classifier_novel_cases():
         av.mode_waypoints(24)
     with pytest.raises(ValueError, match=r"\[x, y\]"):
         av.expert_from_waypoints([[0.5, 0.1, 0.0]], np.random.default_rng(0))
+
+
+def test_no_route_around_the_outside_of_a_wall():
+    """The desired position is clamped between the walls, so hugging the workspace edge means touching one."""
+    env = gym.make(av.GYM_ID, scene=3)
+    env.reset(seed=0)
+    info = {}
+    for t in range(SUITE.max_episode_steps):
+        _, _, terminated, truncated, info = env.step(np.array([-1.0, 0.0]) if t < 40 else np.array([0.0, 1.0]))
+        if terminated or truncated:
+            break
+    assert info["collided"] and not info["is_success"]

@@ -179,3 +179,14 @@ def test_reimport_does_not_reregister():
         warnings.simplefilter("error")
         importlib.reload(ra)
     assert ra.GYM_ID in gym.registry
+
+
+def test_scene3_wall_cannot_be_bypassed_at_the_workspace_edge():
+    env = gym.make(ra.GYM_ID, scene=3)
+    env.reset(seed=0)
+    for t in range(SUITE.max_episode_steps):
+        action = np.array([1.0, 0.0, 1.0]) if t < 60 else np.array([0.0, 1.0, 0.0])
+        _, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    assert info["collided"] and not info["is_success"]

@@ -68,8 +68,8 @@ def test_unknown_barrier_key(tmp_path):
 
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])
 def test_non_finite_json_number(tmp_path, literal):
-    p = _write(tmp_path, '{"barriers": [{"shape": "box", "pos": [0.3, 0, %s], "half_size": [0.1, 0.1, 0.1]}]}'
-               % literal)
+    text = '{"barriers": [{"shape": "box", "pos": [0.3, 0, LIT], "half_size": [0.1, 0.1, 0.1]}]}'
+    p = _write(tmp_path, text.replace("LIT", literal))
     with pytest.raises(SceneError, match="non-finite"):
         gym.make(ENVS["reach_around"], scene=p)
 

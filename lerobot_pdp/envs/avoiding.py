@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .point_mass import PointMassEnv, WaypointExpert, make_waypoint_expert, register_gym
-from .scene import Barrier, load_scene
+from .scene import Barrier
 from .suite import NOVEL, SuiteEnv, register_suite_env
 
 GYM_ID = "lerobot_pdp/Avoiding-v0"
@@ -64,8 +64,10 @@ class AvoidingEnv(PointMassEnv):
     goal: ClassVar[tuple[float, ...]] = (0.5, FINISH_Y + 0.02)  # a point beyond the line, for check_clear
     ee_radius: ClassVar[float] = 0.01
     max_speed: ClassVar[float] = 0.8
-    workspace_low: ClassVar[tuple[float, ...]] = (0.10, -0.34)
-    workspace_high: ClassVar[tuple[float, ...]] = (0.90, 0.42)
+    # The desired position stays between the walls' inner faces and within their length, so no route
+    # can slip around the outside of a wall past the rows.
+    workspace_low: ClassVar[tuple[float, ...]] = (WALL_X[0], -0.34)
+    workspace_high: ClassVar[tuple[float, ...]] = (WALL_X[1], 0.42)
     plane_z: ClassVar[float] = 0.0
     default_episode_length: ClassVar[int] = MAX_STEPS
     render_views: ClassVar[tuple[tuple[int, int], ...]] = ((0, 1),)
@@ -168,8 +170,7 @@ def classify_mode(states: np.ndarray, scene: Any = 0) -> int | str:
 
 def static_primitives(scene: Any = 0) -> tuple[Barrier, ...]:
     """Built-in obstacles left in ``scene`` (for plotting)."""
-    removed = set(load_scene(scene, AvoidingEnv.scene_key).remove)
-    return tuple(b for b in AvoidingEnv.builtin_obstacles() if b.name not in removed)
+    return AvoidingEnv.static_primitives(scene)
 
 
 LANDMARKS = {"start": START}

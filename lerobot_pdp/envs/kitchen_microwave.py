@@ -184,6 +184,45 @@ def _kinematics_model() -> Any:
     return mujoco.MjModel.from_xml_path(str(_kitchen_xml()))
 
 
+def _geom_sample_points(model: Any, geoms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample points (geom frame) of collision geoms: (geom id per point, local xyz, radius per point)."""
+    import mujoco
+
+    ids, pts, rad = [], [], []
+    for g in geoms:
+        gtype, size = model.geom_type[g], model.geom_size[g]
+        if gtype == mujoco.mjtGeom.mjGEOM_MESH:
+            mid = model.geom_dataid[g]
+            adr, num = model.mesh_vertadr[mid], model.mesh_vertnum[mid]
+            local, r = model.mesh_vert[adr:adr + num].astype(np.float64), 0.0
+        elif gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            local, r = np.stack([np.zeros(9), np.zeros(9), np.linspace(-size[1], size[1], 9)], axis=1), size[0]
+        elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
+            local, r = np.zeros((1, 3)), size[0]
+        elif gtype == mujoco.mjtGeom.mjGEOM_BOX:
+            grid = np.array(np.meshgrid(*[[-v, 0.0, v] for v in size[:3]], indexing="ij")).reshape(3, -1).T
+            local, r = grid, 0.0
+        else:
+            raise NotImplementedError(f"clearance for robot geom type {gtype} is not implemented")
+        ids.append(np.full(len(local), g))
+        pts.append(local)
+        rad.append(np.full(len(local), r))
+    return np.concatenate(ids), np.concatenate(pts), np.concatenate(rad)
+
+
+def _signed_distance(b: Any, pts: np.ndarray) -> np.ndarray:
+    """Vectorized signed distance from points (N, 3) to a barrier primitive (negative inside)."""
+    c = np.asarray(b.center3(0.0))
+    d = pts - c
+    if b.shape == "box":
+        q = np.abs(d) - np.asarray(b.half_size)
+        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+    radial = np.hypot(d[:, 0], d[:, 1]) - b.radius
+    axial = np.abs(d[:, 2]) - b.half_height
+    outside = np.hypot(np.maximum(radial, 0.0), np.maximum(axial, 0.0))
+    return outside + np.minimum(np.maximum(radial, axial), 0.0)
+
+
 # ----------------------------------------------------------------------------------------------------
 # The environment.
 
@@ -200,7 +239,6 @@ class KitchenMicrowaveEnv(gym.Env):
         render_mode: str | None = None,
         robot_noise_ratio: float = 0.01,
         object_noise_ratio: float = 0.0005,
-        clearance_range: float = 0.5,
     ) -> None:
         import mujoco
 
@@ -219,7 +257,6 @@ class KitchenMicrowaveEnv(gym.Env):
         self._max_episode_steps = int(max_episode_steps)
         self.task_description = "open the microwave door"
         self.task = "kitchen_microwave"
-        self._clearance_range = float(clearance_range)
 
         self._kitchen = _make_kitchen(self.scene, render_mode=render_mode, robot_noise_ratio=robot_noise_ratio,
                                       object_noise_ratio=object_noise_ratio)
@@ -229,12 +266,14 @@ class KitchenMicrowaveEnv(gym.Env):
         self._ee_site = m.site("end_effector").id
         self._handle_site = m.site("microhandle_site").id
         robot_root = m.body("panda0_link0").id
-        robot_bodies = {b for b in range(m.nbody) if b == robot_root or self._is_descendant(b, robot_root)}
+        # Moving robot bodies only: the base (welded to the world) never collides with static geoms in
+        # MuJoCo, and mj_geomDistance reports a spurious 0 between its mesh and nearby boxes.
+        robot_bodies = {b for b in range(m.nbody) if self._is_descendant(b, robot_root) and m.body_weldid[b] != 0}
         self._robot_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] in robot_bodies
                                       and (m.geom_contype[g] or m.geom_conaffinity[g])], dtype=int)
         self._barrier_geoms = np.array([m.geom(f"{BARRIER_PREFIX}{i}").id for i in range(len(self.scene.barriers))],
                                        dtype=int)
-        self._fromto = np.zeros(6)
+        self._pt_geom, self._pt_local, self._pt_radius = _geom_sample_points(m, self._robot_geoms)
         self._hinge_qadr = m.jnt_qposadr[m.joint("microwave").id]
         self._hinge_vadr = m.jnt_dofadr[m.joint("microwave").id]
         self._mj = mujoco
@@ -248,12 +287,21 @@ class KitchenMicrowaveEnv(gym.Env):
         self._states: list[np.ndarray] = []
         self._min_clearance = math.inf
 
-        # The reset pose is deterministic: check once that no barrier intersects the robot there.
+        # The reset pose is deterministic: check once that no barrier intersects the robot there, and
+        # that none intersects the kettle (a free body: an overlap would launch it and change the dynamics).
         self._kitchen.reset(seed=0)
         d0 = self._clearance()
         if d0 < 0.01:
             raise SceneError(f"{self.scene.source}: a barrier touches the robot at its reset pose "
                              f"(clearance {d0:.3f} m, need >= 0.010 m)")
+        kettle = m.body("kettle").id
+        for c in self.data.contact[: self.data.ncon]:
+            pair = (int(c.geom1), int(c.geom2))
+            if any(g in self._barrier_geoms for g in pair) and any(
+                    m.body_rootid[m.geom_bodyid[g]] == kettle for g in pair):
+                b = next(g for g in pair if g in self._barrier_geoms)
+                raise SceneError(f"{self.scene.source}: barriers[{m.geom(b).name[len(BARRIER_PREFIX):]}] "
+                                 f"intersects the kettle (a free body); move it clear of the kettle")
 
     def _is_descendant(self, body: int, root: int) -> bool:
         while body > 0:
@@ -265,16 +313,23 @@ class KitchenMicrowaveEnv(gym.Env):
     # -- physics queries ------------------------------------------------------------------------------
 
     def _clearance(self) -> float:
-        """Minimum distance between any robot collision geom and any barrier (``inf`` if none in range)."""
-        if not len(self._barrier_geoms):
+        """Minimum robot-to-barrier distance (``inf`` without barriers), from the robot's collision geoms.
+
+        Evaluated analytically on sample points of every moving robot collision geom (mesh vertices,
+        capsule axes minus their radius, box corners/edge and face centres) against each barrier
+        primitive, so it is a slight over-estimate (by at most a mesh facet's sag). ``mj_geomDistance`` is
+        not used: in MuJoCo 3.11 it returns spurious 0.0 (native CCD) or spurious negative (libccd)
+        distances for mesh-box pairs 3-40 cm apart. Collisions themselves come from the simulator's
+        contacts, see :meth:`_barrier_contact`.
+        """
+        if not self.scene.barriers:
             return math.inf
-        best = self._clearance_range
-        for b in self._barrier_geoms:
-            for g in self._robot_geoms:
-                dist = self._mj.mj_geomDistance(self.model, self.data, int(g), int(b), best, self._fromto)
-                if dist < best:
-                    best = dist
-        return math.inf if best >= self._clearance_range else float(best)
+        rot = self.data.geom_xmat[self._pt_geom].reshape(-1, 3, 3)
+        pts = np.einsum("nij,nj->ni", rot, self._pt_local) + self.data.geom_xpos[self._pt_geom]
+        best = math.inf
+        for b in self.scene.barriers:
+            best = min(best, float(np.min(_signed_distance(b, pts) - self._pt_radius)))
+        return best
 
     def _barrier_contact(self) -> bool:
         if not len(self._barrier_geoms):
@@ -319,7 +374,7 @@ class KitchenMicrowaveEnv(gym.Env):
         self._states.append(obs["agent_pos"].copy())
         clearance = self._clearance()
         self._min_clearance = min(self._min_clearance, clearance)
-        collided = clearance < 0.0 or self._barrier_contact()
+        collided = self._barrier_contact()
         opened = "microwave" in kinfo["episode_task_completions"]
         success = opened and not collided
         terminated = bool(collided or success)

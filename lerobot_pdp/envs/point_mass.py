@@ -270,6 +270,12 @@ class PointMassEnv(gym.Env):
         """Named obstacles of the original layout (scenes may remove them by name)."""
         raise NotImplementedError
 
+    @classmethod
+    def static_primitives(cls, scene: Any = 0) -> tuple[Barrier, ...]:
+        """Built-in obstacles that ``scene`` leaves in place (for plotting; the env itself checks names)."""
+        removed = set(load_scene(scene, cls.scene_key).remove)
+        return tuple(b for b in cls.builtin_obstacles() if b.name not in removed)
+
     def goal_reached(self, pos: np.ndarray) -> bool:
         raise NotImplementedError
 

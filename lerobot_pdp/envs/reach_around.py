@@ -152,10 +152,7 @@ def classify_mode(states: np.ndarray, scene: Any = 0) -> int | str:
 
 def static_primitives(scene: Any = 0) -> tuple[Barrier, ...]:
     """Built-in obstacles left in ``scene`` (for plotting)."""
-    from .scene import load_scene
-
-    removed = set(load_scene(scene, ReachAroundEnv.scene_key).remove)
-    return tuple(b for b in ReachAroundEnv.builtin_obstacles() if b.name not in removed)
+    return ReachAroundEnv.static_primitives(scene)
 
 
 LANDMARKS = {"start": START, "goal": GOAL}

@@ -1,0 +1,103 @@
+"""Behavior traces, kappa and the trajectory VAE."""
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_pdp.behavior import (
+    TrajectoryVAE,
+    build_behavior_traces,
+    choose_kappa,
+    gripper_segments,
+    normalize_trace,
+    prior_mean_distance,
+    read_episodes,
+    resample,
+)
+
+
+def test_resample_keeps_endpoints_and_shape():
+    x = np.stack([np.linspace(0, 1, 37), np.linspace(2, 0, 37)], 1)
+    r = resample(x, 64)
+    assert r.shape == (64, 2)
+    np.testing.assert_allclose(r[0], x[0])
+    np.testing.assert_allclose(r[-1], x[-1])
+    np.testing.assert_allclose(resample(x[:1], 5), np.repeat(x[:1], 5, 0))
+
+
+def test_normalize_trace():
+    x = np.array([[1.0, 1.0], [2.0, 1.0], [3.0, 1.0]])
+    np.testing.assert_allclose(normalize_trace(x, "start")[0], [0, 0])
+    np.testing.assert_allclose(normalize_trace(x, "endpoints")[-1], [1, 0])
+
+
+def test_gripper_segments_split_and_merge_chatter():
+    a = np.zeros((20, 4))
+    a[8:15, 3] = 1.0  # close at 8, open at 15
+    assert gripper_segments(a, 3, 0.0) == [(0, 8), (8, 15), (15, 20)]
+    a[10, 3] = -1.0  # one-frame chatter is merged
+    assert gripper_segments(a, 3, 0.0, min_length=2) == [(0, 8), (8, 15), (15, 20)]
+
+
+def test_prior_mean_distance_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    for d in (1, 2, 5):
+        a, b = rng.normal(size=(200000, d)), rng.normal(size=(200000, d))
+        assert prior_mean_distance(d) == pytest.approx(np.linalg.norm(a - b, axis=1).mean(), rel=0.01)
+
+
+def test_choose_kappa_scales_mean_distance_to_prior():
+    d = np.array([[0, 2.0, 4.0], [2.0, 0, 6.0], [4.0, 6.0, 0]])
+    k = choose_kappa(d, 2)
+    assert k * 4.0 == pytest.approx(prior_mean_distance(2))
+
+
+def test_read_episodes_and_traces(synthetic_dataset):
+    eps = read_episodes(synthetic_dataset, ["observation.state", "action"])
+    assert len(eps) == 40
+    assert eps[3]["task"] == "mode 3: right-wide"
+    b = build_behavior_traces(eps, "observation.state", None, 32, "none")
+    assert b.traces.shape == (40, 32, 2)
+    assert sorted(set(b.mode.tolist())) == [0, 1, 2, 3]
+    assert b.mode_names[1] == "left-wide"
+    np.testing.assert_array_equal(b.start, 0)
+    assert b.global_start[1] == len(eps[0]["action"])
+
+
+def test_nonfinite_state_names_episode():
+    eps = {7: {"observation.state": np.array([[0.0, 0.0], [np.nan, 1.0], [1.0, 1.0]]), "task": ""}}
+    with pytest.raises(ValueError, match=r"episode 7: 'observation.state' has non-finite values \(first at frame 1"):
+        build_behavior_traces(eps, "observation.state", None, 8, "none")
+
+
+def test_short_episode_is_rejected():
+    eps = {2: {"observation.state": np.zeros((1, 2)), "task": ""}}
+    with pytest.raises(ValueError, match="episode 2 has 1 frames"):
+        build_behavior_traces(eps, "observation.state", None, 8, "none", min_length=2)
+
+
+def test_vae_geometry_alignment_orders_latents_like_traces():
+    """Four clusters of 1-D offsets: after training, latent distances follow trace distances."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    offsets = np.repeat([-2.0, -1.0, 1.0, 2.0], 8) + rng.normal(0, 0.05, 32)
+    t = np.linspace(0, 1, 16)
+    traces = np.stack([np.stack([t, off * np.sin(np.pi * t)], 1) for off in offsets])
+    dist = np.abs(offsets[:, None] - offsets[None, :]) * 10
+    kappa = choose_kappa(dist, 2)
+    vae = TrajectoryVAE(16, 2, 2, (64, 64))
+    x = torch.tensor(traces, dtype=torch.float32)
+    vae.set_trace_stats(x)
+    opt = torch.optim.Adam(vae.parameters(), lr=3e-3)
+    dx = torch.tensor(dist, dtype=torch.float32)
+    for _ in range(400):
+        loss, info = vae.loss(x, dx, kappa, 1e-3, 1.0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    mu = vae.encode(x)[0].detach().numpy()
+    dz = np.linalg.norm(mu[:, None] - mu[None], axis=-1)
+    iu = np.triu_indices(32, 1)
+    corr = np.corrcoef(dz[iu], kappa * dist[iu])[0, 1]
+    assert corr > 0.95, corr
+    assert info["embed_geo"] < 0.1

@@ -1,0 +1,55 @@
+"""PDPConfig: registration, LeRobot contract, validation errors."""
+
+import pytest
+from lerobot.configs import PreTrainedConfig
+
+from lerobot_pdp import PDPConfig
+
+
+def test_registered_as_pdp():
+    assert PreTrainedConfig.get_choice_class("pdp") is PDPConfig
+    assert PDPConfig().type == "pdp"
+
+
+def test_paper_defaults():
+    c = PDPConfig()
+    assert (c.latent_dim, c.beta_kl, c.beta_geo, c.sdtw_gamma) == (2, 1e-3, 1.0, 1e-5)
+    assert c.num_train_timesteps == 20 and c.num_inference_steps < c.num_train_timesteps
+    assert c.optimizer_lr == c.embedding_lr == 1e-4
+    assert tuple(c.film_hidden_dims) == (16, 32)
+
+
+def test_delta_indices():
+    c = PDPConfig(n_obs_steps=2, horizon=16)
+    assert c.observation_delta_indices == [-1, 0]
+    assert c.action_delta_indices == list(range(-1, 15))
+    assert c.reward_delta_indices is None
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"latent_dim": 0}, "latent_dim must be >= 1"),
+        ({"sdtw_gamma": 0.0}, "sdtw_gamma must be > 0"),
+        ({"sdtw_gamma": -1.0}, "sdtw_gamma must be > 0"),
+        ({"latent_conditioning": "add"}, "latent_conditioning must be one of"),
+        ({"latent_type": "vq"}, "latent_type must be one of"),
+        ({"horizon": 10}, "horizon (10) must be a multiple"),
+        ({"num_inference_steps": 50}, "num_inference_steps (50) must be <="),
+        ({"n_action_steps": 16}, "n_action_steps (16) must be <="),
+        ({"beta_kl": -1.0}, "beta_kl must be >= 0"),
+        ({"steer_latent": [1.0, 2.0, 3.0]}, "steer_latent has 3 values"),
+        ({"steer_dataset_root": "/x"}, "must be given together"),
+        ({"trace_normalize": "minmax"}, "trace_normalize must be one of"),
+    ],
+)
+def test_invalid_values_are_named(kwargs, message):
+    with pytest.raises(ValueError, match=None) as e:
+        PDPConfig(**kwargs)
+    assert message in str(e.value)
+
+
+def test_presets():
+    c = PDPConfig()
+    assert c.get_optimizer_preset().lr == c.optimizer_lr
+    assert c.get_scheduler_preset().num_warmup_steps == c.scheduler_warmup_steps

@@ -1,0 +1,227 @@
+"""PDPPolicy in-process: construction from a real dataset, training step, steering API, errors, save/load."""
+
+import numpy as np
+import pytest
+import torch
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp.behavior import read_episodes
+
+
+def _policy(meta, **kw):
+    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), **kw)
+    return make_policy(cfg, ds_meta=meta)
+
+
+def _batch(meta, policy, n=8, seed=0):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    cfg = policy.config
+    fps = meta.fps
+    ds = LeRobotDataset("local/synthetic", root=meta.root, delta_timestamps={
+        "observation.state": [i / fps for i in cfg.observation_delta_indices],
+        "observation.environment_state": [i / fps for i in cfg.observation_delta_indices],
+        "action": [i / fps for i in cfg.action_delta_indices],
+    })
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    g = torch.Generator().manual_seed(seed)
+    items = [ds[int(i)] for i in torch.randint(0, len(ds), (n,), generator=g)]
+    batch = torch.utils.data.default_collate(items)
+    return pre(batch)
+
+
+def test_builds_behaviors_from_whole_episodes(synthetic_meta):
+    p = _policy(synthetic_meta)
+    assert len(p.behavior_traces) == 40
+    assert p.trace_distance_matrix.shape == (40, 40)
+    assert torch.allclose(p.trace_distance_matrix, p.trace_distance_matrix.T, atol=1e-4)
+    assert p.config.mode_names == {"0": "left-tight", "1": "left-wide", "2": "right-tight", "3": "right-wide"}
+    # distances: same-mode pairs are closer than cross-mode pairs
+    m = p.behavior_mode
+    same = m[:, None] == m[None]
+    off = ~torch.eye(40, dtype=torch.bool)
+    assert p.trace_distance_matrix[same & off].mean() < p.trace_distance_matrix[~same].mean()
+
+
+def test_forward_and_param_groups(synthetic_meta):
+    p = _policy(synthetic_meta)
+    p.train()
+    batch = _batch(synthetic_meta, p)
+    loss, info = p.forward(batch)
+    assert torch.isfinite(loss)
+    assert {"loss_dp", "embed_rec", "embed_kl", "embed_geo", "loss_embed"} <= set(info)
+    groups = p.get_optim_params()
+    assert [g["lr"] for g in groups] == [p.config.embedding_lr, p.config.optimizer_lr]
+    vae_ids = {id(q) for q in p.vae.parameters()}
+    assert {id(q) for q in groups[0]["params"]} == vae_ids
+    assert not vae_ids & {id(q) for q in groups[1]["params"]}
+    # stop-gradient: L_DP alone gives the encoder no gradient
+    p.zero_grad()
+    p.eval()
+    loss_dp, _ = p.forward(batch)
+    loss_dp.backward()
+    assert all(q.grad is None or not q.grad.any() for q in p.vae.parameters())
+    assert any(q.grad is not None and q.grad.any() for q in p.denoiser.parameters())
+
+
+def test_behavior_lookup_by_episode_and_global_index(synthetic_meta):
+    p = _policy(synthetic_meta)
+    ids = p._behavior_ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.behavior_global_start[5]) + 3, 10**6]))
+    assert ids.tolist() == [0, 5, 39]
+    with pytest.raises(KeyError, match=r"episode\(s\) \[99\]"):
+        p._behavior_ids(torch.tensor([99]), None)
+
+
+def test_batch_shape_errors_name_key(synthetic_meta):
+    p = _policy(synthetic_meta)
+    batch = _batch(synthetic_meta, p)
+    batch["action"] = batch["action"][:, :5]
+    with pytest.raises(ValueError, match=r"batch\['action'\] has shape \(8, 5, 2\), expected \[B, 16, 2\]"):
+        p.forward(batch)
+
+
+def test_select_action_and_steering_api(synthetic_meta):
+    p = _policy(synthetic_meta)
+    p.eval()
+    pre, post = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
+    obs = {"observation.state": torch.tensor([[0.0, -1.0]]), "observation.environment_state": torch.tensor([[0.0, 1.0]])}
+    a = p.select_action(pre(obs))
+    assert a.shape == (1, 2)
+    assert len(p._queues["action"]) == p.config.n_action_steps - 1
+    means = p.mode_latents()
+    assert sorted(means) == [0, 1, 2, 3] and means[0].shape == (2,)
+    p.set_latent(means[2])
+    assert torch.equal(p.current_latent(3), means[2].expand(3, -1))
+    z = p.interpolate(means[0], means[3], 5)
+    assert z.shape == (5, 2) and torch.allclose(z[0], means[0]) and torch.allclose(z[-1], means[3])
+    ze = p.interpolate(means[0], means[3], 5, path="elliptical")
+    assert torch.allclose(ze[0], means[0]) and torch.allclose(ze[-1], means[3], atol=1e-6)
+    with pytest.raises(ValueError, match="latent must have shape"):
+        p.set_latent([1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="non-finite"):
+        p.set_latent([float("nan"), 0.0])
+
+
+def test_encode_and_fit_latent_inputs(synthetic_meta):
+    p = _policy(synthetic_meta)
+    root = synthetic_meta.root
+    ep = read_episodes(root, ["observation.state", "observation.environment_state", "action"], [2])[2]
+    z = p.encode(ep)
+    assert z.shape == (2,)
+    torch.testing.assert_close(z, p.behavior_latents(torch.tensor([2]))[0].detach(), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(p.encode((root, 2)), z)
+    before = {k: v.clone() for k, v in p.state_dict().items()}
+    res = p.fit_latent({k: torch.as_tensor(v) for k, v in ep.items() if k != "task"}, steps=5)
+    assert len(res.losses) == 5 and res.z.shape == (2,)
+    torch.testing.assert_close(res.z_init, z)
+    for k, v in p.state_dict().items():
+        assert torch.equal(v, before[k]), f"fit_latent changed {k}"
+    assert torch.equal(p.active_latent[0], res.z)
+    seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, 40)])
+    assert seg.z.shape == (2, 2) and p.active_latent.shape == (2, 2)
+    r0 = p.fit_latent((root, 2), steps=0, init="random")
+    assert torch.equal(r0.z, r0.z_init)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda e: e.pop("action"), r"missing 'action'"),
+        (lambda e: e.__setitem__("action", e["action"][:, :1]), r"'action' has shape \(\d+, 1\), expected \[T, 2\]"),
+        (lambda e: e["observation.state"].__setitem__((3, 0), np.inf), r"'observation.state' has non-finite values \(first at frame 3"),
+        (lambda e: [e.__setitem__(k, e[k][:10]) for k in list(e)], r"has 10 frames, shorter than one action chunk"),
+        (lambda e: e.__setitem__("action", e["action"][:-1]), r"keys have different lengths"),
+    ],
+)
+def test_fit_latent_bad_episode(synthetic_meta, mutate, message):
+    p = _policy(synthetic_meta)
+    ep = read_episodes(synthetic_meta.root, ["observation.state", "observation.environment_state", "action"], [0])[0]
+    ep = {k: v for k, v in ep.items() if isinstance(v, np.ndarray)}
+    mutate(ep)
+    with pytest.raises((KeyError, ValueError), match=message):
+        p.fit_latent(ep, steps=1)
+
+
+def test_mode_latents_without_labels_is_a_clear_error(synthetic_meta):
+    p = _policy(synthetic_meta)
+    p.behavior_mode = torch.full_like(p.behavior_mode, -1)
+    with pytest.raises(ValueError, match="mode_latents\\(\\) needs mode labels"):
+        p.mode_latents()
+
+
+def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
+    p = _policy(synthetic_meta)
+    p.eval()
+    p.save_pretrained(tmp_path / "ckpt")
+    assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt")
+    for name in ("behavior_traces", "trace_distance_matrix", "behavior_mode", "geo_kappa"):
+        assert torch.equal(getattr(p, name), getattr(q, name)), name
+    assert q.config.mode_names == p.config.mode_names
+    for a, b in zip(p.mode_latents().values(), q.mode_latents().values(), strict=True):
+        torch.testing.assert_close(a, b)
+    obs = torch.randn(1, 2 * (2 + 2))
+    z = torch.tensor([[0.3, -0.2]])
+    noise = torch.randn(1, 16, 2)
+    torch.testing.assert_close(p.generate(obs, z, noise=noise), q.generate(obs, z, noise=noise))
+
+
+def test_checkpoint_write_is_atomic(synthetic_meta, tmp_path, monkeypatch):
+    import lerobot_pdp.modeling_pdp as mp
+
+    p = _policy(synthetic_meta)
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(mp, "save_model_as_safetensor", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        p.save_pretrained(tmp_path / "ckpt")
+    leftovers = list((tmp_path / "ckpt").glob("*")) if (tmp_path / "ckpt").exists() else []
+    assert leftovers == []
+
+
+def test_model_card_explains_pdp(synthetic_meta):
+    p = _policy(synthetic_meta)
+    card = p.generate_model_card("local/synthetic", "pdp", None, None)
+    assert "Parameterized Diffusion Policy" in card.text and "fit_latent" in card.text
+
+
+def test_onehot_ablation_builds(synthetic_meta):
+    p = _policy(synthetic_meta, latent_type="onehot")
+    assert p.config.latent_dim == 4
+    assert torch.equal(p.mode_latents()[2], torch.tensor([0.0, 0.0, 1.0, 0.0]))
+
+
+def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkeypatch):
+    """push_model_to_hub as lerobot-train calls it, with the Hub replaced by a local folder."""
+    import shutil
+    from types import SimpleNamespace
+
+    import lerobot.policies.pretrained as pretrained
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.train import TrainPipelineConfig
+
+    hub = tmp_path / "hub"
+
+    class LocalHub:
+        def create_repo(self, repo_id, **kw):
+            return SimpleNamespace(repo_id=repo_id)
+
+        def upload_folder(self, repo_id, folder_path, **kw):
+            shutil.copytree(folder_path, hub / repo_id)
+            return SimpleNamespace(repo_url=SimpleNamespace(url=f"file://{hub / repo_id}"))
+
+    monkeypatch.setattr(pretrained, "HfApi", LocalHub)
+    p = _policy(synthetic_meta)
+    p.config.repo_id = "me/pdp-synthetic"
+    cfg = TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/synthetic", root=str(synthetic_meta.root)),
+                              policy=p.config)
+    p.push_model_to_hub(cfg, dataset_meta=synthetic_meta)
+    out = hub / "me/pdp-synthetic"
+    assert {"config.json", "model.safetensors", "README.md", "train_config.json"} <= {f.name for f in out.iterdir()}
+    readme = (out / "README.md").read_text()
+    assert "Parameterized Diffusion Policy" in readme and "steer_mode" in readme
+    q = PDPPolicy.from_pretrained(out)
+    assert len(q.behavior_traces) == 40
