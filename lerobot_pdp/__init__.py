@@ -4,7 +4,10 @@
 ``--env.type=pdp_*`` LeRobot env configs.
 """
 
-from lerobot_pdp import envs  # noqa: F401  (registers gym ids and `--env.type=pdp_*`)
+from lerobot_pdp import (
+    baselines,  # noqa: F401  (registers `--policy.type=mlp_bc`)
+    envs,  # noqa: F401  (registers gym ids and `--env.type=pdp_*`)
+)
 from lerobot_pdp.configuration_pdp import PDPConfig
 from lerobot_pdp.modeling_pdp import PDPPolicy
 from lerobot_pdp.processor_pdp import make_pdp_pre_post_processors

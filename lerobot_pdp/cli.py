@@ -106,9 +106,58 @@ def cmd_plot_dataset(args: argparse.Namespace) -> int:
 
 # ---- entry point -----------------------------------------------------------------------------------
 
+
+# ---- benchmark -------------------------------------------------------------------------------------
+
+
+def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "benchmark",
+        help="the paper's evaluation protocol: train PDP and baselines, evaluate scenes 0-3",
+        description="Generate (or reuse) the scene-0 dataset, train every method with lerobot-train, evaluate "
+        "scene 0 (per-mode latents) and scenes 1-3 (adapted to one demonstration), write results.json, "
+        "results.md and figures/. Finished (method, seed) runs are reused.",
+    )
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--out", required=True, type=Path, help="output folder (reused to resume)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds (default 0 1 2)")
+    p.add_argument("--rollouts", type=int, default=40, help="rollouts per scene (default 40)")
+    p.add_argument("--methods", nargs="+", default=["pdp", "dp", "bc"],
+                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond")
+    p.add_argument("--quick", action="store_true",
+                   help="small budget for a first look: one seed, PDP + DP, shorter training, 20 rollouts")
+    p.add_argument("--ablations", action="store_true",
+                   help="also the paper's ablations and the warm/random initialisation table")
+    p.add_argument("--steps", type=int, default=None, help="override the env's training steps")
+    p.add_argument("--scenes", type=int, nargs="+", default=[0, 1, 2, 3], help="scenes to evaluate")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.set_defaults(func=cmd_benchmark)
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from lerobot_pdp.benchmark.protocol import BenchmarkConfig, run_benchmark
+
+    explicit = {a.split("=")[0] for a in sys.argv[1:]}
+    seeds, rollouts, methods = args.seeds, args.rollouts, args.methods
+    if args.quick:  # quick defaults unless given explicitly
+        seeds = seeds if "--seeds" in explicit else [0]
+        rollouts = rollouts if "--rollouts" in explicit else 20
+        methods = methods if "--methods" in explicit else ["pdp", "dp"]
+    cfg = BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
+                          quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
+                          figures=not args.no_figures)
+    res = run_benchmark(cfg)
+    print()
+    print((Path(args.out) / "results.md").read_text())
+    print(f"results: {Path(args.out) / 'results.json'} and {Path(args.out) / 'results.md'}")
+    for f in res.get("figures", []):
+        print(f"figure:  {f}")
+    return 0
+
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_make_dataset_parser,
     add_plot_dataset_parser,
+    add_benchmark_parser,
 ]
 
 

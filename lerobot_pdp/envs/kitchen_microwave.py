@@ -26,11 +26,17 @@ Actions: the kitchen's own 9 joint-velocity commands in [-1, 1] (x 2 rad/s, inte
 into position targets); the last two drive the fingers (+1 opens).
 
 ``info``: ``is_success`` (door opened past the kitchen's threshold, |q + 0.75| < 0.3, and no collision),
-``collided`` (a robot geom touched a *scene barrier*; touching the kitchen itself - counter, microwave
-body, door - does not count, since the original task touches the door and incidental furniture contact is
-not what scenes constrain), ``clearance`` (current robot-to-barrier distance), ``min_clearance`` (its
-minimum over the episode so far; ``inf`` without barriers), ``door_angle`` and, on the last step,
-``mode`` (:func:`classify_mode` of the episode's ``agent_pos`` rows). Episodes end on success or collision.
+``collided`` (the simulator reports a contact between a robot geom and a *scene barrier*; touching the
+kitchen itself - counter, kettle, microwave body, door - does not count, since the original task touches
+the door and incidental furniture contact is not what scenes constrain), ``clearance`` (current
+robot-to-barrier distance, approximate, see ``_clearance``), ``min_clearance`` (its minimum over the
+episode so far; ``inf`` without barriers), ``door_angle`` and, on the last step, ``mode``
+(:func:`classify_mode` of the episode's ``agent_pos`` rows). Episodes end on success or collision and are
+truncated after :data:`MAX_EPISODE_STEPS` (training routes need 53-77 steps).
+
+Scenes must keep clear of the start end effector (5 cm), the handle (4 cm), the robot's reset pose and
+the kettle (a free body an overlapping barrier would launch); violations raise :class:`SceneError`.
+Barriers are static world geoms; they do not stop the door (none of the shipped ones is in its swing).
 """
 
 from __future__ import annotations
@@ -240,8 +246,6 @@ class KitchenMicrowaveEnv(gym.Env):
         robot_noise_ratio: float = 0.01,
         object_noise_ratio: float = 0.0005,
     ) -> None:
-        import mujoco
-
         self.scene = load_scene(scene, SCENE_KEY)
         if self.scene.remove:
             raise SceneError(f"{self.scene.source}: 'remove' is not supported by {ENV_NAME} (the kitchen's "
@@ -266,8 +270,8 @@ class KitchenMicrowaveEnv(gym.Env):
         self._ee_site = m.site("end_effector").id
         self._handle_site = m.site("microhandle_site").id
         robot_root = m.body("panda0_link0").id
-        # Moving robot bodies only: the base (welded to the world) never collides with static geoms in
-        # MuJoCo, and mj_geomDistance reports a spurious 0 between its mesh and nearby boxes.
+        # Moving robot bodies only: the base is welded to the world, and MuJoCo never generates contacts
+        # between static geoms, so a barrier touching the base is neither a collision nor reachable.
         robot_bodies = {b for b in range(m.nbody) if self._is_descendant(b, robot_root) and m.body_weldid[b] != 0}
         self._robot_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] in robot_bodies
                                       and (m.geom_contype[g] or m.geom_conaffinity[g])], dtype=int)
@@ -276,8 +280,6 @@ class KitchenMicrowaveEnv(gym.Env):
         self._pt_geom, self._pt_local, self._pt_radius = _geom_sample_points(m, self._robot_geoms)
         self._hinge_qadr = m.jnt_qposadr[m.joint("microwave").id]
         self._hinge_vadr = m.jnt_dofadr[m.joint("microwave").id]
-        self._mj = mujoco
-
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(9,), dtype=np.float32)
         self.observation_space = gym.spaces.Dict({
             "agent_pos": gym.spaces.Box(-np.inf, np.inf, shape=(21,), dtype=np.float64),

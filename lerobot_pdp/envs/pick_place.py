@@ -9,9 +9,9 @@ Layout (world coordinates, metres; everything lies on the line x = 0, z = 0.40 a
                            -> obstacle B (0, +0.25, 0.40) -> target (0, +0.50, 0.40)
 
 Both obstacles are boxes with half-sizes (0.08, 0.04, 0.08), named ``obstacle_a`` / ``obstacle_b`` (a scene
-may ``remove`` them by name). Each phase passes its obstacle on one of 4 sides -- left (-x), right (+x),
-over (+z), under (-z) -- at a tight (0.13 m off the obstacle centre) or wide (0.25 m) distance, as in
-reach-around. Phase mode = side * 2 + (0 tight | 1 wide); env mode = reach_mode * 8 + carry_mode.
+may ``remove`` them by name). Each phase passes its obstacle on one of 4 sides -- over (+z), left (-x),
+right (+x), under (-z) -- at a tight (0.13 m off the obstacle centre) or wide (0.25 m) distance, as in
+reach-around (same phase-mode ids: side * 2 + (0 tight | 1 wide)); env mode = reach_mode * 8 + carry_mode.
 
 Physics (real MuJoCo, gravity off so the object rests where it is put, as if on an invisible shelf):
 - end effector: a sphere (r 0.015) on three slide joints driven by position actuators; an action's first three
@@ -38,10 +38,10 @@ Shipped scenes (``scenes/pick_place_scene{0..3}.json``):
 - 0: original, all 64 modes feasible.
 - 1: slabs left/right/under A and a ceiling slab above A (blocks over-wide) -> reach only over-tight;
   slabs right/over/under B and a thin fin on B's left face (blocks left-tight) -> carry only left-wide.
-  Only mode 4*8+1 = 33 ("reach over-tight / carry left-wide") is feasible.
+  Only mode 0*8+3 = 3 ("reach over-tight / carry left-wide") is feasible.
 - 2: slabs left/right/over A and a fin under A (blocks under-tight) -> reach only under-wide; slabs
   left/over/under B and a wall beyond B's right face (blocks right-wide) -> carry only right-tight.
-  Only mode 7*8+2 = 58 ("reach under-wide / carry right-tight") is feasible.
+  Only mode 7*8+4 = 60 ("reach under-wide / carry right-tight") is feasible.
 - 3: a wall at y = 0.25 around B with one 0.12 x 0.12 window centred at (+0.19, +0.19) (x, z) off B's centre;
   no training carry route fits, the shipped way-points carry the object diagonally through the window.
 
@@ -93,9 +93,9 @@ MAX_EPISODE_STEPS = 300
 WORKSPACE_LOW = np.array([-0.6, -0.7, 0.0])
 WORKSPACE_HIGH = np.array([0.6, 0.7, 0.85])
 
-SIDES = ("left", "right", "over", "under")
+SIDES = ("over", "left", "right", "under")  # same phase-mode order as reach-around
 DISTANCES = ("tight", "wide")
-SIDE_DIRS = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "over": (0.0, 1.0), "under": (0.0, -1.0)}  # (x, z)
+SIDE_DIRS = {"over": (0.0, 1.0), "left": (-1.0, 0.0), "right": (1.0, 0.0), "under": (0.0, -1.0)}  # (x, z)
 OFFSETS = {"tight": 0.13, "wide": 0.25}
 PHASE_MODE_NAMES = tuple(f"{s}-{d}" for s in SIDES for d in DISTANCES)
 N_PHASE_MODES = len(PHASE_MODE_NAMES)
@@ -242,6 +242,16 @@ class PickPlaceEnv(gym.Env):
     def grasped(self) -> bool:
         return self._grasped
 
+    # Feature names written into datasets (read by ``recording``).
+    def state_names(self) -> list[str]:
+        return ["ee_x", "ee_y", "ee_z", "gripper_closed"]
+
+    def environment_state_names(self) -> list[str]:
+        return [f"{what}_{ax}" for what in ("object", "target", "obstacle_a", "obstacle_b") for ax in "xyz"]
+
+    def action_names(self) -> list[str]:
+        return ["vx", "vy", "vz", "gripper"]
+
     def _obs(self) -> dict[str, np.ndarray]:
         agent = np.concatenate([self.ee_pos, [float(self._gripper_closed)]]).astype(np.float32)
         env_state = np.concatenate([self.object_pos, TARGET, OBSTACLE_A, OBSTACLE_B]).astype(np.float32)
@@ -294,7 +304,6 @@ class PickPlaceEnv(gym.Env):
         """The layout is fixed (variety comes from the expert); ``seed`` only seeds ``np_random``."""
         super().reset(seed=seed)
         self._reset_state()
-        mujoco.mj_forward(self.model, self.data)
         self._check_contacts()
         obs = self._obs()
         self._states.append(obs["agent_pos"].copy())
@@ -460,7 +469,7 @@ def expert_from_waypoints(waypoints: Any, rng: np.random.Generator, scene: Any =
 
 
 def _points(value: Any, where: str) -> list[np.ndarray]:
-    if not isinstance(value, (list, tuple)):
+    if not isinstance(value, (list, tuple, np.ndarray)):
         raise ValueError(f"{where}: expected a list of [x, y, z] points, got {value!r}")
     out = []
     for i, p in enumerate(value):

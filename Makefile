@@ -1,0 +1,37 @@
+# The README's two commands: `make demo` and `make test`. Both create .venv (Python 3.12) if missing.
+SHELL := /bin/bash
+# First Python 3.12 found: on PATH, under pyenv, or the system one (pyenv's shim on PATH may point elsewhere).
+PY312 ?= $(shell for p in python3.12 $(HOME)/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
+	if $$p -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then echo $$p; break; fi; done)
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+DEMO_OUT ?= outputs/demo
+
+.PHONY: install demo test lint bench clean
+
+$(STAMP): pyproject.toml
+	@if [ -z "$(PY312)" ]; then echo "Python 3.12 is required (LeRobot >= 0.5 needs it); none found" >&2; exit 1; fi
+	@test -x $(PY) || $(PY312) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dev]"
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+## Main job: generate a dataset, train PDP and a DP baseline with lerobot-train, steer in scenes 0-3, figures.
+demo: $(STAMP)
+	HF_HUB_OFFLINE=1 $(VENV)/bin/lerobot-pdp benchmark --env reach-around --quick --out $(DEMO_OUT)
+
+## Whole test suite (slow end-to-end tests included).
+test: $(STAMP)
+	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check lerobot_pdp lerobot_policy_pdp tests benchmarks examples
+
+bench: $(STAMP)
+	for b in benchmarks/bench_*.py; do HF_HUB_OFFLINE=1 $(PY) $$b; done
+
+clean:
+	rm -rf build dist *.egg-info outputs

@@ -1,0 +1,176 @@
+"""New-chunk latency of ``select_action``: PDP vs LeRobot ``diffusion`` (matched and default), side by side.
+
+Every timed call generates a whole new action chunk: the action queue is cleared before it (the
+observation history stays filled, as mid-episode). The timed call is ``policy.select_action(batch)`` on an
+already normalised batch of one observation (B = 1), i.e. what ``lerobot-eval`` spends per new chunk minus
+the pre/post-processors (reported separately as ``pipeline_median_ms``). Policies:
+
+- ``pdp``: default ``PDPConfig`` (trace_dims [0, 1, 2]) built on a small generated reach-around dataset;
+  10 DDIM steps of the FiLM 1-D U-Net (32, 64, 128);
+- ``dp_matched``: LeRobot ``diffusion`` with ``dp_config_matching`` (same U-Net sizes, horizon, K = 20,
+  10 DDIM steps) -- the benchmark's DP baseline;
+- ``dp_default``: LeRobot ``diffusion`` with its default config (248 M parameters, horizon 64, 100 DDPM
+  steps), ~20 s per chunk here, so only ``--default-dp-calls`` calls are timed.
+
+Weights are freshly initialised: latency does not depend on their values. The small policies are timed in
+interleaved rounds so that load changes on the machine hit them equally. One JSON line per policy on
+stdout, then a ratio line.
+
+    .venv/bin/python benchmarks/bench_select_action.py [--threads 1] [--calls 200] [--default-dp-calls 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+
+def _stats(times_s: list[float]) -> dict:
+    t = np.asarray(times_s) * 1e3
+    return {"median_ms": round(float(np.median(t)), 3), "p90_ms": round(float(np.percentile(t, 90)), 3),
+            "mean_ms": round(float(t.mean()), 3), "calls": len(t)}
+
+
+def _observation(root: Path) -> dict:
+    import torch
+
+    from lerobot_pdp.behavior import read_episodes
+
+    ep = read_episodes(root, ["observation.state", "observation.environment_state"], [0])[0]
+    return {k: torch.as_tensor(ep[k][10:11], dtype=torch.float32)
+            for k in ("observation.state", "observation.environment_state")}
+
+
+def _build(cfg, meta):
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    policy = make_policy(cfg, ds_meta=meta)
+    policy.eval()
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    return policy, pre, post
+
+
+def _new_chunk_call(policy, batch):
+    import torch
+
+    policy._queues["action"].clear()
+    t = time.perf_counter()
+    with torch.inference_mode():
+        policy.select_action(batch)
+    return time.perf_counter() - t
+
+
+def _pipeline_call(policy, pre, post, obs):
+    import torch
+
+    policy._queues["action"].clear()
+    t = time.perf_counter()
+    with torch.inference_mode():
+        post(policy.select_action(pre(dict(obs))))
+    return time.perf_counter() - t
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch intra-op threads for every policy (default 1, as in our rollouts/CI)")
+    ap.add_argument("--calls", type=int, default=200, help="timed new-chunk calls per small policy")
+    ap.add_argument("--warmup", type=int, default=10)
+    ap.add_argument("--default-dp-calls", type=int, default=3,
+                    help="timed calls of the default 248 M-parameter DP (~20 s each); 0 = skip it")
+    ap.add_argument("--dataset", type=Path, default=None,
+                    help="existing reach-around LeRobotDataset (default: generate 2 demos/mode in a temp dir)")
+    args = ap.parse_args(argv)
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    warnings.filterwarnings("ignore")
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    from lerobot_pdp import PDPConfig
+    from lerobot_pdp.benchmark.baselines import dp_config_kwargs
+    from lerobot_pdp.envs.recording import make_dataset
+
+    torch.set_num_threads(args.threads)
+    tmp = None
+    root = args.dataset
+    if root is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench-select-")
+        root = make_dataset(env="reach-around", out=Path(tmp.name) / "reach", scene=0, episodes_per_mode=2,
+                            seed=0, progress=False)
+    meta = LeRobotDatasetMetadata("local/reach", root=root)
+    obs = _observation(root)
+    torch.manual_seed(0)
+
+    common = {"device": "cpu", "push_to_hub": False}
+    small = {
+        "pdp": _build(PDPConfig(trace_dims=[0, 1, 2], **common), meta),
+        "dp_matched": _build(DiffusionConfig(**dp_config_kwargs({}), **common), meta),
+    }
+    pdp = small["pdp"][0]
+    pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
+
+    env = {"host": platform.machine(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
+           "torch": torch.__version__, "load_1min": round(os.getloadavg()[0], 2)}
+    results: dict[str, dict] = {}
+    batches = {}
+    for name, (policy, pre, _) in small.items():
+        policy.reset()
+        batches[name] = pre(dict(obs))
+        for _ in range(args.warmup):  # also fills the observation history
+            _new_chunk_call(policy, batches[name])
+    times = {name: [] for name in small}
+    pipe = {name: [] for name in small}
+    for _ in range(args.calls):  # interleaved rounds
+        for name, (policy, pre, post) in small.items():
+            times[name].append(_new_chunk_call(policy, batches[name]))
+            pipe[name].append(_pipeline_call(policy, pre, post, obs))
+    for name, (policy, _, _) in small.items():
+        cfg = policy.config
+        results[name] = {
+            "bench": "select_action_new_chunk", "policy": name, **_stats(times[name]),
+            "pipeline_median_ms": _stats(pipe[name])["median_ms"],
+            "params": sum(p.numel() for p in policy.parameters()),
+            "inference_steps": cfg.num_inference_steps, "horizon": cfg.horizon,
+            "sampler": "DDIM" if name == "pdp" else cfg.noise_scheduler_type, **env,
+        }
+
+    if args.default_dp_calls > 0:
+        policy, pre, _ = _build(DiffusionConfig(**common), meta)
+        policy.reset()
+        batch = pre(dict(obs))
+        _new_chunk_call(policy, batch)  # warm-up, fills the history
+        t = [_new_chunk_call(policy, batch) for _ in range(args.default_dp_calls)]
+        cfg = policy.config
+        results["dp_default"] = {
+            "bench": "select_action_new_chunk", "policy": "dp_default", **_stats(t),
+            "params": sum(p.numel() for p in policy.parameters()),
+            "inference_steps": cfg.num_inference_steps or cfg.num_train_timesteps, "horizon": cfg.horizon,
+            "sampler": cfg.noise_scheduler_type, **env,
+        }
+        del policy
+
+    for r in results.values():
+        print(json.dumps(r), flush=True)
+    base = results["pdp"]["median_ms"]
+    ratio = {"bench": "select_action_new_chunk_ratio", "reference": "pdp",
+             **{f"{k}_over_pdp": round(v["median_ms"] / base, 2) for k, v in results.items() if k != "pdp"},
+             "pdp_target_5ms_met": bool(base <= 5.0)}
+    print(json.dumps(ratio), flush=True)
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

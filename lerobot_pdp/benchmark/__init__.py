@@ -1,0 +1,1 @@
+"""The PDP benchmark: evaluation protocol, baselines and figures."""

@@ -1,0 +1,330 @@
+"""The benchmark's baselines and their test-time adaptation (paper appendix, "Policy Training and Baseline
+Configurations", Table "baseline_compare").
+
+- **DP** = LeRobot's own ``diffusion`` policy, configured like PDP's denoiser (:func:`dp_config_matching`),
+  adapted to one new demonstration by *noise-space adaptation* (:func:`adapt_dp_noise`): the weights stay
+  frozen and one initial noise tensor x_K is optimised so that deterministic DDIM generation from it
+  reproduces the demonstration; rollouts then always start from that x_K (:class:`FixedNoisePolicy`).
+- **BC** = ``mlp_bc`` (:mod:`lerobot_pdp.baselines`), adapted by fine-tuning all its weights on the
+  demonstration with a small learning rate (:func:`finetune_bc`).
+
+Everything here takes a LeRobot policy plus its *preprocessor* and a raw demonstration, so the demo is
+normalised with exactly the statistics the policy was trained with (the preprocessor's own normaliser
+step) and cut into exactly the windows LeRobotDataset yields in training
+(:func:`lerobot_pdp.latent_fitting.episode_windows`). Nothing assumes PDP internals: any policy whose
+config uses LeRobot's standard ``n_obs_steps`` / ``horizon`` delta indices and whose ``forward`` takes the
+standard batch (``observation.state``, ``observation.environment_state``, ``action``, ``action_is_pad``)
+works with :func:`demo_batch` and :func:`finetune_bc`; :func:`adapt_dp_noise` needs LeRobot's
+``DiffusionPolicy`` layout (``policy.diffusion.conditional_sample``).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Mapping
+from dataclasses import asdict, is_dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from torch import Tensor, nn
+
+from ..latent_fitting import episode_windows
+
+logger = logging.getLogger(__name__)
+
+# LeRobot `diffusion` fields that must equal PDP's so that DP differs from PDP only by the behavior latent.
+# Values are PDP's defaults (PDPConfig); a `pdp_like` mapping overrides any of them.
+DP_MATCHING_DEFAULTS: dict[str, Any] = {
+    "down_dims": (32, 64, 128),
+    "kernel_size": 5,
+    "n_groups": 8,
+    "diffusion_step_embed_dim": 64,
+    "horizon": 16,
+    "n_obs_steps": 2,
+    "n_action_steps": 8,
+    "drop_n_last_frames": 7,
+    "num_train_timesteps": 20,
+    "num_inference_steps": 10,
+    "beta_schedule": "squaredcos_cap_v2",
+    "clip_sample": True,
+    "clip_sample_range": 1.0,
+    "optimizer_lr": 1e-4,
+    "scheduler_warmup_steps": 100,
+}
+# Fixed for DP whatever PDP uses: deterministic DDIM (noise-space adaptation needs a deterministic map
+# x_K -> actions) and the padding mask PDP's diffusion loss applies as well.
+DP_FIXED: dict[str, Any] = {"noise_scheduler_type": "DDIM", "do_mask_loss_for_padding": True}
+
+
+def dp_config_kwargs(pdp_like: Mapping[str, Any] | Any | None = None) -> dict[str, Any]:
+    """Keyword arguments for LeRobot's ``DiffusionConfig`` matching PDP's backbone, windows and sampler.
+
+    ``pdp_like``: a mapping (or a ``PDPConfig``) whose keys among :data:`DP_MATCHING_DEFAULTS` override
+    the defaults; other keys are ignored, so ``asdict(pdp_config)`` can be passed as is.
+    """
+    if pdp_like is None:
+        pdp_like = {}
+    elif is_dataclass(pdp_like) and not isinstance(pdp_like, type):
+        pdp_like = asdict(pdp_like)
+    out = {k: pdp_like.get(k, v) for k, v in DP_MATCHING_DEFAULTS.items()}
+    out["down_dims"] = tuple(int(d) for d in out["down_dims"])
+    out.update(DP_FIXED)
+    return out
+
+
+def _cli_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(_cli_value(x) for x in v) + "]"
+    return str(v)
+
+
+def dp_config_matching(pdp_like: Mapping[str, Any] | Any | None = None) -> list[str]:
+    """``lerobot-train --policy.type=diffusion`` overrides that give DP PDP's backbone and sampler.
+
+    Same 1-D U-Net (down_dims, kernel, groups, step-embedding width), same windows (horizon 16,
+    2 observation frames, 8 executed actions), same K = 20 training steps and 10 deterministic DDIM
+    inference steps, same padding mask and learning rate: the fair baseline the benchmark notes ask for
+    (LeRobot's default DP has 248 M parameters and 100 DDPM steps, ~23 s per chunk on our CPUs).
+    Returns e.g. ``["--policy.down_dims=[32,64,128]", "--policy.horizon=16", ...]``.
+    """
+    return [f"--policy.{k}={_cli_value(v)}" for k, v in dp_config_kwargs(pdp_like).items()]
+
+
+# ----------------------------------------------------------------------------- demonstration windows
+
+
+def _normalizer_step(preprocessor):
+    from lerobot.processor import NormalizerProcessorStep
+
+    steps = [s for s in getattr(preprocessor, "steps", []) if isinstance(s, NormalizerProcessorStep)]
+    if not steps:
+        raise ValueError("the preprocessor has no NormalizerProcessorStep; pass the policy's own preprocessor "
+                         "(make_pre_post_processors / policy_preprocessor.json)")
+    return steps[-1]
+
+
+def normalize_episode(preprocessor, episode: Mapping[str, Any]) -> dict[str, Tensor]:
+    """Normalise raw episode arrays [T, D] with the preprocessor's own normaliser step (same statistics
+    and maths as at training and rollout time)."""
+    from lerobot.processor import TransitionKey, create_transition
+
+    step = _normalizer_step(preprocessor)
+    obs = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in episode.items()
+           if k.startswith("observation.") and isinstance(v, (np.ndarray, Tensor))}
+    action = torch.as_tensor(np.asarray(episode[ACTION]), dtype=torch.float32)
+    tr = step(create_transition(observation=obs, action=action))
+    out = {k: v.float().cpu() for k, v in tr[TransitionKey.OBSERVATION].items()}
+    out[ACTION] = tr[TransitionKey.ACTION].float().cpu()
+    return out
+
+
+def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Tensor]:
+    """Every training-style window of one raw demonstration as one normalised LeRobot batch.
+
+    Window at frame t: observations t-n_obs+1..t, actions t-n_obs+1..t-n_obs+horizon, indices clamped
+    to the episode, ``action_is_pad`` where they were clamped: what LeRobotDataset yields with the
+    policy's delta indices. Keys: ``observation.state`` [N, n_obs, S], ``observation.environment_state``
+    [N, n_obs, E] (if the policy uses it), ``action`` [N, horizon, A], ``action_is_pad`` [N, horizon].
+    """
+    cfg = policy.config
+    n_obs, horizon = int(cfg.n_obs_steps), int(cfg.horizon)
+    if list(cfg.observation_delta_indices) != list(range(1 - n_obs, 1)) or list(cfg.action_delta_indices) != list(
+        range(1 - n_obs, 1 - n_obs + horizon)
+    ):
+        raise ValueError(f"{type(cfg).__name__} does not use the standard n_obs_steps/horizon windows")
+    for key in (OBS_STATE, ACTION) + ((OBS_ENV_STATE,) if cfg.env_state_feature is not None else ()):
+        if key not in episode:
+            raise KeyError(f"episode has no '{key}'; keys are {sorted(episode)}")
+    norm = normalize_episode(preprocessor, episode)
+    T = norm[OBS_STATE].shape[0]
+    if any(norm[k].shape[0] != T for k in norm):
+        raise ValueError(f"episode keys have different lengths { {k: tuple(v.shape) for k, v in norm.items()} }")
+    env_key = OBS_ENV_STATE if cfg.env_state_feature is not None else None
+    w = episode_windows(norm, n_obs, horizon, OBS_STATE, env_key, [(0, T)])
+    s = norm[OBS_STATE].shape[1]
+    obs = w.obs_cond.view(T, n_obs, -1)
+    batch = {OBS_STATE: obs[..., :s].contiguous(), ACTION: w.actions, "action_is_pad": w.is_pad}
+    if env_key is not None:
+        batch[OBS_ENV_STATE] = obs[..., s:].contiguous()
+    device = _device(policy)
+    return {k: v.to(device) for k, v in batch.items()}
+
+
+def _device(module: nn.Module) -> torch.device:
+    p = next(module.parameters(), None)
+    return p.device if p is not None else torch.device("cpu")
+
+
+def _subset(batch: dict[str, Tensor], idx: Tensor) -> dict[str, Tensor]:
+    return {k: v[idx.to(v.device)] for k, v in batch.items()}
+
+
+def _minibatch(n: int, batch_size: int, g: torch.Generator) -> Tensor:
+    return torch.randperm(n, generator=g)[: min(batch_size, n)]
+
+
+# ----------------------------------------------------------------------------- DP: noise-space adaptation
+
+
+def _masked_mse(pred: Tensor, target: Tensor, is_pad: Tensor) -> Tensor:
+    mask = (~is_pad.bool()).unsqueeze(-1).to(pred.dtype)
+    return ((pred - target).pow(2) * mask).sum() / (mask.sum() * pred.shape[-1]).clamp_min(1)
+
+
+def _dp_generate(policy, global_cond: Tensor, noise: Tensor) -> Tensor:
+    """DP's own sampling routine (``DiffusionModel.conditional_sample``), with autograd left on."""
+    return policy.diffusion.conditional_sample(global_cond.shape[0], global_cond=global_cond,
+                                               noise=noise.expand(global_cond.shape[0], -1, -1))
+
+
+def _check_dp(policy) -> None:
+    if not hasattr(policy, "diffusion") or not hasattr(policy.diffusion, "conditional_sample"):
+        raise TypeError(f"noise-space adaptation needs LeRobot's DiffusionPolicy, got {type(policy).__name__}")
+    if type(policy.diffusion.noise_scheduler).__name__ != "DDIMScheduler":
+        logger.warning("DP uses %s: its sampler adds fresh noise at every step, so x_K does not determine the "
+                       "actions; noise-space adaptation is meant for DDIM (dp_config_matching)",
+                       type(policy.diffusion.noise_scheduler).__name__)
+
+
+def dp_noise_matching_loss(policy, preprocessor, episode: Mapping[str, Any], noise: Tensor) -> float:
+    """Masked MSE between DP's generation from ``noise`` and the demo's normalised action chunks, over
+    ALL windows of ``episode`` (the objective :func:`adapt_dp_noise` minimises on minibatches)."""
+    _check_dp(policy)
+    batch = demo_batch(policy, preprocessor, episode)
+    with torch.no_grad():
+        cond = policy.diffusion._prepare_global_conditioning(batch)
+        pred = _dp_generate(policy, cond, noise.to(cond.device, cond.dtype))
+        return float(_masked_mse(pred, batch[ACTION], batch["action_is_pad"]))
+
+
+def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: int = 100, lr: float = 0.05,
+                   batch_size: int = 32, seed: int = 0) -> Tensor:
+    """Noise-space adaptation of a LeRobot ``diffusion`` policy to ONE demonstration (weights frozen).
+
+    Optimises a single initial noise x_K [1, horizon, A] with Adam so that the deterministic DDIM chain
+    started from x_K, conditioned on each demo window's observation history, reproduces that window's
+    normalised action chunk (MSE, copy-padded steps past the episode end masked out). Each step uses a
+    random minibatch of ``batch_size`` windows. Gradients flow through DP's own sampler
+    (``policy.diffusion.conditional_sample``; ``predict_action_chunk`` is ``no_grad``) and are taken with
+    ``torch.autograd.grad`` w.r.t. x_K only, so no parameter and no ``.grad`` of the policy changes.
+
+    Why one shared x_K: it is the only input DP has besides observations, the paper's DP adaptation
+    ("optimize denoising noise seed at test time"). Roll it out with :class:`FixedNoisePolicy`.
+
+    Args:
+        episode: raw (unnormalised) arrays [T, ...]: ``observation.state``, ``observation.environment_state``,
+            ``action`` (e.g. ``read_episodes(root, keys, [i])[i]``).
+    Returns:
+        The optimised x_K, [1, horizon, action_dim], detached, on the policy's device.
+    """
+    _check_dp(policy)
+    cfg = policy.config
+    batch = demo_batch(policy, preprocessor, episode)
+    model = policy.diffusion
+    with torch.no_grad():
+        cond_all = model._prepare_global_conditioning(batch)
+    n = cond_all.shape[0]
+    g = torch.Generator().manual_seed(int(seed))
+    x = torch.randn(1, cfg.horizon, cfg.action_feature.shape[0], generator=g).to(cond_all.device, cond_all.dtype)
+    x.requires_grad_(True)
+    opt = torch.optim.Adam([x], lr=lr)
+    params = list(model.parameters())
+    flags = [p.requires_grad for p in params]
+    was_training = model.training
+    try:
+        for p in params:  # frozen: also spares autograd the weight gradients
+            p.requires_grad_(False)
+        model.eval()
+        for _ in range(int(steps)):
+            idx = _minibatch(n, batch_size, g).to(cond_all.device)
+            pred = _dp_generate(policy, cond_all[idx], x)
+            loss = _masked_mse(pred, batch[ACTION][idx], batch["action_is_pad"][idx])
+            (grad,) = torch.autograd.grad(loss, x)
+            x.grad = grad
+            opt.step()
+    finally:
+        for p, f in zip(params, flags, strict=True):
+            p.requires_grad_(f)
+        model.train(was_training)
+    return x.detach()
+
+
+class FixedNoisePolicy(nn.Module):
+    """A DP that always starts its sampler from the same (adapted) noise x_K.
+
+    ``select_action(batch)`` calls the wrapped policy's ``select_action(batch, noise=x_K expanded to the
+    batch)``, so the action queue, observation history and postprocessing are DP's own. An ``nn.Module``
+    because LeRobot's ``rollout`` asserts one; any other attribute (``config``, ``predict_action_chunk``,
+    ...) is the wrapped policy's.
+    """
+
+    def __init__(self, policy: nn.Module, noise: Tensor):
+        super().__init__()
+        self.policy = policy
+        noise = torch.as_tensor(noise).detach().float()
+        if noise.dim() == 2:
+            noise = noise[None]
+        if noise.dim() != 3 or noise.shape[0] != 1:
+            raise ValueError(f"noise must have shape [1, horizon, action_dim], got {tuple(noise.shape)}")
+        self.register_buffer("noise", noise.to(_device(policy)))
+
+    def _noise_for(self, batch: Mapping[str, Tensor]) -> Tensor:
+        b = batch[OBS_STATE].shape[0] if batch[OBS_STATE].dim() > 1 else 1
+        return self.noise.expand(b, -1, -1)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        return self.policy.select_action(batch, noise=self._noise_for(batch))
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        return self.policy.predict_action_chunk(batch, noise=self._noise_for(batch))
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def __getattr__(self, name: str):
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            return getattr(super().__getattr__("policy"), name)
+
+
+# ----------------------------------------------------------------------------- BC: weight fine-tuning
+
+
+def finetune_bc(policy, preprocessor, episode: dict[str, np.ndarray], steps: int = 100, lr: float = 1e-5,
+                batch_size: int = 32, seed: int = 0):
+    """A deep copy of ``policy`` with ALL weights fine-tuned on one demonstration (paper: BC adapts by
+    "fine-tune policy weights with small learning rate"); the original is untouched.
+
+    Adam at ``lr`` on the policy's own training loss (``policy.forward``) over random minibatches of the
+    demo's windows (:func:`demo_batch`), gradient norm clipped like in training. Works for any LeRobot
+    policy with the standard batch layout (it is meant for ``mlp_bc``). Any randomness inside ``forward``
+    is seeded by ``seed`` without disturbing the global RNG. Returns the copy in eval mode, queues reset.
+    """
+    tuned = copy.deepcopy(policy)
+    batch = demo_batch(tuned, preprocessor, episode)
+    n = batch[ACTION].shape[0]
+    params = [p for p in tuned.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=lr)
+    clip = float(getattr(tuned.config, "optimizer_grad_clip_norm", 10.0) or 0.0)
+    g = torch.Generator().manual_seed(int(seed))
+    tuned.train()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        for _ in range(int(steps)):
+            loss, _ = tuned.forward(_subset(batch, _minibatch(n, batch_size, g)))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if clip > 0:
+                torch.nn.utils.clip_grad_norm_(params, clip)
+            opt.step()
+    tuned.eval()
+    tuned.reset()
+    return tuned

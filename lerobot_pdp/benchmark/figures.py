@@ -1,0 +1,172 @@
+"""Benchmark figures (PNG): latent map, rollouts per scene and method, interpolation sweeps, fitted z.
+
+Everything is drawn from what the protocol cached (``runs/<method>/seed<k>/eval.json`` and
+``traces.json``) plus one interpolation sweep rolled out with the seed-0 PDP checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..envs.plotting import draw_scene, mode_color, plot_trajectories, scene_views  # noqa: E402
+from ..envs.suite import SuiteEnv  # noqa: E402
+
+
+def _plane_dims(plane: str) -> tuple[int, int]:
+    return "xyz".index(plane[0]), "xyz".index(plane[1])
+
+
+def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title: str = "") -> Path:
+    """Encoder means of every training behavior coloured by mode, per-mode means, fitted z of scenes 1-3."""
+    lat = eval_json["latents"]
+    z = np.asarray(lat["z"])
+    modes = np.asarray(lat["mode"])
+    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    if z.shape[1] > 2:  # one-hot / higher-d latents: first two principal axes
+        zc = z - z.mean(0)
+        _, _, vt = np.linalg.svd(zc, full_matrices=False)
+        proj = vt[:2].T
+    else:
+        proj = np.eye(z.shape[1], 2)
+    p = (z - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
+    for m in sorted(set(modes.tolist())):
+        sel = modes == m
+        name = suite.mode_names[m] if 0 <= m < suite.n_modes else "unlabeled"
+        c = mode_color(int(m), suite.n_modes)
+        ax.scatter(p[sel, 0], p[sel, 1], s=14, color=c, alpha=0.6, label=f"{m}: {name}" if suite.n_modes <= 24 else None)
+        mean = p[sel].mean(0)
+        ax.scatter(*mean, s=120, color=c, edgecolor="k", marker="o", zorder=4)
+        ax.annotate(str(m), mean, fontsize=8, ha="center", va="center", zorder=5)
+    for scene, s in eval_json["scenes"].items():
+        if scene == "0" or "z" not in s:
+            continue
+        zf = np.atleast_2d(np.asarray(s["z"]))
+        zi = np.atleast_2d(np.asarray(s["z_init"]))
+        pf = (zf - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
+        pi = (zi - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
+        for a, b in zip(pi, pf, strict=True):
+            ax.annotate("", b, a, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1})
+        ax.scatter(pf[:, 0], pf[:, 1], marker="*", s=260, color="gold", edgecolor="k", zorder=6)
+        ax.annotate(f"scene {scene} ({100 * s['success']:.0f}%)", pf[0], xytext=(6, 6), textcoords="offset points",
+                    fontsize=9, weight="bold")
+    ax.set_xlabel("z[0]" if z.shape[1] <= 2 else "PC 1")
+    ax.set_ylabel("z[1]" if z.shape[1] <= 2 else "PC 2")
+    ax.set_title(title or f"{suite.name}: behavior latent (dots: demos, circles: mode means, stars: fitted z)")
+    if suite.n_modes <= 24:
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return out_png
+
+
+def rollouts_grid(suite: SuiteEnv, traces: dict[str, dict[str, list]], scenes: list[int], out_png: Path,
+                  plane: str = "xy") -> Path:
+    """Rows = methods, columns = scenes: rollouts (green success, red failure) over the scene geometry."""
+    methods = list(traces)
+    fig, axes = plt.subplots(len(methods), len(scenes), figsize=(3.6 * len(scenes), 3.4 * len(methods)),
+                             squeeze=False)
+    i, j = _plane_dims(plane)
+    for r, method in enumerate(methods):
+        for c, scene in enumerate(scenes):
+            ax = axes[r][c]
+            draw_scene(ax, suite.name, scene, plane)
+            rows = traces[method].get(str(scene), [])
+            for row in rows:
+                t = np.asarray(row["trace"])
+                if t.ndim != 2 or t.shape[1] <= max(i, j):
+                    continue
+                ax.plot(t[:, i], t[:, j], color="tab:green" if row["success"] else "tab:red", alpha=0.5, lw=0.9)
+            rate = np.mean([row["success"] for row in rows]) if rows else float("nan")
+            ax.set_title(f"{method} · scene {scene}: {100 * rate:.0f}%", fontsize=9)
+            ax.set_xlabel("")
+            ax.set_ylabel("")
+    fig.suptitle(f"{suite.name}: rollouts ({plane} view; green = success, red = failure)")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out_png
+
+
+def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, seed: int = 0) -> Path | None:
+    """Latents between two distant mode means along a linear and an elliptical path, one rollout each."""
+    from .evaluation import run_rollouts
+    from .protocol import load_policy
+
+    policy, pre, post = load_policy(ckpt)
+    if policy.config.latent_conditioning == "none":
+        return None
+    means = policy.mode_latents()
+    keys = sorted(means)
+    if len(keys) < 2:
+        return None
+    # the two farthest-apart mode means: the sweep crosses the whole manifold
+    pairs = [(a, b) for a in keys for b in keys if a < b]
+    a, b = max(pairs, key=lambda ab: float((means[ab[0]] - means[ab[1]]).norm()))
+    planes = scene_views(suite)[:2]
+    fig, axes = plt.subplots(2, len(planes), figsize=(5.2 * len(planes), 9), squeeze=False)
+    cmap = plt.get_cmap("viridis")
+    for r, path in enumerate(("linear", "elliptical")):
+        zs = policy.interpolate(means[a], means[b], n, path=path)
+        results = []
+        for k, z in enumerate(zs):
+            policy.set_latent(z)
+            results.append(run_rollouts(suite, 0, policy, pre, post, 1, seed + k).results[0])
+        policy.set_latent(None)
+        for c, plane in enumerate(planes):
+            ax = axes[r][c]
+            draw_scene(ax, suite.name, 0, plane)
+            i, j = _plane_dims(plane)
+            for k, res in enumerate(results):
+                t = res.trace
+                ax.plot(t[:, i], t[:, j], color=cmap(k / max(n - 1, 1)), lw=1.6,
+                        ls="-" if res.success else "--", label=f"t={k / (n - 1):.2f}" + ("" if res.success else " ✗"))
+            ax.set_title(f"{path} path: mode {a} ({suite.mode_names[a]}) → mode {b} ({suite.mode_names[b]})",
+                         fontsize=9)
+        axes[r][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.suptitle(f"{suite.name}: latent interpolation sweeps (dashed = failed rollout)")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out_png
+
+
+def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], Path], demos: dict[int, Path]) -> list[Path]:
+    """All benchmark figures into ``out/figures``; returns their paths."""
+    fig_dir = Path(out) / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    seed = cfg.seeds[0]
+    traces: dict[str, dict[str, list]] = {}
+    for (name, s), _ckpt in ckpts.items():
+        if s != seed:
+            continue
+        run_dir = Path(out) / "runs" / name / f"seed{s}"
+        if (run_dir / "traces.json").is_file():
+            traces[name] = json.loads((run_dir / "traces.json").read_text())
+        ev = run_dir / "eval.json"
+        if ev.is_file():
+            data = json.loads(ev.read_text())
+            if "latents" in data:
+                written.append(latent_map(suite, data, fig_dir / f"latent_map_{name}.png"))
+    main_methods = {k: v for k, v in traces.items() if k in cfg.methods}
+    for plane in scene_views(suite)[:2]:
+        if main_methods:
+            written.append(rollouts_grid(suite, main_methods, list(cfg.scenes), fig_dir / f"rollouts_{plane}.png", plane))
+    abl = {k: v for k, v in traces.items() if k not in cfg.methods}
+    if abl:
+        written.append(rollouts_grid(suite, abl, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
+                                     scene_views(suite)[0]))
+    if ("pdp", seed) in ckpts:
+        p = interpolation_sweep(suite, ckpts[("pdp", seed)], fig_dir / "interpolation.png", seed=seed)
+        if p:
+            written.append(p)
+    return written

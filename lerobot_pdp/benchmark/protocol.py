@@ -1,0 +1,483 @@
+"""The paper's evaluation protocol in one call: train every method with ``lerobot-train``, evaluate scenes 0-3.
+
+- Scene 0: rollouts spread evenly over the training modes; PDP conditions on each mode's mean latent,
+  the baselines sample freely. Success, collision, mode coverage and entropy.
+- Scenes 1-3: ONE successful demonstration in that scene is given (the scene's only feasible training
+  mode, or the scene file's way-points). PDP fits z to it with every weight frozen; DP optimises its
+  initial noise; BC fine-tunes its weights. Success and collision.
+- Every (method, seed) is trained and evaluated once; results are cached under ``out/`` so a rerun
+  resumes. Hyperparameters are per env, identical for all scenes and all methods where they apply.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..envs.scene import load_scene
+from ..envs.suite import NOVEL, SuiteEnv, get_suite_env
+from .evaluation import RolloutBatch, run_rollouts
+
+SCENES = (0, 1, 2, 3)
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Training budget shared by every method on one env (fairness: same data, steps, batch, lr)."""
+
+    steps: int
+    batch_size: int = 64
+    lr: float = 1e-3
+    episodes_per_mode: int = 10
+    warmup_steps: int = 100
+
+
+# Per env: (full, quick). The paper's lr 1e-4 needs far more steps than a CPU budget allows; 1e-3 with a
+# cosine schedule converges in a few thousand steps for every method here.
+SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
+    "reach-around": (TrainSettings(steps=6000), TrainSettings(steps=1500, episodes_per_mode=10)),
+    "avoiding": (TrainSettings(steps=8000), TrainSettings(steps=2000, episodes_per_mode=5)),
+    "pick-place": (TrainSettings(steps=8000, episodes_per_mode=3), TrainSettings(steps=2000, episodes_per_mode=1)),
+    "kitchen-microwave": (TrainSettings(steps=6000), TrainSettings(steps=1500, episodes_per_mode=5)),
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """How one method is trained (LeRobot policy type + CLI overrides) and adapted to a new scene."""
+
+    name: str
+    policy_type: str
+    overrides: tuple[str, ...] = ()
+    adapt: str = "fit_latent"  # fit_latent | noise | finetune
+    steerable: bool = True  # conditions scene-0 rollouts on each mode's mean latent
+
+
+def methods_for(suite: SuiteEnv) -> dict[str, Method]:
+    """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it)."""
+    try:
+        from .baselines import dp_config_matching
+
+        dp = tuple(dp_config_matching({}))
+    except ImportError:  # baselines not importable: DP is unavailable, PDP still runs
+        dp = ()
+    pdp = [f"--policy.trace_dims=[{','.join(map(str, suite.trace_dims))}]"]
+    if suite.segment_on_gripper is not None:
+        pdp += [f"--policy.segment_gripper_dim={suite.segment_on_gripper}", "--policy.trace_normalize=endpoints"]
+    pdp = tuple(pdp)
+    return {
+        "pdp": Method("pdp", "pdp", pdp),
+        "dp": Method("dp", "diffusion", dp, adapt="noise", steerable=False),
+        "bc": Method("bc", "mlp_bc", (), adapt="finetune", steerable=False),
+        # ablations (paper Tables 3-5)
+        "pdp_unaligned": Method("pdp_unaligned", "pdp", pdp + ("--policy.beta_geo=0",)),
+        "pdp_onehot": Method("pdp_onehot", "pdp", pdp + ("--policy.latent_type=onehot",)),
+        "pdp_concat": Method("pdp_concat", "pdp", pdp + ("--policy.latent_conditioning=concat",)),
+        "pdp_uncond": Method("pdp_uncond", "pdp", pdp + ("--policy.latent_conditioning=none",), steerable=False),
+    }
+
+
+ABLATIONS = ("pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_uncond")
+INIT_STEPS = (0, 10, 100)
+
+
+@dataclass
+class BenchmarkConfig:
+    env: str
+    out: Path
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    rollouts: int = 40
+    methods: list[str] = field(default_factory=lambda: ["pdp", "dp", "bc"])
+    quick: bool = False
+    ablations: bool = False
+    scenes: tuple[int, ...] = SCENES
+    steps: int | None = None  # override the env's training steps (tests)
+    figures: bool = True
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: int = 0) -> Path:
+    """The scene-0 training dataset (generated once, then reused)."""
+    from ..envs.recording import make_dataset
+
+    root = out / "data" / f"{suite.scene_key}_scene0"
+    if not (root / "meta" / "info.json").is_file():
+        print(f"[benchmark] generating {suite.name} scene-0 dataset ({settings.episodes_per_mode}/mode) -> {root}")
+        make_dataset(suite.name, root, scene=0, episodes_per_mode=settings.episodes_per_mode, seed=seed)
+    return root
+
+
+def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[int]:
+    """Training modes whose scripted expert succeeds in ``scene`` (one seeded try each)."""
+    import gymnasium as gym
+
+    env = gym.make(suite.gym_id, scene=scene, disable_env_checker=True)
+    ok = []
+    try:
+        for m in range(suite.n_modes):
+            expert = suite.make_expert(m, np.random.default_rng(seed + m), scene=scene)
+            obs, _ = env.reset(seed=seed)
+            expert.reset(obs)
+            for _ in range(suite.max_episode_steps):
+                obs, _, term, trunc, info = env.step(expert(obs))
+                if term or trunc:
+                    break
+            if info.get("is_success"):
+                ok.append(m)
+    finally:
+        env.close()
+    return ok
+
+
+def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:
+    """One successful demonstration in ``scene``: the scene's way-points if it ships them, else its only
+    feasible training mode. Returns the dataset folder and a description."""
+    from ..envs.recording import make_dataset
+
+    root = out / "data" / f"{suite.scene_key}_scene{scene}_demo"
+    info_file = root / "meta" / "pdp_demo.json"
+    if info_file.is_file():
+        return root, json.loads(info_file.read_text())["source"]
+    sc = load_scene(scene, suite.scene_key)
+    if sc.waypoints is not None:
+        source = "scene way-points (new route)"
+        kwargs: dict[str, Any] = {"waypoints": "scene"}
+    else:
+        modes = feasible_training_modes(suite, scene, seed)
+        if not modes:
+            raise RuntimeError(f"{suite.name} scene {scene}: no training mode is feasible and no way-points ship")
+        source = f"training mode {modes[0]} ({suite.mode_names[modes[0]]})"
+        kwargs = {"modes": [modes[0]]}
+    if root.exists():
+        shutil.rmtree(root)
+    make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene, progress=False,
+                 **kwargs)
+    info_file.write_text(json.dumps({"source": source}))
+    return root, source
+
+
+def demo_episode(root: Path) -> dict[str, np.ndarray]:
+    from ..behavior import read_episodes
+
+    eps = read_episodes(root, ["observation.state", "observation.environment_state", "action"], [0])
+    return {k: v for k, v in eps[0].items() if isinstance(v, np.ndarray)}
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None:
+    """Run ``lerobot-train`` with its output in ``log``; a progress bar follows its logged step counter."""
+    import re
+
+    from tqdm.auto import tqdm
+
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1"}
+    pattern = re.compile(r"step:(\d+)(K?)")
+    with open(log, "w") as fh, tqdm(total=total_steps, desc=desc, unit="step") as bar:
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            fh.write(line)
+            m = pattern.search(line)
+            if m:
+                step = int(m.group(1)) * (1000 if m.group(2) else 1)
+                bar.update(max(0, step - bar.n))
+        rc = proc.wait()
+        bar.update(total_steps - bar.n)
+    if rc != 0:
+        tail = "".join(log.read_text().splitlines(keepends=True)[-40:])
+        raise RuntimeError(f"{args[0]} failed with exit code {rc}; see {log}\n{tail}")
+
+
+def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
+                 steps: int) -> Path:
+    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
+    ckpt = run_dir / "pretrained_model"
+    if (ckpt / "model.safetensors").is_file():
+        return ckpt
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
+    exe = Path(sys.executable).parent / "lerobot-train"
+    lr_args = [f"--policy.optimizer_lr={settings.lr}"]
+    if method.policy_type == "pdp":
+        lr_args.append(f"--policy.embedding_lr={settings.lr}")
+    warmup = (
+        [f"--policy.scheduler_warmup_steps={min(settings.warmup_steps, steps // 10)}"]
+        if method.policy_type in ("pdp", "diffusion") else []
+    )
+    args = [
+        str(exe) if exe.exists() else "lerobot-train",
+        f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", "--policy.device=cpu",
+        f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}", f"--output_dir={tmp_out}",
+        f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
+        f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", "--num_workers=0", "--wandb.enable=false",
+        *lr_args, *warmup, *method.overrides,
+    ]
+    log = run_dir / "train.log"
+    t0 = time.time()
+    _run_logged(args, log, steps, f"train {method.name} seed {seed}")
+    src = tmp_out / "checkpoints" / "last" / "pretrained_model"
+    if not (src / "model.safetensors").is_file():
+        raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
+    os.replace(src, ckpt)
+    shutil.rmtree(tmp_out.parent, ignore_errors=True)
+    (run_dir / "train_info.json").write_text(json.dumps({"seconds": time.time() - t0, "steps": steps,
+                                                        "args": args}, indent=1))
+    return ckpt
+
+
+def load_policy(ckpt: Path):
+    """Policy + its saved pre/post processors, as lerobot-eval loads them."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(ckpt)
+    cfg.device = "cpu"
+    policy = get_policy_class(cfg.type).from_pretrained(ckpt, config=cfg)
+    policy.eval()
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt))
+    return policy, pre, post
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+def _spread(n: int, k: int) -> list[int]:
+    """n rollouts spread as evenly as possible over k modes."""
+    return [n // k + (1 if i < n % k else 0) for i in range(k)]
+
+
+def evaluate_scene0(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed: int) -> RolloutBatch:
+    batch = RolloutBatch()
+    if method.steerable:
+        means = policy.mode_latents()
+        modes = sorted(means)
+        for m, count in zip(modes, _spread(n, len(modes)), strict=True):
+            if count == 0:
+                continue
+            policy.set_latent(means[m])
+            batch.extend(run_rollouts(suite, 0, policy, pre, post, count, seed + 97 * m, label=f"mode {m}"))
+        policy.set_latent(None)
+    else:
+        batch.extend(run_rollouts(suite, 0, policy, pre, post, n, seed, label="sampled"))
+    return batch
+
+
+def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, steps: int | None = None,
+          init: str = "encoder"):
+    """Adapt a policy to one demonstration the method's own way; returns (policy to roll out, info)."""
+    from .baselines import FixedNoisePolicy, adapt_dp_noise, finetune_bc
+
+    if method.adapt == "fit_latent":
+        res = policy.fit_latent(demo, steps=steps, init=init, seed=seed)
+        return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None}
+    if method.adapt == "noise":
+        noise = adapt_dp_noise(policy, pre, demo, seed=seed)
+        return FixedNoisePolicy(policy, noise), {}
+    if method.adapt == "finetune":
+        return finetune_bc(policy, pre, demo, seed=seed), {}
+    raise ValueError(f"unknown adaptation {method.adapt!r}")
+
+
+def _summary(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, Any]:
+    d: dict[str, Any] = {"success": batch.success_rate, "collision": batch.collision_rate,
+                         "n": len(batch.results)}
+    if with_modes:
+        d.update(batch.mode_stats(n_modes))
+        steered = [r for r in batch.results if r.label.startswith("mode ")]
+        if steered:
+            d["steer_accuracy"] = float(np.mean([r.mode == int(r.label.split()[1]) for r in steered]))
+    return d
+
+
+def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig,
+                    seed: int, run_dir: Path) -> dict[str, Any]:
+    """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
+    cache = run_dir / "eval.json"
+    if cache.is_file():
+        cached = json.loads(cache.read_text())
+        if cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
+            return cached
+    policy, pre, post = load_policy(ckpt)
+    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, "scenes": {}}
+    traces: dict[str, Any] = {}
+    for scene in cfg.scenes:
+        t0 = time.time()
+        if scene == 0:
+            batch = evaluate_scene0(suite, method, policy, pre, post, cfg.rollouts, seed * 10_000)
+            summary = _summary(batch, suite.n_modes, with_modes=True)
+        else:
+            demo = demo_episode(demos[scene])
+            actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed)
+            batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene,
+                                 label=f"scene {scene}")
+            summary = {**_summary(batch, suite.n_modes, with_modes=False), **info}
+            if method.adapt == "fit_latent":
+                policy.set_latent(None)
+        summary["seconds"] = time.time() - t0
+        result["scenes"][str(scene)] = summary
+        traces[str(scene)] = [{"trace": r.trace.tolist(), "success": r.success, "label": r.label, "mode": r.mode}
+                              for r in batch.results]
+        print(f"[benchmark] {method.name} seed {seed} scene {scene}: success {summary['success']:.0%}"
+              f" collision {summary['collision']:.0%}")
+    if method.policy_type == "pdp":
+        result["latents"] = {k: v.tolist() for k, v in policy.behavior_table().items()}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "traces.json").write_text(json.dumps(traces))
+    cache.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig, seed: int,
+                           run_dir: Path) -> dict[str, Any]:
+    """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3."""
+    cache = run_dir / "init_ablation.json"
+    if cache.is_file():
+        return json.loads(cache.read_text())
+    policy, pre, post = load_policy(ckpt)
+    method = Method("pdp", "pdp")
+    out: dict[str, Any] = {}
+    for init in ("encoder", "random"):
+        for steps in INIT_STEPS:
+            rates = []
+            for scene in [s for s in cfg.scenes if s != 0]:
+                demo = demo_episode(demos[scene])
+                actor, _ = adapt(method, policy, pre, demo, seed, steps=steps, init=init)
+                batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene)
+                rates.append(batch.success_rate)
+            out[f"{init}@{steps}"] = float(np.mean(rates)) if rates else None
+            print(f"[benchmark] init {init} steps {steps}: success {out[f'{init}@{steps}']}")
+    policy.set_latent(None)
+    cache.write_text(json.dumps(out, indent=1))
+    return out
+
+
+# ----------------------------------------------------------------------------- aggregation
+
+
+def _agg(values: list[float]) -> dict[str, Any]:
+    v = [x for x in values if x is not None]
+    return {"values": v, "mean": float(np.mean(v)) if v else None, "std": float(np.std(v)) if v else None}
+
+
+def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
+              settings: TrainSettings, steps: int) -> dict[str, Any]:
+    """``results.json`` layout: methods -> scene<k> -> success [per seed], mean, std (+ collision, modes)."""
+    out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
+                           "train": {**asdict(settings), "steps": steps}, "methods": {}}
+    for name, runs in per_run.items():
+        entry: dict[str, Any] = {}
+        for scene in cfg.scenes:
+            rows = [runs[s]["scenes"][str(scene)] for s in cfg.seeds if s in runs]
+            d: dict[str, Any] = {"success": [r["success"] for r in rows]}
+            a = _agg(d["success"])
+            d.update(mean=a["mean"], std=a["std"], collision=_agg([r["collision"] for r in rows])["mean"])
+            for k in ("coverage", "entropy", "steer_accuracy"):
+                if rows and k in rows[0]:
+                    d[k] = _agg([r.get(k) for r in rows])["mean"]
+            entry[f"scene{scene}"] = d
+        shifted = [entry[f"scene{s}"]["mean"] for s in cfg.scenes if s != 0 and entry[f"scene{s}"]["mean"] is not None]
+        entry["shifted_avg"] = float(np.mean(shifted)) if shifted else None
+        out["methods"][name] = entry
+    if init_abl:
+        keys = next(iter(init_abl.values())).keys()
+        out["init_ablation"] = {k: _agg([init_abl[s][k] for s in init_abl]) for k in keys}
+    return out
+
+
+def _fmt(d: dict[str, Any] | None) -> str:
+    if not d or d.get("mean") is None:
+        return "–"
+    if len(d.get("success", [])) > 1:
+        return f"{100 * d['mean']:.1f} ± {100 * d['std']:.1f}"
+    return f"{100 * d['mean']:.1f}"
+
+
+def results_markdown(res: dict[str, Any]) -> str:
+    """The paper's table layout: rows = methods, columns = original scene and constraint shifts."""
+    scenes = [k for k in next(iter(res["methods"].values())) if k.startswith("scene")]
+    head = ["Method", *[("Original (scene 0)" if s == "scene0" else f"Shift {s[5:]}") for s in scenes],
+            "Shifted avg", "Scene-0 coverage"]
+    lines = [f"### {res['env']} — success rate (%), {res['rollouts']} rollouts per scene, seeds {res['seeds']}",
+             "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, entry in res["methods"].items():
+        cov = entry.get("scene0", {}).get("coverage")
+        row = [name, *[_fmt(entry[s]) for s in scenes],
+               "–" if entry.get("shifted_avg") is None else f"{100 * entry['shifted_avg']:.1f}",
+               "–" if cov is None else f"{100 * cov:.0f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    if "init_ablation" in res:
+        lines += ["", "#### Latent initialisation (PDP, mean success over shifted scenes, %)", "",
+                  "| init | " + " | ".join(f"{s} steps" for s in INIT_STEPS) + " |", "|---|" + "---|" * len(INIT_STEPS)]
+        for init in ("encoder", "random"):
+            cells = [_fmt(res["init_ablation"].get(f"{init}@{s}")) for s in INIT_STEPS]
+            lines.append(f"| {'warm (encoder)' if init == 'encoder' else 'random'} | " + " | ".join(cells) + " |")
+    t = res["train"]
+    lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
+              f"{t['episodes_per_mode']} demos/mode (same for every method)."]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- entry point
+
+
+def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
+    """Generate/reuse data, train every (method, seed), evaluate all scenes, write results and figures."""
+    import lerobot_pdp.envs  # noqa: F401
+
+    suite = get_suite_env(cfg.env)
+    full, quick = SETTINGS[suite.name]
+    settings = quick if cfg.quick else full
+    steps = cfg.steps or settings.steps
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    all_methods = methods_for(suite)
+    names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
+    unknown = [n for n in names if n not in all_methods]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(all_methods)}")
+    dataset = ensure_dataset(suite, out, settings)
+    demos = {s: ensure_demo(suite, out, s)[0] for s in cfg.scenes if s != 0}
+    per_run: dict[str, dict[int, dict]] = {}
+    init_abl: dict[int, dict] = {}
+    ckpts: dict[tuple[str, int], Path] = {}
+    for name in names:
+        method = all_methods[name]
+        for seed in cfg.seeds:
+            run_dir = out / "runs" / name / f"seed{seed}"
+            ckpt = train_method(method, dataset, run_dir, seed, settings, steps)
+            ckpts[(name, seed)] = ckpt
+            per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, cfg, seed, run_dir)
+            if cfg.ablations and name == "pdp":
+                init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, cfg, seed, run_dir)
+    res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)
+    (out / "results.json").write_text(json.dumps(res, indent=1))
+    (out / "results.md").write_text(results_markdown(res))
+    if cfg.figures:
+        from .figures import write_figures
+
+        res["figures"] = [str(p) for p in write_figures(suite, out, cfg, ckpts, demos)]
+        (out / "results.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
+def scene_label(scene: int) -> str:
+    return "original" if scene == 0 else f"shift {scene}"
+
+
+__all__ = ["BenchmarkConfig", "Method", "NOVEL", "TrainSettings", "run_benchmark", "methods_for", "results_markdown"]

@@ -1,0 +1,277 @@
+"""Benchmark baselines: the mlp_bc LeRobot plugin, DP's matching config, DP noise-space adaptation
+(weights frozen), FixedNoisePolicy and BC fine-tuning (on a copy)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import lerobot_cli, run_cli
+from lerobot.configs import PreTrainedConfig
+from lerobot.policies.factory import get_policy_class, make_policy, make_pre_post_processors
+
+from lerobot_pdp.baselines import MLPBCConfig, MLPBCPolicy
+from lerobot_pdp.behavior import read_episodes
+from lerobot_pdp.benchmark.baselines import (
+    FixedNoisePolicy,
+    adapt_dp_noise,
+    demo_batch,
+    dp_config_kwargs,
+    dp_config_matching,
+    dp_noise_matching_loss,
+    finetune_bc,
+)
+from lerobot_pdp.envs.recording import make_dataset
+
+KEYS = ["observation.state", "observation.environment_state", "action"]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny models, small batches: one intra-op thread. With 2 threads on a 2-core machine that has any
+    other load, OpenMP barriers made the DP adaptation test ~170x slower here (229 s instead of 1.4 s)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def reach_root(tmp_path_factory) -> Path:
+    """Reach-around scene 0, one demonstration per mode (8 episodes)."""
+    return make_dataset(env="reach-around", out=tmp_path_factory.mktemp("bl") / "reach", scene=0,
+                        episodes_per_mode=1, seed=0, progress=False)
+
+
+@pytest.fixture(scope="module")
+def reach_meta(reach_root):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    return LeRobotDatasetMetadata("local/reach", root=reach_root)
+
+
+@pytest.fixture(scope="module")
+def episode(reach_root) -> dict[str, np.ndarray]:
+    ep = read_episodes(reach_root, KEYS, [2])[2]
+    return {k: ep[k] for k in KEYS}
+
+
+def _bc(meta, **kw):
+    torch.manual_seed(0)
+    cfg = MLPBCConfig(device="cpu", push_to_hub=False, **kw)
+    policy = make_policy(cfg, ds_meta=meta)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    return policy, pre, post
+
+
+def _dp(meta, **kw):
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    torch.manual_seed(0)
+    cfg = DiffusionConfig(device="cpu", push_to_hub=False, **dp_config_kwargs({"down_dims": (16, 32), **kw}))
+    policy = make_policy(cfg, ds_meta=meta)
+    policy.eval()
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    return policy, pre, post
+
+
+def _obs(episode, frame: int, batch: int = 1) -> dict[str, torch.Tensor]:
+    return {k: torch.as_tensor(episode[k][frame], dtype=torch.float32).expand(batch, -1).clone() for k in KEYS[:2]}
+
+
+# ----------------------------------------------------------------------------- mlp_bc plugin
+
+
+def test_mlp_bc_registered_and_resolved_by_lerobot_factory():
+    assert "mlp_bc" in PreTrainedConfig.get_known_choices()
+    assert PreTrainedConfig.get_choice_class("mlp_bc") is MLPBCConfig
+    assert get_policy_class("mlp_bc") is MLPBCPolicy
+    cfg = MLPBCConfig()
+    assert (cfg.n_obs_steps, cfg.horizon, cfg.n_action_steps, cfg.optimizer_lr) == (2, 16, 8, 1e-4)
+    assert {k: v.value for k, v in cfg.normalization_mapping.items()} == {
+        "STATE": "MIN_MAX", "ENV": "MIN_MAX", "ACTION": "MIN_MAX"}
+    with pytest.raises(ValueError, match="n_action_steps"):
+        MLPBCConfig(n_action_steps=16)
+
+
+def test_mlp_bc_from_dataset_meta_trains_and_acts(reach_meta, episode):
+    policy, pre, post = _bc(reach_meta)
+    assert isinstance(policy, MLPBCPolicy)
+    n_params = sum(p.numel() for p in policy.parameters())
+    assert 0.8e6 < n_params < 1.6e6, n_params  # comparable to PDP's default denoiser (~1.2 M)
+    assert [type(s).__name__ for s in pre.steps][-1] == "NormalizerProcessorStep"
+
+    batch = demo_batch(policy, pre, episode)
+    T = len(episode["action"])
+    assert batch["observation.state"].shape == (T, 2, 6)
+    assert batch["observation.environment_state"].shape == (T, 2, 6)
+    assert batch["action"].shape == (T, 16, 3) and batch["action_is_pad"].shape == (T, 16)
+    policy.train()
+    loss, info = policy.forward(batch)
+    assert torch.isfinite(loss) and info["mse"] == pytest.approx(loss.item())
+    loss.backward()
+    assert all(p.grad is not None for p in policy.parameters())
+
+    policy.eval()
+    policy.reset()
+    chunk = policy.predict_action_chunk({k: batch[k][:4] for k in KEYS[:2]})
+    assert chunk.shape == (4, 8, 3) and chunk.abs().max() <= 1.0
+    policy.reset()
+    actions = [policy.select_action(pre(_obs(episode, t, batch=3))) for t in range(9)]
+    assert all(a.shape == (3, 3) for a in actions)
+    assert len(policy._queues["action"]) == 8 - 1  # 9 calls: a chunk of 8, then a new one
+    assert post(actions[0]).shape == (3, 3)
+
+
+def test_demo_batch_matches_lerobot_dataset_windows(reach_root, reach_meta, episode):
+    """The adaptation windows are exactly what the training loader yields (incl. clamping and padding)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    policy, pre, _ = _bc(reach_meta)
+    cfg = policy.config
+    fps = reach_meta.fps
+    ds = LeRobotDataset("local/reach", root=reach_root, delta_timestamps={
+        **{k: [i / fps for i in cfg.observation_delta_indices] for k in KEYS[:2]},
+        "action": [i / fps for i in cfg.action_delta_indices],
+    })
+    start = int(ds.meta.episodes["dataset_from_index"][2])
+    T = len(episode["action"])
+    ours = demo_batch(policy, pre, episode)
+    for t in (0, 1, T // 2, T - 3, T - 1):
+        item = pre(torch.utils.data.default_collate([ds[start + t]]))
+        for k in KEYS:
+            torch.testing.assert_close(ours[k][t], item[k][0], atol=1e-5, rtol=1e-5)
+        assert torch.equal(ours["action_is_pad"][t], item["action_is_pad"][0])
+    assert ours["action_is_pad"][T - 1].sum() == 16 - 2  # only the last frame and the one before it are real
+
+
+# ----------------------------------------------------------------------------- DP
+
+
+def test_dp_config_matching_gives_pdp_backbone_and_ddim():
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    args = dp_config_matching({})
+    assert "--policy.down_dims=[32,64,128]" in args
+    assert "--policy.noise_scheduler_type=DDIM" in args
+    assert all(a.startswith("--policy.") and "=" in a for a in args)
+    kw = dp_config_kwargs({})
+    cfg = DiffusionConfig(**kw)
+    expected = dict(down_dims=(32, 64, 128), horizon=16, n_obs_steps=2, n_action_steps=8, noise_scheduler_type="DDIM",
+                    num_train_timesteps=20, num_inference_steps=10, kernel_size=5, n_groups=8,
+                    diffusion_step_embed_dim=64)
+    assert {k: getattr(cfg, k) for k in expected} == expected
+    # a PDP config's own values win (extra PDP-only keys are ignored)
+    from dataclasses import asdict
+
+    from lerobot_pdp import PDPConfig
+
+    kw = dp_config_kwargs(asdict(PDPConfig(down_dims=(16, 32), horizon=8, n_action_steps=4, num_inference_steps=5)))
+    assert (kw["down_dims"], kw["horizon"], kw["num_inference_steps"]) == ((16, 32), 8, 5)
+    assert "--policy.horizon=8" in dp_config_matching(PDPConfig(horizon=8, n_action_steps=4))
+
+
+def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, episode):
+    policy, pre, _ = _dp(reach_meta)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    flags = [p.requires_grad for p in policy.parameters()]
+    x0 = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(0))  # adapt_dp_noise's own start
+    noise = adapt_dp_noise(policy, pre, episode, steps=8, lr=0.1, batch_size=16, seed=0)
+    assert noise.shape == (1, 16, 3) and not noise.requires_grad
+    assert not torch.equal(noise, x0)
+    assert dp_noise_matching_loss(policy, pre, episode, noise) < dp_noise_matching_loss(policy, pre, episode, x0)
+    after = policy.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert all(p.grad is None for p in policy.parameters())
+    assert [p.requires_grad for p in policy.parameters()] == flags
+    assert not policy.training
+    # deterministic given the seed
+    again = adapt_dp_noise(policy, pre, episode, steps=8, lr=0.1, batch_size=16, seed=0)
+    torch.testing.assert_close(again, noise)
+
+
+def test_adapt_dp_noise_rejects_non_diffusion_policy(reach_meta, episode):
+    policy, pre, _ = _bc(reach_meta)
+    with pytest.raises(TypeError, match="DiffusionPolicy"):
+        adapt_dp_noise(policy, pre, episode, steps=1)
+
+
+def test_fixed_noise_policy_passes_its_noise(reach_meta, episode):
+    policy, pre, _ = _dp(reach_meta)
+    noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(1))
+    wrapped = FixedNoisePolicy(policy, noise)
+    assert isinstance(wrapped, torch.nn.Module) and wrapped.config is policy.config
+
+    seen = []
+    original = policy.select_action
+
+    def spy(batch, noise=None):
+        seen.append(noise)
+        return original(batch, noise=noise)
+
+    policy.select_action = spy
+    wrapped.reset()
+    obs = pre(_obs(episode, 0, batch=3))
+    a = wrapped.select_action(obs)
+    assert a.shape == (3, 3)
+    assert seen[0].shape == (3, 16, 3) and torch.equal(seen[0][2], noise[0])
+    del policy.select_action
+    # same as calling the DP with that noise directly; same noise -> same action every reset
+    policy.reset()
+    direct = policy.select_action(pre(_obs(episode, 0, batch=3)), noise=noise.expand(3, -1, -1))
+    torch.testing.assert_close(a, direct)
+    wrapped.reset()
+    torch.testing.assert_close(wrapped.select_action(pre(_obs(episode, 0, batch=3))), a)
+    assert torch.allclose(a[0], a[1]) and torch.allclose(a[0], a[2])  # one noise for all envs of the batch
+
+
+# ----------------------------------------------------------------------------- BC
+
+
+def test_finetune_bc_changes_copy_not_original(reach_meta, episode):
+    policy, pre, _ = _bc(reach_meta, hidden_dims=(64, 64))
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    batch = demo_batch(policy, pre, episode)
+    loss0 = policy.forward(batch)[0].item()
+    tuned = finetune_bc(policy, pre, episode, steps=20, lr=1e-3, batch_size=16, seed=0)
+    assert tuned is not policy and isinstance(tuned, MLPBCPolicy) and not tuned.training
+    assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())
+    assert all(p.grad is None for p in policy.parameters())
+    assert any(not torch.equal(before[k], v) for k, v in tuned.state_dict().items())
+    assert tuned.forward(batch)[0].item() < loss0
+    # default: small learning rate -> small change
+    small = finetune_bc(policy, pre, episode, steps=5, seed=0)
+    delta = max((before[k] - v).abs().max().item() for k, v in small.state_dict().items())
+    assert 0 < delta < 1e-3
+
+
+# ----------------------------------------------------------------------------- real lerobot-train
+
+
+@pytest.mark.slow
+def test_lerobot_train_mlp_bc_and_matched_dp(reach_root, episode, tmp_path):
+    """`lerobot-train --policy.type=mlp_bc` finds the plugin; DP trains on state + env state with DDIM."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    common = ["--policy.push_to_hub=false", "--policy.device=cpu", "--dataset.repo_id=local/reach",
+              f"--dataset.root={reach_root}", "--steps=6", "--batch_size=8", "--log_freq=3", "--save_freq=6",
+              "--num_workers=0", "--wandb.enable=false", "--seed=0"]
+    runs = {"mlp_bc": ["--policy.type=mlp_bc"], "diffusion": ["--policy.type=diffusion", *dp_config_matching({})]}
+    for name, args in runs.items():
+        out = tmp_path / name
+        run_cli([lerobot_cli("lerobot-train"), *args, *common, f"--output_dir={out}"], timeout=600)
+        ckpt = out / "checkpoints" / "last" / "pretrained_model"
+        cfg = PreTrainedConfig.from_pretrained(ckpt)
+        assert cfg.type == name
+        policy = get_policy_class(cfg.type).from_pretrained(ckpt)
+        policy.eval()
+        pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
+        policy.reset()
+        action = post(policy.select_action(pre(_obs(episode, 0))))
+        assert action.shape == (1, 3) and torch.isfinite(action).all()
+        if name == "diffusion":
+            assert isinstance(policy, DiffusionPolicy)
+            assert type(policy.diffusion.noise_scheduler).__name__ == "DDIMScheduler"
+            assert policy.diffusion.num_inference_steps == 10 and cfg.down_dims == (32, 64, 128)

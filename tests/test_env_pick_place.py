@@ -1,0 +1,166 @@
+"""PickPlace-v0 with real MuJoCo physics: experts, classifier, scenes 0-3, grasp / release, scene errors."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from lerobot_pdp.envs import NOVEL, SceneError, get_suite_env, load_scene
+from lerobot_pdp.envs import pick_place as pp
+
+SCENE1_MODE = 0 * 8 + 3  # reach over-tight / carry left-wide
+SCENE2_MODE = 7 * 8 + 4  # reach under-wide / carry right-tight
+
+
+def rollout(env: pp.PickPlaceEnv, expert, seed: int) -> tuple[dict, int, np.ndarray]:
+    obs, info = env.reset(seed=seed)
+    expert.reset(obs)
+    states = [obs["agent_pos"]]
+    for t in range(env._max_episode_steps):
+        obs, _, term, trunc, info = env.step(expert(obs))
+        states.append(obs["agent_pos"])
+        if term or trunc:
+            return info, t + 1, np.asarray(states)
+    raise AssertionError("episode neither terminated nor truncated")
+
+
+def successful_modes(scene: int, seed: int = 0) -> list[int]:
+    env = pp.PickPlaceEnv(scene=scene)
+    return [m for m in range(64)
+            if rollout(env, pp.make_expert(m, np.random.default_rng(seed + m)), seed)[0]["is_success"]]
+
+
+def test_scene0_every_mode_succeeds_and_is_classified():
+    env = pp.PickPlaceEnv(scene=0)
+    for m in range(64):
+        info, steps, states = rollout(env, pp.make_expert(m, np.random.default_rng(m)), seed=m)
+        assert info["is_success"] and not info["collided"], (m, info)
+        assert info["mode"] == m, (pp.MODE_NAMES[m], info["mode"])
+        assert pp.classify_mode(states) == m
+        assert info["min_clearance"] > 0.01
+        assert steps < pp.MAX_EPISODE_STEPS
+
+
+def test_expert_jitter_varies_within_mode():
+    env = pp.PickPlaceEnv()
+    runs = [rollout(env, pp.make_expert(21, np.random.default_rng(s)), seed=s) for s in range(3)]
+    assert all(r[0]["is_success"] and r[0]["mode"] == 21 for r in runs)
+    assert len({r[1] for r in runs}) > 1 or not np.allclose(runs[0][2][:50], runs[1][2][:50])
+
+
+@pytest.mark.parametrize("scene, mode", [(1, SCENE1_MODE), (2, SCENE2_MODE)])
+def test_scenes_1_2_leave_exactly_one_training_mode(scene, mode):
+    assert successful_modes(scene) == [mode]
+
+
+def test_scene3_blocks_all_training_modes_and_shipped_route_succeeds():
+    assert successful_modes(3) == []
+    waypoints = load_scene(3, "pick_place").waypoints
+    env = pp.PickPlaceEnv(scene=3)
+    for seed in range(3):
+        expert = pp.expert_from_waypoints(json.loads(json.dumps(waypoints)), np.random.default_rng(seed))
+        info, _, _ = rollout(env, expert, seed)
+        assert info["is_success"], info
+        assert info["mode"] == NOVEL
+
+
+def test_waypoint_dict_format_matches_flat_format():
+    flat = [[0.0, -0.31, 0.53], [0.0, -0.19, 0.53], [0.0, 0.0, 0.4], [-0.25, 0.19, 0.4], [-0.25, 0.31, 0.4],
+            [0.0, 0.5, 0.4]]
+    nested = {"reach": flat[:2], "carry": flat[3:5]}
+    env = pp.PickPlaceEnv()
+    for wps in (flat, nested, np.asarray(flat)):
+        info, _, _ = rollout(env, pp.expert_from_waypoints(wps, np.random.default_rng(0)), seed=0)
+        assert info["is_success"] and info["mode"] == SCENE1_MODE
+    with pytest.raises(ValueError, match="grasp point"):
+        pp.expert_from_waypoints([[0.0, 0.3, 0.4], [0.0, 0.5, 0.4]], np.random.default_rng(0))
+    with pytest.raises(ValueError, match="release point"):
+        pp.expert_from_waypoints([[0.0, 0.0, 0.4], [0.0, 0.3, 0.4]], np.random.default_rng(0))
+    with pytest.raises(ValueError, match="unknown key"):
+        pp.expert_from_waypoints({"reach": [], "lift": []}, np.random.default_rng(0))
+
+
+def test_grasp_moves_object_only_while_closed():
+    env = pp.PickPlaceEnv()
+    env.reset(seed=0)
+    # Closing the gripper far from the object grasps nothing; the object stays put.
+    env.step(np.array([0.0, 0.0, 0.0, 1.0]))
+    assert env._gripper_closed and not env.grasped
+    env.step(np.array([0.0, 0.0, 0.0, -1.0]))
+    # Drive straight to the object (the straight line is blocked by obstacle A: remove it for this test).
+    env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
+    obs, _ = env.reset(seed=0)
+    for _ in range(200):
+        err = pp.OBJECT - env.ee_pos
+        obs, *_ = env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
+        if np.linalg.norm(err) < 0.003:
+            break
+    obs, _, _, _, info = env.step(np.array([0.0, 0.0, 0.0, 1.0]))
+    assert env.grasped and info["phase"] == "carry" and obs["agent_pos"][3] == 1.0
+    offset = env.object_pos - env.ee_pos
+    for _ in range(20):
+        env.step(np.array([0.5, 0.3, 0.2, 1.0]))
+    assert np.linalg.norm(env.object_pos - pp.OBJECT) > 0.1  # moved with the end effector
+    assert np.allclose(env.object_pos - env.ee_pos, offset, atol=2e-3)
+    env.step(np.array([0.0, 0.0, 0.0, -1.0]))
+    assert not env.grasped
+    for _ in range(5):
+        env.step(np.zeros(4))
+    released = env.object_pos.copy()
+    for _ in range(20):
+        obs, *_ = env.step(np.array([-0.5, 0.0, 0.0, -1.0]))
+    assert np.allclose(env.object_pos, released, atol=1e-3)  # stays where released
+    assert np.allclose(obs["environment_state"][:3], released, atol=1e-3)
+    assert np.linalg.norm(env.ee_pos - released) > 0.08  # the end effector moved away alone
+
+
+def test_collision_of_carried_object_terminates():
+    env = pp.PickPlaceEnv()
+    expert = pp.make_expert(8, np.random.default_rng(0))
+    obs, _ = env.reset(seed=0)
+    expert.reset(obs)
+    while not env.grasped:
+        obs, *_ = env.step(expert(obs))
+    # Now push the held object straight into obstacle B.
+    for _ in range(100):
+        err = pp.OBSTACLE_B - env.object_pos
+        obs, _, term, _, info = env.step(np.append(np.clip(err * 10, -1, 1), 1.0))
+        if term:
+            break
+    assert term and info["collided"] and not info["is_success"] and info["min_clearance"] < 0
+    assert "mode" in info
+
+
+@pytest.mark.parametrize("point", [pp.OBJECT, pp.TARGET, pp.START])
+def test_barrier_covering_start_object_or_target_is_a_scene_error(point):
+    scene = {"barriers": [{"shape": "box", "pos": list(point), "half_size": [0.05, 0.05, 0.05]}]}
+    with pytest.raises(SceneError, match="covers the"):
+        pp.PickPlaceEnv(scene=scene)
+
+
+def test_scene_errors_and_cylinders():
+    with pytest.raises(SceneError, match="unknown obstacle"):
+        pp.PickPlaceEnv(scene={"remove": ["obstacle_c"]})
+    with pytest.raises(SceneError, match="already used"):
+        pp.PickPlaceEnv(scene={"barriers": [{"shape": "box", "name": "obstacle_a", "pos": [0.4, 0, 0.4],
+                                             "half_size": [0.01, 0.01, 0.01]}]})
+    env = pp.PickPlaceEnv(scene={"barriers": [{"shape": "cylinder", "pos": [0.4, 0.0], "radius": 0.03,
+                                               "half_height": 0.1}]})
+    assert env.model.geom(f"barrier_{0}").pos[2] == pytest.approx(pp.WORKING_Z)
+
+
+def test_registration_and_lerobot_observation_layout():
+    suite = get_suite_env("pick-place")
+    assert suite.gym_id == pp.GYM_ID and suite.n_modes == 64 and suite.segment_on_gripper == 3
+    assert suite.mode_names[SCENE1_MODE] == "reach over-tight / carry left-wide"
+    assert suite.classify_mode(np.zeros((5, 4))) == NOVEL
+    env = gym.make(pp.GYM_ID, scene=1)
+    obs, info = env.reset(seed=0)
+    assert obs["agent_pos"].shape == (4,) and obs["environment_state"].shape == (12,)
+    assert obs["agent_pos"].dtype == np.float32
+    assert env.unwrapped.task_description and env.unwrapped._max_episode_steps == pp.MAX_EPISODE_STEPS
+    assert set(info) >= {"is_success", "collided", "min_clearance", "phase"}
+    env.close()
