@@ -94,6 +94,35 @@ class ConditionalResidualBlock1d(nn.Module):
         h = self.conv2(h)
         return h + self.residual(x)
 
+    def static_modulation(self, static_cond: Tensor, z: Tensor | None, step_dim: int) -> tuple[Tensor, Tensor, Tensor]:
+        """What stays fixed while one chunk is denoised: the observation part of the condition and z's FiLM.
+
+        ``Mish`` acts elementwise, so ``Linear(Mish([s, c]))`` = ``W_s Mish(s) + W_c Mish(c) + b``: the
+        c-part (observations, and z for ``concat``) is computed once per chunk instead of once per step.
+        Returns (static scale/bias pre-activation [B, 2C, 1], gamma [B, C, 1], beta [B, C, 1]).
+        """
+        lin = self.cond_encoder[1]
+        static = F.linear(F.mish(static_cond), lin.weight[:, step_dim:], lin.bias).unsqueeze(-1)
+        if self.latent_film is not None:
+            gamma, beta = self.latent_film(z)
+        else:
+            gamma = beta = None
+        return static, gamma, beta
+
+    def forward_cached(self, x: Tensor, step_feat: Tensor, static: Tensor, gamma: Tensor | None,
+                       beta: Tensor | None, step_dim: int) -> Tensor:
+        """Same as ``forward`` with the chunk-constant parts precomputed (see ``static_modulation``)."""
+        h = self.conv1(x)
+        lin = self.cond_encoder[1]
+        scale, bias = (F.linear(step_feat, lin.weight[:, :step_dim]).unsqueeze(-1) + static).chunk(2, dim=1)
+        if gamma is not None:
+            # fold both modulations into one affine map: gamma * (scale * h + bias) + beta
+            h = torch.addcmul(gamma * bias + beta, gamma * scale, h)
+        else:
+            h = torch.addcmul(bias, scale, h)
+        h = self.conv2(h)
+        return h + self.residual(x)
+
 
 class FiLMUnet1d(nn.Module):
     """eps_theta(A^k, k, c, z) over chunks ``[B, horizon, action_dim]``.
@@ -116,6 +145,7 @@ class FiLMUnet1d(nn.Module):
             nn.Mish(),
             nn.Linear(step_embed_dim * 4, step_embed_dim),
         )
+        self.step_embed_dim = step_embed_dim
         cond_dim = step_embed_dim + obs_cond_dim + (latent_dim if latent_conditioning == "concat" else 0)
         film_dim = latent_dim if latent_conditioning == "film" else None
 
@@ -162,6 +192,45 @@ class FiLMUnet1d(nn.Module):
         for res1, res2, upsample in self.up:
             x = torch.cat((x, skips.pop()), dim=1)
             x = res2(res1(x, cond, film_z), cond, film_z)
+            x = upsample(x)
+        return self.final(x).transpose(1, 2)
+
+    def blocks(self) -> list[ConditionalResidualBlock1d]:
+        """Residual blocks in the order ``forward`` runs them."""
+        out = []
+        for res1, res2, _ in self.down:
+            out += [res1, res2]
+        out += list(self.mid)
+        for res1, res2, _ in self.up:
+            out += [res1, res2]
+        return out
+
+    @torch.no_grad()
+    def make_context(self, obs_cond: Tensor, z: Tensor | None) -> list[tuple[Tensor, Tensor | None, Tensor | None]]:
+        """Per-block chunk-constant modulation for :meth:`forward_cached` (inference only)."""
+        static = obs_cond if self.latent_conditioning != "concat" else torch.cat([obs_cond, z], dim=-1)
+        film_z = z if self.latent_conditioning == "film" else None
+        return [b.static_modulation(static, film_z, self.step_embed_dim) for b in self.blocks()]
+
+    @torch.no_grad()
+    def forward_cached(self, sample: Tensor, k: Tensor, context: list) -> Tensor:
+        """``forward`` for inference: only the diffusion-step part of the condition is recomputed."""
+        x = sample.transpose(1, 2)
+        step_feat = F.mish(self.step_encoder(k))
+        ctx = iter(context)
+        d = self.step_embed_dim
+        skips = []
+        for res1, res2, downsample in self.down:
+            x = res1.forward_cached(x, step_feat, *next(ctx), d)
+            x = res2.forward_cached(x, step_feat, *next(ctx), d)
+            skips.append(x)
+            x = downsample(x)
+        for res in self.mid:
+            x = res.forward_cached(x, step_feat, *next(ctx), d)
+        for res1, res2, upsample in self.up:
+            x = torch.cat((x, skips.pop()), dim=1)
+            x = res1.forward_cached(x, step_feat, *next(ctx), d)
+            x = res2.forward_cached(x, step_feat, *next(ctx), d)
             x = upsample(x)
         return self.final(x).transpose(1, 2)
 

@@ -27,13 +27,12 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
 from huggingface_hub.serialization import save_torch_state_dict
-from safetensors.torch import save_model as save_model_as_safetensor
-from torch import Tensor, nn
-
 from lerobot.configs import FeatureType
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from safetensors.torch import save_model as save_model_as_safetensor
+from torch import Tensor, nn
 
 from .behavior import (
     UNLABELED,
@@ -291,8 +290,9 @@ class PDPPolicy(PreTrainedPolicy):
         if noise is None:
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
-        return self.noise_schedule.sample(self.denoiser, noise, self.config.num_inference_steps,
-                                          obs_cond=obs_cond, z=z)
+        context = self.denoiser.make_context(obs_cond, z)
+        return self.noise_schedule.sample(self.denoiser.forward_cached, noise, self.config.num_inference_steps,
+                                          context=context)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:

@@ -57,3 +57,17 @@ def test_schedule_and_ddim():
     oracle = lambda x, kk, **kw: (x - s.alphas_cumprod[kk].view(-1, 1, 1).sqrt() * x0) / (  # noqa: E731
         1 - s.alphas_cumprod[kk].view(-1, 1, 1)).sqrt()
     torch.testing.assert_close(s.sample(oracle, torch.randn_like(x0), 10), x0, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("mode", ["film", "concat", "none"])
+def test_cached_inference_path_equals_forward(mode):
+    net = _net(mode)
+    for m in net.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
+    net.eval()
+    x, c, z = torch.randn(3, 16, 3), torch.randn(3, 10), torch.randn(3, 2)
+    ctx = net.make_context(c, z)
+    for k in (0, 7, 19):
+        kk = torch.full((3,), k)
+        torch.testing.assert_close(net.forward_cached(x, kk, ctx), net(x, kk, c, z), atol=1e-5, rtol=1e-5)

@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..envs.plotting import draw_scene, mode_color, plot_trajectories, scene_views  # noqa: E402
+from ..envs.plotting import draw_scene, mode_color, scene_views  # noqa: E402
 from ..envs.suite import SuiteEnv  # noqa: E402
 
 

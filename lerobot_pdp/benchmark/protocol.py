@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..envs.scene import load_scene
 from ..envs.suite import NOVEL, SuiteEnv, get_suite_env

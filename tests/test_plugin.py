@@ -1,0 +1,54 @@
+"""LeRobot discovers PDP from a regular (non-editable) install, by distribution name."""
+
+import os
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHECK = """
+import lerobot_pdp, sys
+from lerobot.utils.import_utils import register_third_party_plugins
+register_third_party_plugins()
+assert "lerobot_policy_pdp" in sys.modules, "plugin module not imported by discovery"
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.policies.factory import get_policy_class
+from lerobot.envs.configs import EnvConfig
+cfg_cls = PreTrainedConfig.get_choice_class("pdp")
+pol_cls = get_policy_class("pdp")
+env_cls = EnvConfig.get_choice_class("pdp_reach_around")
+print(lerobot_pdp.__file__, cfg_cls.__name__, pol_cls.__name__, env_cls.__name__)
+"""
+
+
+@pytest.mark.slow
+def test_register_third_party_plugins_finds_pdp_from_wheel(tmp_path):
+    wheel_dir = tmp_path / "wheels"
+    src = tmp_path / "src"
+    # build from a copy so the checkout gets no build/ or egg-info
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-files"], check=True, capture_output=True, text=True).stdout.split()
+    for f in files:
+        if (ROOT / f).is_file():
+            (src / f).parent.mkdir(parents=True, exist_ok=True)
+            (src / f).write_bytes((ROOT / f).read_bytes())
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(wheel_dir),
+                    str(src)], check=True, capture_output=True)
+    wheel = next(wheel_dir.glob("lerobot_policy_pdp-*.whl"))
+    # a fresh venv that sees the project's dependencies but not its editable install
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    site = next((venv / "lib").glob("python3*/site-packages"))
+    (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)],
+                   check=True, capture_output=True)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([str(venv / "bin" / "python"), "-c", CHECK], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    path, cfg_name, pol_name, env_name = out.stdout.split()[-4:]
+    assert str(site) in path, f"imported {path}, not the wheel install"
+    assert (cfg_name, pol_name, env_name) == ("PDPConfig", "PDPPolicy", "PDPReachAroundEnvConfig")
