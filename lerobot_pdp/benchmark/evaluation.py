@@ -8,6 +8,7 @@ and its behavior trace for plots.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -99,11 +100,26 @@ def make_vector_env(suite: SuiteEnv, scene: Any, n_envs: int) -> gym.vector.Sync
     return gym.vector.SyncVectorEnv([make for _ in range(n_envs)])
 
 
+@contextlib.contextmanager
+def _quiet_rollout_bar(module):
+    """LeRobot's rollout draws a progress bar per batch; hundreds of them drown the benchmark's own."""
+    original = module.trange
+
+    def silent(*args, **kwargs):
+        return original(*args, **{**kwargs, "disable": True})
+
+    module.trange = silent
+    try:
+        yield
+    finally:
+        module.trange = original
+
+
 def run_rollouts(suite: SuiteEnv, scene: Any, policy, preprocessor, postprocessor, n: int, seed: int,
                  label: str = "", env_processors=None, batch_size: int = 10) -> RolloutBatch:
     """``n`` rollouts of ``policy`` in ``scene`` with LeRobot's rollout loop, ``batch_size`` envs at a time."""
     from lerobot.processor import PolicyProcessorPipeline
-    from lerobot.scripts.lerobot_eval import rollout
+    from lerobot.scripts import lerobot_eval
 
     if env_processors is None:
         identity = PolicyProcessorPipeline(steps=[])
@@ -115,8 +131,9 @@ def run_rollouts(suite: SuiteEnv, scene: Any, policy, preprocessor, postprocesso
         venv = make_vector_env(suite, scene, b)
         try:
             torch.manual_seed(seed + done)
-            rollout(venv, policy, env_processors[0], env_processors[1], preprocessor, postprocessor,
-                    seeds=list(range(seed + done, seed + done + b)))
+            with _quiet_rollout_bar(lerobot_eval):
+                lerobot_eval.rollout(venv, policy, env_processors[0], env_processors[1], preprocessor,
+                                     postprocessor, seeds=list(range(seed + done, seed + done + b)))
             for sub in venv.envs:
                 info = sub.final_info or {}
                 out.results.append(RolloutResult(

@@ -103,6 +103,7 @@ class BenchmarkConfig:
     ablations: bool = False
     scenes: tuple[int, ...] = SCENES
     steps: int | None = None  # override the env's training steps (tests)
+    episodes_per_mode: int | None = None  # override the env's dataset size (tests)
     figures: bool = True
 
 
@@ -442,6 +443,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     suite = get_suite_env(cfg.env)
     full, quick = SETTINGS[suite.name]
     settings = quick if cfg.quick else full
+    if cfg.episodes_per_mode is not None:
+        settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})
     steps = cfg.steps or settings.steps
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
