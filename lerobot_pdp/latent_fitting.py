@@ -100,16 +100,23 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
     z = z0.detach().clone().float().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=lr)
     losses: list[float] = []
+    # L_fit is a Monte-Carlo estimate (random chunks, k and eps each step), so the last iterates jitter
+    # around the optimum; averaging the final 20 % of them (Polyak averaging) returns its centre.
+    tail_start = steps - max(1, steps // 5)
+    z_sum = torch.zeros_like(z)
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="fit_latent", leave=False)
-    for _ in iterator:
+    for i in iterator:
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
         loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g)
         (grad,) = torch.autograd.grad(loss, z)
         z.grad = grad
         opt.step()
         losses.append(float(loss.detach()))
-    return FitResult(z=z.detach().cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)
+        if i >= tail_start:
+            z_sum += z.detach()
+    z_final = z_sum / (steps - tail_start) if steps > 0 else z.detach()
+    return FitResult(z=z_final.cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)
