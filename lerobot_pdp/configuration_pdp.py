@@ -95,8 +95,9 @@ class PDPConfig(PreTrainedConfig):
     # ---- Diffusion ----
     # K: diffusion steps of the training forward process (paper: 20).
     num_train_timesteps: int = 20
-    # Deterministic DDIM steps at inference (evenly spaced over the K training steps).
-    num_inference_steps: int = 10
+    # Deterministic DDIM steps at inference (evenly spaced over the K training steps). 5 matched 10 in
+    # success on reach-around (scene 0: 90 vs 92.5 %, scene 3: 85 vs 80 %, docs/performance.md) at half the latency.
+    num_inference_steps: int = 5
     beta_schedule: str = "squaredcos_cap_v2"
     clip_sample: bool = True
     clip_sample_range: float = 1.0

@@ -50,6 +50,19 @@ class Conv1dBlock(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         return self.block(x)
 
+    def fast(self, x: Tensor) -> Tensor:
+        """Inference path: the convolution as one matmul over unfolded windows.
+
+        PyTorch's CPU conv1d takes its slow path for batch-1, short-sequence inputs (~30-80 us per call
+        at 64-128 channels); unfold + matmul computes the same thing 2-3x faster.
+        """
+        conv, norm = self.block[0], self.block[1]
+        k = conv.kernel_size[0]
+        cols = F.pad(x, (k // 2, k // 2)).unfold(2, k, 1)  # [B, C, L, k]
+        cols = cols.permute(0, 2, 1, 3).reshape(x.shape[0], x.shape[2], -1)
+        h = F.linear(cols, conv.weight.reshape(conv.out_channels, -1), conv.bias).transpose(1, 2)
+        return F.mish(F.group_norm(h, norm.num_groups, norm.weight, norm.bias, norm.eps))
+
 
 class LatentFiLM(nn.Module):
     """z -> (gamma, beta) for one block: a lightweight MLP, initialised to the identity modulation."""
@@ -112,7 +125,7 @@ class ConditionalResidualBlock1d(nn.Module):
     def forward_cached(self, x: Tensor, step_feat: Tensor, static: Tensor, gamma: Tensor | None,
                        beta: Tensor | None, step_dim: int) -> Tensor:
         """Same as ``forward`` with the chunk-constant parts precomputed (see ``static_modulation``)."""
-        h = self.conv1(x)
+        h = self.conv1.fast(x)
         lin = self.cond_encoder[1]
         scale, bias = (F.linear(step_feat, lin.weight[:, :step_dim]).unsqueeze(-1) + static).chunk(2, dim=1)
         if gamma is not None:
@@ -120,8 +133,12 @@ class ConditionalResidualBlock1d(nn.Module):
             h = torch.addcmul(gamma * bias + beta, gamma * scale, h)
         else:
             h = torch.addcmul(bias, scale, h)
-        h = self.conv2(h)
-        return h + self.residual(x)
+        h = self.conv2.fast(h)
+        if isinstance(self.residual, nn.Conv1d):  # 1x1 conv = a linear map over channels
+            res = F.linear(x.transpose(1, 2), self.residual.weight[..., 0], self.residual.bias).transpose(1, 2)
+        else:
+            res = x
+        return h + res
 
 
 class FiLMUnet1d(nn.Module):
@@ -232,7 +249,8 @@ class FiLMUnet1d(nn.Module):
             x = res1.forward_cached(x, step_feat, *next(ctx), d)
             x = res2.forward_cached(x, step_feat, *next(ctx), d)
             x = upsample(x)
-        return self.final(x).transpose(1, 2)
+        x = self.final[0].fast(x)
+        return self.final[1](x).transpose(1, 2)
 
 
 class NoiseSchedule(nn.Module):

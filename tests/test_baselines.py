@@ -12,6 +12,7 @@ from conftest import lerobot_cli, run_cli
 from lerobot.configs import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class, make_policy, make_pre_post_processors
 
+from lerobot_pdp import PDPConfig
 from lerobot_pdp.baselines import MLPBCConfig, MLPBCPolicy
 from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.benchmark.baselines import (
@@ -160,13 +161,11 @@ def test_dp_config_matching_gives_pdp_backbone_and_ddim():
     kw = dp_config_kwargs({})
     cfg = DiffusionConfig(**kw)
     expected = dict(down_dims=(32, 64, 128), horizon=16, n_obs_steps=2, n_action_steps=8, noise_scheduler_type="DDIM",
-                    num_train_timesteps=20, num_inference_steps=10, kernel_size=5, n_groups=8,
+                    num_train_timesteps=20, num_inference_steps=PDPConfig().num_inference_steps, kernel_size=5, n_groups=8,
                     diffusion_step_embed_dim=64)
     assert {k: getattr(cfg, k) for k in expected} == expected
     # a PDP config's own values win (extra PDP-only keys are ignored)
     from dataclasses import asdict
-
-    from lerobot_pdp import PDPConfig
 
     kw = dp_config_kwargs(asdict(PDPConfig(down_dims=(16, 32), horizon=8, n_action_steps=4, num_inference_steps=5)))
     assert (kw["down_dims"], kw["horizon"], kw["num_inference_steps"]) == ((16, 32), 8, 5)
@@ -274,4 +273,4 @@ def test_lerobot_train_mlp_bc_and_matched_dp(reach_root, episode, tmp_path):
         if name == "diffusion":
             assert isinstance(policy, DiffusionPolicy)
             assert type(policy.diffusion.noise_scheduler).__name__ == "DDIMScheduler"
-            assert policy.diffusion.num_inference_steps == 10 and cfg.down_dims == (32, 64, 128)
+            assert policy.diffusion.num_inference_steps == PDPConfig().num_inference_steps and cfg.down_dims == (32, 64, 128)

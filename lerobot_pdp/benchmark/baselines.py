@@ -47,7 +47,7 @@ DP_MATCHING_DEFAULTS: dict[str, Any] = {
     "n_action_steps": 8,
     "drop_n_last_frames": 7,
     "num_train_timesteps": 20,
-    "num_inference_steps": 10,
+    "num_inference_steps": 5,
     "beta_schedule": "squaredcos_cap_v2",
     "clip_sample": True,
     "clip_sample_range": 1.0,
@@ -87,8 +87,8 @@ def dp_config_matching(pdp_like: Mapping[str, Any] | Any | None = None) -> list[
     """``lerobot-train --policy.type=diffusion`` overrides that give DP PDP's backbone and sampler.
 
     Same 1-D U-Net (down_dims, kernel, groups, step-embedding width), same windows (horizon 16,
-    2 observation frames, 8 executed actions), same K = 20 training steps and 10 deterministic DDIM
-    inference steps, same padding mask and learning rate: the fair baseline the benchmark notes ask for
+    2 observation frames, 8 executed actions), same K = 20 training steps and deterministic DDIM
+    inference steps (PDP's num_inference_steps), same padding mask and learning rate: the fair baseline the benchmark notes ask for
     (LeRobot's default DP has 248 M parameters and 100 DDPM steps, ~23 s per chunk on our CPUs).
     Returns e.g. ``["--policy.down_dims=[32,64,128]", "--policy.horizon=16", ...]``.
     """

@@ -67,9 +67,10 @@ class Method:
 def methods_for(suite: SuiteEnv) -> dict[str, Method]:
     """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it)."""
     try:
+        from ..configuration_pdp import PDPConfig
         from .baselines import dp_config_matching
 
-        dp = tuple(dp_config_matching({}))
+        dp = tuple(dp_config_matching(PDPConfig(device="cpu")))  # DP mirrors PDP's backbone and sampler
     except ImportError:  # baselines not importable: DP is unavailable, PDP still runs
         dp = ()
     pdp = [f"--policy.trace_dims=[{','.join(map(str, suite.trace_dims))}]"]
@@ -226,7 +227,8 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}", f"--output_dir={tmp_out}",
         f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
         f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", "--num_workers=0", "--wandb.enable=false",
-        *lr_args, *warmup, *method.overrides,
+        # the shared budget comes last so that it wins over any per-method default (same lr for everyone)
+        *method.overrides, *lr_args, *warmup,
     ]
     log = run_dir / "train.log"
     t0 = time.time()
