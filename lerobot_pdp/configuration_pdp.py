@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
-from lerobot.optim.optimizers import AdamConfig
-from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_pdp.chunk_config import ActionChunkConfigMixin
 
 LATENT_CONDITIONING = ("film", "concat", "none")
 LATENT_TYPES = ("continuous", "onehot")
@@ -22,7 +22,7 @@ TRACE_NORMALIZE = ("none", "start", "endpoints")
 
 @PreTrainedConfig.register_subclass("pdp")
 @dataclass
-class PDPConfig(PreTrainedConfig):
+class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     """Configuration for :class:`~lerobot_pdp.modeling_pdp.PDPPolicy`.
 
     Inputs: ``observation.state`` (required) and optionally ``observation.environment_state``; output:
@@ -185,33 +185,6 @@ class PDPConfig(PreTrainedConfig):
             errors.append("steer_dataset_root and steer_episode_index must be given together")
         if errors:
             raise ValueError("Invalid PDPConfig: " + "; ".join(errors))
-
-    # ---- LeRobot contract ----
-    @property
-    def observation_delta_indices(self) -> list[int]:
-        return list(range(1 - self.n_obs_steps, 1))
-
-    @property
-    def action_delta_indices(self) -> list[int]:
-        return list(range(1 - self.n_obs_steps, 1 - self.n_obs_steps + self.horizon))
-
-    @property
-    def reward_delta_indices(self) -> None:
-        return None
-
-    def get_optimizer_preset(self) -> AdamConfig:
-        # The per-group learning rates come from PDPPolicy.get_optim_params (param-group "lr" wins).
-        return AdamConfig(
-            lr=self.optimizer_lr,
-            betas=self.optimizer_betas,
-            eps=self.optimizer_eps,
-            weight_decay=self.optimizer_weight_decay,
-            grad_clip_norm=self.optimizer_grad_clip_norm,
-        )
-
-    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig:
-        # A multiplicative schedule, so each parameter group keeps its own peak learning rate.
-        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
 
     def validate_features(self) -> None:
         """Check the input/output features this policy needs; raise naming the key and shape."""

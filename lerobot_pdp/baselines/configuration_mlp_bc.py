@@ -12,16 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
-from lerobot.optim.optimizers import AdamConfig
-from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_pdp.chunk_config import ActionChunkConfigMixin
 
 ACTIVATIONS = ("relu", "gelu", "mish")
 
 
 @PreTrainedConfig.register_subclass("mlp_bc")
 @dataclass
-class MLPBCConfig(PreTrainedConfig):
+class MLPBCConfig(ActionChunkConfigMixin, PreTrainedConfig):
     """Configuration for :class:`~lerobot_pdp.baselines.modeling_mlp_bc.MLPBCPolicy`.
 
     Inputs: ``observation.state`` (required) and ``observation.environment_state`` (optional, used when
@@ -90,31 +90,6 @@ class MLPBCConfig(PreTrainedConfig):
             )
         if errors:
             raise ValueError("Invalid MLPBCConfig: " + "; ".join(errors))
-
-    # ---- LeRobot contract ----
-    @property
-    def observation_delta_indices(self) -> list[int]:
-        return list(range(1 - self.n_obs_steps, 1))
-
-    @property
-    def action_delta_indices(self) -> list[int]:
-        return list(range(1 - self.n_obs_steps, 1 - self.n_obs_steps + self.horizon))
-
-    @property
-    def reward_delta_indices(self) -> None:
-        return None
-
-    def get_optimizer_preset(self) -> AdamConfig:
-        return AdamConfig(
-            lr=self.optimizer_lr,
-            betas=self.optimizer_betas,
-            eps=self.optimizer_eps,
-            weight_decay=self.optimizer_weight_decay,
-            grad_clip_norm=self.optimizer_grad_clip_norm,
-        )
-
-    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig:
-        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
 
     def validate_features(self) -> None:
         """Check the input/output features this policy needs; raise naming the key and shape."""
