@@ -466,6 +466,12 @@ class PDPPolicy(PreTrainedPolicy):
         Returns:
             :class:`FitResult` with ``z`` ([d_z] or [M, d_z]), the initial z and the loss history.
         """
+        # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. when
+        # lerobot-eval's first select_action triggers fitting from --policy.steer_dataset_root.
+        with torch.inference_mode(False), torch.enable_grad():
+            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress)
+
+    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress) -> FitResult:
         cfg = self.config
         ep = self._episode_arrays(episode, need_action=True)
         segs = self._resolve_segments(ep, segments)

@@ -225,3 +225,13 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
     assert "Parameterized Diffusion Policy" in readme and "steer_mode" in readme
     q = PDPPolicy.from_pretrained(out)
     assert len(q.behavior_traces) == 40
+
+
+def test_fit_latent_works_under_inference_mode(synthetic_meta):
+    """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there."""
+    p = _policy(synthetic_meta)
+    p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
+    p.config.fit_steps = 3
+    with torch.inference_mode():
+        z = p.current_latent(2)
+    assert z.shape == (2, 2) and len(p.active_latent) == 1

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import lerobot_cli, run_cli
 
 from lerobot_pdp.benchmark.protocol import (
     BenchmarkConfig,
@@ -65,6 +66,13 @@ def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):
     res = policy.fit_latent(demo_episode(demo_root))
     assert np.isfinite(res.losses).all()
     fitted = run_rollouts(suite, 3, policy, pre, post, 10, seed=1)
+    # the same steering from the command line: lerobot-eval fits z at start-up from the demo dataset
+    out = tmp_path / "eval"
+    run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={ckpt}", "--env.type=pdp_reach_around", "--env.scene=3",
+             f"--policy.steer_dataset_root={demo_root}", "--policy.steer_episode_index=0", "--policy.device=cpu",
+             "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}"])
+    info = json.loads(next(out.rglob("eval_info.json")).read_text())
+    assert info["overall"]["n_episodes"] == 2 and "pc_success" in info["overall"]
     # Hard floor: fitting z alone must turn a scene every training mode fails into a mostly-solved one.
     assert fitted.success_rate >= 0.5, fitted.success_rate
     if fitted.success_rate < 0.8:  # the target for this brief training budget; reported, not hidden
