@@ -534,8 +534,7 @@ class PDPPolicy(PreTrainedPolicy):
             if root is None:
                 raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
             where = f"episode {index} of {root}"
-            keys = [k for k in (OBS_STATE, OBS_ENV_STATE, ACTION, cfg.trace_key)
-                    if k == OBS_STATE or k == ACTION or (k == OBS_ENV_STATE and self.env_dim) or k == cfg.trace_key]
+            keys = [OBS_STATE, ACTION, cfg.trace_key] + ([OBS_ENV_STATE] if self.env_dim else [])
             eps = read_episodes(root, list(dict.fromkeys(keys)), [int(index)])
             if int(index) not in eps:
                 raise KeyError(f"{root} has no episode {index}")
@@ -695,8 +694,3 @@ class _FeatureStats(nn.Module):
         if key == ACTION:
             return step._normalize_action(x.cpu(), inverse=True)
         return step._normalize_observation({key: x.cpu()}, inverse=True)[key]
-
-
-def episode_from_dataset(root: str | Path, index: int, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    """Convenience: one whole episode of a local LeRobotDataset as arrays (what ``fit_latent`` accepts)."""
-    return read_episodes(root, list(keys), [index])[index]
