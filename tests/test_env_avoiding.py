@@ -8,24 +8,14 @@ import pytest
 
 from lerobot_pdp.envs import NOVEL, get_suite_env, load_scene
 from lerobot_pdp.envs import avoiding as av
+from lerobot_pdp.envs.recording import run_expert_episode
 
 SUITE = get_suite_env("avoiding")
 
 
 def run_expert(scene, mode=None, waypoints=None, seed=0):
-    env = gym.make(av.GYM_ID, scene=scene)
-    rng = np.random.default_rng(seed)
-    expert = SUITE.make_expert(mode, rng, scene) if waypoints is None else SUITE.expert_from_waypoints(
-        waypoints, rng, scene)
-    obs, info = env.reset(seed=seed)
-    expert.reset(obs)
-    states = [obs["agent_pos"]]
-    while True:
-        obs, _, terminated, truncated, info = env.step(expert(obs))
-        states.append(obs["agent_pos"])
-        if terminated or truncated:
-            env.close()
-            return info, np.asarray(states), len(states) - 1
+    """Roll out the mode's expert (or a way-point expert); returns (last info, states, n_steps)."""
+    return run_expert_episode(SUITE, scene, mode, waypoints, seed)
 
 
 def test_suite_entry_and_layout():

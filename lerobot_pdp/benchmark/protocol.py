@@ -124,24 +124,10 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
 
 def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[int]:
     """Training modes whose scripted expert succeeds in ``scene`` (one seeded try each)."""
-    import gymnasium as gym
+    from ..envs.recording import run_expert_episode
 
-    env = gym.make(suite.gym_id, scene=scene, disable_env_checker=True)
-    ok = []
-    try:
-        for m in range(suite.n_modes):
-            expert = suite.make_expert(m, np.random.default_rng(seed + m), scene=scene)
-            obs, _ = env.reset(seed=seed)
-            expert.reset(obs)
-            for _ in range(suite.max_episode_steps):
-                obs, _, term, trunc, info = env.step(expert(obs))
-                if term or trunc:
-                    break
-            if info.get("is_success"):
-                ok.append(m)
-    finally:
-        env.close()
-    return ok
+    return [m for m in range(suite.n_modes)
+            if run_expert_episode(suite, scene, mode=m, seed=seed + m)[0].get("is_success")]
 
 
 def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:

@@ -96,6 +96,20 @@ def _rollout(env: gym.Env, expert, reset_seed: int) -> tuple[list[dict[str, np.n
             return observations, actions, info
 
 
+def run_expert_episode(suite: SuiteEnv, scene: Any = 0, mode: int | None = None, waypoints: Any = None,
+                       seed: int = 0) -> tuple[dict, np.ndarray, int]:
+    """Roll out a mode's expert (or a way-point expert) once in ``scene``: (last info, states, n_steps)."""
+    env = gym.make(suite.gym_id, scene=scene, disable_env_checker=True)
+    rng = np.random.default_rng(seed)
+    expert = (suite.make_expert(mode, rng, scene=scene) if waypoints is None
+              else suite.expert_from_waypoints(waypoints, rng, scene=scene))
+    try:
+        observations, _, info = _rollout(env, expert, seed)
+    finally:
+        env.close()
+    return info, np.asarray([o["agent_pos"] for o in observations]), len(observations) - 1
+
+
 def _dataset_features(env: gym.Env) -> dict[str, dict]:
     spaces = env.observation_space
     base = env.unwrapped
