@@ -52,7 +52,7 @@ import gymnasium as gym
 import numpy as np
 
 from .scene import Scene, SceneError, load_scene
-from .suite import NOVEL, SuiteEnv, register_suite_env
+from .suite import NOVEL, SuiteEnv, mode_info, register_suite_env
 
 ENV_NAME = "kitchen-microwave"
 SCENE_KEY = "kitchen_microwave"
@@ -384,7 +384,7 @@ class KitchenMicrowaveEnv(gym.Env):
         info = {"is_success": bool(success), "collided": bool(collided), "clearance": clearance,
                 "min_clearance": self._min_clearance, "door_angle": float(obs["environment_state"][0])}
         if terminated or truncated:
-            info["mode"] = classify_mode(np.stack(self._states))
+            info.update(mode_info(classify_mode(np.stack(self._states)), MODE_NAMES))
         return obs, float(success), terminated, truncated, info
 
     def render(self):

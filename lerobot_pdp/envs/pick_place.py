@@ -64,7 +64,7 @@ import numpy as np
 from gymnasium import spaces
 
 from .scene import Scene, SceneError, load_scene
-from .suite import NOVEL, SuiteEnv, register_suite_env
+from .suite import NOVEL, SuiteEnv, mode_info, register_suite_env
 
 ENV_NAME = "pick_place"
 GYM_ID = "lerobot_pdp/PickPlace-v0"
@@ -271,7 +271,7 @@ class PickPlaceEnv(gym.Env):
             "grasped": bool(self._grasped),
         }
         if done:
-            info["mode"] = classify_mode(np.asarray(self._states))
+            info.update(mode_info(classify_mode(np.asarray(self._states)), MODE_NAMES))
         return info
 
     def _check_contacts(self) -> None:

@@ -29,7 +29,7 @@ import mujoco
 import numpy as np
 
 from .scene import Barrier, Scene, SceneError, load_scene
-from .suite import NOVEL
+from .suite import mode_info
 
 SUBSTEPS = 10  # physics steps per control step
 TIMESTEP = 0.002  # s, so the control period is 0.02 s (50 Hz)
@@ -385,9 +385,7 @@ class PointMassEnv(gym.Env):
         self._done = terminated or truncated
         info = self._info(success=success)
         if self._done:
-            label = self.classify(np.asarray(self._positions))
-            info["mode"] = -1 if label == NOVEL else int(label)
-            info["mode_name"] = NOVEL if label == NOVEL else self.mode_names[int(label)]
+            info.update(mode_info(self.classify(np.asarray(self._positions)), self.mode_names))
         return self._obs(), float(success), terminated, truncated, info
 
     # ---- state ------------------------------------------------------------------------------------

@@ -79,6 +79,17 @@ class SuiteEnv:
         return f"mode {int(mode)}: {self.mode_names[int(mode)]}"
 
 
+def mode_info(label: int | str, mode_names: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    """``info`` fields for a classifier label: ``mode`` as an int (-1 = novel) plus ``mode_name``.
+
+    Always an int because gymnasium's vector envs allocate each info array from the first finished
+    env's value: a mix of ints and ``"novel"`` in one batch would crash ``lerobot-eval``.
+    """
+    if label == NOVEL or not isinstance(label, (int, np.integer)):
+        return {"mode": -1, "mode_name": NOVEL}
+    return {"mode": int(label), "mode_name": mode_names[int(label)]}
+
+
 SUITE: dict[str, SuiteEnv] = {}
 
 
