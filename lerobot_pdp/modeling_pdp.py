@@ -668,11 +668,22 @@ class _FeatureStats(nn.Module):
                     getattr(self, self._name(key, s)).copy_(torch.as_tensor(np.asarray(dataset_stats[key][s]),
                                                                             dtype=torch.float32))
         self.loaded.fill_(True)
+        self._cached_step = None
 
     def as_dict(self) -> dict[str, dict[str, Tensor]]:
         return {k: {s: getattr(self, self._name(k, s)) for s in self.STATS} for k in self.features}
 
+    def _load_from_state_dict(self, *args, **kwargs):
+        self._cached_step = None  # statistics change when a checkpoint is loaded
+        super()._load_from_state_dict(*args, **kwargs)
+
     def _step(self):
+        """LeRobot's normaliser over these statistics, built once (select_action may call it every step)."""
+        if getattr(self, "_cached_step", None) is None:
+            self._cached_step = self._build_step()
+        return self._cached_step
+
+    def _build_step(self):
         from lerobot.processor import NormalizerProcessorStep
 
         return NormalizerProcessorStep(features=self.features, norm_map=self.config.normalization_mapping,

@@ -235,3 +235,20 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta):
     with torch.inference_mode():
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
+
+
+def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
+    """With one latent per phase, the rollout moves to the next one when the gripper command flips."""
+    p = _policy(synthetic_meta)
+    p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
+    z = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
+    p.set_latent(z)
+    p.reset()
+    stats = p.stats.as_dict()["action"]
+    to_norm = lambda raw: 2 * (raw - stats["min"]) / (stats["max"] - stats["min"]) - 1  # noqa: E731 (MIN_MAX)
+    p._advance_phase(to_norm(torch.tensor([[-0.5, 0.0]])))
+    assert p._phase == 0 and torch.equal(p.current_latent(1)[0], z[0])
+    p._advance_phase(to_norm(torch.tensor([[0.5, 0.0]])))  # open -> closed
+    assert p._phase == 1 and torch.equal(p.current_latent(1)[0], z[1])
+    p._advance_phase(to_norm(torch.tensor([[-0.5, 0.0]])))  # last phase stays active
+    assert p._phase == 1

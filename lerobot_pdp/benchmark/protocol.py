@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.scene import load_scene
-from ..envs.suite import NOVEL, SuiteEnv, get_suite_env
+from ..envs.suite import SuiteEnv, get_suite_env
 from .evaluation import RolloutBatch, run_rollouts
 
 SCENES = (0, 1, 2, 3)
@@ -466,8 +466,4 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     return res
 
 
-def scene_label(scene: int) -> str:
-    return "original" if scene == 0 else f"shift {scene}"
-
-
-__all__ = ["BenchmarkConfig", "Method", "NOVEL", "TrainSettings", "run_benchmark", "methods_for", "results_markdown"]
+__all__ = ["BenchmarkConfig", "Method", "TrainSettings", "run_benchmark", "methods_for", "results_markdown"]

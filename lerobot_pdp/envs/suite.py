@@ -7,7 +7,6 @@ goes through this table, so adding an env means adding one entry, not editing th
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -115,5 +114,3 @@ def parse_task_mode(task: str) -> int | str | None:
         return int(head)
     return head or None
 
-
-ExpertFactory = Callable[..., Expert]
