@@ -116,9 +116,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_lr: float = 0.05
     # lambda in L_fit = E|eps - eps_theta(A~^k, k, c~, z)|^2 + lambda |z|^2.
     fit_lambda: float = 1e-3
-    # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). 32 fitted as
-    # well as 64 on reach-around scenes 2/3 (same success over 20 rollouts) in ~2/3 of the time.
-    fit_batch_size: int = 32
+    # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). Fitting is
+    # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost. On reach-around
+    # scenes 1-3, 16 fitted as well as 32 (3 fit seeds x 20 rollouts each; see docs/performance.md) and
+    # 32 as well as 64.
+    fit_batch_size: int = 16
     # Noise draws (k, eps) per chunk per fitting step.
     fit_noise_samples: int = 1
 

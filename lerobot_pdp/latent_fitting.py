@@ -74,16 +74,29 @@ def _stratified_batch(segment: Tensor, n_segments: int, batch_size: int, g: torc
 
 
 def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-             lam: float, g: torch.Generator) -> Tensor:
-    """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2."""
+             lam: float, g: torch.Generator, obs_mod: Tensor | None = None) -> Tensor:
+    """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2.
+
+    The denoiser runs on precomputed modulations (:meth:`FiLMUnet1d.weight_constants`): the step and
+    observation parts are fixed while z is fitted, so only z's FiLM is recomputed (and differentiated)
+    per step. ``obs_mod``: the observation modulation of all windows, if already computed.
+    """
     device = z.device
+    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    if obs_mod is None:
+        with torch.no_grad():
+            obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(device))
     idx = idx.repeat(noise_samples)
     actions = windows.actions[idx].to(device)
     eps = torch.randn(actions.shape, generator=g).to(device)
     k = torch.randint(0, schedule.num_train_timesteps, (len(idx),), generator=g).to(device)
     noisy = schedule.add_noise(actions, eps, k)
     seg = windows.segment[idx].to(device)
-    pred = denoiser(noisy, k, windows.obs_cond[idx].to(device), z[seg])
+    mod = consts["step"][k] + obs_mod[idx.to(device)]
+    gain, shift = denoiser.latent_terms(consts, z)  # [M, sum 2C], one row per phase
+    if shift is not None:
+        mod = mod + shift[seg] if gain is None else torch.addcmul(shift[seg], gain[seg], mod)
+    pred = denoiser.forward_cached(noisy, denoiser.split_modulation(consts, mod), fast_conv=False)
     err = (pred - eps).pow(2)
     mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)
     per_window = (err * mask).sum((1, 2)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)
@@ -109,9 +122,12 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="fit_latent", leave=False)
+    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    with torch.no_grad():
+        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
     for i in iterator:
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
-        loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g)
+        loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod)
         (grad,) = torch.autograd.grad(loss, z)
         z.grad = grad
         opt.step()

@@ -290,9 +290,9 @@ class PDPPolicy(PreTrainedPolicy):
         if noise is None:
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
-        context = self.denoiser.make_context(obs_cond, z)
-        return self.noise_schedule.sample(self.denoiser.forward_cached, noise, self.config.num_inference_steps,
-                                          context=context)
+        n = self.config.num_inference_steps
+        context = self.denoiser.make_context(obs_cond, z, self.noise_schedule.timesteps(n))
+        return self.noise_schedule.sample(lambda x, i, k: self.denoiser.run_cached(x, context[i]), noise, n)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:

@@ -1,5 +1,7 @@
 """FiLM U-Net denoiser and noise schedule."""
 
+import pickle
+
 import pytest
 import torch
 
@@ -54,8 +56,7 @@ def test_schedule_and_ddim():
         out = s.ddim_step(eps[i : i + 1], kk, None, xk[i : i + 1])
         torch.testing.assert_close(out, x0[i : i + 1], atol=1e-4, rtol=1e-4)
     # and the full sampler with an oracle returns x0
-    oracle = lambda x, kk, **kw: (x - s.alphas_cumprod[kk].view(-1, 1, 1).sqrt() * x0) / (  # noqa: E731
-        1 - s.alphas_cumprod[kk].view(-1, 1, 1)).sqrt()
+    oracle = lambda x, i, kk: (x - s.alphas_cumprod[kk].sqrt() * x0) / (1 - s.alphas_cumprod[kk]).sqrt()  # noqa: E731
     torch.testing.assert_close(s.sample(oracle, torch.randn_like(x0), 10), x0, atol=1e-4, rtol=1e-4)
 
 
@@ -67,7 +68,23 @@ def test_cached_inference_path_equals_forward(mode):
             torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
     net.eval()
     x, c, z = torch.randn(3, 16, 3), torch.randn(3, 10), torch.randn(3, 2)
-    ctx = net.make_context(c, z)
-    for k in (0, 7, 19):
+    steps = [19, 7, 0]
+    ctx = net.make_context(c, z, steps)
+    for i, k in enumerate(steps):
         kk = torch.full((3,), k)
-        torch.testing.assert_close(net.forward_cached(x, kk, ctx), net(x, kk, c, z), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(net.forward_cached(x, ctx[i]), net(x, kk, c, z), atol=1e-5, rtol=1e-5)
+        assert torch.equal(net.run_cached(x, ctx[i]), net.forward_cached(x, ctx[i]))  # TorchScript trace
+
+
+def test_inference_caches_follow_weight_updates_and_pickle():
+    net = _net("film").eval()
+    x, c, z = torch.randn(1, 16, 3), torch.randn(1, 10), torch.randn(1, 2)
+    before = net.run_cached(x, net.make_context(c, z, [19, 0])[0])
+    with torch.no_grad():  # an optimizer step / load_state_dict changes weights in place
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    after = net.run_cached(x, net.make_context(c, z, [19, 0])[0])
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, net(x, torch.tensor([19]), c, z), atol=1e-5, rtol=1e-5)
+    clone = pickle.loads(pickle.dumps(net))  # traces and caches are dropped, rebuilt on demand
+    assert torch.equal(clone.run_cached(x, clone.make_context(c, z, [19, 0])[0]), after)
