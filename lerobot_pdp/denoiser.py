@@ -54,17 +54,22 @@ class Conv1dBlock(nn.Module):
         return self.block(x)
 
     def fast(self, x: Tensor) -> Tensor:
-        """Inference path: the convolution as one matmul over unfolded windows.
-
-        PyTorch's CPU conv1d takes its slow path for batch-1, short-sequence inputs (~30-80 us per call
-        at 64-128 channels); unfold + matmul computes the same thing 2-3x faster.
-        """
-        conv, norm = self.block[0], self.block[1]
-        k = conv.kernel_size[0]
-        cols = F.pad(x, (k // 2, k // 2)).unfold(2, k, 1)  # [B, C, L, k]
-        cols = cols.permute(0, 2, 1, 3).reshape(x.shape[0], x.shape[2], -1)
-        h = F.linear(cols, conv.weight.reshape(conv.out_channels, -1), conv.bias).transpose(1, 2)
+        """Inference path: the convolution as one matmul over unfolded windows (see ``conv1d_unfolded``)."""
+        norm = self.block[1]
+        h = conv1d_unfolded(x, self.block[0])
         return F.mish(F.group_norm(h, norm.num_groups, norm.weight, norm.bias, norm.eps))
+
+
+def conv1d_unfolded(x: Tensor, conv: nn.Conv1d) -> Tensor:
+    """``conv(x)`` as one matmul over unfolded windows (inference path).
+
+    PyTorch's CPU conv1d takes a slow path for batch-1, short-sequence inputs (20-80 us per call at 32-128
+    channels); unfold + matmul computes the same thing 2-3x faster.
+    """
+    (k,), (stride,), (pad,) = conv.kernel_size, conv.stride, conv.padding
+    cols = (F.pad(x, (pad, pad)) if pad else x).unfold(2, k, stride)  # [B, C, L', k]
+    cols = cols.permute(0, 2, 1, 3).reshape(x.shape[0], cols.shape[2], -1)
+    return F.linear(cols, conv.weight.reshape(conv.out_channels, -1), conv.bias).transpose(1, 2)
 
 
 class LatentFiLM(nn.Module):
@@ -324,7 +329,7 @@ class FiLMUnet1d(nn.Module):
             x = res1.forward_cached(x, *next(ctx), fast_conv)
             x = res2.forward_cached(x, *next(ctx), fast_conv)
             skips.append(x)
-            x = downsample(x)
+            x = conv1d_unfolded(x, downsample) if fast_conv and isinstance(downsample, nn.Conv1d) else downsample(x)
         for res in self.mid:
             x = res.forward_cached(x, *next(ctx), fast_conv)
         for res1, res2, upsample in self.up:
@@ -332,8 +337,10 @@ class FiLMUnet1d(nn.Module):
             x = res1.forward_cached(x, *next(ctx), fast_conv)
             x = res2.forward_cached(x, *next(ctx), fast_conv)
             x = upsample(x)
-        x = self.final[0].fast(x) if fast_conv else self.final[0](x)
-        return self.final[1](x).transpose(1, 2)
+        if not fast_conv:
+            return self.final[1](self.final[0](x)).transpose(1, 2)
+        out = self.final[1]  # 1x1 conv = a linear map over channels, straight into [B, T, A]
+        return F.linear(self.final[0].fast(x).transpose(1, 2), out.weight[..., 0], out.bias)
 
 
     @torch.no_grad()
