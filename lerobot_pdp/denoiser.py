@@ -119,9 +119,9 @@ class ConditionalResidualBlock1d(nn.Module):
         """``forward`` with the whole modulation after conv1 precomputed: ``scale * h + bias``."""
         conv1, conv2 = (self.conv1.fast, self.conv2.fast) if fast_conv else (self.conv1, self.conv2)
         h = conv2(torch.addcmul(bias, scale, conv1(x)))
-        if isinstance(self.residual, nn.Conv1d):  # 1x1 conv = a linear map over channels
-            return torch.baddbmm(h, self.residual.weight[..., 0].expand(x.shape[0], -1, -1), x) + \
-                self.residual.bias[:, None]
+        if isinstance(self.residual, nn.Conv1d):  # 1x1 conv = a batched matmul over channels
+            w = self.residual.weight[..., 0].expand(x.shape[0], -1, -1)
+            return torch.baddbmm(h + self.residual.bias[:, None], w, x)
         return h + x
 
 

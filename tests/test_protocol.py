@@ -53,7 +53,9 @@ def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):
 
     suite = get_suite_env("reach-around")
     data = make_dataset("reach-around", tmp_path / "data", scene=0, episodes_per_mode=10, seed=0, progress=False)
-    ckpt = train_method(methods_for(suite)["pdp"], data, tmp_path / "run", 0, TrainSettings(steps=1500), 1500)
+    # 3000 steps (~5 min with the protocol's 2 loader workers): at 1500, scene-3 success after fitting was
+    # 75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md).
+    ckpt = train_method(methods_for(suite)["pdp"], data, tmp_path / "run", 0, TrainSettings(steps=3000), 3000)
     policy, pre, post = load_policy(ckpt)
     means = policy.mode_latents()
     baseline = run_rollouts(suite, 3, policy, pre, post, 0, seed=0)
@@ -73,7 +75,5 @@ def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):
              "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}"])
     info = json.loads(next(out.rglob("eval_info.json")).read_text())
     assert info["overall"]["n_episodes"] == 2 and "pc_success" in info["overall"]
-    # Hard floor: fitting z alone must turn a scene every training mode fails into a mostly-solved one.
-    assert fitted.success_rate >= 0.5, fitted.success_rate
-    if fitted.success_rate < 0.8:  # the target for this brief training budget; reported, not hidden
-        pytest.xfail(f"fitted-z success {fitted.success_rate:.0%} < 80% target after 1500 training steps")
+    # fitting z alone turns a scene every training mode fails into a solved one
+    assert fitted.success_rate >= 0.8, fitted.success_rate
