@@ -125,6 +125,10 @@ def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):
     with pytest.raises(ValueError, match="plane"):
         draw_scene(ax, "reach-around", 0, "xx")
     plt.close(fig)
+    fig, ax = plt.subplots()
+    draw_scene(ax, "pick-place", 0, "yz")  # obstacles A and B, start / object / target markers
+    assert len(ax.patches) == 2 and len(ax.lines) == 3
+    plt.close(fig)
 
 
 def test_cli_make_and_plot(tmp_path, capsys):

@@ -63,7 +63,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from .scene import Scene, SceneError, load_scene
+from .scene import Barrier, Scene, SceneError, load_scene
 from .suite import NOVEL, SuiteEnv, mode_info, register_suite_env
 
 ENV_NAME = "pick_place"
@@ -523,6 +523,20 @@ def classify_mode(states: np.ndarray, scene: Any = 0) -> int | str:
     if reach == NOVEL or carry == NOVEL:
         return NOVEL
     return int(reach) * N_PHASE_MODES + int(carry)
+
+
+# ------------------------------------------------------------------------------------- plotting hooks
+
+
+def static_primitives(scene: Any = 0) -> tuple[Barrier, ...]:
+    """Built-in obstacles that ``scene`` leaves in place (drawn by ``envs.plotting.draw_scene``)."""
+    removed = set(load_scene(scene, ENV_NAME).remove)
+    return tuple(Barrier("box", tuple(map(float, centre)), half_size=OBSTACLE_HALF, name=name)
+                 for name, centre in zip(OBSTACLE_NAMES, (OBSTACLE_A, OBSTACLE_B), strict=True)
+                 if name not in removed)
+
+
+LANDMARKS = {"start": START, "object": OBJECT, "goal": TARGET}
 
 
 # ------------------------------------------------------------------------------------- registration
