@@ -1,12 +1,13 @@
 """Demonstration windows match LeRobotDataset's training windows; fitting touches only z."""
 
 import numpy as np
+import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_pdp.behavior import read_episodes
-from lerobot_pdp.denoiser import FiLMUnet1d, NoiseSchedule
-from lerobot_pdp.latent_fitting import episode_windows, fit_latent
+from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
+from lerobot_pdp.latent_fitting import episode_windows, fit_latent, fit_loss
 
 
 def test_windows_equal_lerobot_dataset_windows(synthetic_dataset):
@@ -44,3 +45,34 @@ def test_fit_changes_only_z_and_reduces_loss():
     assert all(p.grad is None for p in net.parameters())
     assert res.z.shape == (2, 2) and not torch.equal(res.z, res.z_init)
     assert np.mean(res.losses[-10:]) < np.mean(res.losses[:10])
+
+
+@pytest.mark.parametrize("mode", ["film", "concat", "none"])
+def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
+    """fit_loss runs the denoiser from cached step/observation modulations; the maths must be forward's."""
+    torch.manual_seed(0)
+    net = FiLMUnet1d(2, 4, 2, mode, down_dims=(16, 32))
+    for m in net.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.3)
+    sched = NoiseSchedule(20)
+    T = 30
+    norm = {"observation.state": torch.randn(T, 2), "action": torch.rand(T, 2) * 2 - 1}
+    w = episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)])
+    z = torch.randn(2, 2, requires_grad=True)
+    idx = torch.arange(0, T, 3)
+    got = fit_loss(net, sched, w, z, idx, 1, 1e-3, torch.Generator().manual_seed(5))
+    # the same draws, through the plain training forward
+    g = torch.Generator().manual_seed(5)
+    eps = torch.randn(w.actions[idx].shape, generator=g)
+    k = torch.randint(0, 20, (len(idx),), generator=g)
+    seg = w.segment[idx]
+    pred = net(sched.add_noise(w.actions[idx], eps, k), k, w.obs_cond[idx], z[seg])
+    mask = (~w.is_pad[idx]).unsqueeze(-1).float()
+    per = ((pred - eps) ** 2 * mask).sum((1, 2)) / (mask.sum((1, 2)) * 2)
+    want = sum(per[seg == m].mean() for m in (0, 1)) + 1e-3 * z.pow(2).sum()
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    if mode != "none":  # and its gradient reaches z
+        (g_got,) = torch.autograd.grad(got, z)
+        (g_want,) = torch.autograd.grad(want, z)
+        torch.testing.assert_close(g_got, g_want, atol=1e-5, rtol=1e-4)
