@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= outputs/demo
 
-.PHONY: install demo test lint bench clean
+.PHONY: install demo test lint bench results clean
 
 $(STAMP): pyproject.toml
 	@if [ -z "$(PY312)" ]; then echo "Python 3.12 is required (LeRobot >= 0.5 needs it); none found" >&2; exit 1; fi
@@ -26,6 +26,14 @@ demo: $(STAMP)
 ## Whole test suite (slow end-to-end tests included).
 test: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider
+
+## The full protocol for every env (3 seeds x 40 rollouts, baselines, ablations): hours on 2 CPU cores.
+## Resumable: finished (method, seed) runs under RESULTS_OUT are reused.
+RESULTS_OUT ?= outputs/full
+results: $(STAMP)
+	for env in reach-around avoiding pick-place kitchen-microwave; do \
+		HF_HUB_OFFLINE=1 $(VENV)/bin/lerobot-pdp benchmark --env $$env --ablations --out $(RESULTS_OUT)/$$env || exit 1; \
+	done
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check lerobot_pdp lerobot_policy_pdp tests benchmarks examples
