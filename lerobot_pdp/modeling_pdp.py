@@ -365,7 +365,8 @@ class PDPPolicy(PreTrainedPolicy):
                 raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
             self.set_latent(means[cfg.steer_mode])
         elif cfg.steer_dataset_root is not None:
-            res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
+            res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)),
+                                  segments="gripper" if cfg.segment_gripper_dim is not None else None)
             logger.info("fitted latent to %s episode %d: %s", cfg.steer_dataset_root, cfg.steer_episode_index,
                         res.z.tolist())
 
@@ -389,7 +390,11 @@ class PDPPolicy(PreTrainedPolicy):
         self._phase = 0
 
     def mode_latents(self) -> dict[int, Tensor]:
-        """Per-mode mean latent (mean of its training behaviors' encoder means); mode ids from task strings."""
+        """Per-mode mean latent (mean of its training behaviors' encoder means); mode ids from task strings.
+
+        With gripper-segmented behaviors (several per episode) each mode gets one mean per phase,
+        [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
+        """
         labeled = self.behavior_mode >= 0
         if len(self.behavior_mode) == 0 or not bool(labeled.any()):
             raise ValueError(
@@ -399,7 +404,22 @@ class PDPPolicy(PreTrainedPolicy):
             )
         with torch.no_grad():
             z = self.behavior_latents()
-        return {int(m): z[self.behavior_mode == m].mean(0).cpu() for m in self.behavior_mode[labeled].unique()}
+        phase = self.behavior_phase()
+        out = {}
+        for m in self.behavior_mode[labeled].unique():
+            of_mode = self.behavior_mode == m
+            if int(phase.max()) == 0:
+                out[int(m)] = z[of_mode].mean(0).cpu()
+            else:
+                out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
+                                           for k in range(int(phase[of_mode].max()) + 1)]).cpu()
+        return out
+
+    def behavior_phase(self) -> Tensor:
+        """Phase index of each training behavior within its episode (0 when episodes are not segmented)."""
+        same = self.behavior_episode.view(-1, 1) == self.behavior_episode.view(1, -1)
+        earlier = self.behavior_start.view(1, -1) < self.behavior_start.view(-1, 1)
+        return (same & earlier).sum(1)
 
     def behavior_table(self) -> dict[str, np.ndarray]:
         """Latent of every training behavior with its episode, frame range and mode (for maps/plots)."""

@@ -252,3 +252,21 @@ def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
     assert p._phase == 1 and torch.equal(p.current_latent(1)[0], z[1])
     p._advance_phase(to_norm(torch.tensor([[-0.5, 0.0]])))  # last phase stays active
     assert p._phase == 1
+
+
+def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):
+    """Gripper-segmented training (several behaviors per episode): a mode's mean latent is per phase."""
+    p = _policy(synthetic_meta)
+    n = len(p.behavior_episode)
+    # re-index the behaviors as 2 phases of n // 2 episodes, all of mode 3 (phase order = start frame)
+    p.behavior_episode = torch.arange(n) // 2
+    p.behavior_start = (torch.arange(n) % 2) * 10
+    p.behavior_mode = torch.full((n,), 3)
+    assert p.behavior_phase().tolist() == [i % 2 for i in range(n)]
+    z = p.behavior_latents().detach()
+    means = p.mode_latents()
+    assert means[3].shape == (2, p.config.latent_dim)
+    torch.testing.assert_close(means[3][0], z[0::2].mean(0))
+    torch.testing.assert_close(means[3][1], z[1::2].mean(0))
+    p.set_latent(means[3])  # one z per phase, used in order
+    assert len(p.active_latent) == 2
