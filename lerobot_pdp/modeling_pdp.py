@@ -365,8 +365,7 @@ class PDPPolicy(PreTrainedPolicy):
                 raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
             self.set_latent(means[cfg.steer_mode])
         elif cfg.steer_dataset_root is not None:
-            res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)),
-                                  segments="gripper" if cfg.segment_gripper_dim is not None else None)
+            res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
             logger.info("fitted latent to %s episode %d: %s", cfg.steer_dataset_root, cfg.steer_episode_index,
                         res.z.tolist())
 
@@ -448,8 +447,9 @@ class PDPPolicy(PreTrainedPolicy):
             return z_a * torch.cos(t * math.pi / 2) + z_b * torch.sin(t * math.pi / 2)
         raise ValueError(f"path must be 'linear' or 'elliptical', got {path!r}")
 
-    def encode(self, episode: Episode, segments: list[tuple[int, int]] | str | None = None) -> Tensor:
-        """z_bar = mu_phi(X(tau)) of a demonstration ([d_z]; [M, d_z] with ``segments``)."""
+    def encode(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> Tensor:
+        """z_bar = mu_phi(X(tau)) of a demonstration ([d_z]; [M, d_z] with ``segments``, see ``fit_latent``)."""
+        segments = self._segments_as_trained(segments)
         ep = self._episode_arrays(episode, need_action=segments == "gripper")
         segs = self._resolve_segments(ep, segments)
         cfg = self.config
@@ -468,7 +468,7 @@ class PDPPolicy(PreTrainedPolicy):
 
     def fit_latent(self, episode: Episode, steps: int | None = None, init: str | Tensor = "encoder",
                    lr: float | None = None, lam: float | None = None,
-                   segments: list[tuple[int, int]] | str | None = None, seed: int | None = 0,
+                   segments: list[tuple[int, int]] | str | None = "auto", seed: int | None = 0,
                    activate: bool = True, progress: bool = False) -> FitResult:
         """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments).
 
@@ -481,6 +481,8 @@ class PDPPolicy(PreTrainedPolicy):
             lr, lam: Adam step size and the weight of lambda |z|^2.
             segments: None (one z), a list of frame ranges, or ``"gripper"`` (split on gripper events of
                 ``config.segment_gripper_dim``): one z per phase, used in order during the rollout.
+                ``"auto"`` (default): as the policy was trained, i.e. ``"gripper"`` when
+                ``config.segment_gripper_dim`` is set, else None.
             activate: make the result the active latent.
 
         Returns:
@@ -493,6 +495,7 @@ class PDPPolicy(PreTrainedPolicy):
 
     def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress) -> FitResult:
         cfg = self.config
+        segments = self._segments_as_trained(segments)
         ep = self._episode_arrays(episode, need_action=True)
         segs = self._resolve_segments(ep, segments)
         norm = self.stats.normalize_episode(ep)
@@ -529,10 +532,19 @@ class PDPPolicy(PreTrainedPolicy):
 
     # ------------------------------------------------------------------ episode input
 
+    def _segments_as_trained(self, segments):
+        """``"auto"``: split demonstrations the way the training behaviors were split."""
+        if isinstance(segments, str) and segments == "auto":
+            return "gripper" if self.config.segment_gripper_dim is not None else None
+        return segments
+
     def _resolve_segments(self, ep: dict[str, np.ndarray], segments) -> list[tuple[int, int]]:
         T = len(ep[OBS_STATE])
         if segments is None:
             return [(0, T)]
+        if isinstance(segments, str) and segments != "gripper":
+            raise ValueError(f"segments must be None, 'auto', 'gripper' or a list of (start, end) frame ranges, "
+                             f"got {segments!r}")
         if segments == "gripper":
             if self.config.segment_gripper_dim is None:
                 raise ValueError("segments='gripper' needs config.segment_gripper_dim (the gripper action dim)")

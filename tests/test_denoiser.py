@@ -74,6 +74,10 @@ def test_cached_inference_path_equals_forward(mode):
         kk = torch.full((3,), k)
         torch.testing.assert_close(net.forward_cached(x, ctx[i]), net(x, kk, c, z), atol=1e-5, rtol=1e-5)
         assert torch.equal(net.run_cached(x, ctx[i]), net.forward_cached(x, ctx[i]))  # TorchScript trace
+    # the trace (built for batch 3) serves other batch sizes too, e.g. lerobot-eval's --eval.batch_size
+    x1, ctx1 = x[:1], net.make_context(c[:1], z[:1], steps)[0]
+    torch.testing.assert_close(net.run_cached(x1, ctx1), net(x1, torch.full((1,), 19), c[:1], z[:1]),
+                               atol=1e-5, rtol=1e-5)
 
 
 def test_inference_caches_follow_weight_updates_and_pickle():

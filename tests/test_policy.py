@@ -270,3 +270,15 @@ def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_m
     torch.testing.assert_close(means[3][1], z[1::2].mean(0))
     p.set_latent(means[3])  # one z per phase, used in order
     assert len(p.active_latent) == 2
+
+
+def test_segments_default_follows_training_and_bad_values_are_named(synthetic_meta):
+    p = _policy(synthetic_meta)
+    ep = (synthetic_meta.root, 2)
+    assert p.encode(ep).shape == (p.config.latent_dim,)  # "auto" on an unsegmented policy: one z
+    p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
+    res = p.fit_latent(ep, steps=2)  # "auto" now splits on gripper flips: one z per phase
+    assert res.z.dim() == 2 and res.z.shape[0] == len(p.active_latent) >= 1
+    assert p.fit_latent(ep, steps=2, segments=None).z.shape == (p.config.latent_dim,)
+    with pytest.raises(ValueError, match=r"segments must be None, 'auto', 'gripper'.*got 'phases'"):
+        p.fit_latent(ep, steps=2, segments="phases")

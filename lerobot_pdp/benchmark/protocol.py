@@ -281,9 +281,8 @@ def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, s
     from .baselines import FixedNoisePolicy, adapt_dp_noise, finetune_bc
 
     if method.adapt == "fit_latent":
-        # a gripper-segmented policy fits one z per phase of the demonstration (paper Eq. 12)
-        segments = "gripper" if policy.config.segment_gripper_dim is not None else None
-        res = policy.fit_latent(demo, steps=steps, init=init, seed=seed, segments=segments)
+        # segments="auto": a gripper-segmented policy fits one z per phase (paper Eq. 12)
+        res = policy.fit_latent(demo, steps=steps, init=init, seed=seed)
         return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None}
     if method.adapt == "noise":
         noise = adapt_dp_noise(policy, pre, demo, seed=seed)
