@@ -62,6 +62,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     segment_gripper_dim: int | None = None
     # Raw (unnormalised) action value separating "open" (<=) from "closed" (>).
     segment_gripper_threshold: float = 0.0
+    # At inference, a phase ends once the executed gripper command has held its new state for this many
+    # consecutive actions (debounce: a blip in a generated chunk must not switch latents).
+    phase_switch_steps: int = 3
     # Soft-DTW smoothing gamma for the trace distances delta^X (paper: 1e-5, i.e. essentially DTW).
     sdtw_gamma: float = 1e-5
     # Use the soft-DTW divergence (subtracts self-similarity terms) instead of the raw value.
@@ -161,7 +164,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             if getattr(self, name) < 0:
                 errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("n_obs_steps", "horizon", "n_action_steps", "trace_length", "num_train_timesteps",
-                     "num_inference_steps", "embed_batch_size", "fit_batch_size", "fit_noise_samples"):
+                     "num_inference_steps", "embed_batch_size", "fit_batch_size", "fit_noise_samples",
+                     "phase_switch_steps"):
             if getattr(self, name) < 1:
                 errors.append(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.trace_length < 2:

@@ -111,7 +111,7 @@ class PDPPolicy(PreTrainedPolicy):
 
         # The active latent(s): [M, d_z]; M > 1 = one per phase, advanced on gripper events.
         self.register_buffer("active_latent", torch.zeros(0, cfg.latent_dim), persistent=False)
-        self._phase = 0
+        self._phase: Tensor | None = None  # [B] current phase of each env in a batched rollout
         self._last_gripper_closed: Tensor | None = None
         self._steering_initialised = False
         self._queues: dict[str, deque] = {}
@@ -187,7 +187,7 @@ class PDPPolicy(PreTrainedPolicy):
                         ACTION: deque(maxlen=self.config.n_action_steps)}
         if self.config.env_state_feature:
             self._queues[OBS_ENV_STATE] = deque(maxlen=self.config.n_obs_steps)
-        self._phase = 0
+        self._phase = None
         self._last_gripper_closed = None
         self._episode_latent: Tensor | None = None
 
@@ -319,26 +319,48 @@ class PDPPolicy(PreTrainedPolicy):
         return action
 
     def _advance_phase(self, action: Tensor) -> None:
-        """With one latent per phase, move to the next one when the executed gripper command flips."""
+        """With one latent per phase, move each env to its next latent when its gripper command flips.
+
+        Tracked per batch element: in a vectorised rollout the envs grasp at different times, and one
+        env's grasp must not switch the others to their carry latent. A flip counts once the new gripper
+        state has held for ``phase_switch_steps`` executed actions, so a blip does not skip a phase.
+        """
         cfg = self.config
         if len(self.active_latent) <= 1 or cfg.segment_gripper_dim is None:
             return
         raw = self.stats.unnormalize(ACTION, action)[:, cfg.segment_gripper_dim]
         closed = raw > cfg.segment_gripper_threshold
-        if self._last_gripper_closed is not None and bool((closed != self._last_gripper_closed).any()):
-            if self._phase < len(self.active_latent) - 1:
-                self._phase += 1
-                self._queues[ACTION].clear()  # the next chunk is generated under the new phase's latent
-        self._last_gripper_closed = closed
+        phase = self._phase_state(closed.shape[0], closed.device)
+        if self._last_gripper_closed is None:  # the first action sets each env's phase-0 gripper state
+            self._last_gripper_closed, self._gripper_hold = closed, torch.zeros_like(phase)
+            return
+        differs = closed != self._last_gripper_closed
+        self._gripper_hold = torch.where(differs, self._gripper_hold + 1, 0)
+        switch = (self._gripper_hold >= cfg.phase_switch_steps) & (phase < len(self.active_latent) - 1)
+        if bool(switch.any()):
+            self._phase = phase + switch.long()
+            self._last_gripper_closed = torch.where(switch, closed, self._last_gripper_closed)
+            self._gripper_hold = torch.where(switch, 0, self._gripper_hold)
+            # the next chunk is generated under the new phase's latent (other envs just replan early)
+            self._queues[ACTION].clear()
+
+    def _phase_state(self, batch_size: int, device: torch.device | str) -> Tensor:
+        """Per-env phase indices [batch_size]; restarts at phase 0 when the batch size changes."""
+        if self._phase is None or self._phase.shape[0] != batch_size:
+            self._phase = torch.zeros(batch_size, dtype=torch.long, device=device)
+            self._last_gripper_closed = None
+        return self._phase
 
     def current_latent(self, batch_size: int = 1, device: torch.device | str | None = None) -> Tensor:
-        """The latent the next chunk is conditioned on, [batch_size, d_z]."""
+        """The latent the next chunk is conditioned on, [batch_size, d_z] (each env's own phase latent)."""
         if not self._steering_initialised:
             self._init_steering_from_config()
         device = device or self.geo_kappa.device
         if len(self.active_latent):
-            z = self.active_latent[min(self._phase, len(self.active_latent) - 1)]
-            return z.to(device).expand(batch_size, -1)
+            if len(self.active_latent) == 1:
+                return self.active_latent[0].to(device).expand(batch_size, -1)
+            phase = self._phase_state(batch_size, self.active_latent.device)
+            return self.active_latent[phase.clamp(max=len(self.active_latent) - 1)].to(device)
         if self._episode_latent is None or self._episode_latent.shape[0] != batch_size:
             self._episode_latent = self._default_latent(batch_size).to(device)
         return self._episode_latent
@@ -386,7 +408,8 @@ class PDPPolicy(PreTrainedPolicy):
         if not torch.isfinite(z).all():
             raise ValueError(f"latent has non-finite values: {z.tolist()}")
         self.active_latent = z.detach().to(self.geo_kappa.device)
-        self._phase = 0
+        self._phase = None
+        self._last_gripper_closed = None
 
     def mode_latents(self) -> dict[int, Tensor]:
         """Per-mode mean latent (mean of its training behaviors' encoder means); mode ids from task strings.

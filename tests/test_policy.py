@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.utils.constants import ACTION
 
 from lerobot_pdp import PDPConfig, PDPPolicy
 from lerobot_pdp.behavior import read_episodes
@@ -237,21 +238,58 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta):
     assert z.shape == (2, 2) and len(p.active_latent) == 1
 
 
+def _gripper_actions(p):
+    """Normalised actions whose raw dim 0 (the stand-in gripper) is -0.5 (open) or 0.5 (closed) per env."""
+    stats = p.stats.as_dict()["action"]
+
+    def act(*closed):
+        raw = torch.tensor([[0.5 if c else -0.5, 0.0] for c in closed])
+        return 2 * (raw - stats["min"]) / (stats["max"] - stats["min"]) - 1  # MIN_MAX
+
+    return act
+
+
 def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
-    """With one latent per phase, the rollout moves to the next one when the gripper command flips."""
+    """With one latent per phase, the rollout moves to the next one when the gripper command flips
+    and holds for phase_switch_steps actions; a shorter blip does not switch."""
     p = _policy(synthetic_meta)
     p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
+    p.config.phase_switch_steps = 2
     z = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
     p.set_latent(z)
     p.reset()
-    stats = p.stats.as_dict()["action"]
-    to_norm = lambda raw: 2 * (raw - stats["min"]) / (stats["max"] - stats["min"]) - 1  # noqa: E731 (MIN_MAX)
-    p._advance_phase(to_norm(torch.tensor([[-0.5, 0.0]])))
-    assert p._phase == 0 and torch.equal(p.current_latent(1)[0], z[0])
-    p._advance_phase(to_norm(torch.tensor([[0.5, 0.0]])))  # open -> closed
-    assert p._phase == 1 and torch.equal(p.current_latent(1)[0], z[1])
-    p._advance_phase(to_norm(torch.tensor([[-0.5, 0.0]])))  # last phase stays active
-    assert p._phase == 1
+    act = _gripper_actions(p)
+    for closed in (0, 1, 0, 0):  # open, one-action blip, open
+        p._advance_phase(act(closed))
+    assert p._phase.tolist() == [0] and torch.equal(p.current_latent(1)[0], z[0])
+    p._advance_phase(act(1))  # open -> closed ...
+    assert p._phase.tolist() == [0]
+    p._advance_phase(act(1))  # ... held for 2 actions
+    assert p._phase.tolist() == [1] and torch.equal(p.current_latent(1)[0], z[1])
+    for closed in (0, 0, 0):  # last phase stays active
+        p._advance_phase(act(closed))
+    assert p._phase.tolist() == [1]
+
+
+def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
+    """Vectorised rollout: one env's grasp must not switch the other envs to their next latent."""
+    p = _policy(synthetic_meta)
+    p.config.segment_gripper_dim = 0
+    p.config.phase_switch_steps = 1
+    z = torch.tensor([[0.0, 1.0], [1.0, 0.0], [2.0, 2.0]])
+    p.set_latent(z)
+    p.reset()
+    act = _gripper_actions(p)
+    p._advance_phase(act(0, 0, 0))
+    p._queues[ACTION].append(torch.zeros(3, 2))
+    p._advance_phase(act(1, 0, 0))  # only env 0 grasps
+    assert p._phase.tolist() == [1, 0, 0] and len(p._queues[ACTION]) == 0  # replan under the new latent
+    assert torch.equal(p.current_latent(3), torch.stack([z[1], z[0], z[0]]))
+    p._advance_phase(act(0, 1, 0))  # 0 releases, 1 grasps
+    assert p._phase.tolist() == [2, 1, 0]
+    assert torch.equal(p.current_latent(3), torch.stack([z[2], z[1], z[0]]))
+    p.set_latent(z)  # a new latent restarts every env at phase 0
+    assert torch.equal(p.current_latent(3), z[0].expand(3, -1))
 
 
 def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):

@@ -41,6 +41,9 @@ class TrainSettings:
     lr: float = 1e-3
     episodes_per_mode: int = 10
     warmup_steps: int = 100
+    # Training windows dropped at each episode's end (None = each policy's default, LeRobot's 7). An env
+    # whose last action matters (pick-place's release) needs windows that execute it right away.
+    drop_n_last_frames: int | None = None
 
 
 # Per env: (full, quick). The paper's lr 1e-4 needs far more steps than a CPU budget allows; 1e-3 with a
@@ -48,7 +51,8 @@ class TrainSettings:
 SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
     "reach-around": (TrainSettings(steps=6000), TrainSettings(steps=1500, episodes_per_mode=10)),
     "avoiding": (TrainSettings(steps=8000), TrainSettings(steps=2000, episodes_per_mode=5)),
-    "pick-place": (TrainSettings(steps=8000, episodes_per_mode=3), TrainSettings(steps=2000, episodes_per_mode=1)),
+    "pick-place": (TrainSettings(steps=8000, episodes_per_mode=3, drop_n_last_frames=0),
+                   TrainSettings(steps=2000, episodes_per_mode=1, drop_n_last_frames=0)),
     "kitchen-microwave": (TrainSettings(steps=6000), TrainSettings(steps=1500, episodes_per_mode=5)),
 }
 
@@ -225,6 +229,8 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         # the shared budget comes last so that it wins over any per-method default (same lr for everyone)
         *method.overrides, *lr_args, *warmup,
     ]
+    if settings.drop_n_last_frames is not None:
+        args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
     log = run_dir / "train.log"
     t0 = time.time()
     _run_logged(args, log, steps, f"train {method.name} seed {seed}")

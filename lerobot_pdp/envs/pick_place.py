@@ -405,6 +405,9 @@ class PickPlaceExpert:
         self.prev = ee
         act = np.zeros(4)
         if self.stage == "wait":
+            # an explicit "open" (not 0.0, which sits on the open/closed threshold): learned policies
+            # otherwise chatter the gripper at the start, which a phase-segmented policy reads as a grasp
+            act[3] = -1.0
             self.count += 1
             if self.count > self.start_delay:
                 self.stage, self.idx = "reach", 0
