@@ -24,44 +24,64 @@ def _plane_dims(plane: str) -> tuple[int, int]:
     return "xyz".index(plane[0]), "xyz".index(plane[1])
 
 
+def behavior_phases(episode: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Phase index of each behavior within its episode (order of start frames; 0 if not segmented)."""
+    episode, start = np.asarray(episode), np.asarray(start)
+    return np.array([int(((episode == e) & (start < s)).sum()) for e, s in zip(episode, start, strict=True)],
+                    dtype=int)
+
+
 def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title: str = "") -> Path:
-    """Encoder means of every training behavior coloured by mode, per-mode means, fitted z of scenes 1-3."""
+    """Encoder means of every training behavior coloured by mode, per-mode means, fitted z of scenes 1-3.
+
+    Gripper-segmented policies get one panel per phase (reach, carry, ...): each phase has its own
+    latent per mode, and the fitted z of a phase is drawn in that phase's panel.
+    """
     lat = eval_json["latents"]
     z = np.asarray(lat["z"])
     modes = np.asarray(lat["mode"])
-    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    phases = (behavior_phases(lat["episode"], lat["start"]) if "episode" in lat and "start" in lat
+              else np.zeros(len(z), dtype=int))
+    n_phases = int(phases.max()) + 1
     if z.shape[1] > 2:  # one-hot / higher-d latents: first two principal axes
-        zc = z - z.mean(0)
-        _, _, vt = np.linalg.svd(zc, full_matrices=False)
+        centre = z.mean(0)
+        _, _, vt = np.linalg.svd(z - centre, full_matrices=False)
         proj = vt[:2].T
     else:
-        proj = np.eye(z.shape[1], 2)
-    p = (z - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
-    for m in sorted(set(modes.tolist())):
-        sel = modes == m
-        name = suite.mode_names[m] if 0 <= m < suite.n_modes else "unlabeled"
-        c = mode_color(int(m), suite.n_modes)
-        ax.scatter(p[sel, 0], p[sel, 1], s=14, color=c, alpha=0.6, label=f"{m}: {name}" if suite.n_modes <= 24 else None)
-        mean = p[sel].mean(0)
-        ax.scatter(*mean, s=120, color=c, edgecolor="k", marker="o", zorder=4)
-        ax.annotate(str(m), mean, fontsize=8, ha="center", va="center", zorder=5)
-    for scene, s in eval_json["scenes"].items():
-        if scene == "0" or "z" not in s:
-            continue
-        zf = np.atleast_2d(np.asarray(s["z"]))
-        zi = np.atleast_2d(np.asarray(s["z_init"]))
-        pf = (zf - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
-        pi = (zi - (z.mean(0) if z.shape[1] > 2 else 0)) @ proj
-        for a, b in zip(pi, pf, strict=True):
-            ax.annotate("", b, a, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1})
-        ax.scatter(pf[:, 0], pf[:, 1], marker="*", s=260, color="gold", edgecolor="k", zorder=6)
-        ax.annotate(f"scene {scene} ({100 * s['success']:.0f}%)", pf[0], xytext=(6, 6), textcoords="offset points",
-                    fontsize=9, weight="bold")
-    ax.set_xlabel("z[0]" if z.shape[1] <= 2 else "PC 1")
-    ax.set_ylabel("z[1]" if z.shape[1] <= 2 else "PC 2")
-    ax.set_title(title or f"{suite.name}: behavior latent (dots: demos, circles: mode means, stars: fitted z)")
+        centre, proj = np.zeros(z.shape[1]), np.eye(z.shape[1], 2)
+    p = (z - centre) @ proj
+    fig, axes = plt.subplots(1, n_phases, figsize=(6.5 * n_phases, 5.5), squeeze=False)
+    for ph, ax in enumerate(axes[0]):
+        of_phase = phases == ph
+        for m in sorted(set(modes[of_phase].tolist())):
+            sel = of_phase & (modes == m)
+            name = suite.mode_names[m] if 0 <= m < suite.n_modes else "unlabeled"
+            c = mode_color(int(m), suite.n_modes)
+            ax.scatter(p[sel, 0], p[sel, 1], s=14, color=c, alpha=0.6,
+                       label=f"{m}: {name}" if suite.n_modes <= 24 and ph == 0 else None)
+            mean = p[sel].mean(0)
+            ax.scatter(*mean, s=120, color=c, edgecolor="k", marker="o", zorder=4)
+            ax.annotate(str(m), mean, fontsize=8, ha="center", va="center", zorder=5)
+        for scene, sc in eval_json["scenes"].items():
+            if scene == "0" or "z" not in sc:
+                continue
+            zf, zi = np.atleast_2d(np.asarray(sc["z"])), np.atleast_2d(np.asarray(sc["z_init"]))
+            if ph >= len(zf):
+                continue
+            pf, pi = (zf[ph] - centre) @ proj, (zi[ph] - centre) @ proj
+            ax.annotate("", pf, pi, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1})
+            ax.scatter(pf[0], pf[1], marker="*", s=260, color="gold", edgecolor="k", zorder=6)
+            ax.annotate(f"scene {scene} ({100 * sc['success']:.0f}%)", pf, xytext=(6, 6),
+                        textcoords="offset points", fontsize=9, weight="bold")
+        ax.set_xlabel("z[0]" if z.shape[1] <= 2 else "PC 1")
+        ax.set_ylabel("z[1]" if z.shape[1] <= 2 else "PC 2")
+        if n_phases > 1:
+            ax.set_title(f"phase {ph} (behaviors between gripper events)", fontsize=10)
+    fig.suptitle(title or f"{suite.name}: behavior latent (dots: demos, circles: mode means, stars: fitted z, "
+                          "arrows: from the encoder warm start)")
     if suite.n_modes <= 24:
-        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+        axes[0][-1].legend(*axes[0][0].get_legend_handles_labels(), fontsize=7, loc="center left",
+                           bbox_to_anchor=(1.0, 0.5))
     fig.tight_layout()
     fig.savefig(out_png, dpi=120, bbox_inches="tight")
     plt.close(fig)
