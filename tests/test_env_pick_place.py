@@ -51,6 +51,28 @@ def test_expert_jitter_varies_within_mode():
     assert len({r[1] for r in runs}) > 1 or not np.allclose(runs[0][2][:50], runs[1][2][:50])
 
 
+def test_expert_gripper_command_is_always_explicit_and_segments_into_reach_and_carry():
+    """The gripper command is always -1 or +1 (0.0 sits on the open/closed threshold and taught learned
+    policies to chatter at the start), so gripper segmentation finds exactly reach, carry and release."""
+    from lerobot_pdp.behavior import gripper_segments
+
+    env = pp.PickPlaceEnv()
+    for seed in range(3):
+        expert = pp.make_expert(5, np.random.default_rng(seed))
+        obs, _ = env.reset(seed=seed)
+        expert.reset(obs)
+        actions = []
+        for _ in range(env._max_episode_steps):
+            actions.append(expert(obs))
+            obs, _, term, trunc, info = env.step(actions[-1])
+            if term or trunc:
+                break
+        actions = np.asarray(actions)
+        assert info["is_success"] and set(np.unique(actions[:, 3]).tolist()) == {-1.0, 1.0}
+        (r0, r1), (c0, c1), (e0, e1) = gripper_segments(actions, 3, 0.0)
+        assert r0 == 0 and r1 > 20 and c1 - c0 > 20 and e1 == len(actions)  # release: the final open command
+
+
 @pytest.mark.parametrize("scene, mode", [(1, SCENE1_MODE), (2, SCENE2_MODE)])
 def test_scenes_1_2_leave_exactly_one_training_mode(scene, mode):
     assert successful_modes(scene) == [mode]
