@@ -33,7 +33,7 @@ def _timed(fn, reps: int) -> list[float]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--reps", type=int, default=15)
     args = ap.parse_args()
 
     import torch
@@ -55,11 +55,22 @@ def main() -> None:
     demo = {k: v for k, v in eps[ep_idx].items() if k in ("observation.state", "observation.environment_state", "action")}
     T = len(demo["action"])
     pdp.fit_latent(demo, steps=2)  # warm-up
+    # the default gradient ("auto" = finite differences at d_z = 2) and autograd, interleaved rep by rep
+    # so that host drift hits both alike
     for steps in (10, 100):
-        ts = _timed(lambda s=steps: pdp.fit_latent(demo, steps=s), args.reps if steps == 10 else 3)
-        print(json.dumps({"bench": "fit_latent", "steps": steps, "demo_frames": T, "batch": pdp.config.fit_batch_size,
-                          "median_ms": 1000 * statistics.median(ts), "min_ms": 1000 * min(ts),
-                          "threads": args.threads}))
+        ts: dict[str, list[float]] = {"auto": [], "autograd": []}
+        for _ in range(args.reps if steps == 10 else 3):
+            for grad in ts:
+                pdp.config.fit_gradient = grad
+                ts[grad] += _timed(lambda s=steps: pdp.fit_latent(demo, steps=s), 1)
+        pdp.config.fit_gradient = "auto"
+        for grad, t in ts.items():
+            print(json.dumps({"bench": "fit_latent", "gradient": grad, "steps": steps, "demo_frames": T,
+                              "batch": pdp.config.fit_batch_size, "median_ms": 1000 * statistics.median(t),
+                              "min_ms": 1000 * min(t), "threads": args.threads}))
+        print(json.dumps({"bench": "fit_latent_ratio", "steps": steps,
+                          "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
+                          "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100}))
 
     # training throughput: forward + backward + Adam step on the same preprocessed B=64 batches
     from lerobot.configs.policies import PreTrainedConfig

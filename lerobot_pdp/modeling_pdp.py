@@ -543,7 +543,7 @@ class PDPPolicy(PreTrainedPolicy):
                 self.denoiser, self.noise_schedule, windows, z0.to(device),
                 steps=cfg.fit_steps if steps is None else steps, lr=cfg.fit_lr if lr is None else lr,
                 lam=cfg.fit_lambda if lam is None else lam, batch_size=cfg.fit_batch_size,
-                noise_samples=cfg.fit_noise_samples, seed=seed, progress=progress,
+                noise_samples=cfg.fit_noise_samples, seed=seed, progress=progress, gradient=cfg.fit_gradient,
             )
         finally:
             self.train(was_training)

@@ -7,7 +7,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
-from lerobot_pdp.latent_fitting import episode_windows, fit_latent, fit_loss
+from lerobot_pdp.latent_fitting import episode_windows, fit_latent, fit_loss, fit_loss_and_grad_fd
 
 
 def test_windows_equal_lerobot_dataset_windows(synthetic_dataset):
@@ -28,7 +28,8 @@ def test_windows_equal_lerobot_dataset_windows(synthetic_dataset):
         torch.testing.assert_close(w.obs_cond[t], item["observation.state"].flatten())
 
 
-def test_fit_changes_only_z_and_reduces_loss():
+@pytest.mark.parametrize("gradient", ["autograd", "finite_difference"])
+def test_fit_changes_only_z_and_reduces_loss(gradient):
     torch.manual_seed(0)
     net = FiLMUnet1d(2, 4, 2, "film", down_dims=(16, 32))
     for m in net.modules():  # make z matter
@@ -39,7 +40,8 @@ def test_fit_changes_only_z_and_reduces_loss():
     norm = {"observation.state": torch.randn(T, 2), "action": torch.rand(T, 2) * 2 - 1}
     w = episode_windows(norm, 2, 16, "observation.state", None, [(0, 20), (20, T)])
     before = {k: v.clone() for k, v in net.state_dict().items()}
-    res = fit_latent(net, sched, w, torch.zeros(2, 2), steps=60, lr=0.05, lam=1e-3, batch_size=32, seed=0)
+    res = fit_latent(net, sched, w, torch.zeros(2, 2), steps=60, lr=0.05, lam=1e-3, batch_size=32, seed=0,
+                     gradient=gradient)
     for k, v in net.state_dict().items():
         assert torch.equal(v, before[k]), k
     assert all(p.grad is None for p in net.parameters())
@@ -76,3 +78,30 @@ def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
         (g_got,) = torch.autograd.grad(got, z)
         (g_want,) = torch.autograd.grad(want, z)
         torch.testing.assert_close(g_got, g_want, atol=1e-5, rtol=1e-4)
+
+
+def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
+    """Forward differences over z (all phases at once) agree with the backward pass on the same noise."""
+    torch.manual_seed(0)
+    net = FiLMUnet1d(2, 4, 2, "film", down_dims=(16, 32))
+    for m in net.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.3)
+    sched = NoiseSchedule(20)
+    T = 30
+    norm = {"observation.state": torch.randn(T, 2), "action": torch.rand(T, 2) * 2 - 1}
+    w = episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)])
+    consts = net.weight_constants(list(range(20)))
+    obs_mod = net.obs_modulation(consts, w.obs_cond)
+    idx = torch.arange(0, T, 2)
+    for trial in range(3):
+        z = torch.randn(2, 2)
+        zg = z.clone().requires_grad_(True)
+        loss = fit_loss(net, sched, w, zg, idx, 1, 1e-2, torch.Generator().manual_seed(trial), obs_mod)
+        (want,) = torch.autograd.grad(loss, zg)
+        fd_loss, got = fit_loss_and_grad_fd(net, sched, w, z, idx, 1, 1e-2, torch.Generator().manual_seed(trial),
+                                            obs_mod)
+        torch.testing.assert_close(fd_loss, loss.detach())
+        assert float((got - want).norm() / want.norm()) < 0.02, (got, want)
+    with pytest.raises(ValueError, match="gradient must be one of"):
+        fit_latent(net, sched, w, torch.zeros(2, 2), steps=1, lr=0.05, lam=0.0, batch_size=4, gradient="exact")
