@@ -112,7 +112,8 @@ class PDPPolicy(PreTrainedPolicy):
         # The active latent(s): [M, d_z]; M > 1 = one per phase, advanced on gripper events.
         self.register_buffer("active_latent", torch.zeros(0, cfg.latent_dim), persistent=False)
         self._phase: Tensor | None = None  # [B] current phase of each env in a batched rollout
-        self._last_gripper_closed: Tensor | None = None
+        self._last_gripper_closed: Tensor | None = None  # [B] gripper state of each env's current phase
+        self._gripper_hold: Tensor | None = None  # [B] consecutive actions that disagree with it
         self._steering_initialised = False
         self._queues: dict[str, deque] = {}
         self.reset()
