@@ -122,7 +122,8 @@ class ConditionalResidualBlock1d(nn.Module):
         if isinstance(self.residual, nn.Conv1d):  # 1x1 conv = a matmul over channels
             w = self.residual.weight[..., 0]
             if x.shape[0] == 1:  # batch-1 inference: one small bmm is the cheapest call
-                return torch.baddbmm(h + self.residual.bias[:, None], w.expand(1, -1, -1), x)
+                # (expand to x's size, not to 1: a trace made at batch 1 must replay at any batch size)
+                return torch.baddbmm(h + self.residual.bias[:, None], w.expand(x.shape[0], -1, -1), x)
             # larger batches (latent fitting): one [B*T, C_in] x [C_in, C_out] matmul; a bmm over the
             # batch with broadcast weights costs ~5x more here
             return h + F.linear(x.transpose(1, 2), w, self.residual.bias).transpose(1, 2)

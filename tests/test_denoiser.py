@@ -78,6 +78,12 @@ def test_cached_inference_path_equals_forward(mode):
     x1, ctx1 = x[:1], net.make_context(c[:1], z[:1], steps)[0]
     torch.testing.assert_close(net.run_cached(x1, ctx1), net(x1, torch.full((1,), 19), c[:1], z[:1]),
                                atol=1e-5, rtol=1e-5)
+    # and a trace built at batch 1 (a single-env rollout) serves a batch of 3 (a vectorised rollout)
+    net1 = _net(mode).eval()
+    net1.load_state_dict(net.state_dict())
+    net1.run_cached(x1, net1.make_context(c[:1], z[:1], steps)[0])
+    torch.testing.assert_close(net1.run_cached(x, net1.make_context(c, z, steps)[0]), net(x, torch.full((3,), 19), c, z),
+                               atol=1e-5, rtol=1e-5)
 
 
 def test_inference_caches_follow_weight_updates_and_pickle():
