@@ -49,18 +49,22 @@ def test_fit_changes_only_z_and_reduces_loss(gradient):
     assert np.mean(res.losses[-10:]) < np.mean(res.losses[:10])
 
 
-@pytest.mark.parametrize("mode", ["film", "concat", "none"])
-def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
-    """fit_loss runs the denoiser from cached step/observation modulations; the maths must be forward's."""
+def _two_phase_setup(mode: str):
+    """A small U-Net whose FiLM output layer is non-zero (so z matters) and a 30-frame, two-phase demo."""
     torch.manual_seed(0)
     net = FiLMUnet1d(2, 4, 2, mode, down_dims=(16, 32))
     for m in net.modules():
         if isinstance(m, LatentFiLM):
             torch.nn.init.normal_(m.mlp[-1].weight, std=0.3)
-    sched = NoiseSchedule(20)
     T = 30
     norm = {"observation.state": torch.randn(T, 2), "action": torch.rand(T, 2) * 2 - 1}
-    w = episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)])
+    return net, NoiseSchedule(20), episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)]), T
+
+
+@pytest.mark.parametrize("mode", ["film", "concat", "none"])
+def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
+    """fit_loss runs the denoiser from cached step/observation modulations; the maths must be forward's."""
+    net, sched, w, T = _two_phase_setup(mode)
     z = torch.randn(2, 2, requires_grad=True)
     idx = torch.arange(0, T, 3)
     got = fit_loss(net, sched, w, z, idx, 1, 1e-3, torch.Generator().manual_seed(5))
@@ -82,15 +86,7 @@ def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
 
 def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
     """Forward differences over z (all phases at once) agree with the backward pass on the same noise."""
-    torch.manual_seed(0)
-    net = FiLMUnet1d(2, 4, 2, "film", down_dims=(16, 32))
-    for m in net.modules():
-        if isinstance(m, LatentFiLM):
-            torch.nn.init.normal_(m.mlp[-1].weight, std=0.3)
-    sched = NoiseSchedule(20)
-    T = 30
-    norm = {"observation.state": torch.randn(T, 2), "action": torch.rand(T, 2) * 2 - 1}
-    w = episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)])
+    net, sched, w, T = _two_phase_setup("film")
     consts = net.weight_constants(list(range(20)))
     obs_mod = net.obs_modulation(consts, w.obs_cond)
     idx = torch.arange(0, T, 2)
