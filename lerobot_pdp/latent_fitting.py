@@ -107,14 +107,16 @@ def _phase_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Ten
 
 
 def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-             lam: float, g: torch.Generator, obs_mod: Tensor | None = None) -> Tensor:
+             lam: float, g: torch.Generator, obs_mod: Tensor | None = None, consts: dict | None = None) -> Tensor:
     """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2.
 
     The denoiser runs on precomputed modulations (:meth:`FiLMUnet1d.weight_constants`): the step and
     observation parts are fixed while z is fitted, so only z's FiLM is recomputed (and differentiated)
-    per step. ``obs_mod``: the observation modulation of all windows, if already computed.
+    per step. ``obs_mod`` / ``consts``: the windows' observation modulation and the weight constants, if
+    already computed (a fitting loop computes them once; the weights are frozen while it runs).
     """
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    if consts is None:
+        consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
     if obs_mod is None:
         with torch.no_grad():
             obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
@@ -123,7 +125,8 @@ def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, n
 
 
 def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-                         lam: float, g: torch.Generator, obs_mod: Tensor, h: float = 1e-3) -> tuple[Tensor, Tensor]:
+                         lam: float, g: torch.Generator, obs_mod: Tensor, consts: dict,
+                         h: float = 1e-3) -> tuple[Tensor, Tensor]:
     """L_fit and its gradient in z by forward differences: no backward pass, d_z + 1 latent sets per step.
 
     The error of a phase depends only on that phase's z, so moving coordinate j of every phase's z at
@@ -136,7 +139,6 @@ def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, id
     """
     M, d = z.shape
     dirs = torch.cat([torch.zeros(1, d, device=z.device), torch.eye(d, device=z.device) * h])  # [d + 1, d]
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
     with torch.no_grad():
         losses = _phase_losses(denoiser, schedule, windows, z[None] + dirs[:, None], idx, noise_samples, g,
                                consts, obs_mod)  # [d + 1, M]
@@ -177,9 +179,9 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
         if use_fd:
             loss, grad = fit_loss_and_grad_fd(denoiser, schedule, windows, z.detach(), idx, noise_samples, lam, g,
-                                              obs_mod)
+                                              obs_mod, consts)
         else:
-            loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod)
+            loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod, consts)
             (grad,) = torch.autograd.grad(loss, z)
         z.grad = grad
         opt.step()

@@ -96,7 +96,7 @@ def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
         loss = fit_loss(net, sched, w, zg, idx, 1, 1e-2, torch.Generator().manual_seed(trial), obs_mod)
         (want,) = torch.autograd.grad(loss, zg)
         fd_loss, got = fit_loss_and_grad_fd(net, sched, w, z, idx, 1, 1e-2, torch.Generator().manual_seed(trial),
-                                            obs_mod)
+                                            obs_mod, consts)
         torch.testing.assert_close(fd_loss, loss.detach())
         assert float((got - want).norm() / want.norm()) < 0.02, (got, want)
     with pytest.raises(ValueError, match="gradient must be one of"):
