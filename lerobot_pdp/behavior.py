@@ -53,8 +53,11 @@ def normalize_trace(x: np.ndarray, mode: str) -> np.ndarray:
 def gripper_segments(actions: np.ndarray, dim: int, threshold: float, min_length: int = 2) -> list[tuple[int, int]]:
     """Split frames [0, T) into phases at changes of ``actions[:, dim] > threshold`` (open/close events).
 
-    Runs shorter than ``min_length`` frames (gripper chatter) take the state of the run before them, so
-    a one-frame blip neither starts a phase nor cuts one in two.
+    Runs shorter than ``min_length`` frames take the state of a neighbouring run: inside the episode
+    (gripper chatter) the run before them, so a one-frame blip neither starts a phase nor cuts one in two;
+    at either end the run next to them, because a phase that short carries no behavior. (An expert that
+    stops the episode one frame after opening the gripper otherwise adds a one-frame "release" phase whose
+    trace is a constant -- a third of all behaviors and of every fitting batch spent on nothing.)
     """
     closed = (np.asarray(actions)[:, dim] > threshold).copy()
     t = 1
@@ -63,11 +66,14 @@ def gripper_segments(actions: np.ndarray, dim: int, threshold: float, min_length
             run_end = t
             while run_end < len(closed) and closed[run_end] == closed[t]:
                 run_end += 1
-            if run_end - t < min_length and run_end < len(closed):
-                closed[t:run_end] = closed[t - 1]
+            if run_end - t < min_length:
+                closed[t:run_end] = closed[t - 1]  # chatter, or a too-short last run: joins the run before
             t = run_end
         else:
             t += 1
+    first_end = int(np.argmax(closed != closed[0])) if len(closed) and (closed != closed[0]).any() else len(closed)
+    if 0 < first_end < min_length and first_end < len(closed):
+        closed[:first_end] = closed[first_end]  # a too-short first run joins the run after it
     cuts = [0] + [t for t in range(1, len(closed)) if closed[t] != closed[t - 1]] + [len(closed)]
     return list(zip(cuts[:-1], cuts[1:], strict=True))
 

@@ -39,6 +39,18 @@ def test_gripper_segments_split_and_merge_chatter():
     assert gripper_segments(a, 3, 0.0, min_length=2) == [(0, 8), (8, 15), (15, 20)]
 
 
+def test_gripper_segments_too_short_first_or_last_run_joins_its_neighbour():
+    """An episode that ends one frame after the gripper opens has no "release" behavior to learn."""
+    a = -np.ones((20, 4))
+    a[8:19, 3] = 1.0  # close at 8, open only on the final frame
+    assert gripper_segments(a, 3, 0.0) == [(0, 8), (8, 20)]
+    assert gripper_segments(a, 3, 0.0, min_length=1) == [(0, 8), (8, 19), (19, 20)]
+    a[0, 3] = 1.0  # a one-frame close on the first frame
+    assert gripper_segments(a, 3, 0.0) == [(0, 8), (8, 20)]
+    a[:, 3] = 1.0
+    assert gripper_segments(a[:1], 3, 0.0) == [(0, 1)]  # shorter than min_length as a whole: one phase
+
+
 def test_prior_mean_distance_matches_monte_carlo():
     rng = np.random.default_rng(0)
     for d in (1, 2, 5):

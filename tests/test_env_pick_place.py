@@ -53,7 +53,8 @@ def test_expert_jitter_varies_within_mode():
 
 def test_expert_gripper_command_is_always_explicit_and_segments_into_reach_and_carry():
     """The gripper command is always -1 or +1 (0.0 sits on the open/closed threshold and taught learned
-    policies to chatter at the start), so gripper segmentation finds exactly reach, carry and release."""
+    policies to chatter at the start), so gripper segmentation finds exactly reach and carry (the release is
+    the final frame, too short to be a phase of its own)."""
     from lerobot_pdp.behavior import gripper_segments
 
     env = pp.PickPlaceEnv()
@@ -69,8 +70,9 @@ def test_expert_gripper_command_is_always_explicit_and_segments_into_reach_and_c
                 break
         actions = np.asarray(actions)
         assert info["is_success"] and set(np.unique(actions[:, 3]).tolist()) == {-1.0, 1.0}
-        (r0, r1), (c0, c1), (e0, e1) = gripper_segments(actions, 3, 0.0)
-        assert r0 == 0 and r1 > 20 and c1 - c0 > 20 and e1 == len(actions)  # release: the final open command
+        assert actions[-1, 3] == -1.0 and (actions[-2, 3] == 1.0)  # released on the final frame
+        (r0, r1), (c0, c1) = gripper_segments(actions, 3, 0.0)
+        assert r0 == 0 and r1 > 20 and c1 - c0 > 20 and c1 == len(actions)
 
 
 @pytest.mark.parametrize("scene, mode", [(1, SCENE1_MODE), (2, SCENE2_MODE)])
