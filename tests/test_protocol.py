@@ -42,6 +42,22 @@ def test_whole_protocol_tiny(tmp_path):
     assert (tmp_path / "bench" / "runs" / "pdp" / "seed0" / "train_info.json").stat().st_mtime == stamp
 
 
+def test_ablations_tiny(tmp_path):
+    """`--ablations`: the four ablated PDP variants train and evaluate next to PDP, plus the warm-vs-random
+    initialisation table."""
+    cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "bench", seeds=[0], rollouts=1, methods=["pdp"],
+                          ablations=True, steps=20, episodes_per_mode=1, figures=False)
+    res = run_benchmark(cfg)
+    assert set(res["methods"]) == {"pdp", "pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_uncond"}
+    for entry in res["methods"].values():
+        assert all(len(entry[f"scene{s}"]["success"]) == 1 for s in range(4))
+    assert set(res["init_ablation"]) == {f"{i}@{n}" for i in ("encoder", "random") for n in (0, 10, 100)}
+    md = (tmp_path / "bench" / "results.md").read_text()
+    assert "| pdp_onehot |" in md and "| warm (encoder) |" in md
+    config = tmp_path / "bench" / "runs" / "pdp_onehot" / "seed0" / "pretrained_model" / "config.json"
+    assert json.loads(config.read_text())["latent_type"] == "onehot"
+
+
 def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):
     """The steering effect itself (reach-around scene 3: a wall with one window that no training mode uses).
 

@@ -407,7 +407,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
 def _fmt(d: dict[str, Any] | None) -> str:
     if not d or d.get("mean") is None:
         return "–"
-    if len(d.get("success", [])) > 1:
+    if len(d.get("success", d.get("values", []))) > 1:  # several seeds: mean ± std
         return f"{100 * d['mean']:.1f} ± {100 * d['std']:.1f}"
     return f"{100 * d['mean']:.1f}"
 

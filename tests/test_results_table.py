@@ -1,0 +1,28 @@
+"""results.json / results.md aggregation over seeds (pure functions; the protocol tests run the real thing)."""
+
+from pathlib import Path
+
+import pytest
+
+from lerobot_pdp.benchmark.protocol import BenchmarkConfig, TrainSettings, aggregate, results_markdown
+
+
+def _run(rates: list[float]) -> dict:
+    return {"scenes": {str(s): {"success": r, "collision": 0.0} for s, r in enumerate(rates)}}
+
+
+def test_mean_and_std_over_seeds_in_json_and_table():
+    cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0, 1])
+    per_run = {"pdp": {0: _run([1.0, 0.9, 1.0, 0.8]), 1: _run([1.0, 0.7, 1.0, 1.0])},
+               "dp": {0: _run([0.5, 0.0, 1.0, 0.0])}}  # a method with one finished seed so far
+    init = {0: {"encoder@0": 0.5, "random@0": 0.0}, 1: {"encoder@0": 0.7, "random@0": 0.1}}
+    res = aggregate("reach-around", cfg, per_run, init, TrainSettings(steps=10), 10)
+    s1 = res["methods"]["pdp"]["scene1"]
+    assert s1["success"] == [0.9, 0.7] and s1["mean"] == pytest.approx(0.8) and s1["std"] == pytest.approx(0.1)
+    assert res["methods"]["pdp"]["shifted_avg"] == pytest.approx((0.8 + 1.0 + 0.9) / 3)
+    assert res["methods"]["dp"]["scene0"]["success"] == [0.5]
+    assert res["init_ablation"]["encoder@0"]["mean"] == pytest.approx(0.6)
+    md = results_markdown(res)
+    assert "| pdp | 100.0 ± 0.0 | 80.0 ± 10.0 | 100.0 ± 0.0 | 90.0 ± 10.0 | 90.0 |" in md
+    assert "| dp | 50.0 | 0.0 | 100.0 | 0.0 |" in md  # one seed: no std
+    assert "| warm (encoder) | 60.0 ± 10.0 |" in md and "| random | 5.0 ± 5.0 |" in md
