@@ -194,7 +194,8 @@ def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None
             fh.write(line)
             m = pattern.search(line)
             if m:
-                step = int(m.group(1)) * (1000 if m.group(2) else 1)
+                # lerobot-train rounds large counters ("step:2K" at step 1500): never past the total
+                step = min(int(m.group(1)) * (1000 if m.group(2) else 1), total_steps)
                 bar.update(max(0, step - bar.n))
         rc = proc.wait()
         bar.update(total_steps - bar.n)
