@@ -1,0 +1,67 @@
+"""Why do pick-place rollouts fail? Classify each one by what happened at the grasp.
+
+Rolls out a trained PDP checkpoint (the benchmark's ``runs/pdp/seed<k>``) in one scene with the latent the
+benchmark fitted there (its ``eval.json``), logging every executed action, and prints per rollout where
+the gripper first closed (distance end effector - object, speed) and the outcome: success, collision,
+"never grasped" (closed outside the 3 cm grasp radius) or "grasped, not placed".
+
+    python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import torch
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+
+def main() -> None:
+    from lerobot_pdp.benchmark.evaluation import run_rollouts
+    from lerobot_pdp.benchmark.protocol import load_policy
+    from lerobot_pdp.envs import pick_place as pp
+    from lerobot_pdp.envs.suite import get_suite_env
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path, help="a benchmark run directory holding pretrained_model/ and eval.json")
+    ap.add_argument("--scene", type=int, default=1, choices=(1, 2, 3))
+    ap.add_argument("-n", type=int, default=20, help="rollouts (seeds 5, 6, ...)")
+    args = ap.parse_args()
+
+    log: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool]] = []
+    step = pp.PickPlaceEnv.step
+
+    def logged_step(self, action):  # record what the env executed, then step as usual
+        out = step(self, action)
+        log.append((self.ee_pos.copy(), self.object_pos.copy(), np.asarray(action, float).copy(), self.grasped))
+        return out
+
+    pp.PickPlaceEnv.step = logged_step
+    policy, pre, post = load_policy(args.run / "pretrained_model")
+    fitted = json.loads((args.run / "eval.json").read_text())["scenes"][str(args.scene)]["z"]
+    policy.set_latent(torch.tensor(fitted, dtype=torch.float32))
+    suite = get_suite_env("pick-place")
+    tally: Counter[str] = Counter()
+    for i in range(args.n):
+        log.clear()
+        r = run_rollouts(suite, args.scene, policy, pre, post, 1, 5 + i, batch_size=1).results[0]
+        ee, obj, act = (np.array([row[k] for row in log]) for k in range(3))
+        grasped = any(row[3] for row in log)
+        closes = [t for t in range(1, len(act)) if act[t, 3] > 0 >= act[t - 1, 3]][:3]
+        kind = ("success" if r.success else "collision" if r.collided
+                else "grasped, not placed" if grasped else "never grasped")
+        tally[kind] += 1
+        print(f"{i:2d} {kind:20s} first closes at steps {closes}: ee-object "
+              f"{[round(float(np.linalg.norm(ee[t] - obj[t])), 3) for t in closes]} m, speed "
+              f"{[round(float(np.linalg.norm(ee[t] - ee[t - 1])), 4) for t in closes]} m/step", flush=True)
+    print(f"scene {args.scene}: {dict(tally)}")
+
+
+if __name__ == "__main__":
+    main()
