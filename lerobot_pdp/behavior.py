@@ -71,9 +71,9 @@ def gripper_segments(actions: np.ndarray, dim: int, threshold: float, min_length
             t = run_end
         else:
             t += 1
-    first_end = int(np.argmax(closed != closed[0])) if len(closed) and (closed != closed[0]).any() else len(closed)
-    if 0 < first_end < min_length and first_end < len(closed):
-        closed[:first_end] = closed[first_end]  # a too-short first run joins the run after it
+    changes = np.flatnonzero(closed[1:] != closed[:-1]) + 1
+    if len(changes) and changes[0] < min_length:
+        closed[: changes[0]] = closed[changes[0]]  # a too-short first run joins the run after it
     cuts = [0] + [t for t in range(1, len(closed)) if closed[t] != closed[t - 1]] + [len(closed)]
     return list(zip(cuts[:-1], cuts[1:], strict=True))
 
