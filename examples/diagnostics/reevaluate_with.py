@@ -36,9 +36,10 @@ def main() -> None:
     fitted = json.loads((args.run / "eval.json").read_text())["scenes"]
     suite = get_suite_env(args.env)
     for setting in args.set:
-        field, value = setting.split("=")
-        if not hasattr(policy.config, field):
-            raise SystemExit(f"PDPConfig has no field {field!r}")
+        field, _, value = setting.partition("=")
+        if not hasattr(policy.config, field) or not value.lstrip("-").isdigit():
+            raise SystemExit(f"--set {setting!r}: expected FIELD=INT with FIELD a PDPConfig field "
+                             f"(e.g. n_action_steps=4, num_inference_steps=10)")
         setattr(policy.config, field, int(value))
         policy.reset()  # queues are sized by n_action_steps
         out: dict[str, float | str] = {"set": setting}
