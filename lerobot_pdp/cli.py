@@ -129,6 +129,8 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ablations", action="store_true",
                    help="also the paper's ablations and the warm/random initialisation table")
     p.add_argument("--steps", type=int, default=None, help="override the env's training steps")
+    p.add_argument("--episodes-per-mode", type=int, default=None,
+                   help="override the env's demonstrations per mode in the scene-0 dataset")
     p.add_argument("--scenes", type=int, nargs="+", default=[0, 1, 2, 3], help="scenes to evaluate")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=cmd_benchmark)
@@ -145,6 +147,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         methods = methods if "--methods" in explicit else ["pdp", "dp"]
     cfg = BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                           quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
+                          episodes_per_mode=args.episodes_per_mode,
                           figures=not args.no_figures)
     res = run_benchmark(cfg)
     print()

@@ -1,10 +1,18 @@
 """results.json / results.md aggregation over seeds (pure functions; the protocol tests run the real thing)."""
 
+import json
 from pathlib import Path
 
 import pytest
 
-from lerobot_pdp.benchmark.protocol import BenchmarkConfig, TrainSettings, aggregate, results_markdown
+from lerobot_pdp.benchmark.protocol import (
+    BenchmarkConfig,
+    TrainSettings,
+    aggregate,
+    ensure_dataset,
+    results_markdown,
+)
+from lerobot_pdp.envs import get_suite_env
 
 
 def _run(rates: list[float]) -> dict:
@@ -26,3 +34,15 @@ def test_mean_and_std_over_seeds_in_json_and_table():
     assert "| pdp | 100.0 ± 0.0 | 80.0 ± 10.0 | 100.0 ± 0.0 | 90.0 ± 10.0 | 90.0 |" in md
     assert "| dp | 50.0 | 0.0 | 100.0 | 0.0 |" in md  # one seed: no std
     assert "| warm (encoder) | 60.0 ± 10.0 |" in md and "| random | 5.0 ± 5.0 |" in md
+
+
+def test_reusing_a_dataset_of_another_size_is_refused(tmp_path):
+    """Runs trained on 3 demos/mode must not land in one table with runs on 6: a mismatch names both sizes."""
+    suite = get_suite_env("reach-around")
+    meta = tmp_path / "data" / f"{suite.scene_key}_scene0" / "meta"
+    meta.mkdir(parents=True)
+    (meta / "info.json").write_text(json.dumps({"total_episodes": 3 * suite.n_modes}))
+    assert ensure_dataset(suite, tmp_path, TrainSettings(steps=1, episodes_per_mode=3)) == meta.parent
+    with pytest.raises(ValueError, match=f"holds {3 * suite.n_modes} episodes but this benchmark needs "
+                                         f"{6 * suite.n_modes}"):
+        ensure_dataset(suite, tmp_path, TrainSettings(steps=1, episodes_per_mode=6))

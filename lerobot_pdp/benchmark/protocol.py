@@ -120,9 +120,17 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
     from ..envs.recording import make_dataset
 
     root = out / "data" / f"{suite.scene_key}_scene0"
-    if not (root / "meta" / "info.json").is_file():
+    info = root / "meta" / "info.json"
+    if not info.is_file():
         print(f"[benchmark] generating {suite.name} scene-0 dataset ({settings.episodes_per_mode}/mode) -> {root}")
         make_dataset(suite.name, root, scene=0, episodes_per_mode=settings.episodes_per_mode, seed=seed)
+    # Reusing a dataset of another size would silently mix runs trained on different data in one table.
+    expected = suite.n_modes * settings.episodes_per_mode
+    found = json.loads(info.read_text()).get("total_episodes")
+    if found != expected:
+        raise ValueError(f"{root} holds {found} episodes but this benchmark needs {expected} "
+                         f"({settings.episodes_per_mode} per mode x {suite.n_modes} modes); use another --out "
+                         f"or delete {out / 'data'} and {out / 'runs'}")
     return root
 
 
