@@ -27,11 +27,6 @@ def rollout(env: pp.PickPlaceEnv, expert, seed: int) -> tuple[dict, int, np.ndar
     raise AssertionError("episode neither terminated nor truncated")
 
 
-def move(env: pp.PickPlaceEnv, velocity, gripper: float) -> np.ndarray:
-    """Position action stepping the commanded position by ``velocity`` (fractions of the max speed)."""
-    return np.append(env.commanded_pos + np.asarray(velocity, float) * pp.MAX_STEP, gripper)
-
-
 def successful_modes(scene: int, seed: int = 0) -> list[int]:
     env = pp.PickPlaceEnv(scene=scene)
     return [m for m in range(64)
@@ -116,31 +111,31 @@ def test_grasp_moves_object_only_while_closed():
     env = pp.PickPlaceEnv()
     env.reset(seed=0)
     # Closing the gripper far from the object grasps nothing; the object stays put.
-    env.step(move(env, [0, 0, 0], 1.0))
+    env.step(np.array([0.0, 0.0, 0.0, 1.0]))
     assert env._gripper_closed and not env.grasped
-    env.step(move(env, [0, 0, 0], -1.0))
+    env.step(np.array([0.0, 0.0, 0.0, -1.0]))
     # Drive straight to the object (the straight line is blocked by obstacle A: remove it for this test).
     env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
     obs, _ = env.reset(seed=0)
     for _ in range(200):
         err = pp.OBJECT - env.ee_pos
-        obs, *_ = env.step(move(env, np.clip(err * 10, -1, 1), -1.0))
+        obs, *_ = env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
         if np.linalg.norm(err) < 0.003:
             break
-    obs, _, _, _, info = env.step(move(env, [0, 0, 0], 1.0))
+    obs, _, _, _, info = env.step(np.array([0.0, 0.0, 0.0, 1.0]))
     assert env.grasped and info["phase"] == "carry" and obs["agent_pos"][3] == 1.0
     offset = env.object_pos - env.ee_pos
     for _ in range(20):
-        env.step(move(env, [0.5, 0.3, 0.2], 1.0))
+        env.step(np.array([0.5, 0.3, 0.2, 1.0]))
     assert np.linalg.norm(env.object_pos - pp.OBJECT) > 0.1  # moved with the end effector
     assert np.allclose(env.object_pos - env.ee_pos, offset, atol=2e-3)
-    env.step(move(env, [0, 0, 0], -1.0))
+    env.step(np.array([0.0, 0.0, 0.0, -1.0]))
     assert not env.grasped
     for _ in range(5):
-        env.step(move(env, [0, 0, 0], 0.0))
+        env.step(np.zeros(4))
     released = env.object_pos.copy()
     for _ in range(20):
-        obs, *_ = env.step(move(env, [-0.5, 0, 0], -1.0))
+        obs, *_ = env.step(np.array([-0.5, 0.0, 0.0, -1.0]))
     assert np.allclose(env.object_pos, released, atol=1e-3)  # stays where released
     assert np.allclose(obs["environment_state"][:3], released, atol=1e-3)
     assert np.linalg.norm(env.ee_pos - released) > 0.08  # the end effector moved away alone
@@ -156,7 +151,7 @@ def test_collision_of_carried_object_terminates():
     # Now push the held object straight into obstacle B.
     for _ in range(100):
         err = pp.OBSTACLE_B - env.object_pos
-        obs, _, term, _, info = env.step(move(env, np.clip(err * 10, -1, 1), 1.0))
+        obs, _, term, _, info = env.step(np.append(np.clip(err * 10, -1, 1), 1.0))
         if term:
             break
     assert term and info["collided"] and not info["is_success"] and info["min_clearance"] < 0
@@ -193,23 +188,3 @@ def test_registration_and_lerobot_observation_layout():
     assert env.unwrapped.task_description and env.unwrapped._max_episode_steps == pp.MAX_EPISODE_STEPS
     assert set(info) >= {"is_success", "collided", "min_clearance", "phase"}
     env.close()
-
-
-def test_actions_are_absolute_positions_reached_at_the_speed_limit():
-    """An action names where the end effector should be; the commanded position walks there at <= 0.01 m
-    per axis per step, so a far target is approached at the speed limit and then held without drift."""
-    env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
-    env.reset(seed=0)
-    goal = pp.START + np.array([0.05, 0.10, -0.03])
-    env.step(np.append(goal, -1.0))
-    assert np.allclose(env.commanded_pos - pp.START, [0.01, 0.01, -0.01])
-    for _ in range(30):
-        env.step(np.append(goal, -1.0))
-    assert np.allclose(env.commanded_pos, goal)
-    assert np.linalg.norm(env.ee_pos - goal) < 1e-3
-    low = env.action_space.low
-    assert np.allclose(low[:3], pp.WORKSPACE_LOW) and low[3] == -1.0
-    with pytest.raises(ValueError, match="finite"):
-        env.step(np.array([np.nan, 0.0, 0.4, -1.0]))
-    with pytest.raises(ValueError, match="4 values"):
-        env.step(np.zeros(3))

@@ -14,13 +14,8 @@ right (+x), under (-z) -- at a tight (0.13 m off the obstacle centre) or wide (0
 reach-around (same phase-mode ids: side * 2 + (0 tight | 1 wide)); env mode = reach_mode * 8 + carry_mode.
 
 Physics (real MuJoCo, gravity off so the object rests where it is put, as if on an invisible shelf):
-- end effector: a sphere (r 0.015) on three slide joints driven by position actuators. An action's first
-  three values are the *absolute* desired end-effector position (world x, y, z in metres); the env moves its
-  commanded position toward it by at most 0.01 m per axis per step (0.5 m/s at dt 0.02 s), inside the
-  workspace. Position rather than velocity actions because this is the one env of the suite that needs
-  centimetre precision (grasp and release): velocity chunks executed open loop add up their errors, so
-  learned policies closed the gripper up to 4 cm short of the object; an absolute chunk does not drift
-  (the Diffusion Policy paper, Chi et al. 2023, makes the same position-vs-velocity observation).
+- end effector: a sphere (r 0.015) on three slide joints driven by position actuators; an action's first three
+  values are velocity fractions of 0.5 m/s integrated (dt 0.02 s) into the desired position.
 - object: a cube (half-size 0.015) on its own three damped slide joints.
 - grasp: closing the gripper (action[3] > 0) within 0.03 m of the object activates a ``connect`` equality
   constraint whose anchor is the object's current offset from the end effector, so the object keeps that
@@ -86,9 +81,8 @@ WORKING_Z = 0.40  # 2-D cylinder positions in scene files stand centred at this 
 
 EE_RADIUS = 0.015
 OBJECT_HALF = 0.015
-MAX_SPEED = 0.5  # m/s: the commanded position moves at most MAX_SPEED * DT per axis per step
+MAX_SPEED = 0.5  # m/s at |action| = 1
 DT = 0.02  # control period (s)
-MAX_STEP = MAX_SPEED * DT
 TIMESTEP = 0.002  # physics step (s)
 N_SUBSTEPS = round(DT / TIMESTEP)
 GRASP_RADIUS = 0.03
@@ -212,9 +206,7 @@ class PickPlaceEnv(gym.Env):
         self._obj_qvel = np.array([m.jnt_dofadr[m.joint(f"obj_{a}").id] for a in "xyz"])
         self._grasp_eq = m.equality("grasp").id
         self._renderer: mujoco.Renderer | None = None
-        # [x, y, z] absolute desired end-effector position (workspace), gripper (> 0 = closed)
-        self.action_space = spaces.Box(np.append(WORKSPACE_LOW, -1.0).astype(np.float32),
-                                       np.append(WORKSPACE_HIGH, 1.0).astype(np.float32), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         self.observation_space = spaces.Dict({
             # Positions stay inside the workspace clamp (|coord| < 0.85 m); 1 m bounds leave room for lag.
             "agent_pos": spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32),
@@ -247,11 +239,6 @@ class PickPlaceEnv(gym.Env):
         return OBJECT + self.data.qpos[self._obj_qpos]
 
     @property
-    def commanded_pos(self) -> np.ndarray:
-        """Position the actuators currently track (actions move it toward their target, rate limited)."""
-        return self._desired.copy()
-
-    @property
     def grasped(self) -> bool:
         return self._grasped
 
@@ -263,7 +250,7 @@ class PickPlaceEnv(gym.Env):
         return [f"{what}_{ax}" for what in ("object", "target", "obstacle_a", "obstacle_b") for ax in "xyz"]
 
     def action_names(self) -> list[str]:
-        return ["x", "y", "z", "gripper"]
+        return ["vx", "vy", "vz", "gripper"]
 
     def _obs(self) -> dict[str, np.ndarray]:
         agent = np.concatenate([self.ee_pos, [float(self._gripper_closed)]]).astype(np.float32)
@@ -325,12 +312,10 @@ class PickPlaceEnv(gym.Env):
     def step(self, action: np.ndarray):
         a = np.asarray(action, dtype=float).reshape(-1)
         if a.shape != (4,):
-            raise ValueError(f"PickPlace action must have 4 values (x, y, z position + gripper), got shape {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"PickPlace action must be finite, got {a.tolist()}")
+            raise ValueError(f"PickPlace action must have 4 values (3 velocities + gripper), got shape {a.shape}")
+        a = np.clip(np.nan_to_num(a), -1.0, 1.0)
         self._set_gripper(bool(a[3] > 0.0))
-        step = np.clip(a[:3] - self._desired, -MAX_STEP, MAX_STEP)
-        self._desired = np.clip(self._desired + step, WORKSPACE_LOW, WORKSPACE_HIGH)
+        self._desired = np.clip(self._desired + a[:3] * MAX_SPEED * DT, WORKSPACE_LOW, WORKSPACE_HIGH)
         self.data.ctrl[:3] = self._desired - START
         mujoco.mj_step(self.model, self.data, nstep=N_SUBSTEPS)
         self._steps += 1
@@ -380,9 +365,7 @@ class PickPlaceExpert:
 
     Intra-mode variety: via-points are jittered (up to ``jitter`` m per axis), the cruise speed and each
     leg's speed vary, and the start delay and the pauses after grasp / before release are random.
-    Control is a proportional law on the measured end-effector position, saturated at the cruise speed,
-    integrated into the commanded position it sends (the env's own commanded position, as both start at
-    the start point and the env applies these steps unclipped).
+    Control is a proportional law on the measured end-effector position, saturated at the cruise speed.
     """
 
     def __init__(self, reach: Sequence[Sequence[float]], carry: Sequence[Sequence[float]],
@@ -401,7 +384,6 @@ class PickPlaceExpert:
         self.stage, self.idx, self.count = "wait", 0, 0
         self.offset = np.zeros(3)
         self.prev: np.ndarray | None = None
-        self.cmd: np.ndarray | None = None
 
     def _track(self, ee: np.ndarray, points: list[np.ndarray], speeds: np.ndarray) -> tuple[np.ndarray, float]:
         """Velocity fraction toward the current via-point (switching early), slowing at the last one."""
@@ -421,9 +403,7 @@ class PickPlaceExpert:
         target = np.asarray(obs["environment_state"][3:6], float)
         moving = 0.0 if self.prev is None else float(np.linalg.norm(ee - self.prev))
         self.prev = ee
-        if self.cmd is None:
-            self.cmd = ee.copy()
-        act = np.zeros(4)  # velocity fractions (then integrated into self.cmd) + gripper
+        act = np.zeros(4)
         if self.stage == "wait":
             # an explicit "open" (not 0.0, which sits on the open/closed threshold): learned policies
             # otherwise chatter the gripper at the start, which a phase-segmented policy reads as a grasp
@@ -455,8 +435,7 @@ class PickPlaceExpert:
             act[:3] = 0.0
             act[3] = 1.0 if self.count < self.release_pause else -1.0
             self.count += 1
-        self.cmd = np.clip(self.cmd + act[:3] * MAX_STEP, WORKSPACE_LOW, WORKSPACE_HIGH)
-        return np.append(self.cmd, act[3]).astype(np.float32)
+        return act.astype(np.float32)
 
 
 def split_mode(mode: int) -> tuple[int, int]:
