@@ -28,11 +28,8 @@ Physics (real MuJoCo, gravity off so the object rests where it is put, as if on 
   force, which yields the clearance for free; a contact with ``dist < 0`` is a collision and ends the episode.
 
 Observation (float32): ``agent_pos`` = [ee x, y, z, gripper closed (0/1)] (-> ``observation.state``);
-``environment_state`` = [object xyz, target xyz, obstacle A centre, obstacle B centre, object - end effector,
-target - object] (-> ``observation.environment_state``). A removed obstacle keeps its nominal centre in the
-observation. The two offsets repeat what the absolute positions imply, on purpose: grasp and release hinge
-on centimetres, and with every coordinate min-max normalised over the ~1 m workspace a policy would have to
-learn to cancel two large inputs precisely to see a 1 cm gap; an offset input shows it directly.
+``environment_state`` = [object xyz, target xyz, obstacle A centre, obstacle B centre]
+(-> ``observation.environment_state``). A removed obstacle keeps its nominal centre in the observation.
 
 Success: the object was grasped, then released (gripper open) with its centre within 0.03 m of the
 target, without any collision.
@@ -213,7 +210,7 @@ class PickPlaceEnv(gym.Env):
         self.observation_space = spaces.Dict({
             # Positions stay inside the workspace clamp (|coord| < 0.85 m); 1 m bounds leave room for lag.
             "agent_pos": spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32),
-            "environment_state": spaces.Box(-2.0, 2.0, shape=(18,), dtype=np.float32),
+            "environment_state": spaces.Box(-1.0, 1.0, shape=(12,), dtype=np.float32),
         })
         self._reset_state()
 
@@ -250,17 +247,14 @@ class PickPlaceEnv(gym.Env):
         return ["ee_x", "ee_y", "ee_z", "gripper_closed"]
 
     def environment_state_names(self) -> list[str]:
-        return [f"{what}_{ax}" for what in ("object", "target", "obstacle_a", "obstacle_b", "object_from_ee",
-                                             "target_from_object") for ax in "xyz"]
+        return [f"{what}_{ax}" for what in ("object", "target", "obstacle_a", "obstacle_b") for ax in "xyz"]
 
     def action_names(self) -> list[str]:
         return ["vx", "vy", "vz", "gripper"]
 
     def _obs(self) -> dict[str, np.ndarray]:
         agent = np.concatenate([self.ee_pos, [float(self._gripper_closed)]]).astype(np.float32)
-        obj = self.object_pos
-        env_state = np.concatenate([obj, TARGET, OBSTACLE_A, OBSTACLE_B, obj - self.ee_pos, TARGET - obj])
-        env_state = env_state.astype(np.float32)
+        env_state = np.concatenate([self.object_pos, TARGET, OBSTACLE_A, OBSTACLE_B]).astype(np.float32)
         return {"agent_pos": agent, "environment_state": env_state}
 
     def _phase(self) -> str:
