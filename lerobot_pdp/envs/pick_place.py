@@ -90,6 +90,10 @@ SUCCESS_TOL = 0.03
 CLEARANCE_MARGIN = 0.1  # contacts closer than this are reported (inactive) to measure clearance
 SCENE_CLEAR_MARGIN = 0.05  # barriers must stay this far from start, object and target
 MAX_EPISODE_STEPS = 300
+# Expert's braking onto the grasp / release point: speed fraction <= BRAKE_GAIN * distance (m), i.e. the gap
+# shrinks ~BRAKE_GAIN * 1 % per step. A gentle 8 left 18 steps of creeping at 0.5-2 mm/step in the last 3 cm,
+# speeds within a learned policy's action error: policies stalled 2-8 cm short and closed there.
+BRAKE_GAIN = 25.0
 WORKSPACE_LOW = np.array([-0.6, -0.7, 0.0])
 WORKSPACE_HIGH = np.array([0.6, 0.7, 0.85])
 
@@ -393,7 +397,7 @@ class PickPlaceExpert:
         dist = float(np.linalg.norm(err))
         speed = float(speeds[self.idx])
         if self.idx == len(points) - 1:
-            speed = min(speed, 8.0 * dist)  # ~proportional braking onto the grasp / release point
+            speed = min(speed, BRAKE_GAIN * dist)  # proportional braking onto the grasp / release point
         v = err / max(dist, 1e-9) * speed
         return np.clip(v, -1.0, 1.0), dist
 
