@@ -188,3 +188,23 @@ def test_registration_and_lerobot_observation_layout():
     assert env.unwrapped.task_description and env.unwrapped._max_episode_steps == pp.MAX_EPISODE_STEPS
     assert set(info) >= {"is_success", "collided", "min_clearance", "phase"}
     env.close()
+
+
+def test_expert_brakes_onto_the_object_without_creeping():
+    """The expert closes a few steps after coming within 3 cm, not after a long slow creep: a creep at
+    0.5-2 mm/step (18 steps with the old gentle brake) taught learned policies to stall short and close."""
+    env = pp.PickPlaceEnv()
+    for seed in range(3):
+        expert = pp.make_expert(21, np.random.default_rng(seed))
+        obs, _ = env.reset(seed=seed)
+        expert.reset(obs)
+        gaps = []
+        while True:
+            action = expert(obs)
+            gaps.append(float(np.linalg.norm(env.object_pos - env.ee_pos)))
+            if action[3] > 0:
+                break
+            obs, *_ = env.step(action)
+        within_3cm = next(i for i, g in enumerate(gaps) if g < 0.03)
+        assert len(gaps) - 1 - within_3cm <= 8, (seed, len(gaps) - 1 - within_3cm)
+        assert gaps[-1] < 0.006  # and still closes on the object
