@@ -92,7 +92,7 @@ SCENE_CLEAR_MARGIN = 0.05  # barriers must stay this far from start, object and 
 MAX_EPISODE_STEPS = 300
 # Expert's braking onto the grasp / release point: speed fraction <= BRAKE_GAIN * distance (m), i.e. the gap
 # shrinks ~BRAKE_GAIN * 1 % per step. A gentle 8 left 18 steps of creeping at 0.5-2 mm/step in the last 3 cm,
-# speeds within a learned policy's action error: policies stalled 1-8 cm short and closed there.
+# speeds within a learned policy's action error: policies stalled 3-8 cm short and closed there.
 BRAKE_GAIN = 25.0
 WORKSPACE_LOW = np.array([-0.6, -0.7, 0.0])
 WORKSPACE_HIGH = np.array([0.6, 0.7, 0.85])
