@@ -27,6 +27,14 @@ def rollout(env: pp.PickPlaceEnv, expert, seed: int) -> tuple[dict, int, np.ndar
     raise AssertionError("episode neither terminated nor truncated")
 
 
+def started(env: pp.PickPlaceEnv, mode: int, seed: int) -> tuple[pp.PickPlaceExpert, dict]:
+    """A fresh expert for ``mode`` and the env reset with the same seed: (expert, first observation)."""
+    expert = pp.make_expert(mode, np.random.default_rng(seed))
+    obs, _ = env.reset(seed=seed)
+    expert.reset(obs)
+    return expert, obs
+
+
 def successful_modes(scene: int, seed: int = 0) -> list[int]:
     env = pp.PickPlaceEnv(scene=scene)
     return [m for m in range(64)
@@ -59,9 +67,7 @@ def test_expert_gripper_command_is_always_explicit_and_segments_into_reach_and_c
 
     env = pp.PickPlaceEnv()
     for seed in range(3):
-        expert = pp.make_expert(5, np.random.default_rng(seed))
-        obs, _ = env.reset(seed=seed)
-        expert.reset(obs)
+        expert, obs = started(env, 5, seed)
         actions = []
         for _ in range(env._max_episode_steps):
             actions.append(expert(obs))
@@ -195,16 +201,16 @@ def test_expert_brakes_onto_the_object_without_creeping():
     0.5-2 mm/step (18 steps with the old gentle brake) taught learned policies to stall short and close."""
     env = pp.PickPlaceEnv()
     for seed in range(3):
-        expert = pp.make_expert(21, np.random.default_rng(seed))
-        obs, _ = env.reset(seed=seed)
-        expert.reset(obs)
+        expert, obs = started(env, 21, seed)
         gaps = []
-        while True:
+        for _ in range(env._max_episode_steps):
             action = expert(obs)
             gaps.append(float(np.linalg.norm(env.object_pos - env.ee_pos)))
             if action[3] > 0:
                 break
             obs, *_ = env.step(action)
+        else:
+            raise AssertionError(f"seed {seed}: the expert never closed the gripper")
         within_3cm = next(i for i, g in enumerate(gaps) if g < 0.03)
         assert len(gaps) - 1 - within_3cm <= 8, (seed, len(gaps) - 1 - within_3cm)
         assert gaps[-1] < 0.006  # and still closes on the object
