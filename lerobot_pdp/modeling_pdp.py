@@ -12,6 +12,7 @@ Data flows one way: dataset -> behavior traces -> trajectory encoder -> z -> FiL
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -210,7 +211,8 @@ class PDPPolicy(PreTrainedPolicy):
         k = torch.randint(0, self.config.num_train_timesteps, (actions.shape[0],), device=actions.device)
         noisy = self.noise_schedule.add_noise(actions, eps, k)
         pred = self.denoiser(noisy, k, obs_cond, z_bar)
-        loss_dp = diffusion_loss(pred, eps, batch.get("action_is_pad"))
+        is_pad = batch.get("action_is_pad") if self.config.do_mask_loss_for_padding else None
+        loss_dp = diffusion_loss(pred, eps, is_pad)
         info: dict[str, float] = {"loss_dp": loss_dp.item()}
         loss = loss_dp
         if self.config.latent_type == "continuous" and self.training:
@@ -525,6 +527,8 @@ class PDPPolicy(PreTrainedPolicy):
         norm = self.stats.normalize_episode(ep)
         windows = episode_windows(norm, cfg.n_obs_steps, cfg.horizon, OBS_STATE,
                                   OBS_ENV_STATE if self.env_dim else None, segs)
+        if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
+            windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
         device = self.geo_kappa.device
         if isinstance(init, Tensor):
             z0 = init.float().reshape(len(segs), cfg.latent_dim)

@@ -170,6 +170,9 @@ def test_dp_config_matching_gives_pdp_backbone_and_ddim():
     kw = dp_config_kwargs(asdict(PDPConfig(down_dims=(16, 32), horizon=8, n_action_steps=4, num_inference_steps=5)))
     assert (kw["down_dims"], kw["horizon"], kw["num_inference_steps"]) == ((16, 32), 8, 5)
     assert "--policy.horizon=8" in dp_config_matching(PDPConfig(horizon=8, n_action_steps=4))
+    # padding: DP trains (and adapts) on copy-padded steps exactly when PDP does
+    assert dp_config_kwargs(PDPConfig())["do_mask_loss_for_padding"] is False
+    assert dp_config_kwargs(PDPConfig(do_mask_loss_for_padding=True))["do_mask_loss_for_padding"] is True
 
 
 def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, episode):
@@ -189,6 +192,16 @@ def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, epi
     # deterministic given the seed
     again = adapt_dp_noise(policy, pre, episode, steps=8, lr=0.1, batch_size=16, seed=0)
     torch.testing.assert_close(again, noise)
+
+
+def test_dp_noise_matching_counts_padded_steps_as_dp_was_trained(reach_meta, episode):
+    policy, pre, _ = _dp(reach_meta)
+    noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(0))
+    losses = {}
+    for masked in (False, True):
+        policy.config.do_mask_loss_for_padding = masked
+        losses[masked] = dp_noise_matching_loss(policy, pre, episode, noise)
+    assert losses[False] != losses[True]  # the episode's last windows run past its end
 
 
 def test_adapt_dp_noise_rejects_non_diffusion_policy(reach_meta, episode):

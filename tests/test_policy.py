@@ -228,6 +228,33 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
     assert len(q.behavior_traces) == 40
 
 
+@pytest.mark.parametrize("masked", [False, True])
+def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, monkeypatch):
+    """Like LeRobot's diffusion policy: copy-padded chunk steps count in the loss (and in fitting) by default."""
+    import lerobot_pdp.modeling_pdp as modeling
+
+    p = _policy(synthetic_meta, do_mask_loss_for_padding=masked)
+    p.eval()  # the denoising loss only (the embedding loss draws its own random batch)
+    batch = _batch(synthetic_meta, p)
+    padded = dict(batch, action_is_pad=torch.zeros_like(batch["action_is_pad"]))
+    padded["action_is_pad"][:, -5:] = True
+    losses = []
+    for b in (batch, padded):
+        torch.manual_seed(0)
+        losses.append(p.forward(b)[0].item())
+    assert (losses[0] != losses[1]) == masked, losses
+    seen = []
+
+    def spy(denoiser, schedule, windows, *args, **kw):
+        seen.append(windows.is_pad)
+        return fit(denoiser, schedule, windows, *args, **kw)
+
+    fit = modeling.fit_latent
+    monkeypatch.setattr(modeling, "fit_latent", spy)
+    p.fit_latent((synthetic_meta.root, 2), steps=1)
+    assert bool(seen[0].any()) == masked  # the demo's last windows run past its end
+
+
 def test_fit_latent_works_under_inference_mode(synthetic_meta):
     """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there."""
     p = _policy(synthetic_meta)

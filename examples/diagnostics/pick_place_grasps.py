@@ -1,9 +1,11 @@
-"""Why do pick-place rollouts fail? Classify each one by what happened at the grasp.
+"""Why do pick-place rollouts fail? Classify each one by what happened at the grasp and at the release.
 
 Rolls out a trained PDP checkpoint (the benchmark's ``runs/pdp/seed<k>``) in one scene with the latent the
 benchmark fitted there (its ``eval.json``), logging every executed action, and prints per rollout where
 the gripper first closed (distance end effector - object, speed) and the outcome: success, collision,
-"never grasped" (closed outside the 3 cm grasp radius) or "grasped, not placed".
+"never grasped" (closed outside the 3 cm grasp radius), "released off target" or "never released"; for
+grasped rollouts also where the carry ended (object - target distance when the gripper opened again, or how
+far along y the object got while still held).
 
     python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
 """
@@ -54,12 +56,19 @@ def main() -> None:
         ee, obj, act = (np.array([row[k] for row in log]) for k in range(3))
         grasped = any(row[3] for row in log)
         closes = [t for t in range(1, len(act)) if act[t, 3] > 0 >= act[t - 1, 3]][:3]
+        held = [t for t in range(len(log)) if log[t][3]]
+        released = [t for t in range(held[0], len(act)) if act[t, 3] <= 0] if held else []
         kind = ("success" if r.success else "collision" if r.collided
-                else "grasped, not placed" if grasped else "never grasped")
+                else "released off target" if released else "never released" if grasped else "never grasped")
         tally[kind] += 1
         print(f"{i:2d} {kind:20s} first closes at steps {closes}: ee-object "
               f"{[round(float(np.linalg.norm(ee[t] - obj[t])), 3) for t in closes]} m, speed "
               f"{[round(float(np.linalg.norm(ee[t] - ee[t - 1])), 4) for t in closes]} m/step", flush=True)
+        if held:  # the carry's end: where the gripper opened again, or how far the object got without it
+            end = released[0] if released else len(obj) - 1
+            print(f"   {'opens' if released else 'still closed'} at step {end}: object-target "
+                  f"{np.linalg.norm(obj[end] - pp.TARGET):.3f} m, speed {np.linalg.norm(ee[end] - ee[end - 1]):.4f} "
+                  f"m/step; object's max y {obj[held[0]:, 1].max():.2f} (target y {pp.TARGET[1]:.2f})", flush=True)
     print(f"scene {args.scene}: {dict(tally)}")
 
 

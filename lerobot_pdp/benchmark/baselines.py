@@ -46,6 +46,7 @@ DP_MATCHING_DEFAULTS: dict[str, Any] = {
     "n_obs_steps": 2,
     "n_action_steps": 8,
     "drop_n_last_frames": 7,
+    "do_mask_loss_for_padding": False,
     "num_train_timesteps": 20,
     "num_inference_steps": 5,
     "beta_schedule": "squaredcos_cap_v2",
@@ -55,8 +56,8 @@ DP_MATCHING_DEFAULTS: dict[str, Any] = {
     "scheduler_warmup_steps": 100,
 }
 # Fixed for DP whatever PDP uses: deterministic DDIM (noise-space adaptation needs a deterministic map
-# x_K -> actions) and the padding mask PDP's diffusion loss applies as well.
-DP_FIXED: dict[str, Any] = {"noise_scheduler_type": "DDIM", "do_mask_loss_for_padding": True}
+# x_K -> actions).
+DP_FIXED: dict[str, Any] = {"noise_scheduler_type": "DDIM"}
 
 
 def dp_config_kwargs(pdp_like: Mapping[str, Any] | Any | None = None) -> dict[str, Any]:
@@ -88,7 +89,7 @@ def dp_config_matching(pdp_like: Mapping[str, Any] | Any | None = None) -> list[
 
     Same 1-D U-Net (down_dims, kernel, groups, step-embedding width), same windows (horizon 16,
     2 observation frames, 8 executed actions), same K = 20 training steps and deterministic DDIM
-    inference steps (PDP's num_inference_steps), same padding mask and learning rate: the fair baseline the benchmark notes ask for
+    inference steps (PDP's num_inference_steps), same padding treatment and learning rate: the fair baseline the benchmark notes ask for
     (LeRobot's default DP has 248 M parameters and 100 DDPM steps, ~23 s per chunk on our CPUs).
     Returns e.g. ``["--policy.down_dims=[32,64,128]", "--policy.horizon=16", ...]``.
     """
@@ -171,6 +172,12 @@ def _minibatch(n: int, batch_size: int, g: torch.Generator) -> Tensor:
 # ----------------------------------------------------------------------------- DP: noise-space adaptation
 
 
+def _loss_pad(policy, batch: Mapping[str, Tensor]) -> Tensor:
+    """Chunk steps to leave out of the matching loss: the padded ones only if DP was trained that way."""
+    is_pad = batch["action_is_pad"].bool()
+    return is_pad if policy.config.do_mask_loss_for_padding else torch.zeros_like(is_pad)
+
+
 def _masked_mse(pred: Tensor, target: Tensor, is_pad: Tensor) -> Tensor:
     mask = (~is_pad.bool()).unsqueeze(-1).to(pred.dtype)
     return ((pred - target).pow(2) * mask).sum() / (mask.sum() * pred.shape[-1]).clamp_min(1)
@@ -192,14 +199,14 @@ def _check_dp(policy) -> None:
 
 
 def dp_noise_matching_loss(policy, preprocessor, episode: Mapping[str, Any], noise: Tensor) -> float:
-    """Masked MSE between DP's generation from ``noise`` and the demo's normalised action chunks, over
+    """MSE between DP's generation from ``noise`` and the demo's normalised action chunks, over
     ALL windows of ``episode`` (the objective :func:`adapt_dp_noise` minimises on minibatches)."""
     _check_dp(policy)
     batch = demo_batch(policy, preprocessor, episode)
     with torch.no_grad():
         cond = policy.diffusion._prepare_global_conditioning(batch)
         pred = _dp_generate(policy, cond, noise.to(cond.device, cond.dtype))
-        return float(_masked_mse(pred, batch[ACTION], batch["action_is_pad"]))
+        return float(_masked_mse(pred, batch[ACTION], _loss_pad(policy, batch)))
 
 
 def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: int = 100, lr: float = 0.05,
@@ -208,7 +215,8 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
 
     Optimises a single initial noise x_K [1, horizon, A] with Adam so that the deterministic DDIM chain
     started from x_K, conditioned on each demo window's observation history, reproduces that window's
-    normalised action chunk (MSE, copy-padded steps past the episode end masked out). Each step uses a
+    normalised action chunk (MSE; copy-padded steps past the episode end masked out only if DP was
+    trained with ``do_mask_loss_for_padding``). Each step uses a
     random minibatch of ``batch_size`` windows. Gradients flow through DP's own sampler
     (``policy.diffusion.conditional_sample``; ``predict_action_chunk`` is ``no_grad``) and are taken with
     ``torch.autograd.grad`` w.r.t. x_K only, so no parameter and no ``.grad`` of the policy changes.
@@ -228,6 +236,7 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
     model = policy.diffusion
     with torch.no_grad():
         cond_all = model._prepare_global_conditioning(batch)
+    is_pad = _loss_pad(policy, batch)
     n = cond_all.shape[0]
     g = torch.Generator().manual_seed(int(seed))
     x = torch.randn(1, cfg.horizon, cfg.action_feature.shape[0], generator=g).to(cond_all.device, cond_all.dtype)
@@ -243,7 +252,7 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
         for _ in range(int(steps)):
             idx = _minibatch(n, batch_size, g).to(cond_all.device)
             pred = _dp_generate(policy, cond_all[idx], x)
-            loss = _masked_mse(pred, batch[ACTION][idx], batch["action_is_pad"][idx])
+            loss = _masked_mse(pred, batch[ACTION][idx], is_pad[idx])
             (grad,) = torch.autograd.grad(loss, x)
             x.grad = grad
             opt.step()
