@@ -39,10 +39,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Training windows whose action chunk would mostly run past the episode end are not sampled.
     drop_n_last_frames: int = 7
     # Leave copy-padded actions (chunk positions past the episode end) out of the denoising loss and of
-    # latent fitting. Off, as in LeRobot's diffusion policy: the copies of the last action teach "stay and
-    # keep doing it" at the end of an episode; masked, those positions are free and a policy that reaches
-    # the end early generates arbitrary actions there (pick-place: carried past the target, never released).
-    do_mask_loss_for_padding: bool = False
+    # latent fitting. LeRobot's diffusion policy trains on the copies (False there); on pick-place that made
+    # policies stop and release short of the target (docs/results.md), so PDP masks them by default.
+    do_mask_loss_for_padding: bool = True
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
             "STATE": NormalizationMode.MIN_MAX,

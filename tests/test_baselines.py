@@ -171,8 +171,8 @@ def test_dp_config_matching_gives_pdp_backbone_and_ddim():
     assert (kw["down_dims"], kw["horizon"], kw["num_inference_steps"]) == ((16, 32), 8, 5)
     assert "--policy.horizon=8" in dp_config_matching(PDPConfig(horizon=8, n_action_steps=4))
     # padding: DP trains (and adapts) on copy-padded steps exactly when PDP does
-    assert dp_config_kwargs(PDPConfig())["do_mask_loss_for_padding"] is False
-    assert dp_config_kwargs(PDPConfig(do_mask_loss_for_padding=True))["do_mask_loss_for_padding"] is True
+    assert dp_config_kwargs(PDPConfig())["do_mask_loss_for_padding"] is True
+    assert dp_config_kwargs(PDPConfig(do_mask_loss_for_padding=False))["do_mask_loss_for_padding"] is False
 
 
 def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, episode):

@@ -230,7 +230,7 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, monkeypatch):
-    """Like LeRobot's diffusion policy: copy-padded chunk steps count in the loss (and in fitting) by default."""
+    """Copy-padded chunk steps count in the loss and in fitting exactly when the config does not mask them."""
     import lerobot_pdp.modeling_pdp as modeling
 
     p = _policy(synthetic_meta, do_mask_loss_for_padding=masked)
