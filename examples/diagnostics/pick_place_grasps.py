@@ -64,6 +64,8 @@ def main() -> None:
         print(f"{i:2d} {kind:20s} first closes at steps {closes}: ee-object "
               f"{[round(float(np.linalg.norm(ee[t] - obj[t])), 3) for t in closes]} m, speed "
               f"{[round(float(np.linalg.norm(ee[t] - ee[t - 1])), 4) for t in closes]} m/step", flush=True)
+        if not held:  # a carry without the object: how far the end effector went
+            print(f"   never held the object: end effector's max y {ee[:, 1].max():.2f} (target y {pp.TARGET[1]:.2f})")
         if held:  # the carry's end: where the gripper opened again, or how far the object got without it
             end = released[0] if released else len(obj) - 1
             print(f"   {'opens' if released else 'still closed'} at step {end}: object-target "
