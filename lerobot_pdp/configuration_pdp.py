@@ -39,8 +39,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Training windows whose action chunk would mostly run past the episode end are not sampled.
     drop_n_last_frames: int = 7
     # Leave copy-padded actions (chunk positions past the episode end) out of the denoising loss and of
-    # latent fitting. LeRobot's diffusion policy trains on the copies (False there); on pick-place that made
-    # policies stop and release short of the target (docs/results.md), so PDP masks them by default.
+    # latent fitting. LeRobot's diffusion policy trains on the copies (False there); on pick-place that was
+    # worse (PDP seed 0, shifted average 80 -> 62 %, docs/results.md), so PDP masks them by default.
     do_mask_loss_for_padding: bool = True
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
