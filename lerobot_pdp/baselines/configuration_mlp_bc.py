@@ -57,9 +57,8 @@ class MLPBCConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Clamp predicted (normalised) actions to [-1, 1] at inference: MIN_MAX maps the dataset's action
     # range there, so anything outside is extrapolation beyond every demonstration.
     clip_actions: bool = True
-    # Exclude copy-padded action steps (past the episode end) from the MSE, as PDP's default (the name is
-    # LeRobot diffusion's).
-    do_mask_loss_for_padding: bool = True
+    # Exclude copy-padded action steps (past the episode end) from the MSE, like PDP's diffusion loss.
+    mask_loss_for_padding: bool = True
 
     # ---- Optimisation (same defaults as PDP's denoiser) ----
     optimizer_lr: float = 1e-4

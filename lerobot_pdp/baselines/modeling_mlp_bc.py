@@ -101,7 +101,7 @@ class MLPBCPolicy(PreTrainedPolicy):
             )
         pred = self.predict_chunk(batch)
         err = F.mse_loss(pred, target, reduction="none")
-        if self.config.do_mask_loss_for_padding and "action_is_pad" in batch:
+        if self.config.mask_loss_for_padding and "action_is_pad" in batch:
             mask = (~batch["action_is_pad"].bool()).unsqueeze(-1).to(err.dtype)
             loss = (err * mask).sum() / (mask.sum() * err.shape[-1]).clamp_min(1)
         else:
