@@ -54,19 +54,18 @@ def main() -> None:
         log.clear()
         r = run_rollouts(suite, args.scene, policy, pre, post, 1, 5 + i, batch_size=1).results[0]
         ee, obj, act = (np.array([row[k] for row in log]) for k in range(3))
-        grasped = any(row[3] for row in log)
         closes = [t for t in range(1, len(act)) if act[t, 3] > 0 >= act[t - 1, 3]][:3]
         held = [t for t in range(len(log)) if log[t][3]]
         released = [t for t in range(held[0], len(act)) if act[t, 3] <= 0] if held else []
         kind = ("success" if r.success else "collision" if r.collided
-                else "released off target" if released else "never released" if grasped else "never grasped")
+                else "released off target" if released else "never released" if held else "never grasped")
         tally[kind] += 1
         print(f"{i:2d} {kind:20s} first closes at steps {closes}: ee-object "
               f"{[round(float(np.linalg.norm(ee[t] - obj[t])), 3) for t in closes]} m, speed "
               f"{[round(float(np.linalg.norm(ee[t] - ee[t - 1])), 4) for t in closes]} m/step", flush=True)
         if not held:  # a carry without the object: how far the end effector went
             print(f"   never held the object: end effector's max y {ee[:, 1].max():.2f} (target y {pp.TARGET[1]:.2f})")
-        if held:  # the carry's end: where the gripper opened again, or how far the object got without it
+        else:  # the carry's end: where the gripper opened again, or how far the object got without it
             end = released[0] if released else len(obj) - 1
             print(f"   {'opens' if released else 'still closed'} at step {end}: object-target "
                   f"{np.linalg.norm(obj[end] - pp.TARGET):.3f} m, speed {np.linalg.norm(ee[end] - ee[end - 1]):.4f} "
