@@ -1,13 +1,15 @@
 """Why do pick-place rollouts fail? Classify each one by what happened at the grasp and at the release.
 
 Rolls out a trained PDP checkpoint (the benchmark's ``runs/pdp/seed<k>``) in one scene with the latent the
-benchmark fitted there (its ``eval.json``), logging every executed action, and prints per rollout where
+benchmark fitted there (its ``eval.json``) -- in scene 0, rollout i with mode i's mean latents and the seed the
+protocol gives that mode (the first rollouts of the benchmark's scene-0 evaluation) -- logging every executed action, and prints per rollout where
 the gripper first closed (distance end effector - object, speed) and the outcome: success, collision,
 "never grasped" (closed outside the 3 cm grasp radius), "released off target" or "never released"; for
 grasped rollouts also where the carry ended (object - target distance when the gripper opened again, or how
 far along y the object got while still held).
 
     python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
+    python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 0 -n 40
 """
 
 from __future__ import annotations
@@ -32,8 +34,10 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a benchmark run directory holding pretrained_model/ and eval.json")
-    ap.add_argument("--scene", type=int, default=1, choices=(1, 2, 3))
-    ap.add_argument("-n", type=int, default=20, help="rollouts (seeds 5, 6, ...)")
+    ap.add_argument("--scene", type=int, default=1, choices=(0, 1, 2, 3))
+    ap.add_argument("-n", type=int, default=20, help="rollouts (seeds 5, 6, ...; scene 0: one per mode)")
+    ap.add_argument("--n-action-steps", type=int, help="execute this many actions per chunk (default: the checkpoint's)")
+    ap.add_argument("--seed", type=int, default=0, help="scene 0: the benchmark seed the run was evaluated with")
     args = ap.parse_args()
 
     log: list[tuple[np.ndarray, np.ndarray, np.ndarray, bool]] = []
@@ -46,13 +50,23 @@ def main() -> None:
 
     pp.PickPlaceEnv.step = logged_step
     policy, pre, post = load_policy(args.run / "pretrained_model")
-    fitted = json.loads((args.run / "eval.json").read_text())["scenes"][str(args.scene)]["z"]
-    policy.set_latent(torch.tensor(fitted, dtype=torch.float32))
+    if args.n_action_steps:
+        policy.config.n_action_steps = args.n_action_steps
+        policy.reset()  # the action queue's length comes from the config
+    means = policy.mode_latents()
+    if args.scene:
+        fitted = json.loads((args.run / "eval.json").read_text())["scenes"][str(args.scene)]["z"]
+        policy.set_latent(torch.tensor(fitted, dtype=torch.float32))
     suite = get_suite_env("pick-place")
     tally: Counter[str] = Counter()
     for i in range(args.n):
         log.clear()
-        r = run_rollouts(suite, args.scene, policy, pre, post, 1, 5 + i, batch_size=1).results[0]
+        if args.scene:
+            r = run_rollouts(suite, args.scene, policy, pre, post, 1, 5 + i, batch_size=1).results[0]
+        else:  # as evaluate_scene0 seeds mode m's rollouts
+            m = sorted(means)[i % len(means)]
+            policy.set_latent(means[m])
+            r = run_rollouts(suite, 0, policy, pre, post, 1, args.seed * 10_000 + 97 * m, batch_size=1).results[0]
         ee, obj, act = (np.array([row[k] for row in log]) for k in range(3))
         closes = [t for t in range(1, len(act)) if act[t, 3] > 0 >= act[t - 1, 3]][:3]
         held = [t for t in range(len(log)) if log[t][3]]
@@ -60,7 +74,7 @@ def main() -> None:
         kind = ("success" if r.success else "collision" if r.collided
                 else "released off target" if released else "never released" if held else "never grasped")
         tally[kind] += 1
-        print(f"{i:2d} {kind:20s} first closes at steps {closes}: ee-object "
+        print(f"{i:2d}{f' mode {m:2d}' if not args.scene else ''} {kind:20s} first closes at steps {closes}: ee-object "
               f"{[round(float(np.linalg.norm(ee[t] - obj[t])), 3) for t in closes]} m, speed "
               f"{[round(float(np.linalg.norm(ee[t] - ee[t - 1])), 4) for t in closes]} m/step", flush=True)
         if not held:  # a carry without the object: how far the end effector went

@@ -18,8 +18,9 @@ Physics (real MuJoCo, gravity off so the object rests where it is put, as if on 
   values are velocity fractions of 0.5 m/s integrated (dt 0.02 s) into the desired position.
 - object: a cube (half-size 0.015) on its own three damped slide joints.
 - grasp: closing the gripper (action[3] > 0) within 0.03 m of the object activates a ``connect`` equality
-  constraint whose anchor is the object's current offset from the end effector, so the object keeps that
-  offset and moves with the end effector only while the gripper stays closed; opening deactivates it.
+  constraint anchored at the end effector's centre, so the object is pulled to the centre within a few
+  steps (as closing parallel fingers centre an object) and moves with the end effector only while the
+  gripper stays closed; opening deactivates it.
   A constraint (rather than teleporting the object) keeps the carried object a physical body, so its
   contacts with obstacles are real and count as collisions.
 - collisions: end effector and object have ``contype=1 conaffinity=0``, obstacles ``contype=0
@@ -291,10 +292,10 @@ class PickPlaceEnv(gym.Env):
             self._gripper_closed = True
             offset = self.object_pos - self.ee_pos
             if np.linalg.norm(offset) < GRASP_RADIUS:
-                # Anchor = object centre; in the ee frame (never rotates) that is the current offset,
-                # so activating the constraint does not jerk the object.
+                # Anchor = the end effector's centre: closing fingers centre the object between them,
+                # so a grasp a little off-centre still carries the object where the gripper goes.
                 self.model.eq_data[self._grasp_eq, 0:3] = 0.0
-                self.model.eq_data[self._grasp_eq, 3:6] = offset
+                self.model.eq_data[self._grasp_eq, 3:6] = 0.0
                 self.data.eq_active[self._grasp_eq] = 1
                 self._grasped = self._ever_grasped = True
         elif not close and self._gripper_closed:
@@ -425,6 +426,7 @@ class PickPlaceExpert:
         if self.stage == "grasp":
             act[:3] = 0.0
             act[3] = 1.0
+            self.offset = obj - ee  # measured while the closing fingers centre the object
             self.count += 1
             if self.count > self.grasp_pause:
                 self.stage, self.idx = "carry", 0
