@@ -146,16 +146,22 @@ def test_grasp_moves_object_only_while_closed():
     assert np.linalg.norm(env.ee_pos - released) > 0.08  # the end effector moved away alone
 
 
+def _drive_open(env: pp.PickPlaceEnv, aim: np.ndarray) -> None:
+    """Move the end effector to ``aim`` (within 2 mm) with the gripper open."""
+    for _ in range(200):
+        err = aim - env.ee_pos
+        env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
+        if np.linalg.norm(err) < 0.002:
+            return
+    raise AssertionError(f"end effector did not reach {aim}: at {env.ee_pos}")
+
+
 def test_off_centre_grasp_centres_the_object():
     """Closing 2.5 cm beside the object (inside the grasp radius) pulls it to the gripper's centre."""
     env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
     env.reset(seed=0)
     aim = pp.OBJECT + np.array([0.025, 0.0, 0.0])
-    for _ in range(200):
-        err = aim - env.ee_pos
-        env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
-        if np.linalg.norm(err) < 0.002:
-            break
+    _drive_open(env, aim)
     assert 0.02 < np.linalg.norm(env.object_pos - env.ee_pos) < pp.GRASP_RADIUS
     env.step(np.array([0.0, 0.0, 0.0, 1.0]))
     assert env.grasped
@@ -166,11 +172,7 @@ def test_off_centre_grasp_centres_the_object():
     env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
     env.reset(seed=0)
     aim = pp.OBJECT + np.array([0.035, 0.0, 0.0])
-    for _ in range(200):
-        err = aim - env.ee_pos
-        env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
-        if np.linalg.norm(err) < 0.002:
-            break
+    _drive_open(env, aim)
     env.step(np.array([0.0, 0.0, 0.0, 1.0]))
     assert not env.grasped
 

@@ -1,9 +1,9 @@
 """Why do pick-place rollouts fail? Classify each one by what happened at the grasp and at the release.
 
 Rolls out a trained PDP checkpoint (the benchmark's ``runs/pdp/seed<k>``) in one scene with the latent the
-benchmark fitted there (its ``eval.json``) -- in scene 0, rollout i with mode i's mean latents and the seed the
-protocol gives that mode (the first rollouts of the benchmark's scene-0 evaluation) -- logging every executed action, and prints per rollout where
-the gripper first closed (distance end effector - object, speed) and the outcome: success, collision,
+benchmark fitted there (its ``eval.json``; in scene 0, rollout i with mode i's mean latents and the seed the
+protocol gives that mode, i.e. the benchmark's own scene-0 rollouts while n <= 40), logging every executed
+action, and prints per rollout where the gripper first closed (distance end effector - object, speed) and the outcome: success, collision,
 "never grasped" (closed outside the 3 cm grasp radius), "released off target" or "never released"; for
 grasped rollouts also where the carry ended (object - target distance when the gripper opened again, or how
 far along y the object got while still held).
