@@ -113,6 +113,16 @@ def test_waypoint_dict_format_matches_flat_format():
         pp.expert_from_waypoints({"reach": [], "lift": []}, np.random.default_rng(0))
 
 
+def _drive_open(env: pp.PickPlaceEnv, aim: np.ndarray) -> None:
+    """Move the end effector to ``aim`` (within 2 mm) with the gripper open."""
+    for _ in range(200):
+        err = aim - env.ee_pos
+        env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
+        if np.linalg.norm(err) < 0.002:
+            return
+    raise AssertionError(f"end effector did not reach {aim}: at {env.ee_pos}")
+
+
 def test_grasp_moves_object_only_while_closed():
     env = pp.PickPlaceEnv()
     env.reset(seed=0)
@@ -122,12 +132,8 @@ def test_grasp_moves_object_only_while_closed():
     env.step(np.array([0.0, 0.0, 0.0, -1.0]))
     # Drive straight to the object (the straight line is blocked by obstacle A: remove it for this test).
     env = pp.PickPlaceEnv(scene={"remove": ["obstacle_a", "obstacle_b"]})
-    obs, _ = env.reset(seed=0)
-    for _ in range(200):
-        err = pp.OBJECT - env.ee_pos
-        obs, *_ = env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
-        if np.linalg.norm(err) < 0.003:
-            break
+    env.reset(seed=0)
+    _drive_open(env, pp.OBJECT)
     obs, _, _, _, info = env.step(np.array([0.0, 0.0, 0.0, 1.0]))
     assert env.grasped and info["phase"] == "carry" and obs["agent_pos"][3] == 1.0
     for _ in range(20):
@@ -144,16 +150,6 @@ def test_grasp_moves_object_only_while_closed():
     assert np.allclose(env.object_pos, released, atol=1e-3)  # stays where released
     assert np.allclose(obs["environment_state"][:3], released, atol=1e-3)
     assert np.linalg.norm(env.ee_pos - released) > 0.08  # the end effector moved away alone
-
-
-def _drive_open(env: pp.PickPlaceEnv, aim: np.ndarray) -> None:
-    """Move the end effector to ``aim`` (within 2 mm) with the gripper open."""
-    for _ in range(200):
-        err = aim - env.ee_pos
-        env.step(np.append(np.clip(err * 10, -1, 1), -1.0))
-        if np.linalg.norm(err) < 0.002:
-            return
-    raise AssertionError(f"end effector did not reach {aim}: at {env.ee_pos}")
 
 
 def test_off_centre_grasp_centres_the_object():

@@ -50,13 +50,17 @@ def main() -> None:
 
     pp.PickPlaceEnv.step = logged_step
     policy, pre, post = load_policy(args.run / "pretrained_model")
-    if args.n_action_steps:
+    if args.n_action_steps is not None:
+        most = policy.config.horizon - policy.config.n_obs_steps + 1
+        if not 1 <= args.n_action_steps <= most:
+            ap.error(f"--n-action-steps must be in 1..{most} (horizon - n_obs_steps + 1), got {args.n_action_steps}")
         policy.config.n_action_steps = args.n_action_steps
         policy.reset()  # the action queue's length comes from the config
-    means = policy.mode_latents()
     if args.scene:
         fitted = json.loads((args.run / "eval.json").read_text())["scenes"][str(args.scene)]["z"]
         policy.set_latent(torch.tensor(fitted, dtype=torch.float32))
+    else:
+        means = policy.mode_latents()
     suite = get_suite_env("pick-place")
     tally: Counter[str] = Counter()
     for i in range(args.n):

@@ -422,7 +422,6 @@ class PickPlaceExpert:
             act[3] = -1.0
             if self.idx == len(self.reach_via) and np.linalg.norm(obj - ee) < 0.006 and moving < 0.002:
                 self.stage, self.count = "grasp", 0
-                self.offset = obj - ee
         if self.stage == "grasp":
             act[:3] = 0.0
             act[3] = 1.0
