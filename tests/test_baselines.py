@@ -197,11 +197,18 @@ def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, epi
 def test_dp_noise_matching_counts_padded_steps_as_dp_was_trained(reach_meta, episode):
     policy, pre, _ = _dp(reach_meta)
     noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(0))
-    losses = {}
+    # Reference: LeRobot's own sampler on every window, errors averaged by hand.
+    batch = demo_batch(policy, pre, episode)
+    with torch.no_grad():
+        cond = policy.diffusion._prepare_global_conditioning(batch)
+        pred = policy.diffusion.conditional_sample(len(cond), global_cond=cond, noise=noise.expand(len(cond), -1, -1))
+    err = (pred - batch["action"]).pow(2).mean(-1)  # [N, horizon]
+    keep = ~batch["action_is_pad"].bool()
+    assert not keep.all()  # the episode's last windows run past its end
+    expected = {False: float(err.mean()), True: float(err[keep].mean())}
     for masked in (False, True):
         policy.config.do_mask_loss_for_padding = masked
-        losses[masked] = dp_noise_matching_loss(policy, pre, episode, noise)
-    assert losses[False] != losses[True]  # the episode's last windows run past its end
+        assert dp_noise_matching_loss(policy, pre, episode, noise) == pytest.approx(expected[masked], rel=1e-5)
 
 
 def test_adapt_dp_noise_rejects_non_diffusion_policy(reach_meta, episode):
