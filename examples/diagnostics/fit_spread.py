@@ -56,7 +56,7 @@ def main() -> None:
                 ap.error(f"{f!r} is not a PDPConfig field")
             setattr(policy.config, f, type(defaults.get(f, v))(v))
         for scene in args.scenes:
-            demo_root = data / f"{suite.name.replace('-', '_')}_scene{scene}_demo"
+            demo_root = data / f"{suite.scene_key}_scene{scene}_demo"
             if not demo_root.is_dir():
                 ap.error(f"no scene-{scene} demonstration at {demo_root}")
             demo = demo_episode(demo_root)

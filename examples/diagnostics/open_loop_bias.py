@@ -45,12 +45,14 @@ def main() -> None:
     if cfg.latent_dim != 2:
         ap.error(f"the grid is 2-D; this policy has latent_dim {cfg.latent_dim}")
     suite = get_suite_env(args.env)
-    demo = demo_episode(args.run.parents[2] / "data" / f"{suite.name.replace('-', '_')}_scene{args.scene}_demo")
+    demo = demo_episode(args.run.parents[2] / "data" / f"{suite.scene_key}_scene{args.scene}_demo")
     segs = policy._resolve_segments(demo, policy._segments_as_trained("auto"))
     norm = policy.stats.normalize_episode(demo)
     env_key = "observation.environment_state" if policy.env_dim else None
     win = episode_windows(norm, cfg.n_obs_steps, cfg.horizon, "observation.state", env_key, segs)
     a, _, b = args.frames.partition(":")
+    if not (a.isdigit() and b.isdigit()):
+        ap.error(f"--frames must be A:B with frame indices, got {args.frames!r}")
     frames = torch.arange(int(a), int(b))
     if len(frames) == 0 or frames[-1] >= len(demo["action"]):
         ap.error(f"--frames {args.frames} must be a non-empty range within the demonstration's {len(demo['action'])}")
