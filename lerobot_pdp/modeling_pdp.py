@@ -49,7 +49,7 @@ from .behavior import (
 )
 from .configuration_pdp import PDPConfig
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
-from .latent_fitting import FitResult, episode_windows, fit_latent
+from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent
 
 logger = logging.getLogger(__name__)
 
@@ -519,14 +519,26 @@ class PDPPolicy(PreTrainedPolicy):
         with torch.inference_mode(False), torch.enable_grad():
             return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress)
 
+    def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
+        """The (normalised) training-style windows of one demonstration, each tagged with its phase.
+
+        ``segments`` as in :meth:`fit_latent`; ``windows.n_segments`` phases, ``windows.segment[t]`` the
+        phase of the window at frame t. What L_fit is computed on.
+        """
+        ep = self._episode_arrays(episode, need_action=True)
+        return self._windows(ep, self._resolve_segments(ep, self._segments_as_trained(segments)))
+
+    def _windows(self, ep: dict[str, np.ndarray], segs: list[tuple[int, int]]) -> DemoWindows:
+        cfg = self.config
+        return episode_windows(self.stats.normalize_episode(ep), cfg.n_obs_steps, cfg.horizon, OBS_STATE,
+                               OBS_ENV_STATE if self.env_dim else None, segs)
+
     def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress) -> FitResult:
         cfg = self.config
         segments = self._segments_as_trained(segments)
         ep = self._episode_arrays(episode, need_action=True)
         segs = self._resolve_segments(ep, segments)
-        norm = self.stats.normalize_episode(ep)
-        windows = episode_windows(norm, cfg.n_obs_steps, cfg.horizon, OBS_STATE,
-                                  OBS_ENV_STATE if self.env_dim else None, segs)
+        windows = self._windows(ep, segs)
         if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
             windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
         device = self.geo_kappa.device

@@ -347,3 +347,20 @@ def test_segments_default_follows_training_and_bad_values_are_named(synthetic_me
     assert p.fit_latent(ep, steps=2, segments=None).z.shape == (p.config.latent_dim,)
     with pytest.raises(ValueError, match=r"segments must be None, 'auto', 'gripper'.*got 'phases'"):
         p.fit_latent(ep, steps=2, segments="phases")
+
+
+def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
+    p = _policy(synthetic_meta)
+    ep = (synthetic_meta.root, 2)
+    arrays = p._episode_arrays(ep, need_action=True)
+    T, cfg = len(arrays["action"]), p.config
+    w = p.demo_windows(ep, segments=[(0, 10), (10, T)])
+    assert w.n_segments == 2 and w.actions.shape == (T, cfg.horizon, p.action_dim)
+    assert w.segment.tolist() == [0] * 10 + [1] * (T - 10)
+    # window t holds actions t - n_obs + 1 ... (clamped to the episode), normalised like the dataset's
+    norm = p.stats.normalize_episode(arrays)["action"]
+    torch.testing.assert_close(w.actions[10, cfg.n_obs_steps - 1], norm[10].float())
+    assert w.is_pad[0, 0] and not w.is_pad[10].any()
+    assert p.demo_windows(ep).n_segments == 1  # "auto" on an unsegmented policy
+    with pytest.raises(ValueError, match=r"segment \(10, 5\) is not a non-empty frame range"):
+        p.demo_windows(ep, segments=[(10, 5)])

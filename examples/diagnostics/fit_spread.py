@@ -22,16 +22,20 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def _parse(setting: str) -> dict[str, float]:
+    """'fit_steps=300,fit_batch_size=64' -> {field: number}."""
     out = {}
     for item in filter(None, setting.split(",")):
         field, _, value = item.partition("=")
-        out[field] = float(value)
+        try:
+            out[field] = float(value)
+        except ValueError:
+            raise SystemExit(f"--set {setting!r}: {field} needs a number, got {value!r}") from None
     return out
 
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, load_policy
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_policy
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -45,7 +49,6 @@ def main() -> None:
     args = ap.parse_args()
 
     run_seed = int(args.run.name.removeprefix("seed"))
-    data = args.run.parents[2] / "data"
     suite = get_suite_env(args.env)
     policy, pre, post = load_policy(args.run / "pretrained_model")
     defaults = {f: getattr(policy.config, f) for f in ("fit_steps", "fit_lr", "fit_batch_size", "fit_noise_samples")}
@@ -56,10 +59,10 @@ def main() -> None:
                 ap.error(f"{f!r} is not a PDPConfig field")
             setattr(policy.config, f, type(defaults.get(f, v))(v))
         for scene in args.scenes:
-            demo_root = data / f"{suite.scene_key}_scene{scene}_demo"
-            if not demo_root.is_dir():
-                ap.error(f"no scene-{scene} demonstration at {demo_root}")
-            demo = demo_episode(demo_root)
+            root = demo_root(suite, args.run.parents[2], scene)
+            if not root.is_dir():
+                ap.error(f"no scene-{scene} demonstration at {root}")
+            demo = demo_episode(root)
             rates = []
             for fit_seed in range(args.fit_seeds):
                 res = policy.fit_latent(demo, seed=fit_seed)

@@ -25,9 +25,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.protocol import demo_episode, load_policy
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_policy
     from lerobot_pdp.envs.suite import get_suite_env
-    from lerobot_pdp.latent_fitting import episode_windows
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a benchmark run directory (<out>/runs/pdp/seed<S>)")
@@ -45,11 +44,8 @@ def main() -> None:
     if cfg.latent_dim != 2:
         ap.error(f"the grid is 2-D; this policy has latent_dim {cfg.latent_dim}")
     suite = get_suite_env(args.env)
-    demo = demo_episode(args.run.parents[2] / "data" / f"{suite.scene_key}_scene{args.scene}_demo")
-    segs = policy._resolve_segments(demo, policy._segments_as_trained("auto"))
-    norm = policy.stats.normalize_episode(demo)
-    env_key = "observation.environment_state" if policy.env_dim else None
-    win = episode_windows(norm, cfg.n_obs_steps, cfg.horizon, "observation.state", env_key, segs)
+    demo = demo_episode(demo_root(suite, args.run.parents[2], args.scene))
+    win = policy.demo_windows(demo)  # the windows fit_latent scores, phases as the policy was trained
     a, _, b = args.frames.partition(":")
     if not (a.isdigit() and b.isdigit()):
         ap.error(f"--frames must be A:B with frame indices, got {args.frames!r}")
@@ -57,9 +53,9 @@ def main() -> None:
     if len(frames) == 0 or frames[-1] >= len(demo["action"]):
         ap.error(f"--frames {args.frames} must be a non-empty range within the demonstration's {len(demo['action'])}")
     z_fit = torch.tensor(json.loads((args.run / "eval.json").read_text())["scenes"][str(args.scene)]["z"]).reshape(
-        len(segs), cfg.latent_dim)
-    if not 0 <= args.phase < len(segs):
-        ap.error(f"--phase must be in 0..{len(segs) - 1}")
+        win.n_segments, cfg.latent_dim)
+    if not 0 <= args.phase < win.n_segments:
+        ap.error(f"--phase must be in 0..{win.n_segments - 1}")
     target = demo["action"][frames.numpy()]
     start = cfg.n_obs_steps - 1
     obs = win.obs_cond[frames].repeat(args.samples, 1)

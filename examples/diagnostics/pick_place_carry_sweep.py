@@ -66,9 +66,9 @@ def _crossing(trace: np.ndarray) -> np.ndarray:
 
 def _fitted_crossings(run: Path, suite, policy, pre, post, z3: np.ndarray, n: int) -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root
 
-    demo = demo_episode(run.parents[2] / "data" / "pick_place_scene3_demo")
+    demo = demo_episode(demo_root(suite, run.parents[2], 3))
     x, _, h = _crossing(demo["observation.state"][:, :3])
     print(f"demonstration: x, z at y=0.18 = ({x:+.3f}, {h:.3f})")
     policy.set_latent(torch.tensor(z3))

@@ -142,12 +142,17 @@ def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[
             if run_expert_episode(suite, scene, mode=m, seed=seed + m)[0].get("is_success")]
 
 
+def demo_root(suite: SuiteEnv, out: Path, scene: int) -> Path:
+    """Where a benchmark output folder ``out`` keeps the demonstration of ``scene``."""
+    return out / "data" / f"{suite.scene_key}_scene{scene}_demo"
+
+
 def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:
     """One successful demonstration in ``scene``: the scene's way-points if it ships them, else its only
     feasible training mode. Returns the dataset folder and a description."""
     from ..envs.recording import make_dataset
 
-    root = out / "data" / f"{suite.scene_key}_scene{scene}_demo"
+    root = demo_root(suite, out, scene)
     info_file = root / "meta" / "pdp_demo.json"
     if info_file.is_file():
         return root, json.loads(info_file.read_text())["source"]
