@@ -46,9 +46,11 @@ def install_step_log():
 
     def logged_reset(self, *, seed=None, options=None):
         out = reset(self, seed=seed, options=options)
-        if (options or {}).get("lerobot_new_rollout") or not hasattr(self, "diag_log"):
+        if (options or {}).get("lerobot_new_rollout"):  # LeRobot's rollout; autoresets pass no options
             self.diag_log, self.diag_recording, self.diag_info = [], True, {}
             envs.append(self)
+        elif not hasattr(self, "diag_recording"):
+            self.diag_recording = False
         return out
 
     def logged_step(self, action):
