@@ -95,11 +95,11 @@ def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import _spread, load_policy
+    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_policy, methods_for
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a benchmark run directory holding pretrained_model/ and eval.json")
+    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/<method>/seed<k> (pretrained_model/, eval.json)")
     ap.add_argument("--scene", type=int, default=0, choices=(0, 1, 2, 3))
     ap.add_argument("-n", type=int, default=40, help="rollouts (the benchmark's: 40)")
     ap.add_argument("--seed", type=int, help="the training seed the run was evaluated with (default: from eval.json)")
@@ -108,34 +108,31 @@ def main() -> None:
     ap.add_argument("--reach", type=float, default=0.04, help="end effector within this of the handle = at the handle (m)")
     args = ap.parse_args()
 
+    suite = get_suite_env("kitchen-microwave")
+    method = methods_for(suite).get(args.run.parent.name)
+    if method is None:
+        ap.error(f"{args.run} is not <out>/runs/<method>/seed<k> with a benchmark method, "
+                 f"one of {sorted(methods_for(suite))}")
+    if not (args.run / "eval.json").is_file():
+        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its seed and fitted latents are read from there)")
     meta = json.loads((args.run / "eval.json").read_text())
     seed = meta["seed"] if args.seed is None else args.seed
     envs = install_step_log()
     policy, pre, post = load_policy(args.run / "pretrained_model")
-    suite = get_suite_env("kitchen-microwave")
-    steerable = policy.config.type == "pdp" and policy.config.latent_conditioning != "none"
-    labels: list[str] = []
     if args.episode_latents:
-        if args.scene != 0 or not steerable:
-            ap.error("--episode-latents needs --scene 0 and a latent-conditioned PDP checkpoint")
+        if args.scene != 0 or not method.steerable:
+            ap.error("--episode-latents needs --scene 0 and a latent-conditioned PDP run")
         train_cfg = json.loads((args.run / "pretrained_model" / "train_config.json").read_text())
         root = Path(train_cfg["dataset"]["root"])
+        labels = []
         for ep in range(args.n):  # one env at a time: the active latent is shared by a vectorised rollout
             policy.set_latent(policy.encode((root, ep)))
             run_rollouts(suite, 0, policy, pre, post, 1, seed * 10_000 + ep)
             labels.append(f"ep {ep}")
-    elif args.scene == 0 and steerable:  # as evaluate_scene0: each mode's mean latent, its own seeds
-        means = policy.mode_latents()
-        for m, count in zip(sorted(means), _spread(args.n, len(means)), strict=True):
-            if count:
-                policy.set_latent(means[m])
-                run_rollouts(suite, 0, policy, pre, post, count, seed * 10_000 + 97 * m)
-                labels += [f"mode {m}"] * count
-    elif args.scene == 0:
-        run_rollouts(suite, 0, policy, pre, post, args.n, seed * 10_000)
-        labels = ["sampled"] * args.n
+    elif args.scene == 0:  # the protocol's own scene-0 evaluation (mode means and their seeds, or sampling)
+        labels = [r.label for r in evaluate_scene0(suite, method, policy, pre, post, args.n, seed * 10_000).results]
     else:
-        if policy.config.type != "pdp":
+        if method.adapt != "fit_latent":
             ap.error("scenes 1-3 replay PDP's fitted latent; other methods adapt their weights or noise")
         policy.set_latent(torch.tensor(meta["scenes"][str(args.scene)]["z"], dtype=torch.float32))
         run_rollouts(suite, args.scene, policy, pre, post, args.n, seed * 10_000 + args.scene)
