@@ -133,6 +133,9 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="override the env's demonstrations per mode in the scene-0 dataset")
     p.add_argument("--scenes", type=int, nargs="+", default=[0, 1, 2, 3], help="scenes to evaluate")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--inference-steps", type=int, default=None,
+                   help="DDIM steps when evaluating PDP and DP (default: each checkpoint's own); "
+                   "re-evaluates cached runs made with other steps, without retraining")
     p.set_defaults(func=cmd_benchmark)
 
 
@@ -147,7 +150,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         methods = methods if "--methods" in explicit else ["pdp", "dp"]
     cfg = BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                           quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
-                          episodes_per_mode=args.episodes_per_mode,
+                          episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                           figures=not args.no_figures)
     res = run_benchmark(cfg)
     print()

@@ -116,12 +116,13 @@ def rollouts_grid(suite: SuiteEnv, traces: dict[str, dict[str, list]], scenes: l
     return out_png
 
 
-def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, seed: int = 0) -> Path | None:
+def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, seed: int = 0,
+                        inference_steps: int | None = None) -> Path | None:
     """Latents between two distant mode means along a linear and an elliptical path, one rollout each."""
     from .evaluation import run_rollouts
     from .protocol import load_policy
 
-    policy, pre, post = load_policy(ckpt)
+    policy, pre, post = load_policy(ckpt, inference_steps)
     if policy.config.latent_conditioning == "none":
         return None
     means = policy.mode_latents()
@@ -186,7 +187,8 @@ def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], 
         written.append(rollouts_grid(suite, abl, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
                                      scene_views(suite)[0]))
     if ("pdp", seed) in ckpts:
-        p = interpolation_sweep(suite, ckpts[("pdp", seed)], fig_dir / "interpolation.png", seed=seed)
+        p = interpolation_sweep(suite, ckpts[("pdp", seed)], fig_dir / "interpolation.png", seed=seed,
+                                inference_steps=cfg.inference_steps)
         if p:
             written.append(p)
     return written

@@ -110,6 +110,9 @@ class BenchmarkConfig:
     steps: int | None = None  # override the env's training steps (tests)
     episodes_per_mode: int | None = None  # override the env's dataset size (tests)
     figures: bool = True
+    # DDIM steps when evaluating PDP and DP (None: each checkpoint's own num_inference_steps). Sampling
+    # only, so checkpoints trained under another default can be re-evaluated without retraining.
+    inference_steps: int | None = None
 
 
 # ----------------------------------------------------------------------------- data
@@ -258,13 +261,21 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     return ckpt
 
 
-def load_policy(ckpt: Path):
-    """Policy + its saved pre/post processors, as lerobot-eval loads them."""
+def load_policy(ckpt: Path, inference_steps: int | None = None):
+    """Policy + its saved pre/post processors, as lerobot-eval loads them.
+
+    ``inference_steps`` replaces the checkpoint's ``num_inference_steps`` (diffusion policies only).
+    """
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     cfg = PreTrainedConfig.from_pretrained(ckpt)
     cfg.device = "cpu"
+    if inference_steps is not None and hasattr(cfg, "num_inference_steps"):
+        if not 1 <= inference_steps <= cfg.num_train_timesteps:
+            raise ValueError(f"inference_steps={inference_steps} for {ckpt}: expected 1..{cfg.num_train_timesteps} "
+                             "(the checkpoint's num_train_timesteps)")
+        cfg.num_inference_steps = int(inference_steps)
     policy = get_policy_class(cfg.type).from_pretrained(ckpt, config=cfg)
     policy.eval()
     pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt))
@@ -272,6 +283,23 @@ def load_policy(ckpt: Path):
 
 
 # ----------------------------------------------------------------------------- evaluation
+
+
+def sampler_steps(ckpt: Path, override: int | None = None) -> int | None:
+    """DDIM steps an evaluation of ``ckpt`` uses: ``override``, else the checkpoint's own (None: no sampler)."""
+    saved = json.loads((Path(ckpt) / "config.json").read_text())
+    if "num_inference_steps" not in saved:
+        return None
+    return int(override) if override is not None else saved["num_inference_steps"]
+
+
+def _cached(path: Path, steps: int | None, ckpt: Path) -> dict[str, Any] | None:
+    """A cached evaluation made with the same sampler steps (files from before the key existed were made
+    with the checkpoint's own steps)."""
+    if not path.is_file():
+        return None
+    cached = json.loads(path.read_text())
+    return cached if cached.get("inference_steps", sampler_steps(ckpt)) == steps else None
 
 
 def _spread(n: int, k: int) -> list[int]:
@@ -327,12 +355,13 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
                     seed: int, run_dir: Path) -> dict[str, Any]:
     """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
     cache = run_dir / "eval.json"
-    if cache.is_file():
-        cached = json.loads(cache.read_text())
-        if cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
-            return cached
-    policy, pre, post = load_policy(ckpt)
-    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, "scenes": {}}
+    steps = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, steps, ckpt)
+    if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
+        return cached
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps)
+    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts,
+                              "inference_steps": steps, "scenes": {}}
     traces: dict[str, Any] = {}
     for scene in cfg.scenes:
         t0 = time.time()
@@ -365,9 +394,11 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
                            run_dir: Path) -> dict[str, Any]:
     """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3."""
     cache = run_dir / "init_ablation.json"
-    if cache.is_file():
-        return json.loads(cache.read_text())
-    policy, pre, post = load_policy(ckpt)
+    steps = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, steps, ckpt)
+    if cached:
+        return {k: v for k, v in cached.items() if k != "inference_steps"}
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
     for init in ("encoder", "random"):
@@ -381,7 +412,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
             out[f"{init}@{steps}"] = float(np.mean(rates)) if rates else None
             print(f"[benchmark] init {init} steps {steps}: success {out[f'{init}@{steps}']}")
     policy.set_latent(None)
-    cache.write_text(json.dumps(out, indent=1))
+    cache.write_text(json.dumps({**out, "inference_steps": steps}, indent=1))
     return out
 
 
@@ -411,6 +442,9 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
             entry[f"scene{scene}"] = d
         shifted = [entry[f"scene{s}"]["mean"] for s in cfg.scenes if s != 0 and entry[f"scene{s}"]["mean"] is not None]
         entry["shifted_avg"] = float(np.mean(shifted)) if shifted else None
+        steps_used = sorted({r["inference_steps"] for r in runs.values() if r.get("inference_steps") is not None})
+        if steps_used:
+            entry["inference_steps"] = steps_used
         out["methods"][name] = entry
     if init_abl:
         keys = next(iter(init_abl.values())).keys()
@@ -448,6 +482,10 @@ def results_markdown(res: dict[str, Any]) -> str:
     t = res["train"]
     lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
+    sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}" for name, e in res["methods"].items()
+               if e.get("inference_steps")]
+    if sampler:
+        lines.append(f"DDIM sampler steps: {', '.join(sampler)}.")
     return "\n".join(lines) + "\n"
 
 
