@@ -6,9 +6,9 @@ already normalised batch of one observation (B = 1), i.e. what ``lerobot-eval`` 
 the pre/post-processors (reported separately as ``pipeline_median_ms``). Policies:
 
 - ``pdp``: default ``PDPConfig`` (trace_dims [0, 1, 2]) built on a small generated reach-around dataset;
-  10 DDIM steps of the FiLM 1-D U-Net (32, 64, 128);
+  ``--inference-steps`` DDIM steps (default: PDPConfig's, 5) of the FiLM 1-D U-Net (32, 64, 128);
 - ``dp_matched``: LeRobot ``diffusion`` with ``dp_config_matching`` (same U-Net sizes, horizon, K = 20,
-  10 DDIM steps) -- the benchmark's DP baseline;
+  the same DDIM steps) -- the benchmark's DP baseline;
 - ``dp_default``: LeRobot ``diffusion`` with its default config (248 M parameters, horizon 64, 100 DDPM
   steps), ~20 s per chunk here, so only ``--default-dp-calls`` calls are timed.
 
@@ -17,6 +17,7 @@ interleaved rounds so that load changes on the machine hit them equally. One JSO
 stdout, then a ratio line.
 
     .venv/bin/python benchmarks/bench_select_action.py [--threads 1] [--calls 200] [--default-dp-calls 3]
+        [--inference-steps 20]   # the benchmark's sampler (protocol.TrainSettings.inference_steps)
 """
 
 from __future__ import annotations
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="timed calls of the default 248 M-parameter DP (~20 s each); 0 = skip it")
     ap.add_argument("--dataset", type=Path, default=None,
                     help="existing reach-around LeRobotDataset (default: generate 2 demos/mode in a temp dir)")
+    ap.add_argument("--inference-steps", type=int, default=None,
+                    help="DDIM steps of pdp and dp_matched (default: PDPConfig's num_inference_steps)")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -113,9 +116,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(0)
 
     common = {"device": "cpu", "push_to_hub": False}
+    sampler = {} if args.inference_steps is None else {"num_inference_steps": args.inference_steps}
     small = {
-        "pdp": _build(PDPConfig(trace_dims=[0, 1, 2], **common), meta),
-        "dp_matched": _build(DiffusionConfig(**dp_config_kwargs({}), **common), meta),
+        "pdp": _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta),
+        "dp_matched": _build(DiffusionConfig(**dp_config_kwargs(sampler), **common), meta),
     }
     pdp = small["pdp"][0]
     pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw

@@ -23,8 +23,9 @@ pytestmark = pytest.mark.slow
 
 def test_whole_protocol_tiny(tmp_path):
     """Every stage on a tiny budget: dataset, 3 methods trained by lerobot-train, scenes 0-3, tables, figures."""
+    # 4 sampler steps instead of the env's 20: DP's noise adaptation backpropagates through every step
     cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "bench", seeds=[0], rollouts=2,
-                          methods=["pdp", "dp", "bc"], steps=20, episodes_per_mode=1)
+                          methods=["pdp", "dp", "bc"], steps=20, episodes_per_mode=1, inference_steps=4)
     res = run_benchmark(cfg)
     saved = json.loads((tmp_path / "bench" / "results.json").read_text())
     assert saved["env"] == "reach-around" and saved["rollouts"] == 2 and saved["seeds"] == [0]
@@ -36,10 +37,37 @@ def test_whole_protocol_tiny(tmp_path):
     assert "| pdp |" in (tmp_path / "bench" / "results.md").read_text()
     figs = {p.split("/")[-1] for p in res["figures"]}
     assert {"latent_map_pdp.png", "rollouts_xy.png", "interpolation.png"} <= figs
-    # resumable: a rerun reuses every trained checkpoint and cached evaluation
-    stamp = (tmp_path / "bench" / "runs" / "pdp" / "seed0" / "train_info.json").stat().st_mtime
+    out = tmp_path / "bench"
+    assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [4, 4, None]
+    for m in ("pdp", "dp"):  # the env's sampler is written into the checkpoints, so lerobot-eval uses it too
+        saved_cfg = json.loads((out / "runs" / m / "seed0" / "pretrained_model" / "config.json").read_text())
+        assert saved_cfg["num_inference_steps"] == 20
+    # resumable: a rerun reuses every trained checkpoint and cached evaluation; an eval.json from before
+    # the "inference_steps" key existed counts as made with the checkpoint's own DDIM steps (here 20)
+    stamps = {m: (out / "runs" / m / "seed0" / "train_info.json").stat().st_mtime for m in ("pdp", "dp", "bc")}
     run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "figures": False}))
-    assert (tmp_path / "bench" / "runs" / "pdp" / "seed0" / "train_info.json").stat().st_mtime == stamp
+    legacy = _eval_json(out, "pdp")
+    del legacy["inference_steps"]
+    (out / "runs" / "pdp" / "seed0" / "eval.json").write_text(json.dumps(legacy))
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["pdp"], "figures": False, "inference_steps": None}))
+    assert _eval_json(out, "pdp") == legacy
+    # --inference-steps (from the CLI): evaluations made with other steps are redone, checkpoints reused
+    proc = run_cli([lerobot_cli("lerobot-pdp"), "benchmark", "--env", "reach-around", "--out", str(out), "--seeds", "0",
+                    "--rollouts", "2", "--methods", "pdp", "dp", "bc", "--steps", "20", "--episodes-per-mode", "1",
+                    "--no-figures", "--inference-steps", "2"])
+    assert "DDIM sampler steps: pdp 2, dp 2." in proc.stdout
+    res = json.loads((out / "results.json").read_text())
+    assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [2, 2, None]
+    assert res["methods"]["pdp"]["inference_steps"] == [2] and "inference_steps" not in res["methods"]["bc"]
+    assert stamps == {m: (out / "runs" / m / "seed0" / "train_info.json").stat().st_mtime for m in stamps}
+    policy, _, _ = load_policy(out / "runs" / "dp" / "seed0" / "pretrained_model", inference_steps=3)
+    assert policy.diffusion.num_inference_steps == 3
+    with pytest.raises(ValueError, match=r"inference_steps=21 .*expected 1\.\.20"):
+        load_policy(out / "runs" / "pdp" / "seed0" / "pretrained_model", inference_steps=21)
+
+
+def _eval_json(out, method):
+    return json.loads((out / "runs" / method / "seed0" / "eval.json").read_text())
 
 
 def test_ablations_tiny(tmp_path):

@@ -48,7 +48,7 @@ DP_MATCHING_DEFAULTS: dict[str, Any] = {
     "drop_n_last_frames": 7,
     "do_mask_loss_for_padding": True,  # PDP's default (LeRobot DP's own default is False)
     "num_train_timesteps": 20,
-    "num_inference_steps": 20,
+    "num_inference_steps": 5,
     "beta_schedule": "squaredcos_cap_v2",
     "clip_sample": True,
     "clip_sample_range": 1.0,
