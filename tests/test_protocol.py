@@ -12,6 +12,7 @@ from lerobot_pdp.benchmark.protocol import (
     demo_episode,
     ensure_demo,
     load_policy,
+    load_run,
     methods_for,
     run_benchmark,
     train_method,
@@ -62,6 +63,8 @@ def test_whole_protocol_tiny(tmp_path):
     assert stamps == {m: (out / "runs" / m / "seed0" / "train_info.json").stat().st_mtime for m in stamps}
     policy, _, _ = load_policy(out / "runs" / "dp" / "seed0" / "pretrained_model", inference_steps=3)
     assert policy.diffusion.num_inference_steps == 3
+    policy, _, _ = load_run(out / "runs" / "dp" / "seed0")  # as its eval.json was made
+    assert policy.diffusion.num_inference_steps == 2
     with pytest.raises(ValueError, match=r"inference_steps=21 .*expected 1\.\.20"):
         load_policy(out / "runs" / "pdp" / "seed0" / "pretrained_model", inference_steps=21)
 

@@ -35,7 +35,7 @@ def _parse(setting: str) -> dict[str, float]:
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_policy
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -50,7 +50,7 @@ def main() -> None:
 
     run_seed = int(args.run.name.removeprefix("seed"))
     suite = get_suite_env(args.env)
-    policy, pre, post = load_policy(args.run / "pretrained_model")
+    policy, pre, post = load_run(args.run)
     defaults = {f: getattr(policy.config, f) for f in ("fit_steps", "fit_lr", "fit_batch_size", "fit_noise_samples")}
     for setting in args.set:
         fields = _parse(setting)

@@ -95,7 +95,7 @@ def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_policy, methods_for
+    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_run, methods_for
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -118,7 +118,7 @@ def main() -> None:
     meta = json.loads((args.run / "eval.json").read_text())
     seed = meta["seed"] if args.seed is None else args.seed
     envs = install_step_log()
-    policy, pre, post = load_policy(args.run / "pretrained_model")
+    policy, pre, post = load_run(args.run)
     if args.episode_latents:
         if args.scene != 0 or not method.steerable:
             ap.error("--episode-latents needs --scene 0 and a latent-conditioned PDP run")

@@ -25,7 +25,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_policy
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=4, help="sampled chunks per frame and latent")
     args = ap.parse_args()
 
-    policy, _, _ = load_policy(args.run / "pretrained_model")
+    policy, _, _ = load_run(args.run)
     cfg = policy.config
     if cfg.latent_dim != 2:
         ap.error(f"the grid is 2-D; this policy has latent_dim {cfg.latent_dim}")

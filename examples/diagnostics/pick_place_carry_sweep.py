@@ -26,7 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import load_policy
+    from lerobot_pdp.benchmark.protocol import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -35,7 +35,7 @@ def main() -> None:
     ap.add_argument("--fitted", type=int, default=0, metavar="N", help="roll out the fitted latent N times instead")
     args = ap.parse_args()
 
-    policy, pre, post = load_policy(args.run / "pretrained_model")
+    policy, pre, post = load_run(args.run)
     z3 = np.asarray(json.loads((args.run / "eval.json").read_text())["scenes"]["3"]["z"], dtype=np.float32)
     carry = np.stack([np.asarray(m)[1] for m in policy.mode_latents().values()])
     lo, hi = carry.min(0), carry.max(0)

@@ -28,7 +28,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import load_policy
+    from lerobot_pdp.benchmark.protocol import load_run
     from lerobot_pdp.envs import pick_place as pp
     from lerobot_pdp.envs.suite import get_suite_env
 
@@ -49,7 +49,7 @@ def main() -> None:
         return out
 
     pp.PickPlaceEnv.step = logged_step
-    policy, pre, post = load_policy(args.run / "pretrained_model")
+    policy, pre, post = load_run(args.run)
     if args.n_action_steps is not None:
         most = policy.config.horizon - policy.config.n_obs_steps + 1
         if not 1 <= args.n_action_steps <= most:

@@ -21,7 +21,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 def main() -> None:
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_policy, methods_for
+    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_run, methods_for
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--rollouts", type=int, nargs=2, default=[40, 20], metavar=("SCENE0", "SHIFTED"))
     args = ap.parse_args()
 
-    policy, pre, post = load_policy(args.run / "pretrained_model")
+    policy, pre, post = load_run(args.run)
     fitted = json.loads((args.run / "eval.json").read_text())["scenes"]
     suite = get_suite_env(args.env)
     for setting in args.set:

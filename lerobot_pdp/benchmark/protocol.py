@@ -296,6 +296,15 @@ def load_policy(ckpt: Path, inference_steps: int | None = None):
     return policy, pre, post
 
 
+def load_run(run_dir: Path):
+    """A benchmark run's policy + processors sampling as its ``eval.json`` was made (same DDIM steps; the
+    checkpoint's own when there is no evaluation yet). Diagnostics use it to replay the benchmark's rollouts."""
+    run_dir = Path(run_dir)
+    ev = run_dir / "eval.json"
+    steps = json.loads(ev.read_text()).get("inference_steps") if ev.is_file() else None
+    return load_policy(run_dir / "pretrained_model", steps)
+
+
 # ----------------------------------------------------------------------------- evaluation
 
 
@@ -552,4 +561,5 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     return res
 
 
-__all__ = ["BenchmarkConfig", "Method", "TrainSettings", "run_benchmark", "methods_for", "results_markdown"]
+__all__ = ["BenchmarkConfig", "Method", "TrainSettings", "load_policy", "load_run", "methods_for", "results_markdown",
+           "run_benchmark"]
