@@ -87,6 +87,12 @@ def test_ablations_tiny(tmp_path):
     assert "| pdp_onehot |" in md and "| warm (encoder) |" in md
     config = tmp_path / "bench" / "runs" / "pdp_onehot" / "seed0" / "pretrained_model" / "config.json"
     assert json.loads(config.read_text())["latent_type"] == "onehot"
+    # cached with the sampler it was made with (the env's 20 steps), so a rerun reuses it
+    init_json = tmp_path / "bench" / "runs" / "pdp" / "seed0" / "init_ablation.json"
+    assert json.loads(init_json.read_text())["inference_steps"] == 20
+    stamp = init_json.stat().st_mtime
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "ablations": False}))
+    assert init_json.stat().st_mtime == stamp
 
 
 def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):

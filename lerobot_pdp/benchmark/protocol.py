@@ -378,13 +378,13 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
                     seed: int, run_dir: Path) -> dict[str, Any]:
     """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
     cache = run_dir / "eval.json"
-    steps = sampler_steps(ckpt, cfg.inference_steps)
-    cached = _cached(cache, steps, ckpt)
+    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, sampler, ckpt)
     if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
         return cached
     policy, pre, post = load_policy(ckpt, cfg.inference_steps)
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts,
-                              "inference_steps": steps, "scenes": {}}
+                              "inference_steps": sampler, "scenes": {}}
     traces: dict[str, Any] = {}
     for scene in cfg.scenes:
         t0 = time.time()
@@ -417,8 +417,8 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
                            run_dir: Path) -> dict[str, Any]:
     """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3."""
     cache = run_dir / "init_ablation.json"
-    steps = sampler_steps(ckpt, cfg.inference_steps)
-    cached = _cached(cache, steps, ckpt)
+    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, sampler, ckpt)
     if cached:
         return {k: v for k, v in cached.items() if k != "inference_steps"}
     policy, pre, post = load_policy(ckpt, cfg.inference_steps)
@@ -435,7 +435,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
             out[f"{init}@{steps}"] = float(np.mean(rates)) if rates else None
             print(f"[benchmark] init {init} steps {steps}: success {out[f'{init}@{steps}']}")
     policy.set_latent(None)
-    cache.write_text(json.dumps({**out, "inference_steps": steps}, indent=1))
+    cache.write_text(json.dumps({**out, "inference_steps": sampler}, indent=1))
     return out
 
 
