@@ -46,3 +46,13 @@ def test_reusing_a_dataset_of_another_size_is_refused(tmp_path):
     with pytest.raises(ValueError, match=f"holds {3 * suite.n_modes} episodes but this benchmark needs "
                                          f"{6 * suite.n_modes}"):
         ensure_dataset(suite, tmp_path, TrainSettings(steps=1, episodes_per_mode=6))
+
+
+@pytest.mark.parametrize("steps", [0, 21])
+def test_inference_steps_outside_1_to_k_is_refused_before_anything_is_written(tmp_path, steps):
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+
+    cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "bench", seeds=[0], inference_steps=steps)
+    with pytest.raises(ValueError, match=rf"inference_steps must be in 1\.\.20 .*got {steps}"):
+        run_benchmark(cfg)
+    assert not (tmp_path / "bench").exists()

@@ -527,8 +527,12 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     steps = cfg.steps or settings.steps
     if cfg.inference_steps is None:
         cfg = replace(cfg, inference_steps=settings.inference_steps)
-    elif cfg.inference_steps < 1:
-        raise ValueError(f"inference_steps must be >= 1, got {cfg.inference_steps}")
+    from ..configuration_pdp import PDPConfig
+
+    k = PDPConfig.num_train_timesteps  # DP's matched config takes PDP's K too
+    if not 1 <= cfg.inference_steps <= k:  # checked before any training, not at the first evaluation
+        raise ValueError(f"inference_steps must be in 1..{k} (the diffusion steps K every method trains with), "
+                         f"got {cfg.inference_steps}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     all_methods = methods_for(suite)
