@@ -1,5 +1,7 @@
 """PDPPolicy in-process: construction from a real dataset, training step, steering API, errors, save/load."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -103,6 +105,33 @@ def test_select_action_and_steering_api(synthetic_meta):
     with pytest.raises(ValueError, match="non-finite"):
         p.set_latent([float("nan"), 0.0])
 
+
+
+def test_elliptical_interpolation_goes_around_the_map():
+    """The elliptical sweep is an arc around the origin: it visits the clusters between its ends."""
+    a, b = torch.tensor([2.0, 0.0]), torch.tensor([0.0, 2.0])
+    ts = torch.linspace(0, 1, 5)
+    arc = PDPPolicy.interpolate(a, b, 5, path="elliptical")
+    expect = torch.stack([a * torch.cos(t * math.pi / 2) + b * torch.sin(t * math.pi / 2) for t in ts])
+    assert torch.allclose(arc, expect, atol=1e-6)  # orthogonal codes of equal norm: cos/sin form
+    # opposite codes: the line passes through the centre, the arc keeps the radius and ends at b
+    half = PDPPolicy.interpolate(a, -a, 5, path="elliptical")
+    assert torch.allclose(half.norm(dim=-1), torch.full((5,), 2.0), atol=1e-5)
+    assert torch.allclose(half[-1], -a, atol=1e-5) and torch.allclose(half[2], torch.tensor([0.0, 2.0]), atol=1e-5)
+    assert PDPPolicy.interpolate(a, -a, 5)[2].norm() < 1e-6
+    # radius interpolates linearly, angle too; per-phase latents [P, d] get one arc per row
+    za, zb = torch.tensor([[1.0, 0.0], [0.0, -3.0]]), torch.tensor([[0.0, 3.0], [3.0, 0.0]])
+    z = PDPPolicy.interpolate(za, zb, 3, path="elliptical")
+    assert z.shape == (3, 2, 2) and torch.allclose(z[0], za) and torch.allclose(z[-1], zb, atol=1e-5)
+    assert torch.allclose(z[1].norm(dim=-1), torch.tensor([2.0, 3.0]), atol=1e-5)
+    assert torch.allclose(z[1, 1], torch.tensor([3.0, -3.0]) / math.sqrt(2), atol=1e-5)
+    # 3-D opposite codes and a zero endpoint stay finite and hit both ends
+    x = torch.tensor([0.0, 0.0, 3.0])
+    z3 = PDPPolicy.interpolate(x, -x, 3, path="elliptical")
+    assert torch.allclose(z3.norm(dim=-1), torch.full((3,), 3.0), atol=1e-5) and torch.allclose(z3[-1], -x, atol=1e-5)
+    assert torch.allclose(PDPPolicy.interpolate(torch.zeros(2), b, 3, path="elliptical")[1], b / 2)
+    with pytest.raises(ValueError, match="path must be"):
+        PDPPolicy.interpolate(a, b, 3, path="spiral")
 
 def test_encode_and_fit_latent_inputs(synthetic_meta):
     p = _policy(synthetic_meta)

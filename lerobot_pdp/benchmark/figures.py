@@ -133,7 +133,9 @@ def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, 
     pairs = [(a, b) for a in keys for b in keys if a < b]
     a, b = max(pairs, key=lambda ab: float((means[ab[0]] - means[ab[1]]).norm()))
     planes = scene_views(suite)[:2]
-    fig, axes = plt.subplots(2, len(planes), figsize=(5.2 * len(planes), 9), squeeze=False)
+    # last column: where the sweep runs on the latent map (2-D latents; the first two coordinates otherwise)
+    table = policy.behavior_table()
+    fig, axes = plt.subplots(2, len(planes) + 1, figsize=(5.2 * (len(planes) + 1), 9), squeeze=False)
     cmap = plt.get_cmap("viridis")
     for r, path in enumerate(("linear", "elliptical")):
         zs = policy.interpolate(means[a], means[b], n, path=path)
@@ -150,14 +152,39 @@ def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, 
                 t = res.trace
                 ax.plot(t[:, i], t[:, j], color=cmap(k / max(n - 1, 1)), lw=1.6,
                         ls="-" if res.success else "--", label=f"t={k / (n - 1):.2f}" + ("" if res.success else " ✗"))
-            ax.set_title(f"{path} path: mode {a} ({suite.mode_names[a]}) → mode {b} ({suite.mode_names[b]})",
-                         fontsize=9)
-        axes[r][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
-    fig.suptitle(f"{suite.name}: latent interpolation sweeps (dashed = failed rollout)")
+            ax.set_title(f"{path} path ({plane} view)", fontsize=10)
+        _sweep_on_latent_map(axes[r][-1], suite, table, zs.cpu().numpy(), path)
+        axes[r][-2].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    # the mode names are long (pick-place names both phases): once, in the figure title, not per panel
+    fig.suptitle(f"{suite.name}: latent sweeps from mode {a} ({suite.mode_names[a]}) to mode {b} "
+                 f"({suite.mode_names[b]})\nlinear: through the map's centre; elliptical: around it; "
+                 "dashed = failed rollout", fontsize=11)
     fig.tight_layout()
     fig.savefig(out_png, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out_png
+
+
+def _sweep_on_latent_map(ax, suite: SuiteEnv, table: dict[str, np.ndarray], zs: np.ndarray, path: str) -> None:
+    """Training behaviors' latents (grey, mode ids at the means) and the sweep's latents coloured by t."""
+    z, modes = table["z"][:, :2], table["mode"]
+    ax.scatter(z[:, 0], z[:, 1], s=6, color="0.75", zorder=1)
+    for m in sorted(set(modes[modes >= 0].tolist())) if suite.n_modes <= 24 else []:
+        mean = z[modes == m].mean(0)
+        ax.annotate(str(m), mean, fontsize=7, ha="center", va="center", color="0.35")
+    zs = zs.reshape(len(zs), -1, zs.shape[-1])[..., :2]  # [n, phases, 2]
+    t = np.linspace(0, 1, len(zs))
+    for ph in range(zs.shape[1]):
+        ax.plot(zs[:, ph, 0], zs[:, ph, 1], color="k", lw=0.8, zorder=2)
+        ax.scatter(zs[:, ph, 0], zs[:, ph, 1], c=t, cmap="viridis", s=40, edgecolor="k", zorder=3,
+                   marker="os^v"[ph % 4], label=f"phase {ph}" if zs.shape[1] > 1 else None)
+    if zs.shape[1] > 1:
+        ax.legend(fontsize=7)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("z[0]")
+    ax.set_ylabel("z[1]")
+    ax.set_title(f"{path} path on the latent map" + (" (first two dims)" if table["z"].shape[1] > 2 else ""),
+                 fontsize=10)
 
 
 def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], Path], demos: dict[int, Path]) -> list[Path]:
