@@ -71,8 +71,9 @@ def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title:
             pf, pi = (zf[ph] - centre) @ proj, (zi[ph] - centre) @ proj
             ax.annotate("", pf, pi, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1})
             ax.scatter(pf[0], pf[1], marker="*", s=260, color="gold", edgecolor="k", zorder=6)
-            ax.annotate(f"scene {scene} ({100 * sc['success']:.0f}%)", pf, xytext=(6, 6),
-                        textcoords="offset points", fontsize=9, weight="bold")
+            right = pf[0] > float(np.median(p[:, 0]))  # label towards the map's middle, off the legend
+            ax.annotate(f"scene {scene} ({100 * sc['success']:.0f}%)", pf, xytext=(-6 if right else 6, 6),
+                        textcoords="offset points", fontsize=9, weight="bold", ha="right" if right else "left")
         ax.set_xlabel("z[0]" if z.shape[1] <= 2 else "PC 1")
         ax.set_ylabel("z[1]" if z.shape[1] <= 2 else "PC 2")
         if n_phases > 1:
