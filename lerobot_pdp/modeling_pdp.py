@@ -459,7 +459,7 @@ class PDPPolicy(PreTrainedPolicy):
         ``linear``: straight line; between two clusters on opposite sides of the latent map it passes
         through the map's centre, i.e. through behaviors that lie between opposite routes.
         ``elliptical``: an arc around the origin in the plane of ``z_a`` and ``z_b``, angle and radius
-        interpolated linearly (the paper's sweep around the cluster ring; for orthogonal codes of equal
+        interpolated linearly (a sweep around the ring of clusters; for orthogonal codes of equal
         norm it is ``z_a cos(t) + z_b sin(t)``, t in [0, pi/2]). It keeps the radius between |z_a| and
         |z_b|, so it visits the clusters between the two ends instead of the centre; opposite codes span
         no plane, and the arc then turns towards the coordinate axis least aligned with ``z_a``. Each row
