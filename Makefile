@@ -25,7 +25,7 @@ demo: $(STAMP)
 
 ## Whole test suite (slow end-to-end tests included).
 test: $(STAMP)
-	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider
+	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider --durations=15
 
 ## The full protocol for every env (3 seeds x 40 rollouts, baselines, ablations): hours on 2 CPU cores.
 ## Resumable: finished (method, seed) runs under RESULTS_OUT are reused.
