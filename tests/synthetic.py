@@ -34,14 +34,6 @@ def demo_path(mode: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarr
     return pos.astype(np.float32), np.clip(act, -1, 1).astype(np.float32)
 
 
-def classify(path: np.ndarray) -> int:
-    """Mode of a path by where it crosses y = 0."""
-    i = int(np.argmin(np.abs(path[:, 1])))
-    x = path[i, 0]
-    side = 0 if x < 0 else 2
-    return side + (1 if abs(x) > 0.675 else 0)
-
-
 def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=(0, 1, 2, 3)) -> Path:
     """Write the dataset to ``root`` (must not exist); task strings are ``"mode <id>: <name>"``."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -63,21 +55,3 @@ def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=
     ds.finalize()
     return root
 
-
-def rollout(policy, preprocessor, postprocessor, steps: int = 60) -> np.ndarray:
-    """Closed-loop rollout of a LeRobot policy in the synthetic point world; returns positions [T, 2]."""
-    import torch
-
-    policy.reset()
-    pos = START.copy()
-    path = [pos.copy()]
-    for _ in range(steps):
-        obs = {"observation.state": torch.tensor(pos, dtype=torch.float32)[None],
-               "observation.environment_state": torch.tensor(GOAL, dtype=torch.float32)[None]}
-        with torch.no_grad():
-            a = postprocessor(policy.select_action(preprocessor(obs)))
-        pos = pos + np.clip(a[0].cpu().numpy(), -1, 1) * MAX_STEP
-        path.append(pos.copy())
-        if np.linalg.norm(pos - GOAL) < 0.05:
-            break
-    return np.array(path)

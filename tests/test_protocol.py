@@ -8,14 +8,11 @@ from conftest import lerobot_cli, run_cli
 
 from lerobot_pdp.benchmark.protocol import (
     BenchmarkConfig,
-    TrainSettings,
     demo_episode,
     ensure_demo,
     load_policy,
     load_run,
-    methods_for,
     run_benchmark,
-    train_method,
 )
 from lerobot_pdp.envs import get_suite_env
 
@@ -77,7 +74,7 @@ def test_ablations_tiny(tmp_path):
     """`--ablations`: the four ablated PDP variants train and evaluate next to PDP, plus the warm-vs-random
     initialisation table."""
     cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "bench", seeds=[0], rollouts=1, methods=["pdp"],
-                          ablations=True, steps=20, episodes_per_mode=1, figures=False)
+                          ablations=True, steps=20, episodes_per_mode=1, figures=False, inference_steps=4)
     res = run_benchmark(cfg)
     assert set(res["methods"]) == {"pdp", "pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_uncond"}
     for entry in res["methods"].values():
@@ -87,28 +84,24 @@ def test_ablations_tiny(tmp_path):
     assert "| pdp_onehot |" in md and "| warm (encoder) |" in md
     config = tmp_path / "bench" / "runs" / "pdp_onehot" / "seed0" / "pretrained_model" / "config.json"
     assert json.loads(config.read_text())["latent_type"] == "onehot"
-    # cached with the sampler it was made with (the env's 20 steps), so a rerun reuses it
+    # cached with the sampler it was made with (4 DDIM steps here, to keep the test short), so a rerun reuses it
     init_json = tmp_path / "bench" / "runs" / "pdp" / "seed0" / "init_ablation.json"
-    assert json.loads(init_json.read_text())["inference_steps"] == 20
+    assert json.loads(init_json.read_text())["inference_steps"] == 4
     stamp = init_json.stat().st_mtime
     run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "ablations": False}))
     assert init_json.stat().st_mtime == stamp
 
 
-def test_pdp_steers_to_a_new_route_from_one_demo(tmp_path):
+def test_pdp_steers_to_a_new_route_from_one_demo(reach_around_pdp, tmp_path):
     """The steering effect itself (reach-around scene 3: a wall with one window that no training mode uses).
 
     After fit_latent on ONE scene-3 demonstration PDP succeeds in >= 80 % of 10 rollouts; conditioned on
     any training mode's mean latent it succeeds in <= 20 %.
     """
     from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.envs.recording import make_dataset
 
     suite = get_suite_env("reach-around")
-    data = make_dataset("reach-around", tmp_path / "data", scene=0, episodes_per_mode=10, seed=0, progress=False)
-    # 3000 steps (~5 min with the protocol's 2 loader workers): at 1500, scene-3 success after fitting was
-    # 75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md).
-    ckpt = train_method(methods_for(suite)["pdp"], data, tmp_path / "run", 0, TrainSettings(steps=3000), 3000)
+    ckpt = reach_around_pdp[1]  # 3000 steps, conftest
     policy, pre, post = load_policy(ckpt)
     means = policy.mode_latents()
     baseline = run_rollouts(suite, 3, policy, pre, post, 0, seed=0)

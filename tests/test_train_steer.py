@@ -1,29 +1,25 @@
-"""The steering claim on a synthetic multimodal dataset, with PDP trained by a real `lerobot-train` process."""
+"""The latent's geometry and steering on reach-around (real MuJoCo), with PDP trained by a real `lerobot-train`."""
 
 import numpy as np
 import pytest
 import torch
 
-from lerobot_pdp import PDPPolicy
 from lerobot_pdp.behavior import read_episodes
-from lerobot_pdp.soft_dtw import dtw
-
-from synthetic import classify, rollout
+from lerobot_pdp.benchmark.evaluation import run_rollouts
+from lerobot_pdp.benchmark.protocol import load_policy
+from lerobot_pdp.envs import get_suite_env
+from lerobot_pdp.envs.suite import parse_task_mode
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def trained(trained_checkpoint):
-    from lerobot.policies.factory import make_pre_post_processors
-
-    policy = PDPPolicy.from_pretrained(trained_checkpoint)
-    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(trained_checkpoint))
-    return policy, pre, post
+def trained(reach_around_pdp):
+    return load_policy(reach_around_pdp[1])
 
 
-def test_checkpoint_has_processors_and_config(trained_checkpoint):
-    names = {p.name for p in trained_checkpoint.iterdir()}
+def test_checkpoint_has_processors_and_config(reach_around_pdp):
+    names = {p.name for p in reach_around_pdp[1].iterdir()}
     assert {"config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"} <= names
 
 
@@ -31,6 +27,7 @@ def test_a_encoded_episodes_separate_by_mode(trained):
     policy, _, _ = trained
     table = policy.behavior_table()
     z, modes = table["z"], table["mode"]
+    assert len(np.unique(modes)) == 8
     means = {m: z[modes == m].mean(0) for m in np.unique(modes)}
     pred = [min(means, key=lambda m: np.linalg.norm(zi - means[m])) for zi in z]
     acc = float(np.mean(np.array(pred) == modes))
@@ -48,32 +45,31 @@ def test_b_trace_and_latent_distances_rank_correlate(trained):
     assert rho > 0.7, rho
 
 
-def test_c_mode_latent_generates_that_modes_path(trained, synthetic_dataset):
+def test_c_mode_latent_generates_that_modes_route(trained):
+    """Conditioned on a mode's mean latent, the rollout takes that mode's route (the env's classifier)."""
     policy, pre, post = trained
-    eps = read_episodes(synthetic_dataset, ["observation.state"])
-    demos = {ep: (d["observation.state"], int(d["task"].split()[1].rstrip(":"))) for ep, d in eps.items()}
-    hits, total = 0, 0
+    suite = get_suite_env("reach-around")
     torch.manual_seed(0)
+    hits, total = 0, 0
     for mode, z in policy.mode_latents().items():
         policy.set_latent(z)
-        for _ in range(3):
-            path = rollout(policy, pre, post)
-            # closest demonstration by DTW decides which mode the generated path is
-            nearest = min(demos.values(), key=lambda d: dtw(path, d[0]))
-            hits += nearest[1] == mode
-            total += 1
-            assert classify(path) == mode or nearest[1] != mode
-    assert hits / total >= 0.9, f"{hits}/{total} rollouts followed their conditioned mode"
+        batch = run_rollouts(suite, 0, policy, pre, post, 2, seed=200 + mode)
+        hits += sum(r.success and r.mode == mode for r in batch.results)
+        total += len(batch.results)
+    assert hits / total >= 0.9, f"{hits}/{total} rollouts succeeded along their conditioned mode"
 
 
 def test_d_fit_latent_on_held_out_demo_lands_nearest_its_mode(trained, tmp_path):
-    from synthetic import write_dataset
+    from lerobot_pdp.envs.recording import make_dataset
 
-    policy, pre, post = trained
-    held = write_dataset(tmp_path / "held", episodes_per_mode=1, seed=123)  # demos never seen in training
+    policy, _, _ = trained
+    # one new demonstration per mode, never seen in training (another data seed)
+    held = make_dataset("reach-around", tmp_path / "held", scene=0, episodes_per_mode=1, seed=123, progress=False)
     means = policy.mode_latents()
-    for ep in range(4):
+    episodes = read_episodes(held, ["observation.state"])
+    assert len(episodes) == len(means) == 8
+    for ep, data in episodes.items():
+        mode = parse_task_mode(data["task"])
         res = policy.fit_latent((held, ep), steps=50)
         nearest = min(means, key=lambda m: float((means[m] - res.z).norm()))
-        assert nearest == ep, (ep, res.z, {m: v.tolist() for m, v in means.items()})
-        assert classify(rollout(policy, pre, post)) == ep
+        assert nearest == mode, (ep, mode, res.z, {m: v.tolist() for m, v in means.items()})
