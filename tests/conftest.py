@@ -59,7 +59,7 @@ def synthetic_meta(synthetic_dataset):
 def reach_around_pdp(tmp_path_factory) -> tuple[Path, Path]:
     """(scene-0 dataset, checkpoint): PDP trained on reach-around (10 demos per mode, real MuJoCo) by a real
     `lerobot-train` process, the protocol's way (2 loader workers). Shared by the steering tests: the
-    suite's most expensive fixture (~5 min on 2 cores). 3000 steps: at 1500, scene-3 success after fitting
+    suite's most expensive fixture (503 s on 2 idle cores, 2026-11-24). 3000 steps: at 1500, scene-3 success after fitting
     was 75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md)."""
     from lerobot_pdp.benchmark.protocol import TrainSettings, methods_for, train_method
     from lerobot_pdp.envs import get_suite_env
