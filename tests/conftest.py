@@ -56,17 +56,16 @@ def synthetic_meta(synthetic_dataset):
 
 
 @pytest.fixture(scope="session")
-def reach_around_pdp(tmp_path_factory) -> tuple[Path, Path]:
-    """(scene-0 dataset, checkpoint): PDP trained on reach-around (10 demos per mode, real MuJoCo) by a real
-    `lerobot-train` process, the protocol's way (2 loader workers). Shared by the steering tests: the
-    suite's most expensive fixture (503 s on 2 idle cores, 2026-11-24). 3000 steps: at 1500, scene-3 success after fitting
-    was 75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md)."""
+def reach_around_pdp(tmp_path_factory) -> Path:
+    """Checkpoint of PDP trained on reach-around (10 demos per mode, real MuJoCo) by a real `lerobot-train`
+    process, the protocol's way (2 loader workers). Shared by the steering tests: the suite's most expensive
+    fixture (503 s on 2 idle cores, 2026-11-24). 3000 steps: at 1500, scene-3 success after fitting was
+    75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md)."""
     from lerobot_pdp.benchmark.protocol import TrainSettings, methods_for, train_method
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
 
     root = tmp_path_factory.mktemp("reach_around")
     data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=10, seed=0, progress=False)
-    ckpt = train_method(methods_for(get_suite_env("reach-around"))["pdp"], data, root / "run", 0,
+    return train_method(methods_for(get_suite_env("reach-around"))["pdp"], data, root / "run", 0,
                         TrainSettings(steps=3000), 3000)
-    return data, ckpt

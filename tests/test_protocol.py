@@ -101,7 +101,7 @@ def test_pdp_steers_to_a_new_route_from_one_demo(reach_around_pdp, tmp_path):
     from lerobot_pdp.benchmark.evaluation import run_rollouts
 
     suite = get_suite_env("reach-around")
-    ckpt = reach_around_pdp[1]  # 3000 steps, conftest
+    ckpt = reach_around_pdp  # 3000 steps, conftest
     policy, pre, post = load_policy(ckpt)
     means = policy.mode_latents()
     baseline = run_rollouts(suite, 3, policy, pre, post, 0, seed=0)

@@ -15,11 +15,11 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def trained(reach_around_pdp):
-    return load_policy(reach_around_pdp[1])
+    return load_policy(reach_around_pdp)
 
 
 def test_checkpoint_has_processors_and_config(reach_around_pdp):
-    names = {p.name for p in reach_around_pdp[1].iterdir()}
+    names = {p.name for p in reach_around_pdp.iterdir()}
     assert {"config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"} <= names
 
 
@@ -62,7 +62,8 @@ def test_c_mode_latent_generates_that_modes_route(trained):
 def test_d_fit_latent_on_held_out_demo_lands_nearest_its_mode(trained, tmp_path):
     from lerobot_pdp.envs.recording import make_dataset
 
-    policy, _, _ = trained
+    policy, pre, post = trained
+    suite = get_suite_env("reach-around")
     # one new demonstration per mode, never seen in training (another data seed)
     held = make_dataset("reach-around", tmp_path / "held", scene=0, episodes_per_mode=1, seed=123, progress=False)
     means = policy.mode_latents()
@@ -73,3 +74,6 @@ def test_d_fit_latent_on_held_out_demo_lands_nearest_its_mode(trained, tmp_path)
         res = policy.fit_latent((held, ep), steps=50)
         nearest = min(means, key=lambda m: float((means[m] - res.z).norm()))
         assert nearest == mode, (ep, mode, res.z, {m: v.tolist() for m, v in means.items()})
+        # fit_latent activated the fitted z: the policy now drives that mode's route
+        (r,) = run_rollouts(suite, 0, policy, pre, post, 1, seed=300 + ep).results
+        assert r.success and r.mode == mode, (ep, mode, r)
