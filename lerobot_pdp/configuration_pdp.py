@@ -96,7 +96,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     kernel_size: int = 5
     n_groups: int = 8
     diffusion_step_embed_dim: int = 64
-    # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]).
+    # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]). () = an affine
+    # map, which composes behaviors additively: the benchmark uses it for pick-place, whose scene-3 window
+    # lies between two carry modes (benchmark/protocol.py PDP_OVERRIDES, docs/results.md).
     film_hidden_dims: tuple[int, ...] = (16, 32)
 
     # ---- Diffusion ----

@@ -8,9 +8,10 @@ import torch
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
 
 
-def _net(mode="film"):
+def _net(mode="film", film_hidden_dims=(16, 32)):
     torch.manual_seed(0)
-    return FiLMUnet1d(action_dim=3, obs_cond_dim=10, latent_dim=2, latent_conditioning=mode, down_dims=(16, 32))
+    return FiLMUnet1d(action_dim=3, obs_cond_dim=10, latent_dim=2, latent_conditioning=mode, down_dims=(16, 32),
+                      film_hidden_dims=film_hidden_dims)
 
 
 @pytest.mark.parametrize("mode", ["film", "concat", "none"])
@@ -60,9 +61,12 @@ def test_schedule_and_ddim():
     torch.testing.assert_close(s.sample(oracle, torch.randn_like(x0), 10), x0, atol=1e-4, rtol=1e-4)
 
 
-@pytest.mark.parametrize("mode", ["film", "concat", "none"])
-def test_cached_inference_path_equals_forward(mode):
-    net = _net(mode)
+@pytest.mark.parametrize(("mode", "film_hidden_dims"),
+                         [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("none", (16, 32))])
+def test_cached_inference_path_equals_forward(mode, film_hidden_dims):
+    # film_hidden_dims=() is the affine FiLM pick-place trains with: the stacked-MLP fast path then has
+    # no hidden layer at all
+    net = _net(mode, film_hidden_dims)
     for m in net.modules():
         if isinstance(m, LatentFiLM):
             torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
@@ -79,7 +83,7 @@ def test_cached_inference_path_equals_forward(mode):
     torch.testing.assert_close(net.run_cached(x1, ctx1), net(x1, torch.full((1,), 19), c[:1], z[:1]),
                                atol=1e-5, rtol=1e-5)
     # and a trace built at batch 1 (a single-env rollout) serves a batch of 3 (a vectorised rollout)
-    net1 = _net(mode).eval()
+    net1 = _net(mode, film_hidden_dims).eval()
     net1.load_state_dict(net.state_dict())
     net1.run_cached(x1, net1.make_context(c[:1], z[:1], steps)[0])
     torch.testing.assert_close(net1.run_cached(x, net1.make_context(c, z, steps)[0]), net(x, torch.full((3,), 19), c, z),
