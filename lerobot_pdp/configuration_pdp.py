@@ -97,7 +97,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     n_groups: int = 8
     diffusion_step_embed_dim: int = 64
     # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]). () = an affine
-    # map, so a latent between two modes gets the sum of their modulations: the benchmark uses it for
+    # map, so modulations combine linearly in z (a latent between two modes mixes theirs): used for
     # pick-place, whose scene-3 window lies between two carry modes (benchmark/protocol.py PDP_OVERRIDES).
     film_hidden_dims: tuple[int, ...] = (16, 32)
 
