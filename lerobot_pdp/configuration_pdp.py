@@ -180,6 +180,13 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                      "phase_switch_steps"):
             if getattr(self, name) < 1:
                 errors.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        # layer widths: () is a valid film_hidden_dims (an affine FiLM), a 0-wide layer never is (it would
+        # silently cut z off from the denoiser)
+        for name in ("down_dims", "vae_hidden_dims", "film_hidden_dims"):
+            if any(int(d) < 1 for d in getattr(self, name)):
+                errors.append(f"every entry of {name} must be >= 1, got {tuple(getattr(self, name))}")
+        if not self.down_dims:
+            errors.append("down_dims must list at least one U-Net level, got ()")
         if self.fit_gradient not in ("auto", "autograd", "finite_difference"):
             errors.append(f"fit_gradient must be 'auto', 'autograd' or 'finite_difference', got {self.fit_gradient!r}")
         if self.trace_length < 2:

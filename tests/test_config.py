@@ -41,6 +41,9 @@ def test_delta_indices():
         ({"steer_latent": [1.0, 2.0, 3.0]}, "steer_latent has 3 values"),
         ({"steer_dataset_root": "/x"}, "must be given together"),
         ({"trace_normalize": "minmax"}, "trace_normalize must be one of"),
+        ({"film_hidden_dims": (16, 0)}, "every entry of film_hidden_dims must be >= 1, got (16, 0)"),
+        ({"vae_hidden_dims": (-4,)}, "every entry of vae_hidden_dims must be >= 1"),
+        ({"down_dims": ()}, "down_dims must list at least one U-Net level"),
     ],
 )
 def test_invalid_values_are_named(kwargs, message):
@@ -53,3 +56,8 @@ def test_presets():
     c = PDPConfig()
     assert c.get_optimizer_preset().lr == c.optimizer_lr
     assert c.get_scheduler_preset().num_warmup_steps == c.scheduler_warmup_steps
+
+
+def test_affine_film_is_a_valid_choice():
+    # () = no hidden layer: z -> (gamma, beta) is one linear map (pick-place's benchmark setting)
+    assert tuple(PDPConfig(film_hidden_dims=()).film_hidden_dims) == ()
