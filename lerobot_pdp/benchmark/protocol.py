@@ -76,7 +76,12 @@ SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
 # where no training behavior lies. Through the MLP, latents there decoded to one arm or the other and
 # the carried cube hit the window's wall; with an affine map the modulations combine linearly. Over seeds 0-2
 # the shifted average rose from 76.7 to 85.0 % (higher on every seed; docs/results.md, pick-place).
-PDP_OVERRIDES: dict[str, tuple[str, ...]] = {"pick-place": ("--policy.film_hidden_dims=[]",)}
+# And no |z|^2 penalty in the fit: the window route lies at the outer edge of the latent map, where the fit
+# loss is flat enough that lambda = 1e-3 held the fitted z ~0.07 short of it (closer to the origin =
+# narrower, lower routes); lambda = 0 raised the shifted average from 85.0 to 87.8 % on the same checkpoints.
+PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
+    "pick-place": ("--policy.film_hidden_dims=[]", "--policy.fit_lambda=0"),
+}
 
 
 @dataclass(frozen=True)
