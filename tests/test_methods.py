@@ -1,9 +1,12 @@
 """Per-env method definitions of the benchmark: what each method's lerobot-train call gets."""
 
+import json
+
 import draccus
+import pytest
 
 from lerobot_pdp import PDPConfig
-from lerobot_pdp.benchmark.protocol import methods_for
+from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_method
 from lerobot_pdp.envs import get_suite_env
 
 
@@ -22,3 +25,33 @@ def test_pick_place_pdp_uses_an_affine_film_and_an_unpenalised_fit_every_other_e
         cfg = _pdp_config(methods_for(get_suite_env(env))["pdp"].overrides)
         assert tuple(cfg.film_hidden_dims) == (16, 32) and cfg.segment_gripper_dim is None
         assert cfg.fit_lambda == PDPConfig.fit_lambda > 0
+
+
+def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
+    """Resuming into an old --out after the protocol changed (here: the step budget, a method flag) must not
+    put the stale run into the new table; the output folder, loader workers and sampler steps may differ."""
+    method = methods_for(get_suite_env("pick-place"))["pdp"]
+    settings, data = SETTINGS["pick-place"][0], tmp_path / "data" / "pick_place_scene0"
+    run_dir = tmp_path / "runs" / "pdp" / "seed0"
+    (run_dir / "pretrained_model").mkdir(parents=True)
+    (run_dir / "pretrained_model" / "model.safetensors").write_bytes(b"")
+    args = ["/elsewhere/bin/lerobot-train", "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
+            f"--dataset.repo_id=local/{data.name}", "--dataset.root=/moved/data", f"--steps={settings.steps}",
+            f"--batch_size={settings.batch_size}", "--seed=0", f"--save_freq={settings.steps}",
+            f"--log_freq={settings.steps // 20}", "--num_workers=0", "--wandb.enable=false", *method.overrides,
+            f"--policy.optimizer_lr={settings.lr}", f"--policy.embedding_lr={settings.lr}",
+            f"--policy.scheduler_warmup_steps={settings.warmup_steps}",
+            f"--policy.drop_n_last_frames={settings.drop_n_last_frames}", "--policy.num_inference_steps=5",
+            "--output_dir=/tmp/.train-x/out"]
+    info = run_dir / "train_info.json"
+    info.write_text(json.dumps({"seconds": 1.0, "steps": settings.steps, "args": args}))
+    assert train_method(method, data, run_dir, 0, settings, settings.steps) == run_dir / "pretrained_model"
+    with pytest.raises(ValueError, match=rf"seed0 was trained with other lerobot-train arguments \(--log_freq: .*"
+                                         rf"--save_freq: .*; --steps: trained with {settings.steps}, now 100\)"):
+        train_method(method, data, run_dir, 0, settings, 100)
+    info.write_text(json.dumps({"seconds": 1.0, "steps": settings.steps,
+                                "args": [a for a in args if "fit_lambda" not in a]}))
+    with pytest.raises(ValueError, match=r"--policy.fit_lambda: trained with \(absent\), now 0"):
+        train_method(method, data, run_dir, 0, settings, settings.steps)
+    info.unlink()  # copied in by hand: reused as it is
+    assert train_method(method, data, run_dir, 0, settings, 100) == run_dir / "pretrained_model"

@@ -251,10 +251,6 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
                  steps: int) -> Path:
     """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
     ckpt = run_dir / "pretrained_model"
-    if (ckpt / "model.safetensors").is_file():
-        return ckpt
-    run_dir.mkdir(parents=True, exist_ok=True)
-    tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
     exe = Path(sys.executable).parent / "lerobot-train"
     lr_args = [f"--policy.optimizer_lr={settings.lr}"]
     if method.policy_type == "pdp":
@@ -266,7 +262,7 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     args = [
         str(exe) if exe.exists() else "lerobot-train",
         f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", "--policy.device=cpu",
-        f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}", f"--output_dir={tmp_out}",
+        f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
         f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
         f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
         "--wandb.enable=false",
@@ -277,6 +273,12 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
     if method.policy_type in ("pdp", "diffusion"):
         args.append(f"--policy.num_inference_steps={settings.inference_steps}")
+    if (ckpt / "model.safetensors").is_file():
+        _check_reusable(run_dir, args)
+        return ckpt
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
+    args.append(f"--output_dir={tmp_out}")
     log = run_dir / "train.log"
     t0 = time.time()
     _run_logged(args, log, steps, f"train {method.name} seed {seed}")
@@ -288,6 +290,31 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     (run_dir / "train_info.json").write_text(json.dumps({"seconds": time.time() - t0, "steps": steps,
                                                         "args": args}, indent=1))
     return ckpt
+
+
+# Flags that do not change what a run learns: where it writes, how many loader processes feed it, and the
+# DDIM steps it samples with (evaluations record their own sampler and are redone when it changes).
+_NOT_TRAINING = ("--output_dir", "--num_workers", "--policy.num_inference_steps", "--dataset.root")
+
+
+def _flags(args: list[str]) -> dict[str, str]:
+    pairs = (a.split("=", 1) for a in args[1:] if a.startswith("--"))
+    return {k: v for k, v in pairs if k not in _NOT_TRAINING}
+
+
+def _check_reusable(run_dir: Path, args: list[str]) -> None:
+    """Refuse to reuse a checkpoint trained with other arguments (steps, lr, method flags): resuming into an
+    old ``--out`` after the protocol changed would otherwise put stale runs into the new table. Checkpoints
+    without a ``train_info.json`` (copied in by hand) are reused as they are."""
+    info = run_dir / "train_info.json"
+    if not info.is_file():
+        return
+    old, new = _flags(json.loads(info.read_text())["args"]), _flags(args)
+    diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if diff:
+        shown = "; ".join(f"{k}: trained with {old.get(k, '(absent)')}, now {new.get(k, '(absent)')}" for k in diff)
+        raise ValueError(f"{run_dir} was trained with other lerobot-train arguments ({shown}); use another --out "
+                         f"or delete {run_dir} to retrain")
 
 
 def load_policy(ckpt: Path, inference_steps: int | None = None):
