@@ -292,9 +292,11 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     return ckpt
 
 
-# Flags that do not change what a run learns: where it writes, how many loader processes feed it, and the
-# DDIM steps it samples with (evaluations record their own sampler and are redone when it changes).
-_NOT_TRAINING = ("--output_dir", "--num_workers", "--policy.num_inference_steps", "--dataset.root")
+# Flags that do not change what a run learns: where it writes and how often it logs and saves, how many
+# loader processes feed it, and the DDIM steps it samples with (evaluations record their own sampler and are
+# redone when it changes).
+_NOT_TRAINING = ("--output_dir", "--dataset.root", "--log_freq", "--save_freq", "--num_workers",
+                 "--policy.num_inference_steps")
 
 
 def _flags(args: list[str]) -> dict[str, str]:
