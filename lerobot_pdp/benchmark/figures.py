@@ -62,6 +62,8 @@ def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title:
             mean = p[sel].mean(0)
             ax.scatter(*mean, s=120, color=c, edgecolor="k", marker="o", zorder=4)
             ax.annotate(str(m), mean, fontsize=8, ha="center", va="center", zorder=5)
+        labelled: list[np.ndarray] = []  # stars already labelled: close ones stack their labels upwards
+        near = 0.05 * float(np.ptp(p, axis=0).max() or 1.0)
         for scene, sc in eval_json["scenes"].items():
             if scene == "0" or "z" not in sc:
                 continue
@@ -72,7 +74,9 @@ def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title:
             ax.annotate("", pf, pi, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1})
             ax.scatter(pf[0], pf[1], marker="*", s=260, color="gold", edgecolor="k", zorder=6)
             right = pf[0] > float(np.median(p[:, 0]))  # label towards the map's middle, off the legend
-            ax.annotate(f"scene {scene} ({100 * sc['success']:.0f}%)", pf, xytext=(-6 if right else 6, 6),
+            stack = sum(float(np.linalg.norm(pf - q)) < near for q in labelled)
+            labelled.append(pf)
+            ax.annotate(f"scene {scene} ({100 * sc['success']:.0f}%)", pf, xytext=(-6 if right else 6, 6 + 12 * stack),
                         textcoords="offset points", fontsize=9, weight="bold", ha="right" if right else "left")
         ax.set_xlabel("z[0]" if z.shape[1] <= 2 else "PC 1")
         ax.set_ylabel("z[1]" if z.shape[1] <= 2 else "PC 2")
