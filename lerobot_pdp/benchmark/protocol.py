@@ -303,8 +303,8 @@ _NOT_TRAINING = ("--output_dir", "--dataset.root", "--log_freq", "--save_freq", 
 
 
 def _flags(args: list[str]) -> dict[str, str]:
-    pairs = (a.split("=", 1) for a in args[1:] if a.startswith("--"))
-    return {k: v for k, v in pairs if k not in _NOT_TRAINING}
+    pairs = (a.partition("=") for a in args[1:] if a.startswith("--"))
+    return {k: v for k, _, v in pairs if k not in _NOT_TRAINING}
 
 
 def _check_reusable(run_dir: Path, args: list[str]) -> None:
@@ -312,9 +312,10 @@ def _check_reusable(run_dir: Path, args: list[str]) -> None:
     old ``--out`` after the protocol changed would otherwise put stale runs into the new table. Checkpoints
     without a ``train_info.json`` (copied in by hand) are reused as they are."""
     info = run_dir / "train_info.json"
-    if not info.is_file():
+    recorded = json.loads(info.read_text()).get("args") if info.is_file() else None
+    if recorded is None:
         return
-    old, new = _flags(json.loads(info.read_text())["args"]), _flags(args)
+    old, new = _flags(recorded), _flags(args)
     diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if diff:
         shown = "; ".join(f"{k}: trained with {old.get(k, '(absent)')}, now {new.get(k, '(absent)')}" for k in diff)
