@@ -6,7 +6,7 @@ import draccus
 import pytest
 
 from lerobot_pdp import PDPConfig
-from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_method
+from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 
 
@@ -36,14 +36,13 @@ def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
     run_dir = tmp_path / "runs" / "pdp" / "seed0"
     (run_dir / "pretrained_model").mkdir(parents=True)
     (run_dir / "pretrained_model" / "model.safetensors").write_bytes(b"")
-    args = ["/elsewhere/bin/lerobot-train", "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
-            f"--dataset.repo_id=local/{data.name}", "--dataset.root=/moved/data", f"--steps={settings.steps}",
-            f"--batch_size={settings.batch_size}", "--seed=0", "--save_freq=1000", "--log_freq=100",
-            "--num_workers=0", "--wandb.enable=false", *method.overrides,
-            f"--policy.optimizer_lr={settings.lr}", f"--policy.embedding_lr={settings.lr}",
-            f"--policy.scheduler_warmup_steps={settings.warmup_steps}",
-            f"--policy.drop_n_last_frames={settings.drop_n_last_frames}", "--policy.num_inference_steps=5",
-            "--output_dir=/tmp/.train-x/out"]
+    recorded = {"--dataset.root": "/moved/data", "--num_workers": "0", "--log_freq": "100", "--save_freq": "1000",
+                "--policy.num_inference_steps": "5"}  # none of these changes the weights
+    args = ["/elsewhere/bin/lerobot-train"] + [
+        next((f"{k}={v}" for k, v in recorded.items() if a.startswith(k + "=")), a)
+        for a in train_args(method, data, 0, settings, settings.steps)[1:]
+    ] + ["--output_dir=/tmp/.train-x/out"]
+    assert sum(a.split("=")[0] in recorded for a in args) == len(recorded)
     info = run_dir / "train_info.json"
     info.write_text(json.dumps({"seconds": 1.0, "steps": settings.steps, "args": args}))
     assert train_method(method, data, run_dir, 0, settings, settings.steps) == run_dir / "pretrained_model"

@@ -250,10 +250,8 @@ def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None
         raise RuntimeError(f"{args[0]} failed with exit code {rc}; see {log}\n{tail}")
 
 
-def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
-                 steps: int) -> Path:
-    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
-    ckpt = run_dir / "pretrained_model"
+def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings, steps: int) -> list[str]:
+    """The ``lerobot-train`` command line of one (method, seed) run, without ``--output_dir``."""
     exe = Path(sys.executable).parent / "lerobot-train"
     lr_args = [f"--policy.optimizer_lr={settings.lr}"]
     if method.policy_type == "pdp":
@@ -276,6 +274,14 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
     if method.policy_type in ("pdp", "diffusion"):
         args.append(f"--policy.num_inference_steps={settings.inference_steps}")
+    return args
+
+
+def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
+                 steps: int) -> Path:
+    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
+    ckpt = run_dir / "pretrained_model"
+    args = train_args(method, dataset, seed, settings, steps)
     if (ckpt / "model.safetensors").is_file():
         _check_reusable(run_dir, args)
         return ckpt
