@@ -5,7 +5,7 @@ scene 0 with each mode's mean latent and the protocol's per-mode seeds and batch
 sample), scenes 1-3 with the latent the benchmark fitted there (``eval.json``; PDP only). Every executed step is
 logged, and each rollout is put in one class:
 
-- ``success`` / ``collision`` (with a scene barrier);
+- ``success`` / ``collision`` (with a scene barrier; which barrier and which robot body);
 - ``never at the handle``: the end effector never came within ``--reach`` of the handle;
 - ``at the handle, door never moved``: it got there but the hinge never turned past -0.05 rad;
 - ``lost the handle``: the door started opening, then the end effector left the handle (by more than
@@ -62,10 +62,25 @@ def install_step_log():
                                   float(obs["environment_state"][0]), float(a[7:].mean())))
             if terminated or truncated:
                 self.diag_recording, self.diag_info = False, dict(info)
+                if info.get("collided"):
+                    self.diag_info["hit"] = barrier_contacts(self)
         return out
 
     km.KitchenMicrowaveEnv.step, km.KitchenMicrowaveEnv.reset = logged_step, logged_reset
     return envs
+
+
+def barrier_contacts(env) -> list[str]:
+    """'<scene barrier name> / <robot body>' for every penetrating contact of a barrier with the robot."""
+    from lerobot_pdp.envs.kitchen_microwave import BARRIER_PREFIX
+
+    m, hits = env.model, set()
+    for c in env.data.contact[: env.data.ncon]:
+        for g, other in ((int(c.geom1), int(c.geom2)), (int(c.geom2), int(c.geom1))):
+            if c.dist < 0 and g in env._barrier_geoms and other in env._robot_geoms:
+                i = int(m.geom(g).name[len(BARRIER_PREFIX):])
+                hits.add(f"{env.scene.barriers[i].name or f'barriers[{i}]'} / {m.body(m.geom_bodyid[other]).name}")
+    return sorted(hits)
 
 
 def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
@@ -79,6 +94,8 @@ def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
         kind = "success"
     elif info.get("collided"):
         kind = "collision"
+        if info.get("hit"):
+            kind += f" ({', '.join(info['hit'])})"
     elif dist.min() > reach:
         kind = "never at the handle"
     elif door.min() > -0.05:

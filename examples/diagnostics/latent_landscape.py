@@ -1,0 +1,143 @@
+"""Is a shifted scene lost by the fit or by the denoiser? L_fit and rollout success over a grid of latents.
+
+For a benchmark run with a 2-D, unsegmented latent, evaluates on an n x n grid of z:
+
+- ``L_fit`` of the scene's demonstration (the objective ``fit_latent`` minimises, with the checkpoint's
+  ``fit_lambda``): every demonstration window, ``--noise-draws`` (k, eps) draws each, the same draws at every
+  grid point (common random numbers), so the map is smooth and its minimum is where a converged fit lands;
+- with ``--rollouts N``: the scene's success and collision rates with z held at that grid point (the
+  protocol's rollout seeds for that scene).
+
+Prints one JSON line per grid point and writes a PNG with both maps, the training modes' mean latents, the
+encoder's warm start and the latent the benchmark fitted (``eval.json``). If some grid latents succeed
+where the fitted one fails, the denoiser can produce the behaviour and the fit does not find it.
+
+    python examples/diagnostics/latent_landscape.py /work/runs/kitchen_seeds/runs/pdp/seed0 \\
+        --env kitchen-microwave --scene 3 -n 6 --rollouts 10 --z0 -0.5 2.0 --z1 -3.5 -1.0 --out k3.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+
+def main() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lerobot_pdp.benchmark.evaluation import run_rollouts
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
+    from lerobot_pdp.envs.suite import get_suite_env
+    from lerobot_pdp.latent_fitting import fit_loss
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
+    ap.add_argument("--env", required=True)
+    ap.add_argument("--scene", type=int, required=True, choices=(1, 2, 3))
+    ap.add_argument("-n", type=int, default=11, help="grid points per latent axis")
+    ap.add_argument("--z0", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[0] (default: around the "
+                    "mode means, the warm start and the fitted z, +30 %%)")
+    ap.add_argument("--z1", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[1] (default: as --z0)")
+    ap.add_argument("--noise-draws", type=int, default=32, help="(k, eps) draws per demonstration window")
+    ap.add_argument("--rollouts", type=int, default=0, help="rollouts per grid point (0: L_fit only)")
+    ap.add_argument("--out", type=Path, default=Path("latent_landscape.png"))
+    args = ap.parse_args()
+
+    policy, pre, post = load_run(args.run)
+    cfg = policy.config
+    if cfg.latent_dim != 2 or cfg.segment_gripper_dim is not None:
+        ap.error(f"needs a 2-D unsegmented latent; {args.run} has latent_dim={cfg.latent_dim}, "
+                 f"segment_gripper_dim={cfg.segment_gripper_dim}")
+    meta_file = args.run / "eval.json"
+    if not meta_file.is_file():
+        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its fitted latent is read from there)")
+    meta = json.loads(meta_file.read_text())
+    root = demo_root(get_suite_env(args.env), args.run.parents[2], args.scene)
+    if not root.is_dir():
+        ap.error(f"no scene-{args.scene} demonstration at {root}")
+    demo = demo_episode(root)
+    suite = get_suite_env(args.env)
+
+    policy.eval()
+    means = np.stack([m.numpy() for m in policy.mode_latents().values()])
+    warm = policy.encode(demo).numpy()
+    fitted = np.asarray(meta["scenes"][str(args.scene)]["z"], dtype=np.float32)
+    pts = np.vstack([means, warm, fitted])
+    lo, hi = pts.min(0), pts.max(0)
+    lo, hi = lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo)
+    r0 = args.z0 or (lo[0], hi[0])
+    r1 = args.z1 or (lo[1], hi[1])
+    a_axis, b_axis = np.linspace(*r0, args.n), np.linspace(*r1, args.n)
+
+    # L_fit on every window with the same noise at every grid point (a fresh generator per point).
+    windows = policy.demo_windows(demo)
+    den, sched = policy.denoiser, policy.noise_schedule
+    consts = den.weight_constants(list(range(sched.num_train_timesteps)))
+    idx = torch.arange(len(windows.segment))
+    with torch.no_grad():
+        obs_mod = den.obs_modulation(consts, windows.obs_cond)
+
+        def objective(z: np.ndarray) -> float:
+            g = torch.Generator().manual_seed(0)
+            zt = torch.tensor(z, dtype=torch.float32)[None]
+            return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs_mod, consts))
+
+        loss = np.zeros((args.n, args.n))
+        success = np.full((args.n, args.n), np.nan)
+        for i, a in enumerate(tqdm(a_axis, desc="grid rows")):
+            for j, b in enumerate(b_axis):
+                z = np.array([a, b], dtype=np.float32)
+                loss[i, j] = objective(z)
+                row = {"z": [round(float(a), 3), round(float(b), 3)], "L_fit": round(loss[i, j], 5)}
+                if args.rollouts:
+                    policy.set_latent(torch.tensor(z))
+                    batch = run_rollouts(suite, args.scene, policy, pre, post, args.rollouts,
+                                         meta["seed"] * 10_000 + args.scene)
+                    success[i, j] = batch.success_rate
+                    row |= {"success": batch.success_rate, "collision": batch.collision_rate}
+                print(json.dumps(row), flush=True)
+        marks = {"warm start": warm, "fitted (benchmark)": fitted}
+        i_min, j_min = np.unravel_index(loss.argmin(), loss.shape)
+        print(json.dumps({"fitted": fitted.round(3).tolist(), "L_fit(fitted)": round(objective(fitted), 5),
+                          "warm": warm.round(3).tolist(), "L_fit(warm)": round(objective(warm), 5),
+                          "grid argmin": [round(float(a_axis[i_min]), 3), round(float(b_axis[j_min]), 3)],
+                          "L_fit(grid min)": round(float(loss.min()), 5)}))
+    policy.set_latent(None)
+
+    panels = [(f"L_fit (lambda = {cfg.fit_lambda:g})", loss, "viridis")]
+    if args.rollouts:
+        panels.append((f"scene-{args.scene} success ({args.rollouts} rollouts per z)", success, "RdYlGn"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.6), squeeze=False)
+    # Each cell centred on its grid point (imshow spreads n cells over the extent).
+    da, db = (a_axis[1] - a_axis[0]) / 2 if args.n > 1 else 0.5, (b_axis[1] - b_axis[0]) / 2 if args.n > 1 else 0.5
+    xlim, ylim = (r1[0] - db, r1[1] + db), (r0[0] - da, r0[1] + da)
+    extent = (*xlim, *ylim)
+    for ax, (title, grid, cmap) in zip(axes[0], panels, strict=True):
+        im = ax.imshow(grid, origin="lower", extent=extent, aspect="auto", cmap=cmap,
+                       **({"vmin": 0, "vmax": 1} if grid is success else {}))
+        fig.colorbar(im, ax=ax)
+        ax.scatter(means[:, 1], means[:, 0], c="k", marker="o", s=30, label="training mode means")
+        for (name, z), m in zip(marks.items(), ("s", "*"), strict=True):
+            ax.scatter([z[1]], [z[0]], c="w", edgecolors="k", marker=m, s=120, label=name)
+        ax.set(title=title, xlabel="z[1]", ylabel="z[0]", xlim=xlim, ylim=ylim)
+    axes[0][0].legend(loc="best", fontsize=7)
+    fig.suptitle(f"{args.env} scene {args.scene}: {args.run}", fontsize=8)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"figure: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
