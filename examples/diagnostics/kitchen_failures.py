@@ -83,6 +83,28 @@ def barrier_contacts(env) -> list[str]:
     return sorted(hits)
 
 
+def demo_clearance(out: Path, scene: int) -> None:
+    """Print how close the scene's demonstration (the one PDP fitted) comes to the scene's barriers: the
+    margin a rollout that imitates it has. Poses are set from the recorded joint positions, no stepping."""
+    import mujoco
+
+    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root
+    from lerobot_pdp.envs.kitchen_microwave import KitchenMicrowaveEnv
+    from lerobot_pdp.envs.suite import get_suite_env
+
+    states = demo_episode(demo_root(get_suite_env("kitchen-microwave"), out, scene))["observation.state"]
+    env = KitchenMicrowaveEnv(scene=scene)
+    env.reset(seed=0)
+    clearance = []
+    for s in states:  # agent_pos = end effector xyz, then the kitchen's robot qpos (9) and qvel (9)
+        env.data.qpos[:9] = s[3:12]
+        mujoco.mj_forward(env.model, env.data)
+        clearance.append(env._clearance())
+    t = int(np.argmin(clearance))
+    print(f"scene-{scene} demonstration: {len(states)} steps, closest to a barrier {clearance[t]:.3f} m at step {t}")
+    env.close()
+
+
 def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
     from lerobot_pdp.envs.kitchen_microwave import DOOR_OPEN
 
@@ -151,6 +173,7 @@ def main() -> None:
     else:
         if method.adapt != "fit_latent":
             ap.error("scenes 1-3 replay PDP's fitted latent; other methods adapt their weights or noise")
+        demo_clearance(args.run.parents[2], args.scene)
         policy.set_latent(torch.tensor(meta["scenes"][str(args.scene)]["z"], dtype=torch.float32))
         run_rollouts(suite, args.scene, policy, pre, post, args.n, seed * 10_000 + args.scene)
         labels = [f"scene {args.scene}"] * args.n

@@ -51,6 +51,8 @@ def main() -> None:
     ap.add_argument("--z1", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[1] (default: as --z0)")
     ap.add_argument("--noise-draws", type=int, default=32, help="(k, eps) draws per demonstration window")
     ap.add_argument("--rollouts", type=int, default=0, help="rollouts per grid point (0: L_fit only)")
+    ap.add_argument("--first-windows", type=int, metavar="W",
+                    help="L_fit on the demonstration's first W windows only (where does the early part point?)")
     ap.add_argument("--out", type=Path, default=Path("latent_landscape.png"))
     args = ap.parse_args()
 
@@ -85,6 +87,8 @@ def main() -> None:
     den, sched = policy.denoiser, policy.noise_schedule
     consts = den.weight_constants(list(range(sched.num_train_timesteps)))
     idx = torch.arange(len(windows.segment))
+    if args.first_windows:
+        idx = idx[: args.first_windows]
     with torch.no_grad():
         obs_mod = den.obs_modulation(consts, windows.obs_cond)
 
@@ -115,7 +119,8 @@ def main() -> None:
                           "L_fit(grid min)": round(float(loss.min()), 5)}))
     policy.set_latent(None)
 
-    panels = [(f"L_fit (lambda = {cfg.fit_lambda:g})", loss, "viridis")]
+    part = f", first {len(idx)} windows" if args.first_windows else ""
+    panels = [(f"L_fit (lambda = {cfg.fit_lambda:g}{part})", loss, "viridis")]
     if args.rollouts:
         panels.append((f"scene-{args.scene} success ({args.rollouts} rollouts per z)", success, "RdYlGn"))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.6), squeeze=False)
