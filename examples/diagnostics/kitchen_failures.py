@@ -12,7 +12,8 @@ logged, and each rollout is put in one class:
   ``--reach`` at the end) before the door passed the success angle;
 - ``still pulling at the time limit``: holding the handle, door not open far enough.
 
-For each rollout it also prints when the fingers first closed (the mean of the two finger commands below 0),
+For scenes 1-3 it first prints how close the scene's demonstration comes to a barrier (the margin a rollout
+that imitates it has). For each rollout it also prints when the fingers first closed (the mean of the two finger commands below 0),
 how far from the handle, the largest door opening and where the end effector ended.
 
     python examples/diagnostics/kitchen_failures.py /work/runs/kitchen_full/runs/pdp/seed0 --scene 0
