@@ -55,6 +55,10 @@ def main() -> None:
                     help="L_fit on the demonstration's first W windows only (where does the early part point?)")
     ap.add_argument("--out", type=Path, default=Path("latent_landscape.png"))
     args = ap.parse_args()
+    for name, value, least in (("-n", args.n, 2), ("--noise-draws", args.noise_draws, 1),
+                               ("--rollouts", args.rollouts, 0), ("--first-windows", args.first_windows or 1, 1)):
+        if value < least:
+            ap.error(f"{name} must be >= {least}, got {value}")
 
     policy, pre, post = load_run(args.run)
     cfg = policy.config
@@ -65,11 +69,11 @@ def main() -> None:
     if not meta_file.is_file():
         ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its fitted latent is read from there)")
     meta = json.loads(meta_file.read_text())
-    root = demo_root(get_suite_env(args.env), args.run.parents[2], args.scene)
+    suite = get_suite_env(args.env)
+    root = demo_root(suite, args.run.parents[2], args.scene)
     if not root.is_dir():
         ap.error(f"no scene-{args.scene} demonstration at {root}")
     demo = demo_episode(root)
-    suite = get_suite_env(args.env)
 
     policy.eval()
     means = np.stack([m.numpy() for m in policy.mode_latents().values()])
@@ -88,6 +92,8 @@ def main() -> None:
     consts = den.weight_constants(list(range(sched.num_train_timesteps)))
     idx = torch.arange(len(windows.segment))
     if args.first_windows:
+        if args.first_windows > len(idx):
+            ap.error(f"--first-windows {args.first_windows}: the scene-{args.scene} demonstration has {len(idx)} windows")
         idx = idx[: args.first_windows]
     with torch.no_grad():
         obs_mod = den.obs_modulation(consts, windows.obs_cond)
@@ -125,7 +131,7 @@ def main() -> None:
         panels.append((f"scene-{args.scene} success ({args.rollouts} rollouts per z)", success, "RdYlGn"))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.6), squeeze=False)
     # Each cell centred on its grid point (imshow spreads n cells over the extent).
-    da, db = (a_axis[1] - a_axis[0]) / 2 if args.n > 1 else 0.5, (b_axis[1] - b_axis[0]) / 2 if args.n > 1 else 0.5
+    da, db = (a_axis[1] - a_axis[0]) / 2, (b_axis[1] - b_axis[0]) / 2
     xlim, ylim = (r1[0] - db, r1[1] + db), (r0[0] - da, r0[1] + da)
     extent = (*xlim, *ylim)
     for ax, (title, grid, cmap) in zip(axes[0], panels, strict=True):
