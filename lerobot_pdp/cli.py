@@ -7,6 +7,7 @@ so further subcommands (e.g. ``benchmark``) plug in by adding one pair and listi
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -160,10 +161,44 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         print(f"figure:  {f}")
     return 0
 
+def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "merge-results",
+        help="one results table from benchmark runs of different seeds",
+        description="Merge the results.json of benchmark runs that used the same env and settings but different "
+        "seeds (or methods), e.g. seeds run on several machines. Writes OUT/results.json and OUT/results.md.",
+    )
+    p.add_argument("results", type=Path, nargs="+", help="benchmark output folders or their results.json files")
+    p.add_argument("--out", required=True, type=Path, help="folder for the merged results.json / results.md")
+    p.set_defaults(func=cmd_merge_results)
+
+
+def cmd_merge_results(args: argparse.Namespace) -> int:
+    from lerobot_pdp.benchmark.protocol import merge_results, results_markdown
+
+    files = [r / "results.json" if r.is_dir() else r for r in args.results]
+    for f in files:
+        if not f.is_file():
+            raise FileNotFoundError(f"no results file at {f} (give a benchmark --out folder or its results.json)")
+    target = args.out / "results.json"
+    if any(target.resolve() == f.resolve() for f in files):
+        raise ValueError(f"--out {args.out} would overwrite one of the inputs ({target}); choose another folder")
+    res = merge_results([(str(f), json.loads(f.read_text())) for f in files])
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, text in (("results.json", json.dumps(res, indent=1)), ("results.md", results_markdown(res))):
+        tmp = args.out / f".{name}.tmp"  # whole files only: write aside, then rename
+        tmp.write_text(text)
+        tmp.replace(args.out / name)
+    print(results_markdown(res))
+    print(f"results: {target} and {args.out / 'results.md'}")
+    return 0
+
+
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_make_dataset_parser,
     add_plot_dataset_parser,
     add_benchmark_parser,
+    add_merge_results_parser,
 ]
 
 

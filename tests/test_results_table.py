@@ -32,7 +32,7 @@ def test_mean_and_std_over_seeds_in_json_and_table():
     assert res["init_ablation"]["encoder@0"]["mean"] == pytest.approx(0.6)
     md = results_markdown(res)
     assert "| pdp | 100.0 ± 0.0 | 80.0 ± 10.0 | 100.0 ± 0.0 | 90.0 ± 10.0 | 90.0 |" in md
-    assert "| dp | 50.0 | 0.0 | 100.0 | 0.0 |" in md  # one seed: no std
+    assert "| dp (seeds [0]) | 50.0 | 0.0 | 100.0 | 0.0 |" in md  # one seed: no std; its seed named
     assert "| warm (encoder) | 60.0 ± 10.0 |" in md and "| random | 5.0 ± 5.0 |" in md
 
 
@@ -56,3 +56,62 @@ def test_inference_steps_outside_1_to_k_is_refused_before_anything_is_written(tm
     with pytest.raises(ValueError, match=rf"inference_steps must be in 1\.\.20 .*got {steps}"):
         run_benchmark(cfg)
     assert not (tmp_path / "bench").exists()
+
+
+def _results(seeds: list[int], per_method: dict[str, dict[int, list[float]]], **cfg_kw) -> dict:
+    cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=seeds, **cfg_kw)
+    per_run = {m: {s: _run(r) for s, r in runs.items()} for m, runs in per_method.items()}
+    return aggregate("reach-around", cfg, per_run, {}, TrainSettings(steps=10), 10)
+
+
+def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
+    """Seeds run in two folders merge into the table a single run over all seeds would have written."""
+    from lerobot_pdp.benchmark.protocol import merge_results
+
+    s0 = {"pdp": {0: [1.0, 0.9, 1.0, 0.8]}, "dp": {0: [0.5, 0.0, 1.0, 0.0]}}
+    s12 = {"pdp": {1: [1.0, 0.7, 1.0, 1.0], 2: [0.9, 0.8, 0.6, 1.0]}, "dp": {1: [0.4, 0.1, 0.9, 0.2]}}
+    whole = _results([0, 1, 2], {m: {**s0[m], **s12[m]} for m in s0})
+    merged = merge_results([("b", _results([1, 2], s12)), ("a", _results([0], s0))])
+    assert merged["seeds"] == [0, 1, 2] and merged["merged_from"] == ["b", "a"]
+    for m in ("pdp", "dp"):
+        assert merged["methods"][m]["seeds"] == whole["methods"][m]["seeds"]
+        for key in ("scene0", "scene1", "scene2", "scene3"):
+            for field_ in ("success", "mean", "std", "collision"):
+                assert merged["methods"][m][key][field_] == pytest.approx(whole["methods"][m][key][field_])
+        assert merged["methods"][m]["shifted_avg"] == pytest.approx(whole["methods"][m]["shifted_avg"])
+    md = results_markdown(merged)
+    assert "| dp (seeds [0, 1]) | 45.0 ± 5.0 |" in md  # a method missing a seed says which it has
+    assert "| pdp | 96.7 ± 4.7 |" in md and "Merged from: b, a." in md
+
+
+def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
+    from lerobot_pdp.benchmark.protocol import merge_results
+
+    a = _results([0], {"pdp": {0: [1.0, 1.0, 1.0, 1.0]}})
+    with pytest.raises(ValueError, match="pdp seed 0 is in both a and b"):
+        merge_results([("a", a), ("b", a)])
+    other = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}}, rollouts=20)
+    with pytest.raises(ValueError, match="b: rollouts is 20 but a has 40"):
+        merge_results([("a", a), ("b", other)])
+    with pytest.raises(ValueError, match="at least two"):
+        merge_results([("a", a)])
+
+
+def test_merge_results_cli_writes_both_files_and_never_overwrites_an_input(tmp_path, capsys):
+    from lerobot_pdp.cli import main
+
+    for seed in (0, 1):
+        d = tmp_path / f"seed{seed}"
+        d.mkdir()
+        (d / "results.json").write_text(json.dumps(_results([seed], {"pdp": {seed: [1.0, 0.5, 1.0, 1.0]}})))
+    assert main(["merge-results", str(tmp_path / "seed0"), str(tmp_path / "seed1" / "results.json"),
+                 "--out", str(tmp_path / "all")]) == 0
+    res = json.loads((tmp_path / "all" / "results.json").read_text())
+    assert res["methods"]["pdp"]["scene1"]["success"] == [0.5, 0.5]
+    assert "| pdp | 100.0 ± 0.0 | 50.0 ± 0.0 |" in (tmp_path / "all" / "results.md").read_text()
+    assert sorted(p.name for p in (tmp_path / "all").iterdir()) == ["results.json", "results.md"]
+    capsys.readouterr()
+    assert main(["merge-results", str(tmp_path / "seed0"), str(tmp_path / "seed1"), "--out", str(tmp_path / "seed1")]) == 2
+    assert "would overwrite one of the inputs" in capsys.readouterr().err
+    assert main(["merge-results", str(tmp_path / "seed0"), str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+    assert "no results file at" in capsys.readouterr().err and not (tmp_path / "x").exists()

@@ -507,7 +507,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "methods": {}}
     for name, runs in per_run.items():
-        entry: dict[str, Any] = {}
+        entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
         for scene in cfg.scenes:
             rows = [runs[s]["scenes"][str(scene)] for s in cfg.seeds if s in runs]
             d: dict[str, Any] = {"success": [r["success"] for r in rows]}
@@ -529,6 +529,70 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     return out
 
 
+# Per-scene keys that are means over seeds (each seed ran the same number of rollouts), so a merge can
+# weight them by seed count and stay exact.
+_SEED_MEANS = ("collision", "coverage", "entropy", "steer_accuracy")
+
+
+def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """One ``results.json`` from several runs of the same protocol that hold different seeds (e.g. seeds run
+    on other machines or sessions). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
+
+    Refused, naming the files and the key: other env, rollouts, training settings or scenes, and a
+    (method, seed) present twice. Per-seed success lists are concatenated in seed order, mean / std
+    recomputed; the other per-scene figures are seed-weighted means of the runs' means."""
+    if len(results) < 2:
+        raise ValueError(f"merging needs at least two results files, got {len(results)}")
+    first_name, first = results[0]
+    for name, res in results[1:]:
+        for key in ("env", "rollouts", "quick", "train"):
+            if res.get(key) != first.get(key):
+                raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
+                                 "only runs of the same protocol can be merged")
+    # method -> [(seed, source name, entry)] with each seed's index into the entry's per-seed lists
+    rows: dict[str, list[tuple[int, str, dict[str, Any], int]]] = {}
+    for name, res in results:
+        for method, entry in res["methods"].items():
+            seeds = entry.get("seeds", res["seeds"])  # files from before per-method seeds: all seeds ran
+            for i, seed in enumerate(seeds):
+                clash = [n for s, n, _, _ in rows.get(method, []) if s == seed]
+                if clash:
+                    raise ValueError(f"{method} seed {seed} is in both {clash[0]} and {name}; "
+                                     "merge runs of different seeds only")
+                rows.setdefault(method, []).append((seed, name, entry, i))
+    out: dict[str, Any] = {key: first[key] for key in ("env", "rollouts", "quick", "train")}
+    out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
+    out["merged_from"] = [name for name, _ in results]
+    out["methods"] = {}
+    for method, per_seed in rows.items():
+        per_seed.sort(key=lambda r: r[0])
+        scenes = [k for k in per_seed[0][2] if k.startswith("scene")]
+        for _, name, entry, _ in per_seed:
+            got = [k for k in entry if k.startswith("scene")]
+            if got != scenes:
+                raise ValueError(f"{name}: {method} has scenes {got} but {per_seed[0][1]} has {scenes}")
+        merged: dict[str, Any] = {"seeds": [r[0] for r in per_seed]}
+        for scene in scenes:
+            success = [entry[scene]["success"][i] for _, _, entry, i in per_seed]
+            a = _agg(success)
+            d: dict[str, Any] = {"success": success, "mean": a["mean"], "std": a["std"]}
+            for key in _SEED_MEANS:
+                if key in per_seed[0][2][scene]:
+                    d[key] = _agg([entry[scene].get(key) for _, _, entry, _ in per_seed])["mean"]
+            merged[scene] = d
+        shifted = [merged[s]["mean"] for s in scenes if s != "scene0" and merged[s]["mean"] is not None]
+        merged["shifted_avg"] = float(np.mean(shifted)) if shifted else None
+        steps_used = sorted({s for _, _, e, _ in per_seed for s in e.get("inference_steps", [])})
+        if steps_used:
+            merged["inference_steps"] = steps_used
+        out["methods"][method] = merged
+    abl = [res["init_ablation"] for _, res in results if "init_ablation" in res]
+    if abl:
+        keys = abl[0].keys()
+        out["init_ablation"] = {k: _agg([v for a in abl for v in a.get(k, {}).get("values", [])]) for k in keys}
+    return out
+
+
 def _fmt(d: dict[str, Any] | None) -> str:
     if not d or d.get("mean") is None:
         return "–"
@@ -546,7 +610,8 @@ def results_markdown(res: dict[str, Any]) -> str:
              "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, entry in res["methods"].items():
         cov = entry.get("scene0", {}).get("coverage")
-        row = [name, *[_fmt(entry[s]) for s in scenes],
+        label = name if entry.get("seeds", res["seeds"]) == res["seeds"] else f"{name} (seeds {entry['seeds']})"
+        row = [label, *[_fmt(entry[s]) for s in scenes],
                "–" if entry.get("shifted_avg") is None else f"{100 * entry['shifted_avg']:.1f}",
                "–" if cov is None else f"{100 * cov:.0f}"]
         lines.append("| " + " | ".join(row) + " |")
@@ -557,6 +622,8 @@ def results_markdown(res: dict[str, Any]) -> str:
             cells = [_fmt(res["init_ablation"].get(f"{init}@{s}")) for s in INIT_STEPS]
             lines.append(f"| {'warm (encoder)' if init == 'encoder' else 'random'} | " + " | ".join(cells) + " |")
     t = res["train"]
+    if res.get("merged_from"):
+        lines += ["", f"Merged from: {', '.join(res['merged_from'])}."]
     lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
     sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}" for name, e in res["methods"].items()
@@ -619,5 +686,5 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     return res
 
 
-__all__ = ["BenchmarkConfig", "Method", "TrainSettings", "load_policy", "load_run", "methods_for", "results_markdown",
-           "run_benchmark"]
+__all__ = ["BenchmarkConfig", "Method", "TrainSettings", "load_policy", "load_run", "merge_results", "methods_for",
+           "results_markdown", "run_benchmark"]
