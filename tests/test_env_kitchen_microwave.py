@@ -50,7 +50,7 @@ def test_registration_and_spaces():
 def test_reset_pose_clear_in_every_scene(envs):
     for k, env in envs.items():
         _, info = env.reset(seed=0)
-        assert not env._barrier_contact(), k
+        assert not env._barrier_contact() and env.barrier_contacts() == [], k
         assert info["clearance"] > 0.02, (k, info["clearance"])
 
 
@@ -75,6 +75,11 @@ def test_scene3_blocks_all_routes_and_shipped_waypoints_succeed(envs):
     for i in range(len(km.MODE_NAMES)):
         info, _ = rollout(envs[3], km.make_expert(i, np.random.default_rng(0)))
         assert not info["is_success"] and info["collided"], km.MODE_NAMES[i]
+        # the collision step's contacts are named: which barrier, which robot body
+        hits = envs[3].barrier_contacts()
+        barrier_names = {b.name or f"barriers[{j}]" for j, b in enumerate(envs[3].scene.barriers)}
+        assert hits and all(h.split(" / ")[0] in barrier_names and h.split(" / ")[1].startswith("panda0_")
+                            for h in hits), (km.MODE_NAMES[i], hits)
     info, _ = rollout(envs[3], km.expert_from_waypoints(None, np.random.default_rng(0), scene=3))
     assert info["is_success"] and info["mode"] == -1 and info["mode_name"] == NOVEL
 

@@ -64,24 +64,11 @@ def install_step_log():
             if terminated or truncated:
                 self.diag_recording, self.diag_info = False, dict(info)
                 if info.get("collided"):
-                    self.diag_info["hit"] = barrier_contacts(self)
+                    self.diag_info["hit"] = self.barrier_contacts()
         return out
 
     km.KitchenMicrowaveEnv.step, km.KitchenMicrowaveEnv.reset = logged_step, logged_reset
     return envs
-
-
-def barrier_contacts(env) -> list[str]:
-    """'<scene barrier name> / <robot body>' for every penetrating contact of a barrier with the robot."""
-    from lerobot_pdp.envs.kitchen_microwave import BARRIER_PREFIX
-
-    m, hits = env.model, set()
-    for c in env.data.contact[: env.data.ncon]:
-        for g, other in ((int(c.geom1), int(c.geom2)), (int(c.geom2), int(c.geom1))):
-            if c.dist < 0 and g in env._barrier_geoms and other in env._robot_geoms:
-                i = int(m.geom(g).name[len(BARRIER_PREFIX):])
-                hits.add(f"{env.scene.barriers[i].name or f'barriers[{i}]'} / {m.body(m.geom_bodyid[other]).name}")
-    return sorted(hits)
 
 
 def demo_clearance(out: Path, scene: int) -> None:
@@ -100,7 +87,7 @@ def demo_clearance(out: Path, scene: int) -> None:
     for s in states:  # agent_pos = end effector xyz, then the kitchen's robot qpos (9) and qvel (9)
         env.data.qpos[:9] = s[3:12]
         mujoco.mj_forward(env.model, env.data)
-        clearance.append(env._clearance())
+        clearance.append(env.clearance())
     t = int(np.argmin(clearance))
     print(f"scene-{scene} demonstration: {len(states)} steps, closest to a barrier {clearance[t]:.3f} m at step {t}")
     env.close()

@@ -29,7 +29,7 @@ into position targets); the last two drive the fingers (+1 opens).
 ``collided`` (the simulator reports a contact between a robot geom and a *scene barrier*; touching the
 kitchen itself - counter, kettle, microwave body, door - does not count, since the original task touches
 the door and incidental furniture contact is not what scenes constrain), ``clearance`` (current
-robot-to-barrier distance, approximate, see ``_clearance``), ``min_clearance`` (its minimum over the
+robot-to-barrier distance, approximate, see :meth:`~KitchenMicrowaveEnv.clearance`), ``min_clearance`` (its minimum over the
 episode so far; ``inf`` without barriers), ``door_angle`` and, on the last step, ``mode``
 (:func:`classify_mode` of the episode's ``agent_pos`` rows). Episodes end on success or collision and are
 truncated after :data:`MAX_EPISODE_STEPS` (training routes need 53-77 steps).
@@ -292,7 +292,7 @@ class KitchenMicrowaveEnv(gym.Env):
         # The reset pose is deterministic: check once that no barrier intersects the robot there, and
         # that none intersects the kettle (a free body: an overlap would launch it and change the dynamics).
         self._kitchen.reset(seed=0)
-        d0 = self._clearance()
+        d0 = self.clearance()
         if d0 < 0.01:
             raise SceneError(f"{self.scene.source}: a barrier touches the robot at its reset pose "
                              f"(clearance {d0:.3f} m, need >= 0.010 m)")
@@ -314,7 +314,7 @@ class KitchenMicrowaveEnv(gym.Env):
 
     # -- physics queries ------------------------------------------------------------------------------
 
-    def _clearance(self) -> float:
+    def clearance(self) -> float:
         """Minimum robot-to-barrier distance (``inf`` without barriers), from the robot's collision geoms.
 
         Evaluated analytically on sample points of every moving robot collision geom (mesh vertices,
@@ -322,7 +322,7 @@ class KitchenMicrowaveEnv(gym.Env):
         primitive, so it is a slight over-estimate (by at most a mesh facet's sag). ``mj_geomDistance`` is
         not used: in MuJoCo 3.11 it returns spurious 0.0 (native CCD) or spurious negative (libccd)
         distances for mesh-box pairs 3-40 cm apart. Collisions themselves come from the simulator's
-        contacts, see :meth:`_barrier_contact`.
+        contacts, see :meth:`barrier_contacts`.
         """
         if not self.scene.barriers:
             return math.inf
@@ -333,14 +333,31 @@ class KitchenMicrowaveEnv(gym.Env):
             best = min(best, float(np.min(_signed_distance(b, pts) - self._pt_radius)))
         return best
 
-    def _barrier_contact(self) -> bool:
-        if not len(self._barrier_geoms):
-            return False
+    def _barrier_contact_mask(self) -> np.ndarray:
+        """Per contact of the current state: a penetrating barrier-robot contact (what ``collided`` means)."""
         c = self.data.contact[: self.data.ncon]
         g1, g2 = np.asarray(c.geom1), np.asarray(c.geom2)
         hit = np.isin(g1, self._barrier_geoms) | np.isin(g2, self._barrier_geoms)
         robot = np.isin(g1, self._robot_geoms) | np.isin(g2, self._robot_geoms)
-        return bool(np.any(hit & robot & (np.asarray(c.dist) < 0)))
+        return hit & robot & (np.asarray(c.dist) < 0)
+
+    def _barrier_contact(self) -> bool:
+        return bool(len(self._barrier_geoms) and np.any(self._barrier_contact_mask()))
+
+    def barrier_contacts(self) -> list[str]:
+        """What touches what right now: ``"<barrier name> / <robot body>"`` for every penetrating contact
+        of a scene barrier with the robot (barriers without a name are ``barriers[i]``), sorted. Empty when
+        ``collided`` would be False; called by diagnostics after a collision, not on every step."""
+        if not len(self._barrier_geoms):
+            return []
+        m, hits = self.model, set()
+        for k in np.flatnonzero(self._barrier_contact_mask()):
+            c = self.data.contact[int(k)]
+            g1, g2 = int(c.geom1), int(c.geom2)
+            barrier, robot = (g1, g2) if g1 in self._barrier_geoms else (g2, g1)
+            i = int(m.geom(barrier).name[len(BARRIER_PREFIX):])
+            hits.add(f"{self.scene.barriers[i].name or f'barriers[{i}]'} / {m.body(m.geom_bodyid[robot]).name}")
+        return sorted(hits)
 
     def _obs(self, kitchen_obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         robot = np.asarray(kitchen_obs["observation"][:18], dtype=np.float64)
@@ -358,7 +375,7 @@ class KitchenMicrowaveEnv(gym.Env):
         self._steps = 0
         obs = self._obs(kobs)
         self._states = [obs["agent_pos"].copy()]
-        clearance = self._clearance()
+        clearance = self.clearance()
         self._min_clearance = clearance
         info = {"is_success": False, "collided": False, "clearance": clearance, "min_clearance": clearance,
                 "door_angle": float(obs["environment_state"][0])}
@@ -374,7 +391,7 @@ class KitchenMicrowaveEnv(gym.Env):
         self._steps += 1
         obs = self._obs(kobs)
         self._states.append(obs["agent_pos"].copy())
-        clearance = self._clearance()
+        clearance = self.clearance()
         self._min_clearance = min(self._min_clearance, clearance)
         collided = self._barrier_contact()
         opened = "microwave" in kinfo["episode_task_completions"]
