@@ -161,6 +161,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         print(f"figure:  {f}")
     return 0
 
+
 def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "merge-results",

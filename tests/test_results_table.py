@@ -95,6 +95,11 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
         merge_results([("a", a), ("b", other)])
     with pytest.raises(ValueError, match="at least two"):
         merge_results([("a", a)])
+    # a file from before per-method seeds whose method finished fewer seeds than the table's
+    old = _results([1, 2], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
+    del old["methods"]["pdp"]["seeds"]
+    with pytest.raises(ValueError, match=r"old: pdp scene0 has 1 per-seed values for seeds \[1, 2\]"):
+        merge_results([("a", a), ("old", old)])
 
 
 def test_merge_results_cli_writes_both_files_and_never_overwrites_an_input(tmp_path, capsys):

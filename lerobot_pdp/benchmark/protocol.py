@@ -554,6 +554,10 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     for name, res in results:
         for method, entry in res["methods"].items():
             seeds = entry.get("seeds", res["seeds"])  # files from before per-method seeds: all seeds ran
+            short = [k for k in entry if k.startswith("scene") and len(entry[k]["success"]) != len(seeds)]
+            if short:  # an older file's method that missed some seeds: which ones is not recorded
+                raise ValueError(f"{name}: {method} {short[0]} has {len(entry[short[0]]['success'])} per-seed "
+                                 f"values for seeds {seeds}; cannot tell which seeds they are")
             for i, seed in enumerate(seeds):
                 clash = [n for s, n, _, _ in rows.get(method, []) if s == seed]
                 if clash:

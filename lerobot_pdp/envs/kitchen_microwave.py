@@ -28,9 +28,10 @@ into position targets); the last two drive the fingers (+1 opens).
 ``info``: ``is_success`` (door opened past the kitchen's threshold, |q + 0.75| < 0.3, and no collision),
 ``collided`` (the simulator reports a contact between a robot geom and a *scene barrier*; touching the
 kitchen itself - counter, kettle, microwave body, door - does not count, since the original task touches
-the door and incidental furniture contact is not what scenes constrain), ``clearance`` (current
-robot-to-barrier distance, approximate, see :meth:`~KitchenMicrowaveEnv.clearance`), ``min_clearance`` (its minimum over the
-episode so far; ``inf`` without barriers), ``door_angle`` and, on the last step, ``mode``
+the door and incidental furniture contact is not what scenes constrain; which barrier touched which robot
+body: :meth:`~KitchenMicrowaveEnv.barrier_contacts`), ``clearance`` (current robot-to-barrier distance,
+approximate, see :meth:`~KitchenMicrowaveEnv.clearance`), ``min_clearance`` (its minimum over the episode
+so far; ``inf`` without barriers), ``door_angle`` and, on the last step, ``mode``
 (:func:`classify_mode` of the episode's ``agent_pos`` rows). Episodes end on success or collision and are
 truncated after :data:`MAX_EPISODE_STEPS` (training routes need 53-77 steps).
 
