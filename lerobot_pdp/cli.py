@@ -184,7 +184,13 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     target = args.out / "results.json"
     if any(target.resolve() == f.resolve() for f in files):
         raise ValueError(f"--out {args.out} would overwrite one of the inputs ({target}); choose another folder")
-    res = merge_results([(str(f), json.loads(f.read_text())) for f in files])
+    loaded = []
+    for f in files:
+        try:
+            loaded.append((str(f), json.loads(f.read_text())))
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{f} is not JSON ({e})") from e
+    res = merge_results(loaded)
     args.out.mkdir(parents=True, exist_ok=True)
     for name, text in (("results.json", json.dumps(res, indent=1)), ("results.md", results_markdown(res))):
         tmp = args.out / f".{name}.tmp"  # whole files only: write aside, then rename

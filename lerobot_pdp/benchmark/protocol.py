@@ -543,6 +543,10 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     recomputed; the other per-scene figures are seed-weighted means of the runs' means."""
     if len(results) < 2:
         raise ValueError(f"merging needs at least two results files, got {len(results)}")
+    for name, res in results:
+        missing = [k for k in ("env", "rollouts", "seeds", "train", "methods") if not isinstance(res, dict) or k not in res]
+        if missing:
+            raise ValueError(f"{name}: not a benchmark results.json (no {', '.join(missing)})")
     first_name, first = results[0]
     for name, res in results[1:]:
         for key in ("env", "rollouts", "quick", "train"):
