@@ -105,9 +105,6 @@ def cmd_plot_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
-# ---- entry point -----------------------------------------------------------------------------------
-
-
 # ---- benchmark -------------------------------------------------------------------------------------
 
 
@@ -121,10 +118,13 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
     p.add_argument("--out", required=True, type=Path, help="output folder (reused to resume)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds (default 0 1 2)")
-    p.add_argument("--rollouts", type=int, default=40, help="rollouts per scene (default 40)")
-    p.add_argument("--methods", nargs="+", default=["pdp", "dp", "bc"],
-                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond")
+    # None = not given: the defaults depend on --quick (resolved in cmd_benchmark)
+    p.add_argument("--seeds", type=int, nargs="+", default=None,
+                   help="training seeds (default 0 1 2; 0 with --quick)")
+    p.add_argument("--rollouts", type=int, default=None, help="rollouts per scene (default 40; 20 with --quick)")
+    p.add_argument("--methods", nargs="+", default=None,
+                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond "
+                   "(default pdp dp bc; pdp dp with --quick)")
     p.add_argument("--quick", action="store_true",
                    help="small budget for a first look: one seed, PDP + DP, shorter training, 20 rollouts")
     p.add_argument("--ablations", action="store_true",
@@ -140,20 +140,24 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_benchmark)
 
 
-def cmd_benchmark(args: argparse.Namespace) -> int:
-    from lerobot_pdp.benchmark.protocol import BenchmarkConfig, run_benchmark
+def benchmark_config(args: argparse.Namespace):
+    """The ``BenchmarkConfig`` of parsed ``benchmark`` arguments: --quick changes the defaults of seeds,
+    rollouts and methods, never a value given explicitly."""
+    from lerobot_pdp.benchmark.protocol import BenchmarkConfig
 
-    explicit = {a.split("=")[0] for a in sys.argv[1:]}
-    seeds, rollouts, methods = args.seeds, args.rollouts, args.methods
-    if args.quick:  # quick defaults unless given explicitly
-        seeds = seeds if "--seeds" in explicit else [0]
-        rollouts = rollouts if "--rollouts" in explicit else 20
-        methods = methods if "--methods" in explicit else ["pdp", "dp"]
-    cfg = BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
-                          quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
-                          episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
-                          figures=not args.no_figures)
-    res = run_benchmark(cfg)
+    seeds = args.seeds if args.seeds is not None else [0] if args.quick else [0, 1, 2]
+    rollouts = args.rollouts if args.rollouts is not None else 20 if args.quick else 40
+    methods = args.methods if args.methods is not None else ["pdp", "dp"] if args.quick else ["pdp", "dp", "bc"]
+    return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
+                           quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
+                           episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
+                           figures=not args.no_figures)
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+
+    res = run_benchmark(benchmark_config(args))
     print()
     print((Path(args.out) / "results.md").read_text())
     print(f"results: {Path(args.out) / 'results.json'} and {Path(args.out) / 'results.md'}")
@@ -175,7 +179,7 @@ def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_merge_results(args: argparse.Namespace) -> int:
-    from lerobot_pdp.benchmark.protocol import merge_results, results_markdown
+    from lerobot_pdp.benchmark.protocol import merge_results, results_markdown, write_text_atomic
 
     files = [r / "results.json" if r.is_dir() else r for r in args.results]
     for f in files:
@@ -192,10 +196,8 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
             raise ValueError(f"{f} is not JSON ({e})") from e
     res = merge_results(loaded)
     args.out.mkdir(parents=True, exist_ok=True)
-    for name, text in (("results.json", json.dumps(res, indent=1)), ("results.md", results_markdown(res))):
-        tmp = args.out / f".{name}.tmp"  # whole files only: write aside, then rename
-        tmp.write_text(text)
-        tmp.replace(args.out / name)
+    write_text_atomic(target, json.dumps(res, indent=1))
+    write_text_atomic(args.out / "results.md", results_markdown(res))
     print(results_markdown(res))
     print(f"results: {target} and {args.out / 'results.md'}")
     return 0

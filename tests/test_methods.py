@@ -56,3 +56,18 @@ def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
         train_method(method, data, run_dir, 0, settings, settings.steps)
     info.unlink()  # copied in by hand: reused as it is
     assert train_method(method, data, run_dir, 0, settings, 100) == run_dir / "pretrained_model"
+
+
+def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_checkpoint(tmp_path):
+    """A run whose checkpoint is gone is trained again: the eval.json / traces.json / init_ablation.json /
+    train_info.json of the earlier model must not be taken for this one's. Here lerobot-train (a real process) fails on a missing
+    dataset: the error names the log, and neither a checkpoint nor its train_info.json is left behind."""
+    method = methods_for(get_suite_env("reach-around"))["bc"]
+    settings = SETTINGS["reach-around"][1]
+    run_dir = tmp_path / "runs" / "bc" / "seed0"
+    run_dir.mkdir(parents=True)
+    for stale in ("eval.json", "traces.json", "init_ablation.json", "train_info.json"):
+        (run_dir / stale).write_text("{}")
+    with pytest.raises(RuntimeError, match=r"lerobot-train failed with exit code \d+; see .*train\.log"):
+        train_method(method, tmp_path / "no_such_dataset", run_dir, 0, settings, 10)
+    assert sorted(p.name for p in run_dir.iterdir()) == ["train.log"]

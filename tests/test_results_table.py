@@ -125,3 +125,18 @@ def test_merge_results_cli_writes_both_files_and_never_overwrites_an_input(tmp_p
     for bad, msg in (("bad.json", "bad.json is not JSON"), ("other.json", "other.json: not a benchmark results.json")):
         assert main(["merge-results", str(tmp_path / "seed0"), str(tmp_path / bad), "--out", str(tmp_path / "x")]) == 2
         assert msg in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    ([], ([0, 1, 2], 40, ["pdp", "dp", "bc"])),
+    (["--quick"], ([0], 20, ["pdp", "dp"])),
+    (["--quick", "--seeds", "1", "2", "--rollouts", "4", "--methods", "bc"], ([1, 2], 4, ["bc"])),
+    (["--seeds", "0", "--rollouts=8"], ([0], 8, ["pdp", "dp", "bc"])),
+])
+def test_quick_changes_only_the_defaults_of_the_benchmark_command(argv, expected):
+    """The same from Python (``main([...])``) as from the shell: nothing is read from ``sys.argv``."""
+    from lerobot_pdp.cli import benchmark_config, build_parser
+
+    cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--out", "o", *argv]))
+    assert (cfg.seeds, cfg.rollouts, cfg.methods) == expected
+    assert cfg.quick == ("--quick" in argv)

@@ -32,6 +32,15 @@ from .evaluation import RolloutBatch, run_rollouts
 SCENES = (0, 1, 2, 3)
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write a whole file or none: runs get cut off mid-write, and a resumed benchmark must never read a
+    truncated eval.json / results.json as a finished one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 @dataclass(frozen=True)
 class TrainSettings:
     """Training budget and sampler shared by every method on one env (fairness: same data, steps, batch,
@@ -203,7 +212,7 @@ def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[
         shutil.rmtree(root)
     make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene, progress=False,
                  **kwargs)
-    info_file.write_text(json.dumps({"source": source}))
+    write_text_atomic(info_file, json.dumps({"source": source}))
     return root, source
 
 
@@ -286,18 +295,24 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         _check_reusable(run_dir, args)
         return ckpt
     run_dir.mkdir(parents=True, exist_ok=True)
+    for stale in ("eval.json", "traces.json", "init_ablation.json", "train_info.json"):  # of an earlier model
+        (run_dir / stale).unlink(missing_ok=True)
     tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
     args.append(f"--output_dir={tmp_out}")
     log = run_dir / "train.log"
     t0 = time.time()
-    _run_logged(args, log, steps, f"train {method.name} seed {seed}")
-    src = tmp_out / "checkpoints" / "last" / "pretrained_model"
-    if not (src / "model.safetensors").is_file():
-        raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
-    os.replace(src, ckpt)
-    shutil.rmtree(tmp_out.parent, ignore_errors=True)
-    (run_dir / "train_info.json").write_text(json.dumps({"seconds": time.time() - t0, "steps": steps,
-                                                        "args": args}, indent=1))
+    try:
+        _run_logged(args, log, steps, f"train {method.name} seed {seed}")
+        src = tmp_out / "checkpoints" / "last" / "pretrained_model"
+        if not (src / "model.safetensors").is_file():
+            raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
+        # train_info.json first: a checkpoint must never be found without the arguments it was trained with
+        # (that would pass as one copied in by hand and be reused unchecked).
+        write_text_atomic(run_dir / "train_info.json", json.dumps({"seconds": time.time() - t0, "steps": steps,
+                                                                   "args": args}, indent=1))
+        os.replace(src, ckpt)
+    finally:  # a failed run leaves its log, not half a training folder
+        shutil.rmtree(tmp_out.parent, ignore_errors=True)
     return ckpt
 
 
@@ -462,8 +477,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     if method.policy_type == "pdp":
         result["latents"] = {k: v.tolist() for k, v in policy.behavior_table().items()}
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "traces.json").write_text(json.dumps(traces))
-    cache.write_text(json.dumps(result, indent=1))
+    write_text_atomic(run_dir / "traces.json", json.dumps(traces))
+    write_text_atomic(cache, json.dumps(result, indent=1))
     return result
 
 
@@ -489,7 +504,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
             out[f"{init}@{steps}"] = float(np.mean(rates)) if rates else None
             print(f"[benchmark] init {init} steps {steps}: success {out[f'{init}@{steps}']}")
     policy.set_latent(None)
-    cache.write_text(json.dumps({**out, "inference_steps": sampler}, indent=1))
+    write_text_atomic(cache, json.dumps({**out, "inference_steps": sampler}, indent=1))
     return out
 
 
@@ -684,15 +699,15 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
             if cfg.ablations and name == "pdp":
                 init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, cfg, seed, run_dir)
     res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)
-    (out / "results.json").write_text(json.dumps(res, indent=1))
-    (out / "results.md").write_text(results_markdown(res))
+    write_text_atomic(out / "results.json", json.dumps(res, indent=1))
+    write_text_atomic(out / "results.md", results_markdown(res))
     if cfg.figures:
         from .figures import write_figures
 
         res["figures"] = [str(p) for p in write_figures(suite, out, cfg, ckpts, demos)]
-        (out / "results.json").write_text(json.dumps(res, indent=1))
+        write_text_atomic(out / "results.json", json.dumps(res, indent=1))
     return res
 
 
 __all__ = ["BenchmarkConfig", "Method", "TrainSettings", "load_policy", "load_run", "merge_results", "methods_for",
-           "results_markdown", "run_benchmark"]
+           "results_markdown", "run_benchmark", "write_text_atomic"]
