@@ -80,6 +80,9 @@ def test_ablations_tiny(tmp_path):
     for entry in res["methods"].values():
         assert all(len(entry[f"scene{s}"]["success"]) == 1 for s in range(4))
     assert set(res["init_ablation"]) == {f"{i}@{n}" for i in ("encoder", "random") for n in (0, 10, 100)}
+    for entry in res["init_ablation"].values():  # the mean over shifts 1-3 and each shift's own rate
+        assert set(entry["scenes"]) == {"1", "2", "3"}
+        assert entry["mean"] == pytest.approx(sum(entry["scenes"].values()) / 3)
     md = (tmp_path / "bench" / "results.md").read_text()
     assert "| pdp_onehot |" in md and "| warm (encoder) |" in md
     config = tmp_path / "bench" / "runs" / "pdp_onehot" / "seed0" / "pretrained_model" / "config.json"

@@ -23,17 +23,23 @@ def test_mean_and_std_over_seeds_in_json_and_table():
     cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0, 1])
     per_run = {"pdp": {0: _run([1.0, 0.9, 1.0, 0.8]), 1: _run([1.0, 0.7, 1.0, 1.0])},
                "dp": {0: _run([0.5, 0.0, 1.0, 0.0])}}  # a method with one finished seed so far
-    init = {0: {"encoder@0": 0.5, "random@0": 0.0}, 1: {"encoder@0": 0.7, "random@0": 0.1}}
+    init = {0: {"encoder@0": 0.5, "random@0": 0.0,
+                "per_scene": {"encoder@0": {"1": 0.5, "3": 0.5}, "random@0": {"1": 0.0, "3": 0.0}}},
+            1: {"encoder@0": 0.7, "random@0": 0.1,
+                "per_scene": {"encoder@0": {"1": 1.0, "3": 0.4}, "random@0": {"1": 0.0, "3": 0.2}}}}
     res = aggregate("reach-around", cfg, per_run, init, TrainSettings(steps=10), 10)
     s1 = res["methods"]["pdp"]["scene1"]
     assert s1["success"] == [0.9, 0.7] and s1["mean"] == pytest.approx(0.8) and s1["std"] == pytest.approx(0.1)
     assert res["methods"]["pdp"]["shifted_avg"] == pytest.approx((0.8 + 1.0 + 0.9) / 3)
     assert res["methods"]["dp"]["scene0"]["success"] == [0.5]
     assert res["init_ablation"]["encoder@0"]["mean"] == pytest.approx(0.6)
+    assert res["init_ablation"]["encoder@0"]["scenes"] == pytest.approx({"1": 0.75, "3": 0.45})
     md = results_markdown(res)
     assert "| pdp | 100.0 ± 0.0 | 80.0 ± 10.0 | 100.0 ± 0.0 | 90.0 ± 10.0 | 90.0 |" in md
     assert "| dp (seeds [0]) | 50.0 | 0.0 | 100.0 | 0.0 |" in md  # one seed: no std; its seed named
     assert "| warm (encoder) | 60.0 ± 10.0 |" in md and "| random | 5.0 ± 5.0 |" in md
+    assert "| init @ fitting steps | Shift 1 | Shift 3 |" in md  # where each initialisation wins or loses
+    assert "| warm (encoder) @ 0 | 75.0 | 45.0 |" in md and "| random @ 0 | 0.0 | 10.0 |" in md
 
 
 def test_reusing_a_dataset_of_another_size_is_refused(tmp_path):
@@ -58,10 +64,18 @@ def test_inference_steps_outside_1_to_k_is_refused_before_anything_is_written(tm
     assert not (tmp_path / "bench").exists()
 
 
-def _results(seeds: list[int], per_method: dict[str, dict[int, list[float]]], **cfg_kw) -> dict:
+def _results(seeds: list[int], per_method: dict[str, dict[int, list[float]]], init: dict | None = None,
+             **cfg_kw) -> dict:
     cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=seeds, **cfg_kw)
     per_run = {m: {s: _run(r) for s, r in runs.items()} for m, runs in per_method.items()}
-    return aggregate("reach-around", cfg, per_run, {}, TrainSettings(steps=10), 10)
+    return aggregate("reach-around", cfg, per_run, init or {}, TrainSettings(steps=10), 10)
+
+
+def _init(scene_rates: dict[str, float]) -> dict:
+    """One seed's init-ablation result with the same per-scene rates for every (init, steps)."""
+    keys = [f"{i}@{n}" for i in ("encoder", "random") for n in (0, 10, 100)]
+    mean = sum(scene_rates.values()) / len(scene_rates)
+    return {**{k: mean for k in keys}, "per_scene": {k: dict(scene_rates) for k in keys}}
 
 
 def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
@@ -70,8 +84,14 @@ def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
 
     s0 = {"pdp": {0: [1.0, 0.9, 1.0, 0.8]}, "dp": {0: [0.5, 0.0, 1.0, 0.0]}}
     s12 = {"pdp": {1: [1.0, 0.7, 1.0, 1.0], 2: [0.9, 0.8, 0.6, 1.0]}, "dp": {1: [0.4, 0.1, 0.9, 0.2]}}
-    whole = _results([0, 1, 2], {m: {**s0[m], **s12[m]} for m in s0})
-    merged = merge_results([("b", _results([1, 2], s12)), ("a", _results([0], s0))])
+    init = {0: _init({"1": 1.0, "2": 0.5, "3": 0.0}), 1: _init({"1": 0.5, "2": 0.5, "3": 0.5}),
+            2: _init({"1": 0.0, "2": 1.0, "3": 1.0})}
+    whole = _results([0, 1, 2], {m: {**s0[m], **s12[m]} for m in s0}, init)
+    merged = merge_results([("b", _results([1, 2], s12, {1: init[1], 2: init[2]})),
+                            ("a", _results([0], s0, {0: init[0]}))])
+    for k, entry in whole["init_ablation"].items():  # seed-weighted, per scene too
+        assert merged["init_ablation"][k]["mean"] == pytest.approx(entry["mean"])
+        assert merged["init_ablation"][k]["scenes"] == pytest.approx(entry["scenes"])
     assert merged["seeds"] == [0, 1, 2] and merged["merged_from"] == ["b", "a"]
     for m in ("pdp", "dp"):
         assert merged["methods"][m]["seeds"] == whole["methods"][m]["seeds"]

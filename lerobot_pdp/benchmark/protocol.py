@@ -484,7 +484,10 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
 
 def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig, seed: int,
                            run_dir: Path) -> dict[str, Any]:
-    """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3."""
+    """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3.
+
+    ``{"encoder@0": mean success over the shifted scenes, ..., "per_scene": {"encoder@0": {"1": rate, ...}}}``;
+    the per-scene rates say *where* an initialisation wins or loses, which the mean hides."""
     cache = run_dir / "init_ablation.json"
     sampler = sampler_steps(ckpt, cfg.inference_steps)
     cached = _cached(cache, sampler, ckpt)
@@ -493,17 +496,20 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
     policy, pre, post = load_policy(ckpt, cfg.inference_steps)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
+    per_scene: dict[str, dict[str, float]] = {}
     for init in ("encoder", "random"):
         for steps in INIT_STEPS:
-            rates = []
+            key, rates = f"{init}@{steps}", {}
             for scene in [s for s in cfg.scenes if s != 0]:
                 demo = demo_episode(demos[scene])
                 actor, _ = adapt(method, policy, pre, demo, seed, steps=steps, init=init)
                 batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene)
-                rates.append(batch.success_rate)
-            out[f"{init}@{steps}"] = float(np.mean(rates)) if rates else None
-            print(f"[benchmark] init {init} steps {steps}: success {out[f'{init}@{steps}']}")
+                rates[str(scene)] = batch.success_rate
+            out[key] = float(np.mean(list(rates.values()))) if rates else None
+            per_scene[key] = rates
+            print(f"[benchmark] init {init} steps {steps}: success {out[key]} per scene {rates}")
     policy.set_latent(None)
+    out["per_scene"] = per_scene
     write_text_atomic(cache, json.dumps({**out, "inference_steps": sampler}, indent=1))
     return out
 
@@ -539,8 +545,12 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
             entry["inference_steps"] = steps_used
         out["methods"][name] = entry
     if init_abl:
-        keys = next(iter(init_abl.values())).keys()
+        keys = [k for k in next(iter(init_abl.values())) if k != "per_scene"]
         out["init_ablation"] = {k: _agg([init_abl[s][k] for s in init_abl]) for k in keys}
+        for k in keys:  # per shifted scene, mean over the seeds (caches from before per_scene have none)
+            scenes = [a["per_scene"][k] for a in init_abl.values() if k in a.get("per_scene", {})]
+            if scenes:
+                out["init_ablation"][k]["scenes"] = {sc: _agg([r[sc] for r in scenes])["mean"] for sc in scenes[0]}
     return out
 
 
@@ -613,6 +623,11 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     if abl:
         keys = abl[0].keys()
         out["init_ablation"] = {k: _agg([v for a in abl for v in a.get(k, {}).get("values", [])]) for k in keys}
+        for k in keys:  # per-scene means, weighted by each file's seed count; only if every file has them
+            parts = [(a[k]["scenes"], len(a[k]["values"])) for a in abl if a.get(k, {}).get("scenes")]
+            if parts and len(parts) == len(abl):
+                n = sum(w for _, w in parts)
+                out["init_ablation"][k]["scenes"] = {sc: sum(r[sc] * w for r, w in parts) / n for sc in parts[0][0]}
     return out
 
 
@@ -644,6 +659,14 @@ def results_markdown(res: dict[str, Any]) -> str:
         for init in ("encoder", "random"):
             cells = [_fmt(res["init_ablation"].get(f"{init}@{s}")) for s in INIT_STEPS]
             lines.append(f"| {'warm (encoder)' if init == 'encoder' else 'random'} | " + " | ".join(cells) + " |")
+        per_scene = {k: v["scenes"] for k, v in res["init_ablation"].items() if v.get("scenes")}
+        if per_scene:
+            shifts = list(next(iter(per_scene.values())))
+            lines += ["", "| init @ fitting steps | " + " | ".join(f"Shift {sc}" for sc in shifts) + " |",
+                      "|---|" + "---|" * len(shifts)]
+            for k, rates in per_scene.items():
+                label = k.replace("encoder", "warm (encoder)").replace("@", " @ ")
+                lines.append(f"| {label} | " + " | ".join(f"{100 * rates[sc]:.1f}" for sc in shifts) + " |")
     t = res["train"]
     if res.get("merged_from"):
         lines += ["", f"Merged from: {', '.join(res['merged_from'])}."]
