@@ -160,3 +160,22 @@ def test_quick_changes_only_the_defaults_of_the_benchmark_command(argv, expected
     cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--out", "o", *argv]))
     assert (cfg.seeds, cfg.rollouts, cfg.methods) == expected
     assert cfg.quick == ("--quick" in argv)
+
+
+def test_rollout_figures_split_main_methods_from_ablations_whatever_was_asked(tmp_path, monkeypatch):
+    """`--methods pdp_onehot pdp dp` (ablations named explicitly, no --ablations) still draws the ablations in
+    their own grid, headed by PDP, and keeps them out of the main methods' grids."""
+    from lerobot_pdp.benchmark import figures
+
+    drawn: dict[str, list[str]] = {}
+    monkeypatch.setattr(figures, "rollouts_grid",
+                        lambda suite, traces, scenes, png, plane: drawn.setdefault(png.name, list(traces)) and png)
+    monkeypatch.setattr(figures, "interpolation_sweep", lambda *a, **k: None)
+    names = ["pdp_onehot", "pdp", "dp"]
+    for m in names:
+        (tmp_path / "runs" / m / "seed0").mkdir(parents=True)
+        (tmp_path / "runs" / m / "seed0" / "traces.json").write_text(json.dumps({"0": []}))
+    cfg = BenchmarkConfig(env="reach-around", out=tmp_path, seeds=[0], methods=names)
+    figures.write_figures(get_suite_env("reach-around"), tmp_path, cfg, {(m, 0): tmp_path for m in names}, {})
+    assert drawn == {"rollouts_xy.png": ["pdp", "dp"], "rollouts_yz.png": ["pdp", "dp"],
+                     "rollouts_ablations.png": ["pdp", "pdp_onehot"]}

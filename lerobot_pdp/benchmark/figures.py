@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 
 from ..envs.plotting import draw_scene, mode_color, scene_views  # noqa: E402
 from ..envs.suite import SuiteEnv  # noqa: E402
+from .protocol import ABLATIONS  # noqa: E402
 
 
 def _plane_dims(plane: str) -> tuple[int, int]:
@@ -210,12 +211,15 @@ def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], 
             data = json.loads(ev.read_text())
             if "latents" in data:
                 written.append(latent_map(suite, data, fig_dir / f"latent_map_{name}.png"))
-    main_methods = {k: v for k, v in traces.items() if k in cfg.methods}
+    # Split by what a method is, not by how it was asked for: `--methods pdp_onehot ...` is still an ablation.
+    # PDP heads the ablation grid too, as the row every variant is compared with.
+    main_methods = {k: v for k, v in traces.items() if k not in ABLATIONS}
     for plane in scene_views(suite)[:2]:
         if main_methods:
             written.append(rollouts_grid(suite, main_methods, list(cfg.scenes), fig_dir / f"rollouts_{plane}.png", plane))
-    abl = {k: v for k, v in traces.items() if k not in cfg.methods}
+    abl = {k: v for k, v in traces.items() if k in ABLATIONS}
     if abl:
+        abl = {**({"pdp": traces["pdp"]} if "pdp" in traces else {}), **abl}
         written.append(rollouts_grid(suite, abl, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
                                      scene_views(suite)[0]))
     if ("pdp", seed) in ckpts:
