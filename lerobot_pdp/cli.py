@@ -12,6 +12,10 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
+    from lerobot_pdp.benchmark.protocol import BenchmarkConfig
 
 
 def _quiet_imports() -> None:
@@ -140,7 +144,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_benchmark)
 
 
-def benchmark_config(args: argparse.Namespace):
+def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     """The ``BenchmarkConfig`` of parsed ``benchmark`` arguments: --quick changes the defaults of seeds,
     rollouts and methods, never a value given explicitly."""
     from lerobot_pdp.benchmark.protocol import BenchmarkConfig
