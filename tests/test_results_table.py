@@ -179,3 +179,16 @@ def test_rollout_figures_split_main_methods_from_ablations_whatever_was_asked(tm
     figures.write_figures(get_suite_env("reach-around"), tmp_path, cfg, {(m, 0): tmp_path for m in names}, {})
     assert drawn == {"rollouts_xy.png": ["pdp", "dp"], "rollouts_yz.png": ["pdp", "dp"],
                      "rollouts_ablations.png": ["pdp", "pdp_onehot"]}
+
+
+def test_atomic_write_replaces_whole_files_and_leaves_no_temp_file_when_it_fails(tmp_path):
+    from lerobot_pdp.benchmark.protocol import write_text_atomic
+
+    target = tmp_path / "results.json"
+    write_text_atomic(target, "old")
+    write_text_atomic(target, "new")
+    assert target.read_text() == "new"
+    (tmp_path / "busy").mkdir()  # the rename onto a directory fails: the error surfaces, no temp file stays
+    with pytest.raises(OSError):
+        write_text_atomic(tmp_path / "busy", "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["busy", "results.json"]

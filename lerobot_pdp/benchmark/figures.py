@@ -217,10 +217,10 @@ def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], 
     for plane in scene_views(suite)[:2]:
         if main_methods:
             written.append(rollouts_grid(suite, main_methods, list(cfg.scenes), fig_dir / f"rollouts_{plane}.png", plane))
-    abl = {k: v for k, v in traces.items() if k in ABLATIONS}
-    if abl:
-        abl = {**({"pdp": traces["pdp"]} if "pdp" in traces else {}), **abl}
-        written.append(rollouts_grid(suite, abl, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
+    ablated = [k for k in traces if k in ABLATIONS]
+    if ablated:
+        rows = (["pdp"] if "pdp" in traces else []) + ablated
+        written.append(rollouts_grid(suite, {k: traces[k] for k in rows}, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
                                      scene_views(suite)[0]))
     if ("pdp", seed) in ckpts:
         p = interpolation_sweep(suite, ckpts[("pdp", seed)], fig_dir / "interpolation.png", seed=seed,

@@ -37,8 +37,11 @@ def write_text_atomic(path: Path, text: str) -> None:
     truncated eval.json / results.json as a finished one."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:  # after a failed write (disk full, interrupt) no stray temp file either
+        tmp.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)
