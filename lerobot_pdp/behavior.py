@@ -278,9 +278,12 @@ class TrajectoryVAE(nn.Module):
         """z [B, d_z] -> standardised trace [B, L, d]."""
         return self.decoder(z).view(-1, self.trace_length, self.trace_dim)
 
-    def loss(self, traces: Tensor, distances: Tensor, kappa: float, beta_kl: float, beta_geo: float
-             ) -> tuple[Tensor, dict[str, float]]:
-        """L_embed on a batch of behaviors; ``distances`` [B, B] are their delta^X."""
+    def loss(self, traces: Tensor, distances: Tensor, kappa: float | Tensor, beta_kl: float, beta_geo: float
+             ) -> tuple[Tensor, dict[str, Tensor]]:
+        """L_embed on a batch of behaviors; ``distances`` [B, B] are their delta^X.
+
+        Returns the loss and its terms as detached 0-d tensors (no host sync: the caller reads them once).
+        """
         mu, logvar = self.encode(traces)
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
         rec = (self.decode(z) - self.standardize(traces)).pow(2).mean()
@@ -292,4 +295,4 @@ class TrajectoryVAE(nn.Module):
             dz = (diff.pow(2).sum(-1) + 1e-12).sqrt()  # eps: the norm's gradient is undefined at 0
             geo = (dz - kappa * distances[iu[0], iu[1]]).pow(2).mean()
         total = rec + beta_kl * kl + beta_geo * geo
-        return total, {"embed_rec": rec.item(), "embed_kl": kl.item(), "embed_geo": geo.item()}
+        return total, {"embed_rec": rec.detach(), "embed_kl": kl.detach(), "embed_geo": geo.detach()}

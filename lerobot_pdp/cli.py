@@ -141,6 +141,8 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inference-steps", type=int, default=None,
                    help="DDIM steps when evaluating PDP and DP (default: each checkpoint's own); "
                    "re-evaluates cached runs made with other steps, without retraining")
+    p.add_argument("--device", default="cpu",
+                   help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.set_defaults(func=cmd_benchmark)
 
 
@@ -155,7 +157,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                            quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
-                           figures=not args.no_figures)
+                           figures=not args.no_figures, device=args.device)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

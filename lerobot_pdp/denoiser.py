@@ -298,15 +298,21 @@ class FiLMUnet1d(nn.Module):
         return F.linear(F.mish(obs_cond), consts["w_obs"], consts["b"])
 
     @torch.no_grad()
-    def make_context(self, obs_cond: Tensor, z: Tensor | None, steps: list[int]) -> list[list[Tensor]]:
+    def make_context(self, obs_cond: Tensor, z: Tensor | None, steps: list[int],
+                     cache_latent: bool = True) -> list[list[Tensor]]:
         """Everything but the sample that ``forward`` computes, for one chunk denoised at ``steps``.
 
         Returns, per step, the blocks' ``scale, bias`` ([B, C, 1] each, flattened in block order) that
-        :meth:`forward_cached` applies after each block's first convolution.
+        :meth:`forward_cached` applies after each block's first convolution. ``cache_latent`` reuses z's
+        FiLM terms while z stays the same; comparing z reads it back to the host, so a captured CUDA graph
+        (no host syncs allowed) computes them every time instead.
         """
         consts = self.weight_constants(steps)
         mod = consts["step"][:, None] + self.obs_modulation(consts, obs_cond)  # [S, B, sum 2C]
-        if self.latent_conditioning != "none":
+        if self.latent_conditioning != "none" and not cache_latent:
+            gain, shift = self.latent_terms(consts, z)
+            mod = mod + shift if gain is None else torch.addcmul(shift, gain, mod)
+        elif self.latent_conditioning != "none":
             cached = consts["film_cache"]  # a steered policy keeps one z for many chunks
             if cached is None or cached[0].shape != z.shape or not torch.equal(cached[0], z):
                 cached = consts["film_cache"] = (z.clone(), *self.latent_terms(consts, z))

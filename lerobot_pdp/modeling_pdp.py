@@ -47,6 +47,7 @@ from .behavior import (
     trace_distances,
 )
 from .configuration_pdp import PDPConfig
+from .cuda_graphs import GraphCache
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
 from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent
 
@@ -116,6 +117,8 @@ class PDPPolicy(PreTrainedPolicy):
         self._gripper_hold: Tensor | None = None  # [B] consecutive actions that disagree with it
         self._steering_initialised = False
         self._queues: dict[str, deque] = {}
+        self._graphs = GraphCache()  # captured samplers on CUDA (see generate)
+        self._cuda_graphs = True
         self.reset()
 
     # ------------------------------------------------------------------ training data (whole episodes)
@@ -202,6 +205,13 @@ class PDPPolicy(PreTrainedPolicy):
         optimizer applies them in one step with each group's own learning rate (get_optim_params). The
         only difference is that Step 2 sees phi before rather than after this step's Step-1 update.
         """
+        loss, metrics = self.loss_terms(batch)
+        # one host transfer for all logged values (each .item() would wait for the GPU on its own)
+        values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()
+        return loss, dict(zip(metrics, values, strict=True))
+
+    def loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        """``forward``'s loss and its logged terms as 0-d tensors, without a single host synchronisation."""
         self._check_batch(batch)
         z_bar, behavior = self._batch_latents(batch)
         obs_cond = self._obs_cond(batch)
@@ -212,19 +222,19 @@ class PDPPolicy(PreTrainedPolicy):
         pred = self.denoiser(noisy, k, obs_cond, z_bar)
         is_pad = batch.get("action_is_pad") if self.config.do_mask_loss_for_padding else None
         loss_dp = diffusion_loss(pred, eps, is_pad)
-        info: dict[str, float] = {"loss_dp": loss_dp.item()}
+        metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
         loss = loss_dp
         if self.config.latent_type == "continuous" and self.training:
             loss_embed, embed_info = self._embedding_loss(actions.device)
             loss = loss + loss_embed
-            info.update(embed_info, loss_embed=loss_embed.item())
-        return loss, info
+            metrics.update(embed_info, loss_embed=loss_embed)
+        return loss, metrics
 
     def _embedding_loss(self, device) -> tuple[Tensor, dict]:
         n = len(self.behavior_traces)
         idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
         return self.vae.loss(
-            self.behavior_traces[idx], self.trace_distance_matrix[idx][:, idx], float(self.geo_kappa),
+            self.behavior_traces[idx], self.trace_distance_matrix[idx][:, idx], self.geo_kappa,
             self.config.beta_kl, self.config.beta_geo,
         )
 
@@ -249,10 +259,16 @@ class PDPPolicy(PreTrainedPolicy):
             )
         ep = episode_index.view(-1, 1).to(self.behavior_episode.device)
         match = ep == self.behavior_episode.view(1, -1)
-        if not bool(match.any(1).all()):
-            missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
-            raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
-                           f"({self.behavior_episode.unique().numel()} episodes, {len(self.behavior_episode)} behaviors)")
+        known = match.any(1).all()
+        if known.device.type == "cpu":
+            if not bool(known):
+                missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
+                raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
+                               f"({self.behavior_episode.unique().numel()} episodes, "
+                               f"{len(self.behavior_episode)} behaviors)")
+        else:  # checked on the device: reading the flag back would stall the GPU every training step
+            torch._assert_async(known, "a training batch holds episodes that are not among the policy's "
+                                       "training episodes (run one step on CPU to see which)")
         if global_index is not None:
             # behaviors of one episode partition its frames in order: take the last one that starts <= frame
             f = global_index.view(-1, 1).to(self.behavior_start.device)
@@ -271,8 +287,10 @@ class PDPPolicy(PreTrainedPolicy):
 
     def _batch_latents(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         ids = self._behavior_ids(batch["episode_index"], batch.get("index"))
-        uniq, inverse = ids.unique(return_inverse=True)
         with torch.no_grad():  # stop-gradient: L_DP must not shape the latent geometry
+            if ids.device.type != "cpu":  # unique() has a data-dependent size: the host would wait for it
+                return self.behavior_latents(ids).to(batch[ACTION].device), ids
+            uniq, inverse = ids.unique(return_inverse=True)
             z = self.behavior_latents(uniq)
         return z[inverse].to(batch[ACTION].device), ids
 
@@ -293,8 +311,31 @@ class PDPPolicy(PreTrainedPolicy):
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
         n = self.config.num_inference_steps
-        context = self.denoiser.make_context(obs_cond, z, self.noise_schedule.timesteps(n))
+        if obs_cond.device.type == "cuda" and self._cuda_graphs:
+            try:
+                return self._generate_graphed(obs_cond, z.to(obs_cond), noise.to(obs_cond), n)
+            except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
+                logger.warning("CUDA graph capture of the sampler failed (%r); acting eagerly", e)
+                self._cuda_graphs = False
+                self._graphs.clear()
+        return self._sample(obs_cond, z, noise, n)
+
+    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int, cache_latent: bool = True) -> Tensor:
+        context = self.denoiser.make_context(obs_cond, z, self.noise_schedule.timesteps(n), cache_latent)
         return self.noise_schedule.sample(lambda x, i, k: self.denoiser.run_cached(x, context[i]), noise, n)
+
+    def _generate_graphed(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
+        """:meth:`_sample` replayed from a CUDA graph, captured per input shape and sampler steps.
+
+        Recaptured when the weights change (the graph reads the weight constants of the capture, and
+        ``weight_constants`` returns a new object after an optimizer step, ``load_state_dict`` or ``.to``).
+        """
+        consts = self.denoiser.weight_constants(self.noise_schedule.timesteps(n))
+        key = (tuple(obs_cond.shape), tuple(z.shape), tuple(noise.shape), n, obs_cond.dtype, obs_cond.device,
+               torch.is_inference_mode_enabled())
+        call = self._graphs.get(key, consts, lambda o, zz, x: self._sample(o, zz, x, n, cache_latent=False),
+                                (obs_cond, z, noise))
+        return call(obs_cond, z, noise)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
@@ -791,7 +832,8 @@ class _FeatureStats(nn.Module):
         return out
 
     def unnormalize(self, key: str, x: Tensor) -> Tensor:
+        """Raw values of ``x`` (normalised), on ``x``'s device (LeRobot's step moves its statistics there)."""
         step = self._step()
         if key == ACTION:
-            return step._normalize_action(x.cpu(), inverse=True)
-        return step._normalize_observation({key: x.cpu()}, inverse=True)[key]
+            return step._normalize_action(x, inverse=True)
+        return step._normalize_observation({key: x}, inverse=True)[key]

@@ -155,6 +155,9 @@ class BenchmarkConfig:
     # DDIM steps when evaluating PDP and DP (None: the env's TrainSettings.inference_steps). Sampling
     # only: cached evaluations made with other steps are redone on the same checkpoints.
     inference_steps: int | None = None
+    # Where every method trains, adapts and acts ("cpu", "cuda", "cuda:1", ...). Not a training setting:
+    # a run trained on one device is reused on another.
+    device: str = "cpu"
 
 
 # ----------------------------------------------------------------------------- data
@@ -262,7 +265,8 @@ def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None
         raise RuntimeError(f"{args[0]} failed with exit code {rc}; see {log}\n{tail}")
 
 
-def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings, steps: int) -> list[str]:
+def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings, steps: int,
+               device: str = "cpu") -> list[str]:
     """The ``lerobot-train`` command line of one (method, seed) run, without ``--output_dir``."""
     exe = Path(sys.executable).parent / "lerobot-train"
     lr_args = [f"--policy.optimizer_lr={settings.lr}"]
@@ -274,7 +278,7 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
     )
     args = [
         str(exe) if exe.exists() else "lerobot-train",
-        f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", "--policy.device=cpu",
+        f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", f"--policy.device={device}",
         f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
         f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
         f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
@@ -290,10 +294,10 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
 
 
 def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
-                 steps: int) -> Path:
+                 steps: int, device: str = "cpu") -> Path:
     """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
     ckpt = run_dir / "pretrained_model"
-    args = train_args(method, dataset, seed, settings, steps)
+    args = train_args(method, dataset, seed, settings, steps, device)
     if (ckpt / "model.safetensors").is_file():
         _check_reusable(run_dir, args)
         return ckpt
@@ -320,10 +324,10 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
 
 
 # Flags that do not change what a run learns: where it writes and how often it logs and saves, how many
-# loader processes feed it, and the DDIM steps it samples with (evaluations record their own sampler and are
-# redone when it changes).
+# loader processes feed it, the device it runs on, and the DDIM steps it samples with (evaluations record
+# their own sampler and are redone when it changes).
 _NOT_TRAINING = ("--output_dir", "--dataset.root", "--log_freq", "--save_freq", "--num_workers",
-                 "--policy.num_inference_steps")
+                 "--policy.num_inference_steps", "--policy.device")
 
 
 def _flags(args: list[str]) -> dict[str, str]:
@@ -347,8 +351,8 @@ def _check_reusable(run_dir: Path, args: list[str]) -> None:
                          f"or delete {run_dir} to retrain")
 
 
-def load_policy(ckpt: Path, inference_steps: int | None = None):
-    """Policy + its saved pre/post processors, as lerobot-eval loads them.
+def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "cpu"):
+    """Policy + its saved pre/post processors on ``device``, as lerobot-eval loads them.
 
     ``inference_steps`` replaces the checkpoint's ``num_inference_steps`` (diffusion policies only).
     """
@@ -356,7 +360,7 @@ def load_policy(ckpt: Path, inference_steps: int | None = None):
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     cfg = PreTrainedConfig.from_pretrained(ckpt)
-    cfg.device = "cpu"
+    cfg.device = device
     if inference_steps is not None and hasattr(cfg, "num_inference_steps"):
         if not 1 <= inference_steps <= cfg.num_train_timesteps:
             raise ValueError(f"inference_steps={inference_steps} for {ckpt}: expected 1..{cfg.num_train_timesteps} "
@@ -364,7 +368,9 @@ def load_policy(ckpt: Path, inference_steps: int | None = None):
         cfg.num_inference_steps = int(inference_steps)
     policy = get_policy_class(cfg.type).from_pretrained(ckpt, config=cfg)
     policy.eval()
-    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt))
+    # the saved device step holds the training device: point it at this one (lerobot-eval does the same)
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt),
+                                         preprocessor_overrides={"device_processor": {"device": device}})
     return policy, pre, post
 
 
@@ -454,7 +460,7 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     cached = _cached(cache, sampler, ckpt)
     if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
         return cached
-    policy, pre, post = load_policy(ckpt, cfg.inference_steps)
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts,
                               "inference_steps": sampler, "scenes": {}}
     traces: dict[str, Any] = {}
@@ -496,7 +502,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
     cached = _cached(cache, sampler, ckpt)
     if cached:
         return {k: v for k, v in cached.items() if k != "inference_steps"}
-    policy, pre, post = load_policy(ckpt, cfg.inference_steps)
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
     per_scene: dict[str, dict[str, float]] = {}
@@ -529,7 +535,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
               settings: TrainSettings, steps: int) -> dict[str, Any]:
     """``results.json`` layout: methods -> scene<k> -> success [per seed], mean, std (+ collision, modes)."""
     out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
-                           "train": {**asdict(settings), "steps": steps}, "methods": {}}
+                           "train": {**asdict(settings), "steps": steps}, "device": cfg.device, "methods": {}}
     for name, runs in per_run.items():
         entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
         for scene in cfg.scenes:
@@ -719,7 +725,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         method = all_methods[name]
         for seed in cfg.seeds:
             run_dir = out / "runs" / name / f"seed{seed}"
-            ckpt = train_method(method, dataset, run_dir, seed, settings, steps)
+            ckpt = train_method(method, dataset, run_dir, seed, settings, steps, cfg.device)
             ckpts[(name, seed)] = ckpt
             per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, cfg, seed, run_dir)
             if cfg.ablations and name == "pdp":

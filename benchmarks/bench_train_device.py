@@ -1,0 +1,117 @@
+"""``lerobot-train`` step rate per device: PDP next to LeRobot ``diffusion`` (the benchmark's matched DP).
+
+Each (policy, device) pair is one real ``lerobot-train`` process on the same generated reach-around dataset
+(10 demonstrations per mode), built with the benchmark's own command line (``protocol.train_args``: same
+batch, lr, backbone, sampler) with ``--policy.device`` set. The rate is measured from the wall-clock
+arrival of LeRobot's own log lines, between the first and the last one, so start-up (imports, the
+behavior bank, CUDA context) is excluded; LeRobot's ``updt_s`` / ``data_s`` averages are reported beside it.
+One JSON line per run on stdout, then a ratio line.
+
+    .venv/bin/python benchmarks/bench_train_device.py [--devices cpu cuda] [--steps 600] [--num-workers 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+LINE = re.compile(r"step:(\d+)(K?)\b.*?updt_s:([\d.]+).*?data_s:([\d.]+)")
+
+
+def _replace(args: list[str], **flags: object) -> list[str]:
+    """``args`` with ``--name=value`` flags set (replacing the benchmark's values)."""
+    keys = {f"--{k.replace('__', '.')}" for k in flags}
+    out = [a for a in args if a.partition("=")[0] not in keys]
+    return out + [f"--{k.replace('__', '.')}={v}" for k, v in flags.items()]
+
+
+def run_one(args: list[str], out_dir: Path, threads: int, log: Path) -> dict:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", "OMP_NUM_THREADS": str(threads),
+           "MKL_NUM_THREADS": str(threads)}
+    points: list[tuple[float, int, float, float]] = []
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([*args, f"--output_dir={out_dir}"], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, env=env)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            fh.write(line)
+            m = LINE.search(line)
+            if m:
+                step = int(m.group(1)) * (1000 if m.group(2) else 1)
+                points.append((time.perf_counter(), step, float(m.group(3)), float(m.group(4))))
+        rc = proc.wait()
+    if rc != 0 or len(points) < 2:
+        tail = "".join(log.read_text().splitlines(keepends=True)[-30:])
+        raise RuntimeError(f"lerobot-train failed ({rc}) or logged < 2 steps; see {log}\n{tail}")
+    (ta, sa, _, _), (tb, sb, _, _) = points[0], points[-1]
+    later = points[1:]  # the first window holds the warm-up
+    return {"steps_per_s": round((sb - sa) / (tb - ta), 2), "measured_steps": sb - sa,
+            "updt_s": round(sum(p[2] for p in later) / len(later), 4),
+            "data_s": round(sum(p[3] for p in later) / len(later), 4),
+            "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--devices", nargs="+", default=["cpu"], help="torch devices, e.g. cpu cuda")
+    ap.add_argument("--policies", nargs="+", default=["pdp", "dp"], help="benchmark methods to train")
+    ap.add_argument("--steps", type=int, default=600, help="training steps per run (< 1000: exact log counters)")
+    ap.add_argument("--log-freq", type=int, default=50)
+    ap.add_argument("--num-workers", type=int, default=4, help="LeRobot loader workers (all runs)")
+    ap.add_argument("--cpu-threads", type=int, default=None,
+                    help="torch threads of a CPU run (default: cores minus loader workers); GPU runs use 1")
+    ap.add_argument("--dataset", type=Path, default=None, help="existing reach-around dataset (default: generate)")
+    ap.add_argument("--logs", type=Path, default=None, help="keep each run's lerobot-train log in this folder")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    from lerobot_pdp.benchmark.protocol import TrainSettings, methods_for, train_args
+    from lerobot_pdp.envs import get_suite_env
+    from lerobot_pdp.envs.recording import make_dataset
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench-train-")
+    work = Path(tmp.name)
+    root = args.dataset or make_dataset("reach-around", work / "reach", scene=0, episodes_per_mode=10, seed=0,
+                                        progress=False)
+    logs = args.logs or work / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    cpus = os.cpu_count() or 1
+    cpu_threads = args.cpu_threads or max(1, cpus - args.num_workers)
+    methods = methods_for(get_suite_env("reach-around"))
+    settings = TrainSettings(steps=args.steps)
+    env = {"cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
+           "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
+    rates: dict[tuple[str, str], float] = {}
+    for name in args.policies:  # policy by policy: a cut-short run still has each policy's device ratio
+        for device in args.devices:
+            cmd = _replace(train_args(methods[name], root, 0, settings, args.steps, device),
+                           log_freq=args.log_freq, num_workers=args.num_workers, save_freq=10**9)
+            threads = cpu_threads if device == "cpu" else 1
+            r = run_one(cmd, work / f"run_{name}_{device}", threads, logs / f"{name}_{device}.log")
+            rates[(name, device)] = r["steps_per_s"]
+            print(json.dumps({"bench": "lerobot_train_steps", "policy": name, "device": device,
+                              "torch_threads": threads, "batch_size": settings.batch_size, **r, **env}), flush=True)
+    ratio: dict[str, object] = {"bench": "lerobot_train_steps_ratio"}
+    for name in args.policies:
+        for device in args.devices:
+            if device != "cpu" and (name, "cpu") in rates:
+                ratio[f"{name}_{device}_over_cpu"] = round(rates[(name, device)] / rates[(name, "cpu")], 2)
+    for device in args.devices:
+        if ("pdp", device) in rates and ("dp", device) in rates:
+            ratio[f"pdp_over_dp_{device}"] = round(rates[("pdp", device)] / rates[("dp", device)], 2)
+    print(json.dumps(ratio), flush=True)
+    tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""PDP on a CUDA device: training without host syncs, the CUDA-graph sampler, per-phase latents, fitting, and
+real ``lerobot-train`` / ``lerobot-eval`` processes with ``--policy.device=cuda``. Skipped without a GPU."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from conftest import lerobot_cli, run_cli
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_pdp import PDPConfig
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def _policy(meta, **kw):
+    cfg = PDPConfig(device="cuda", push_to_hub=False, down_dims=(16, 32), **kw)
+    return make_policy(cfg, ds_meta=meta)
+
+
+def _batch(meta, policy, n=8, seed=0):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    cfg = policy.config
+    fps = meta.fps
+    ds = LeRobotDataset("local/synthetic", root=meta.root, delta_timestamps={
+        OBS_STATE: [i / fps for i in cfg.observation_delta_indices],
+        OBS_ENV_STATE: [i / fps for i in cfg.observation_delta_indices],
+        ACTION: [i / fps for i in cfg.action_delta_indices],
+    })
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)  # moves the batch to cfg.device
+    g = torch.Generator().manual_seed(seed)
+    return pre(torch.utils.data.default_collate([ds[int(i)] for i in torch.randint(0, len(ds), (n,), generator=g)]))
+
+
+def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
+    p = _policy(synthetic_meta)
+    p.train()
+    batch = _batch(synthetic_meta, p)
+    assert batch[ACTION].is_cuda and p.behavior_traces.is_cuda and p.trace_distance_matrix.is_cuda
+    p.loss_terms(batch)  # first call: lazy CUDA initialisation may synchronise
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        loss, metrics = p.loss_terms(batch)
+        loss.backward()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert {"loss_dp", "embed_rec", "embed_kl", "embed_geo", "loss_embed"} <= set(metrics)
+    loss2, info = p.forward(batch)  # LeRobot's face: plain floats, read back in one transfer
+    assert all(isinstance(v, float) for v in info.values()) and torch.isfinite(loss2)
+
+
+def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta):
+    p = _policy(synthetic_meta)
+    p.eval()
+    g = torch.Generator(device="cuda").manual_seed(0)
+    obs = torch.randn(3, p.denoiser.obs_cond_dim, device="cuda", generator=g)
+    z = torch.randn(3, p.config.latent_dim, device="cuda", generator=g)
+    noise = torch.randn(3, p.config.horizon, p.action_dim, device="cuda", generator=g)
+    n = p.config.num_inference_steps
+    for _ in range(2):  # capture, then replay
+        torch.testing.assert_close(p.generate(obs, z, noise=noise), p._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
+    assert len(p._graphs._calls) == 1
+    torch.cuda.set_sync_debug_mode("error")  # a replayed chunk never waits for the GPU
+    try:
+        p.generate(obs, z, noise=noise)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with torch.no_grad():  # an optimizer step changes the weights in place: the graph is captured anew
+        for q in p.denoiser.parameters():
+            q.add_(0.01 * torch.randn_like(q))
+    torch.testing.assert_close(p.generate(obs, z, noise=noise), p._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
+    out = p.generate(obs, z + 1.0, noise=noise)  # a new z through the same graph
+    torch.testing.assert_close(out, p._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
+
+
+def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
+    """Several select_action calls with one latent per phase (the second call used to mix devices)."""
+    p = _policy(synthetic_meta, n_action_steps=2)
+    p.eval()
+    p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
+    p.config.phase_switch_steps = 1
+    p.set_latent(torch.tensor([[0.0, 1.0], [1.0, 0.0]]))
+    p.reset()
+    batch = {OBS_STATE: torch.zeros(2, 2, device="cuda"), OBS_ENV_STATE: torch.zeros(2, 2, device="cuda")}
+    for _ in range(6):
+        a = p.select_action(batch)
+        assert a.is_cuda and a.shape == (2, 2)
+    assert p._phase.is_cuda and p.current_latent(2).is_cuda
+
+
+def test_fit_latent_on_the_gpu(synthetic_meta):
+    p = _policy(synthetic_meta)
+    res = p.fit_latent((synthetic_meta.root, 3), steps=5)
+    assert torch.isfinite(res.z).all() and len(res.losses) == 5
+    assert p.active_latent.is_cuda
+    p.reset()
+    obs = {OBS_STATE: torch.zeros(1, 2, device="cuda"), OBS_ENV_STATE: torch.zeros(1, 2, device="cuda")}
+    assert p.select_action(obs).is_cuda
+
+
+@pytest.mark.slow
+def test_lerobot_train_and_eval_on_cuda_with_phase_latents(tmp_path):
+    """Pick-place (one latent per reach / carry phase): the benchmark's lerobot-train command on CUDA, then
+    lerobot-eval on CUDA steering a mode's per-phase latents."""
+    from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_method
+    from lerobot_pdp.envs import get_suite_env
+    from lerobot_pdp.envs.recording import make_dataset
+
+    suite = get_suite_env("pick-place")
+    data = make_dataset("pick-place", tmp_path / "data", scene=0, episodes_per_mode=1, seed=0, progress=False)
+    settings = SETTINGS["pick-place"][1]
+    ckpt = train_method(methods_for(suite)["pdp"], data, tmp_path / "run", 0, settings, 40, device="cuda")
+    info = json.loads((tmp_path / "run" / "train_info.json").read_text())
+    assert "--policy.device=cuda" in info["args"]
+    out = tmp_path / "eval"
+    run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={ckpt}", "--policy.device=cuda",
+             "--env.type=pdp_pick_place", "--env.scene=0", "--policy.steer_mode=5", "--eval.n_episodes=2",
+             "--eval.batch_size=2", f"--output_dir={out}"], timeout=900)
+    assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 2
