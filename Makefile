@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= outputs/demo
 
-.PHONY: install demo test lint bench results clean
+.PHONY: install demo test test-fast lint bench results clean
 
 $(STAMP): pyproject.toml
 	@if [ -z "$(PY312)" ]; then echo "Python 3.12 is required (LeRobot >= 0.5 needs it); none found" >&2; exit 1; fi
@@ -26,6 +26,10 @@ demo: $(STAMP)
 ## Whole test suite (slow end-to-end tests included).
 test: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider --durations=15
+
+## Contributors' loop: the tests not marked slow (no lerobot-train processes), a few minutes.
+test-fast: $(STAMP)
+	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider -m "not slow"
 
 ## The full protocol for every env (3 seeds x 40 rollouts, baselines, ablations): hours on 2 CPU cores.
 ## Resumable: finished (method, seed) runs under RESULTS_OUT are reused.

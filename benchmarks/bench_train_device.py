@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from lerobot_pdp.benchmark.protocol import TrainSettings, methods_for, train_args
+    from lerobot_pdp.benchmark.settings import TrainSettings, methods_for
+    from lerobot_pdp.benchmark.training import train_args
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
 

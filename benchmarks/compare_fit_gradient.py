@@ -1,6 +1,6 @@
 """Success after fit_latent with the autograd gradient vs the default finite-difference gradient.
 
-    .venv/bin/python benchmarks/compare_fit_gradient.py --env pick-place --out /work/runs/pick_place_full2
+    .venv/bin/python benchmarks/compare_fit_gradient.py --env pick-place --out runs/pick_place_full2
 
 Uses a finished ``lerobot-pdp benchmark`` directory (its PDP seed-0 checkpoint and scene 1-3
 demonstrations). For each scene and fitting seed: fit z (default steps) with each gradient, then
@@ -27,8 +27,9 @@ def main() -> None:
     ap.add_argument("--rollouts", type=int, default=20)
     args = ap.parse_args()
 
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, load_policy
+    from lerobot_pdp.benchmark.data import demo_episode
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.training import load_policy
     from lerobot_pdp.envs.suite import get_suite_env
 
     suite = get_suite_env(args.env)

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import sys
 
-from lerobot_pdp.benchmark.evaluation import run_rollouts
-from lerobot_pdp.benchmark.protocol import load_policy
+from lerobot_pdp.benchmark.rollouts import run_rollouts
+from lerobot_pdp.benchmark.training import load_policy
 from lerobot_pdp.envs import get_suite_env
 
 

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .envs.suite import parse_task_mode
+from .atomic import write_file_atomic
+from .episodes import check_finite, parse_task_mode, read_episodes  # noqa: F401  (re-exported)
 
 logger = logging.getLogger(__name__)
 
@@ -102,52 +103,6 @@ class BehaviorTraces:
         return len(self.traces)
 
 
-def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None) -> dict[int, dict]:
-    """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}}.
-
-    Reads the parquet files directly: the training loader only yields windows, but the behavior encoder
-    needs complete demonstrations.
-    """
-    import pandas as pd
-
-    root = Path(root)
-    files = sorted((root / "data").glob("**/*.parquet"))
-    if not files:
-        raise FileNotFoundError(f"no parquet data files under {root / 'data'}; is {root} a LeRobotDataset v3?")
-    tasks_path = root / "meta" / "tasks.parquet"
-    task_by_index: dict[int, str] = {}
-    if tasks_path.is_file():
-        t = pd.read_parquet(tasks_path)
-        task_by_index = {int(i): str(task) for task, i in zip(t.index, t["task_index"], strict=True)}
-    cols = list(dict.fromkeys(["episode_index", "frame_index", "index", "task_index", *keys]))
-    frames = []
-    for f in files:
-        df = pd.read_parquet(f)
-        missing = [c for c in cols if c not in df.columns]
-        if missing:
-            raise KeyError(f"{f}: dataset has no column(s) {missing}; columns are {sorted(df.columns)}")
-        frames.append(df[cols])
-    df = pd.concat(frames, ignore_index=True)
-    if episodes is not None:
-        df = df[df["episode_index"].isin(list(episodes))]
-    out: dict[int, dict] = {}
-    for ep, g in df.groupby("episode_index", sort=True):
-        g = g.sort_values("frame_index")
-        item = {k: np.stack(g[k].to_numpy()).astype(np.float64) for k in keys}
-        item["task"] = task_by_index.get(int(g["task_index"].iloc[0]), "")
-        item["from_index"] = int(g["index"].iloc[0])  # global frame index of the episode's first frame
-        out[int(ep)] = item
-    return out
-
-
-def check_finite(name: str, array: np.ndarray, where: str) -> None:
-    """Raise naming the episode/key and the first bad frame if ``array`` has NaN or inf."""
-    bad = ~np.isfinite(array)
-    if bad.any():
-        frame = int(np.argwhere(bad)[0][0])
-        raise ValueError(f"{where}: '{name}' has non-finite values (first at frame {frame}: {array[frame].tolist()})")
-
-
 def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims: list[int] | None, length: int,
                           normalize: str, gripper_dim: int | None = None, gripper_threshold: float = 0.0,
                           min_length: int = 1) -> BehaviorTraces:
@@ -203,9 +158,7 @@ def trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir
     if cache is not None:
         try:
             cache.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache.with_suffix(f".{os.getpid()}.tmp.npy")
-            np.save(tmp, d)
-            os.replace(tmp, cache)
+            write_file_atomic(cache, lambda tmp: np.save(tmp, d))
         except OSError as e:  # a read-only home must not stop training
             logger.warning("could not cache trace distances at %s: %s", cache, e)
     return d

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
-    from lerobot_pdp.benchmark.protocol import BenchmarkConfig
+    from lerobot_pdp.benchmark.settings import BenchmarkConfig
 
 
 def _quiet_imports() -> None:
@@ -149,7 +149,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
 def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     """The ``BenchmarkConfig`` of parsed ``benchmark`` arguments: --quick changes the defaults of seeds,
     rollouts and methods, never a value given explicitly."""
-    from lerobot_pdp.benchmark.protocol import BenchmarkConfig
+    from lerobot_pdp.benchmark.settings import BenchmarkConfig
 
     seeds = args.seeds if args.seeds is not None else [0] if args.quick else [0, 1, 2]
     rollouts = args.rollouts if args.rollouts is not None else 20 if args.quick else 40
@@ -185,7 +185,8 @@ def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_merge_results(args: argparse.Namespace) -> int:
-    from lerobot_pdp.benchmark.protocol import merge_results, results_markdown, write_text_atomic
+    from lerobot_pdp.atomic import write_text_atomic
+    from lerobot_pdp.benchmark.results import merge_results, results_markdown
 
     files = [r / "results.json" if r.is_dir() else r for r in args.results]
     for f in files:

@@ -15,8 +15,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import shutil
-import tempfile
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,6 +32,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
+from .atomic import staging_dir
 from .behavior import (
     UNLABELED,
     BehaviorTraces,
@@ -704,18 +703,17 @@ class PDPPolicy(PreTrainedPolicy):
         so a crash mid-write never leaves a half checkpoint (weights are moved last)."""
         save_directory = Path(save_directory)
         save_directory.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".pdp-save-", dir=save_directory.parent))
         try:
-            self.config._save_pretrained(tmp)
-            if state_dict is None:
-                save_model_as_safetensor(self, str(tmp / SAFETENSORS_SINGLE_FILE))
-            else:
-                save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
-            names = sorted(p.name for p in tmp.iterdir())
-            for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
-                os.replace(tmp / name, save_directory / name)
+            with staging_dir(save_directory, prefix=".pdp-save-") as tmp:
+                self.config._save_pretrained(tmp)
+                if state_dict is None:
+                    save_model_as_safetensor(self, str(tmp / SAFETENSORS_SINGLE_FILE))
+                else:
+                    save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
+                names = sorted(p.name for p in tmp.iterdir())
+                for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
+                    os.replace(tmp / name, save_directory / name)
         finally:
-            shutil.rmtree(tmp, ignore_errors=True)
             if not any(save_directory.iterdir()):
                 save_directory.rmdir()
 

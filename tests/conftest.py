@@ -61,7 +61,8 @@ def reach_around_pdp(tmp_path_factory) -> Path:
     process, the protocol's way (2 loader workers). Shared by the steering tests: the suite's most expensive
     fixture (503 s on 2 idle cores, 2026-11-24). 3000 steps: at 1500, scene-3 success after fitting was
     75-90 % depending on the fitting seed; the full 6000-step setting reaches 100 % (docs/results.md)."""
-    from lerobot_pdp.benchmark.protocol import TrainSettings, methods_for, train_method
+    from lerobot_pdp.benchmark.settings import TrainSettings, methods_for
+    from lerobot_pdp.benchmark.training import train_method
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
 

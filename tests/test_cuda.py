@@ -106,7 +106,8 @@ def test_fit_latent_on_the_gpu(synthetic_meta):
 def test_lerobot_train_and_eval_on_cuda_with_phase_latents(tmp_path):
     """Pick-place (one latent per reach / carry phase): the benchmark's lerobot-train command on CUDA, then
     lerobot-eval on CUDA steering a mode's per-phase latents."""
-    from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_method
+    from lerobot_pdp.benchmark.settings import SETTINGS, methods_for
+    from lerobot_pdp.benchmark.training import train_method
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
 

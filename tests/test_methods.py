@@ -6,7 +6,8 @@ import draccus
 import pytest
 
 from lerobot_pdp import PDPConfig
-from lerobot_pdp.benchmark.protocol import SETTINGS, methods_for, train_args, train_method
+from lerobot_pdp.benchmark.settings import SETTINGS, methods_for
+from lerobot_pdp.benchmark.training import train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 
 

@@ -6,14 +6,10 @@ import numpy as np
 import pytest
 from conftest import lerobot_cli, run_cli
 
-from lerobot_pdp.benchmark.protocol import (
-    BenchmarkConfig,
-    demo_episode,
-    ensure_demo,
-    load_policy,
-    load_run,
-    run_benchmark,
-)
+from lerobot_pdp.benchmark.data import demo_episode, ensure_demo
+from lerobot_pdp.benchmark.protocol import run_benchmark
+from lerobot_pdp.benchmark.settings import BenchmarkConfig
+from lerobot_pdp.benchmark.training import load_policy, load_run
 from lerobot_pdp.envs import get_suite_env
 
 pytestmark = pytest.mark.slow
@@ -36,6 +32,10 @@ def test_whole_protocol_tiny(tmp_path):
     figs = {p.split("/")[-1] for p in res["figures"]}
     assert {"latent_map_pdp.png", "rollouts_xy.png", "interpolation.png"} <= figs
     out = tmp_path / "bench"
+    # paths relative to the output folder (it can be moved or committed); the sweep is a cached result too
+    assert all((out / p).is_file() and not p.startswith("/") for p in saved.get("figures", res["figures"]))
+    sweep = json.loads((out / "runs" / "pdp" / "seed0" / "sweep.json").read_text())
+    assert set(sweep["paths"]) == {"linear", "elliptical"} and len(sweep["paths"]["linear"]["rollouts"]) == 7
     assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [4, 4, None]
     for m in ("pdp", "dp"):  # the env's sampler is written into the checkpoints, so lerobot-eval uses it too
         saved_cfg = json.loads((out / "runs" / m / "seed0" / "pretrained_model" / "config.json").read_text())
@@ -101,7 +101,7 @@ def test_pdp_steers_to_a_new_route_from_one_demo(reach_around_pdp, tmp_path):
     After fit_latent on ONE scene-3 demonstration PDP succeeds in >= 80 % of 10 rollouts; conditioned on
     any training mode's mean latent it succeeds in <= 20 %.
     """
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
 
     suite = get_suite_env("reach-around")
     ckpt = reach_around_pdp  # 3000 steps, conftest

@@ -5,13 +5,9 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_pdp.benchmark.protocol import (
-    BenchmarkConfig,
-    TrainSettings,
-    aggregate,
-    ensure_dataset,
-    results_markdown,
-)
+from lerobot_pdp.benchmark.data import ensure_dataset
+from lerobot_pdp.benchmark.results import aggregate, results_markdown
+from lerobot_pdp.benchmark.settings import BenchmarkConfig, TrainSettings
 from lerobot_pdp.envs import get_suite_env
 
 
@@ -80,7 +76,7 @@ def _init(scene_rates: dict[str, float]) -> dict:
 
 def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
     """Seeds run in two folders merge into the table a single run over all seeds would have written."""
-    from lerobot_pdp.benchmark.protocol import merge_results
+    from lerobot_pdp.benchmark.results import merge_results
 
     s0 = {"pdp": {0: [1.0, 0.9, 1.0, 0.8]}, "dp": {0: [0.5, 0.0, 1.0, 0.0]}}
     s12 = {"pdp": {1: [1.0, 0.7, 1.0, 1.0], 2: [0.9, 0.8, 0.6, 1.0]}, "dp": {1: [0.4, 0.1, 0.9, 0.2]}}
@@ -105,7 +101,7 @@ def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
 
 
 def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
-    from lerobot_pdp.benchmark.protocol import merge_results
+    from lerobot_pdp.benchmark.results import merge_results
 
     a = _results([0], {"pdp": {0: [1.0, 1.0, 1.0, 1.0]}})
     with pytest.raises(ValueError, match="pdp seed 0 is in both a and b"):
@@ -176,13 +172,13 @@ def test_rollout_figures_split_main_methods_from_ablations_whatever_was_asked(tm
         (tmp_path / "runs" / m / "seed0").mkdir(parents=True)
         (tmp_path / "runs" / m / "seed0" / "traces.json").write_text(json.dumps({"0": []}))
     cfg = BenchmarkConfig(env="reach-around", out=tmp_path, seeds=[0], methods=names)
-    figures.write_figures(get_suite_env("reach-around"), tmp_path, cfg, {(m, 0): tmp_path for m in names}, {})
+    figures.write_figures(get_suite_env("reach-around"), tmp_path, cfg, {(m, 0): tmp_path for m in names}, None)
     assert drawn == {"rollouts_xy.png": ["pdp", "dp"], "rollouts_yz.png": ["pdp", "dp"],
                      "rollouts_ablations.png": ["pdp", "pdp_onehot"]}
 
 
 def test_atomic_write_replaces_whole_files_and_leaves_no_temp_file_when_it_fails(tmp_path):
-    from lerobot_pdp.benchmark.protocol import write_text_atomic
+    from lerobot_pdp.atomic import write_text_atomic
 
     target = tmp_path / "results.json"
     write_text_atomic(target, "old")

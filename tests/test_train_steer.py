@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from lerobot_pdp.behavior import read_episodes
-from lerobot_pdp.benchmark.evaluation import run_rollouts
-from lerobot_pdp.benchmark.protocol import load_policy
+from lerobot_pdp.benchmark.rollouts import run_rollouts
+from lerobot_pdp.benchmark.training import load_policy
 from lerobot_pdp.envs import get_suite_env
 from lerobot_pdp.envs.suite import parse_task_mode
 

@@ -5,7 +5,7 @@ fits z to the scene's demonstration exactly as the benchmark does (warm start fr
 frozen), then rolls out with the benchmark's rollout seeds. One JSON line per (setting, fit seed), then a
 summary line per setting (mean +- std of success over fit seeds):
 
-    python examples/diagnostics/fit_spread.py /work/runs/pick_place_centre/runs/pdp/seed1 \\
+    python examples/diagnostics/fit_spread.py runs/pick_place_centre/runs/pdp/seed1 \\
         --env pick-place --scenes 3 --fit-seeds 5 --set fit_steps=100 fit_steps=300,fit_batch_size=64
 """
 
@@ -34,8 +34,9 @@ def _parse(setting: str) -> dict[str, float]:
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
+    from lerobot_pdp.benchmark.data import demo_episode, demo_root
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -16,9 +16,9 @@ For scenes 1-3 it first prints how close the scene's demonstration comes to a ba
 that imitates it has). For each rollout it also prints when the fingers first closed (the mean of the two finger commands below 0),
 how far from the handle, the largest door opening and where the end effector ended.
 
-    python examples/diagnostics/kitchen_failures.py /work/runs/kitchen_full/runs/pdp/seed0 --scene 0
-    python examples/diagnostics/kitchen_failures.py /work/runs/kitchen_full/runs/dp/seed0 --scene 0
-    python examples/diagnostics/kitchen_failures.py /work/runs/kitchen_full/runs/pdp/seed0 --scene 0 --episode-latents
+    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0
+    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/dp/seed0 --scene 0
+    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0 --episode-latents
 
 ``--episode-latents`` (PDP, scene 0): rollout i is conditioned on training demonstration i's own encoded latent
 instead of its mode's mean, which tells a poor mode mean apart from a denoiser that fails with any latent.
@@ -76,7 +76,7 @@ def demo_clearance(out: Path, scene: int) -> None:
     margin a rollout that imitates it has. Poses are set from the recorded joint positions, no stepping."""
     import mujoco
 
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root
+    from lerobot_pdp.benchmark.data import demo_episode, demo_root
     from lerobot_pdp.envs.kitchen_microwave import KitchenMicrowaveEnv
     from lerobot_pdp.envs.suite import get_suite_env
 
@@ -121,8 +121,10 @@ def classify(log: list, info: dict, reach: float) -> tuple[str, str]:
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_run, methods_for
+    from lerobot_pdp.benchmark.evaluation import evaluate_scene0
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.settings import methods_for
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -12,7 +12,7 @@ Prints one JSON line per grid point and writes a PNG with both maps, the trainin
 encoder's warm start and the latent the benchmark fitted (``eval.json``). If some grid latents succeed
 where the fitted one fails, the denoiser can produce the behaviour and the fit does not find it.
 
-    python examples/diagnostics/latent_landscape.py /work/runs/kitchen_seeds/runs/pdp/seed0 \\
+    python examples/diagnostics/latent_landscape.py runs/kitchen_seeds/runs/pdp/seed0 \\
         --env kitchen-microwave --scene 3 -n 6 --rollouts 10 --z0 -0.5 2.0 --z1 -3.5 -1.0 --out k3.png
 """
 
@@ -36,8 +36,9 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
+    from lerobot_pdp.benchmark.data import demo_episode, demo_root
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
     from lerobot_pdp.latent_fitting import fit_loss
 

@@ -7,7 +7,7 @@ action units: a summed velocity error is a position drift if the policy replayed
 states). Separates "the fit found a poor z" (some grid latent has a far smaller bias) from "no nearby z
 makes this route" (every latent trades one dimension's error for another's):
 
-    python examples/diagnostics/open_loop_bias.py /work/runs/pick_place_centre/runs/pdp/seed1 \\
+    python examples/diagnostics/open_loop_bias.py runs/pick_place_centre/runs/pdp/seed1 \\
         --env pick-place --scene 3 --frames 78:123 --phase 1
 """
 
@@ -25,7 +25,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root, load_run
+    from lerobot_pdp.benchmark.data import demo_episode, demo_root
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

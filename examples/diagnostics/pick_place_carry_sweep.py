@@ -4,7 +4,7 @@ Keeps the reach latent the benchmark fitted for scene 3 and sweeps the carry lat
 spanning the training carry clusters (+30 %), one rollout each, printing where each carry crosses
 y = 0.18 (just before the wall at y = 0.25; the window's centre is x = 0.19, z = 0.59).
 
-    python examples/diagnostics/pick_place_carry_sweep.py /work/runs/pick_place_full3/runs/pdp/seed0 -n 8
+    python examples/diagnostics/pick_place_carry_sweep.py runs/pick_place_full3/runs/pdp/seed0 -n 8
 
 ``--fitted N`` instead rolls out the benchmark's own fitted latent N times (the protocol's rollout seeds)
 and prints each crossing next to the scene-3 demonstration's.
@@ -25,8 +25,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import load_run
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -65,8 +65,8 @@ def _crossing(trace: np.ndarray) -> np.ndarray:
 
 
 def _fitted_crossings(run: Path, suite, policy, pre, post, z3: np.ndarray, n: int) -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import demo_episode, demo_root
+    from lerobot_pdp.benchmark.data import demo_episode, demo_root
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
 
     demo = demo_episode(demo_root(suite, run.parents[2], 3))
     x, _, h = _crossing(demo["observation.state"][:, :3])

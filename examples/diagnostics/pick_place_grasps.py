@@ -8,8 +8,8 @@ action, and prints per rollout where the gripper first closed (distance end effe
 grasped rollouts also where the carry ended (object - target distance when the gripper opened again, or how
 far along y the object got while still held).
 
-    python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
-    python examples/diagnostics/pick_place_grasps.py /work/runs/pick_place_full3/runs/pdp/seed0 --scene 0 -n 40
+    python examples/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
+    python examples/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 0 -n 40
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import load_run
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs import pick_place as pp
     from lerobot_pdp.envs.suite import get_suite_env
 

@@ -3,7 +3,7 @@
 Scene 0 rolls out each mode's mean latent as the benchmark does; scenes 1-3 reuse the latent the benchmark
 fitted there (``eval.json``). One JSON line per setting, e.g. denoising steps or executed actions per chunk:
 
-    python examples/diagnostics/reevaluate_with.py /work/runs/pick_place_full3/runs/pdp/seed0 \\
+    python examples/diagnostics/reevaluate_with.py runs/pick_place_full3/runs/pdp/seed0 \\
         --env pick-place --set num_inference_steps=5 num_inference_steps=10 num_inference_steps=20
 """
 
@@ -20,8 +20,10 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
-    from lerobot_pdp.benchmark.evaluation import run_rollouts
-    from lerobot_pdp.benchmark.protocol import evaluate_scene0, load_run, methods_for
+    from lerobot_pdp.benchmark.evaluation import evaluate_scene0
+    from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.settings import methods_for
+    from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

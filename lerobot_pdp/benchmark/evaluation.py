@@ -1,147 +1,199 @@
-"""Rollouts for the evaluation protocol, through LeRobot's own ``lerobot_eval.rollout``.
+"""The protocol's evaluation of one trained (method, seed): scene 0 steered per mode, scenes 1-3 after adapting
+to one demonstration, the latent-initialisation ablation; cached in the run folder so a rerun resumes.
 
-Each batch of rollouts runs in a gymnasium ``SyncVectorEnv`` of suite envs, with the policy's saved pre/post
-processors and the env config's processors, exactly as ``lerobot-eval`` would. A thin wrapper records
-what ``rollout`` does not return: the first episode's final ``info`` (success, collision, clearance, mode)
-and its behavior trace for plots.
+- Scene 0: rollouts spread evenly over the training modes; PDP conditions on each mode's mean latent,
+  the baselines sample freely. Success, collision, mode coverage and entropy.
+- Scenes 1-3: ONE successful demonstration in that scene is given (the scene's only feasible training
+  mode, or the scene file's way-points). PDP fits z to it with every weight frozen; DP optimises its
+  initial noise; BC fine-tunes its weights. Success and collision.
 """
 
 from __future__ import annotations
 
-import contextlib
-import math
-from collections import Counter
-from dataclasses import dataclass, field
+import copy
+import json
+import time
+from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
-import torch
 
+from ..atomic import write_text_atomic
 from ..envs.suite import SuiteEnv
+from .data import demo_episode
+from .rollouts import RolloutBatch, run_rollouts
+from .settings import INIT_STEPS, BenchmarkConfig, Method
+from .training import load_policy
 
 
-class EpisodeRecorder(gym.Wrapper):
-    """Keeps the final info and the trace of the first episode after each new rollout."""
-
-    def __init__(self, env: gym.Env, trace_dims: tuple[int, ...]):
-        super().__init__(env)
-        self.trace_dims = list(trace_dims)
-        self.final_info: dict[str, Any] | None = None
-        self.trace: list[np.ndarray] = []
-        self._recording = False
-
-    def reset(self, *, seed=None, options=None):
-        obs, info = self.env.reset(seed=seed, options=options)
-        # LeRobot's rollout starts each rollout with this option; vector-env autoresets pass none, and the
-        # episodes they start are discarded by rollout, so they must not overwrite the recording.
-        new_rollout = bool((options or {}).get("lerobot_new_rollout"))
-        if new_rollout or (self.final_info is None and not self._recording):
-            self.final_info, self.trace, self._recording = None, [obs["agent_pos"][self.trace_dims].copy()], True
-        return obs, info
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if self._recording:
-            self.trace.append(obs["agent_pos"][self.trace_dims].copy())
-            if terminated or truncated:
-                self.final_info = dict(info)
-                self._recording = False
-        return obs, reward, terminated, truncated, info
+def sampler_steps(ckpt: Path, override: int | None = None) -> int | None:
+    """DDIM steps an evaluation of ``ckpt`` uses: ``override``, else the checkpoint's own (None: no sampler)."""
+    saved = json.loads((Path(ckpt) / "config.json").read_text())
+    if "num_inference_steps" not in saved:
+        return None
+    return int(override) if override is not None else saved["num_inference_steps"]
 
 
-@dataclass
-class RolloutResult:
-    """Outcome of one rollout."""
-
-    success: bool
-    collided: bool
-    min_clearance: float
-    mode: int  # classifier label, -1 = novel / unfinished
-    trace: np.ndarray
-    label: str = ""  # what it was conditioned on (e.g. "mode 3"), for plots
+def _cached(path: Path, steps: int | None, ckpt: Path) -> dict[str, Any] | None:
+    """A cached evaluation made with the same sampler steps (files from before the key existed were made
+    with the checkpoint's own steps)."""
+    if not path.is_file():
+        return None
+    cached = json.loads(path.read_text())
+    return cached if cached.get("inference_steps", sampler_steps(ckpt)) == steps else None
 
 
-@dataclass
-class RolloutBatch:
-    results: list[RolloutResult] = field(default_factory=list)
-
-    def extend(self, other: RolloutBatch) -> None:
-        self.results.extend(other.results)
-
-    @property
-    def success_rate(self) -> float:
-        return float(np.mean([r.success for r in self.results])) if self.results else 0.0
-
-    @property
-    def collision_rate(self) -> float:
-        return float(np.mean([r.collided for r in self.results])) if self.results else 0.0
-
-    def mode_stats(self, n_modes: int) -> dict[str, float]:
-        """Coverage (fraction of training modes reached by a successful rollout) and normalised entropy."""
-        modes = [r.mode for r in self.results if r.success and r.mode >= 0]
-        if not modes:
-            return {"coverage": 0.0, "entropy": 0.0}
-        counts = Counter(modes)
-        p = np.array(list(counts.values()), dtype=float) / len(modes)
-        entropy = float(-(p * np.log(p)).sum() / math.log(n_modes)) if n_modes > 1 else 0.0
-        return {"coverage": len(counts) / n_modes, "entropy": entropy}
+def _spread(n: int, k: int) -> list[int]:
+    """n rollouts spread as evenly as possible over k modes."""
+    return [n // k + (1 if i < n % k else 0) for i in range(k)]
 
 
-def make_vector_env(suite: SuiteEnv, scene: Any, n_envs: int) -> gym.vector.SyncVectorEnv:
-    """``n_envs`` recorded suite envs of one scene (max episode length from the suite table)."""
-    import lerobot_pdp.envs  # noqa: F401  (registers gym ids)
-
-    def make():
-        env = gym.make(suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
-                       disable_env_checker=True)
-        return EpisodeRecorder(env, suite.trace_dims)
-
-    return gym.vector.SyncVectorEnv([make for _ in range(n_envs)])
-
-
-@contextlib.contextmanager
-def _quiet_rollout_bar(module):
-    """LeRobot's rollout draws a progress bar per batch; hundreds of them drown the benchmark's own."""
-    original = module.trange
-
-    def silent(*args, **kwargs):
-        return original(*args, **{**kwargs, "disable": True})
-
-    module.trange = silent
-    try:
-        yield
-    finally:
-        module.trange = original
+def evaluate_scene0(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed: int) -> RolloutBatch:
+    batch = RolloutBatch()
+    if method.steerable:
+        means = policy.mode_latents()
+        modes = sorted(means)
+        for m, count in zip(modes, _spread(n, len(modes)), strict=True):
+            if count == 0:
+                continue
+            policy.set_latent(means[m])
+            batch.extend(run_rollouts(suite, 0, policy, pre, post, count, seed + 97 * m, label=f"mode {m}"))
+        policy.set_latent(None)
+    else:
+        batch.extend(run_rollouts(suite, 0, policy, pre, post, n, seed, label="sampled"))
+    return batch
 
 
-def run_rollouts(suite: SuiteEnv, scene: Any, policy, preprocessor, postprocessor, n: int, seed: int,
-                 label: str = "", env_processors=None, batch_size: int = 10) -> RolloutBatch:
-    """``n`` rollouts of ``policy`` in ``scene`` with LeRobot's rollout loop, ``batch_size`` envs at a time."""
-    from lerobot.processor import PolicyProcessorPipeline
-    from lerobot.scripts import lerobot_eval
+def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, steps: int | None = None,
+          init: str = "encoder"):
+    """Adapt a policy to one demonstration the method's own way; returns (policy to roll out, info)."""
+    from .baselines import FixedNoisePolicy, adapt_dp_noise, finetune_bc
 
-    if env_processors is None:
-        identity = PolicyProcessorPipeline(steps=[])
-        env_processors = (identity, identity)
-    out = RolloutBatch()
-    done = 0
-    while done < n:
-        b = min(batch_size, n - done)
-        venv = make_vector_env(suite, scene, b)
-        try:
-            torch.manual_seed(seed + done)
-            with _quiet_rollout_bar(lerobot_eval):
-                lerobot_eval.rollout(venv, policy, env_processors[0], env_processors[1], preprocessor,
-                                     postprocessor, seeds=list(range(seed + done, seed + done + b)))
-            for sub in venv.envs:
-                info = sub.final_info or {}
-                out.results.append(RolloutResult(
-                    success=bool(info.get("is_success", False)), collided=bool(info.get("collided", False)),
-                    min_clearance=float(info.get("min_clearance", float("nan"))), mode=int(info.get("mode", -1)),
-                    trace=np.asarray(sub.trace), label=label,
-                ))
-        finally:
-            venv.close()
-        done += b
+    if method.adapt == "fit_latent":
+        # segments="auto": a gripper-segmented policy fits one z per phase (paper Eq. 12)
+        res = policy.fit_latent(demo, steps=steps, init=init, seed=seed)
+        return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None}
+    if method.adapt == "noise":
+        noise = adapt_dp_noise(policy, pre, demo, seed=seed)
+        return FixedNoisePolicy(policy, noise), {}
+    if method.adapt == "finetune":
+        return finetune_bc(policy, pre, demo, seed=seed), {}
+    raise ValueError(f"unknown adaptation {method.adapt!r}")
+
+
+def _summary(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, Any]:
+    d: dict[str, Any] = {"success": batch.success_rate, "collision": batch.collision_rate,
+                         "n": len(batch.results)}
+    if with_modes:
+        d.update(batch.mode_stats(n_modes))
+        steered = [r for r in batch.results if r.label.startswith("mode ")]
+        if steered:
+            d["steer_accuracy"] = float(np.mean([r.mode == int(r.label.split()[1]) for r in steered]))
+    return d
+
+
+def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig,
+                    seed: int, run_dir: Path) -> dict[str, Any]:
+    """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
+    cache = run_dir / "eval.json"
+    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, sampler, ckpt)
+    if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
+        return cached
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
+    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts,
+                              "inference_steps": sampler, "scenes": {}}
+    traces: dict[str, Any] = {}
+    for scene in cfg.scenes:
+        t0 = time.time()
+        if scene == 0:
+            batch = evaluate_scene0(suite, method, policy, pre, post, cfg.rollouts, seed * 10_000)
+            summary = _summary(batch, suite.n_modes, with_modes=True)
+        else:
+            demo = demo_episode(demos[scene])
+            actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed)
+            batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene,
+                                 label=f"scene {scene}")
+            summary = {**_summary(batch, suite.n_modes, with_modes=False), **info}
+            if method.adapt == "fit_latent":
+                policy.set_latent(None)
+        summary["seconds"] = time.time() - t0
+        result["scenes"][str(scene)] = summary
+        traces[str(scene)] = [{"trace": r.trace.tolist(), "success": r.success, "label": r.label, "mode": r.mode}
+                              for r in batch.results]
+        print(f"[benchmark] {method.name} seed {seed} scene {scene}: success {summary['success']:.0%}"
+              f" collision {summary['collision']:.0%}")
+    if method.policy_type == "pdp":
+        result["latents"] = {k: v.tolist() for k, v in policy.behavior_table().items()}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(run_dir / "traces.json", json.dumps(traces))
+    write_text_atomic(cache, json.dumps(result, indent=1))
+    return result
+
+
+def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig, seed: int,
+                           run_dir: Path) -> dict[str, Any]:
+    """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3.
+
+    ``{"encoder@0": mean success over the shifted scenes, ..., "per_scene": {"encoder@0": {"1": rate, ...}}}``;
+    the per-scene rates say *where* an initialisation wins or loses, which the mean hides."""
+    cache = run_dir / "init_ablation.json"
+    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, sampler, ckpt)
+    if cached:
+        return {k: v for k, v in cached.items() if k != "inference_steps"}
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
+    method = Method("pdp", "pdp")
+    out: dict[str, Any] = {}
+    per_scene: dict[str, dict[str, float]] = {}
+    for init in ("encoder", "random"):
+        for steps in INIT_STEPS:
+            key, rates = f"{init}@{steps}", {}
+            for scene in [s for s in cfg.scenes if s != 0]:
+                demo = demo_episode(demos[scene])
+                actor, _ = adapt(method, policy, pre, demo, seed, steps=steps, init=init)
+                batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene)
+                rates[str(scene)] = batch.success_rate
+            out[key] = float(np.mean(list(rates.values()))) if rates else None
+            per_scene[key] = rates
+            print(f"[benchmark] init {init} steps {steps}: success {out[key]} per scene {rates}")
+    policy.set_latent(None)
+    out["per_scene"] = per_scene
+    write_text_atomic(cache, json.dumps({**out, "inference_steps": sampler}, indent=1))
+    return out
+
+
+def evaluate_sweep(suite: SuiteEnv, ckpt: Path, run_dir: Path, cfg: BenchmarkConfig, seed: int, n: int = 7
+                   ) -> dict[str, Any] | None:
+    """Latents between the two farthest-apart mode means, along a linear and an elliptical path, one scene-0
+    rollout each: what the interpolation figure shows. Cached in ``run_dir/sweep.json``; None for a policy
+    without a latent or with fewer than two modes."""
+    cache = run_dir / "sweep.json"
+    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    cached = _cached(cache, sampler, ckpt)
+    if cached and cached.get("n") == n and cached.get("seed") == seed:
+        return cached
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
+    if policy.config.latent_conditioning == "none":
+        return None
+    means = policy.mode_latents()
+    keys = sorted(means)
+    if len(keys) < 2:
+        return None
+    # the two farthest-apart mode means: the sweep crosses the whole manifold
+    pairs = [(a, b) for a in keys for b in keys if a < b]
+    a, b = max(pairs, key=lambda ab: float((means[ab[0]] - means[ab[1]]).norm()))
+    paths: dict[str, Any] = {}
+    for path in ("linear", "elliptical"):
+        zs = policy.interpolate(means[a], means[b], n, path=path)
+        rollouts = []
+        for k, z in enumerate(zs):
+            policy.set_latent(z)
+            r = run_rollouts(suite, 0, policy, pre, post, 1, seed + k).results[0]
+            rollouts.append({"trace": r.trace.tolist(), "success": r.success})
+        policy.set_latent(None)
+        paths[path] = {"z": zs.tolist(), "rollouts": rollouts}
+    out = {"inference_steps": sampler, "n": n, "seed": seed, "modes": [a, b], "paths": paths,
+           "behaviors": {k: v.tolist() for k, v in policy.behavior_table().items()}}
+    write_text_atomic(cache, json.dumps(out))
     return out

@@ -1,7 +1,7 @@
 """Benchmark figures (PNG): latent map, rollouts per scene and method, interpolation sweeps, fitted z.
 
-Everything is drawn from what the protocol cached (``runs/<method>/seed<k>/eval.json`` and
-``traces.json``) plus one interpolation sweep rolled out with the seed-0 PDP checkpoint.
+Everything is drawn from what the protocol cached (``runs/<method>/seed<k>/eval.json``, ``traces.json`` and
+the seed-0 PDP's ``sweep.json``); nothing here trains, loads a policy or rolls out.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from ..envs.plotting import draw_scene, mode_color, scene_views  # noqa: E402
 from ..envs.suite import SuiteEnv  # noqa: E402
-from .protocol import ABLATIONS  # noqa: E402
+from .settings import ABLATIONS  # noqa: E402
 
 
 def _plane_dims(plane: str) -> tuple[int, int]:
@@ -122,44 +122,28 @@ def rollouts_grid(suite: SuiteEnv, traces: dict[str, dict[str, list]], scenes: l
     return out_png
 
 
-def interpolation_sweep(suite: SuiteEnv, ckpt: Path, out_png: Path, n: int = 7, seed: int = 0,
-                        inference_steps: int | None = None) -> Path | None:
-    """Latents between two distant mode means along a linear and an elliptical path, one rollout each."""
-    from .evaluation import run_rollouts
-    from .protocol import load_policy
-
-    policy, pre, post = load_policy(ckpt, inference_steps)
-    if policy.config.latent_conditioning == "none":
-        return None
-    means = policy.mode_latents()
-    keys = sorted(means)
-    if len(keys) < 2:
-        return None
-    # the two farthest-apart mode means: the sweep crosses the whole manifold
-    pairs = [(a, b) for a in keys for b in keys if a < b]
-    a, b = max(pairs, key=lambda ab: float((means[ab[0]] - means[ab[1]]).norm()))
+def interpolation_sweep(suite: SuiteEnv, sweep: dict[str, Any], out_png: Path) -> Path:
+    """The latent sweep of ``evaluation.evaluate_sweep``: each path's rollouts in two views, and the path on
+    the latent map."""
+    a, b = sweep["modes"]
+    n = len(sweep["paths"]["linear"]["z"])
     planes = scene_views(suite)[:2]
     # last column: where the sweep runs on the latent map (2-D latents; the first two coordinates otherwise)
-    table = policy.behavior_table()
+    table = {k: np.asarray(v) for k, v in sweep["behaviors"].items()}
     fig, axes = plt.subplots(2, len(planes) + 1, figsize=(5.2 * (len(planes) + 1), 9), squeeze=False)
     cmap = plt.get_cmap("viridis")
     for r, path in enumerate(("linear", "elliptical")):
-        zs = policy.interpolate(means[a], means[b], n, path=path)
-        results = []
-        for k, z in enumerate(zs):
-            policy.set_latent(z)
-            results.append(run_rollouts(suite, 0, policy, pre, post, 1, seed + k).results[0])
-        policy.set_latent(None)
+        results = sweep["paths"][path]["rollouts"]
         for c, plane in enumerate(planes):
             ax = axes[r][c]
             draw_scene(ax, suite.name, 0, plane)
             i, j = _plane_dims(plane)
             for k, res in enumerate(results):
-                t = res.trace
-                ax.plot(t[:, i], t[:, j], color=cmap(k / max(n - 1, 1)), lw=1.6,
-                        ls="-" if res.success else "--", label=f"t={k / (n - 1):.2f}" + ("" if res.success else " ✗"))
+                t = np.asarray(res["trace"])
+                ax.plot(t[:, i], t[:, j], color=cmap(k / max(n - 1, 1)), lw=1.6, ls="-" if res["success"] else "--",
+                        label=f"t={k / (n - 1):.2f}" + ("" if res["success"] else " ✗"))
             ax.set_title(f"{path} path ({plane} view)", fontsize=10)
-        _sweep_on_latent_map(axes[r][-1], suite, table, zs.cpu().numpy(), path)
+        _sweep_on_latent_map(axes[r][-1], suite, table, np.asarray(sweep["paths"][path]["z"]), path)
         axes[r][-2].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     # the mode names are long (pick-place names both phases): once, in the figure title, not per panel
     fig.suptitle(f"{suite.name}: latent sweeps from mode {a} ({suite.mode_names[a]}) to mode {b} "
@@ -193,8 +177,10 @@ def _sweep_on_latent_map(ax, suite: SuiteEnv, table: dict[str, np.ndarray], zs: 
                  fontsize=10)
 
 
-def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], Path], demos: dict[int, Path]) -> list[Path]:
-    """All benchmark figures into ``out/figures``; returns their paths."""
+def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], Path],
+                  sweep: dict[str, Any] | None = None) -> list[Path]:
+    """All benchmark figures into ``out/figures`` from the cached evaluations (and the PDP latent ``sweep``
+    of ``evaluation.evaluate_sweep``); runs nothing. Returns the figures' paths."""
     fig_dir = Path(out) / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -222,9 +208,6 @@ def write_figures(suite: SuiteEnv, out: Path, cfg, ckpts: dict[tuple[str, int], 
         rows = (["pdp"] if "pdp" in traces else []) + ablated
         written.append(rollouts_grid(suite, {k: traces[k] for k in rows}, list(cfg.scenes), fig_dir / "rollouts_ablations.png",
                                      scene_views(suite)[0]))
-    if ("pdp", seed) in ckpts:
-        p = interpolation_sweep(suite, ckpts[("pdp", seed)], fig_dir / "interpolation.png", seed=seed,
-                                inference_steps=cfg.inference_steps)
-        if p:
-            written.append(p)
+    if sweep is not None:
+        written.append(interpolation_sweep(suite, sweep, fig_dir / "interpolation.png"))
     return written

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import shutil
-import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -20,6 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from ..atomic import staging_dir
 from .scene import Scene, SceneError, load_scene, read_scene_file
 from .suite import NOVEL, SuiteEnv, get_suite_env
 
@@ -235,13 +234,11 @@ def make_dataset(
     )
 
     gym_env = gym.make(suite.gym_id, scene=scene_obj, disable_env_checker=True)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     rejected = 0
     labels: list[int | str] = []
     features = _dataset_features(gym_env)
     try:
-        with _skip_image_embedding(features):
+        with staging_dir(out, prefix=f".{out.name}.partial-") as tmp, _skip_image_embedding(features):
             ds = LeRobotDataset.create(
                 repo_id=repo_id or f"local/pdp_{suite.scene_key}_scene{_scene_tag(scene)}",
                 fps=suite.fps,
@@ -309,7 +306,6 @@ def make_dataset(
             (tmp / "dataset").rename(out)
     finally:
         gym_env.close()
-        shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

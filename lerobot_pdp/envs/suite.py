@@ -12,6 +12,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..episodes import parse_task_mode  # noqa: F401  (the inverse of SuiteEnv.task_string)
+
 NOVEL = "novel"  # what a mode classifier returns for a trajectory that matches no training mode
 
 
@@ -104,13 +106,4 @@ def get_suite_env(name: str) -> SuiteEnv:
             return env
     raise KeyError(f"unknown env {name!r}; known: {sorted(SUITE)}")
 
-
-def parse_task_mode(task: str) -> int | str | None:
-    """Inverse of :meth:`SuiteEnv.task_string`: ``"mode 3: left-wide"`` -> 3; None if unlabeled."""
-    if not isinstance(task, str) or not task.startswith("mode "):
-        return None
-    head = task[5:].split(":", 1)[0].strip()
-    if head.isdigit():
-        return int(head)
-    return head or None
 

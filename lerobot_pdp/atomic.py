@@ -1,0 +1,49 @@
+"""Whole files or nothing: every file and folder the package writes goes through here.
+
+Runs get cut off (a session ends, a disk fills, a user presses Ctrl-C); a resumed benchmark or a loading
+policy must never read a truncated file as a finished one. Files are written next to their target and
+renamed into place (``os.replace`` is atomic within one filesystem); folders are built in a staging
+folder next to theirs and moved in when complete.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+
+def write_file_atomic(path: str | Path, write: Callable[[Path], None]) -> None:
+    """``write(tmp)`` writes the whole file at a temporary path, which then replaces ``path``.
+
+    The temporary name keeps ``path``'s suffix (``np.save`` appends ``.npy`` otherwise); after a failed
+    write no stray temporary file is left either.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write a whole text file or none."""
+    write_file_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+@contextmanager
+def staging_dir(next_to: str | Path, prefix: str = ".staging-") -> Iterator[Path]:
+    """A fresh folder beside ``next_to`` (same filesystem, so its contents can be renamed into place),
+    removed with whatever is left in it when the block ends, also on error."""
+    parent = Path(next_to).parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

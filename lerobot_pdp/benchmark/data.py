@@ -1,0 +1,82 @@
+"""The benchmark's demonstrations: the scene-0 training dataset and one demonstration per shifted scene,
+generated once into the run folder and reused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import write_text_atomic
+from ..envs.scene import load_scene
+from ..envs.suite import SuiteEnv
+from .settings import TrainSettings
+
+
+def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: int = 0) -> Path:
+    """The scene-0 training dataset (generated once, then reused)."""
+    from ..envs.recording import make_dataset
+
+    root = out / "data" / f"{suite.scene_key}_scene0"
+    info = root / "meta" / "info.json"
+    if not info.is_file():
+        print(f"[benchmark] generating {suite.name} scene-0 dataset ({settings.episodes_per_mode}/mode) -> {root}")
+        make_dataset(suite.name, root, scene=0, episodes_per_mode=settings.episodes_per_mode, seed=seed)
+    # Reusing a dataset of another size would silently mix runs trained on different data in one table.
+    expected = suite.n_modes * settings.episodes_per_mode
+    found = json.loads(info.read_text()).get("total_episodes")
+    if found != expected:
+        raise ValueError(f"{root} holds {found} episodes but this benchmark needs {expected} "
+                         f"({settings.episodes_per_mode} per mode x {suite.n_modes} modes); use another --out "
+                         f"or delete {out / 'data'} and {out / 'runs'}")
+    return root
+
+
+def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[int]:
+    """Training modes whose scripted expert succeeds in ``scene`` (one seeded try each)."""
+    from ..envs.recording import run_expert_episode
+
+    return [m for m in range(suite.n_modes)
+            if run_expert_episode(suite, scene, mode=m, seed=seed + m)[0].get("is_success")]
+
+
+def demo_root(suite: SuiteEnv, out: Path, scene: int) -> Path:
+    """Where a benchmark output folder ``out`` keeps the demonstration of ``scene``."""
+    return out / "data" / f"{suite.scene_key}_scene{scene}_demo"
+
+
+def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:
+    """One successful demonstration in ``scene``: the scene's way-points if it ships them, else its only
+    feasible training mode. Returns the dataset folder and a description."""
+    from ..envs.recording import make_dataset
+
+    root = demo_root(suite, out, scene)
+    info_file = root / "meta" / "pdp_demo.json"
+    if info_file.is_file():
+        return root, json.loads(info_file.read_text())["source"]
+    sc = load_scene(scene, suite.scene_key)
+    if sc.waypoints is not None:
+        source = "scene way-points (new route)"
+        kwargs: dict[str, Any] = {"waypoints": "scene"}
+    else:
+        modes = feasible_training_modes(suite, scene, seed)
+        if not modes:
+            raise RuntimeError(f"{suite.name} scene {scene}: no training mode is feasible and no way-points ship")
+        source = f"training mode {modes[0]} ({suite.mode_names[modes[0]]})"
+        kwargs = {"modes": [modes[0]]}
+    if root.exists():
+        shutil.rmtree(root)
+    make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene, progress=False,
+                 **kwargs)
+    write_text_atomic(info_file, json.dumps({"source": source}))
+    return root, source
+
+
+def demo_episode(root: Path) -> dict[str, np.ndarray]:
+    from ..behavior import read_episodes
+
+    eps = read_episodes(root, ["observation.state", "observation.environment_state", "action"], [0])
+    return {k: v for k, v in eps[0].items() if isinstance(v, np.ndarray)}

@@ -1,0 +1,173 @@
+"""Results of a benchmark run: per-seed evaluations aggregated into ``results.json``, runs of different seeds
+merged into one, and the markdown table in the paper's layout."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+
+from .settings import INIT_STEPS, BenchmarkConfig, TrainSettings
+
+
+def _agg(values: list[float]) -> dict[str, Any]:
+    v = [x for x in values if x is not None]
+    return {"values": v, "mean": float(np.mean(v)) if v else None, "std": float(np.std(v)) if v else None}
+
+
+def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
+              settings: TrainSettings, steps: int) -> dict[str, Any]:
+    """``results.json`` layout: methods -> scene<k> -> success [per seed], mean, std (+ collision, modes)."""
+    out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
+                           "train": {**asdict(settings), "steps": steps}, "device": cfg.device, "methods": {}}
+    for name, runs in per_run.items():
+        entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
+        for scene in cfg.scenes:
+            rows = [runs[s]["scenes"][str(scene)] for s in cfg.seeds if s in runs]
+            d: dict[str, Any] = {"success": [r["success"] for r in rows]}
+            a = _agg(d["success"])
+            d.update(mean=a["mean"], std=a["std"], collision=_agg([r["collision"] for r in rows])["mean"])
+            for k in ("coverage", "entropy", "steer_accuracy"):
+                if rows and k in rows[0]:
+                    d[k] = _agg([r.get(k) for r in rows])["mean"]
+            entry[f"scene{scene}"] = d
+        shifted = [entry[f"scene{s}"]["mean"] for s in cfg.scenes if s != 0 and entry[f"scene{s}"]["mean"] is not None]
+        entry["shifted_avg"] = float(np.mean(shifted)) if shifted else None
+        steps_used = sorted({r["inference_steps"] for r in runs.values() if r.get("inference_steps") is not None})
+        if steps_used:
+            entry["inference_steps"] = steps_used
+        out["methods"][name] = entry
+    if init_abl:
+        keys = [k for k in next(iter(init_abl.values())) if k != "per_scene"]
+        out["init_ablation"] = {k: _agg([init_abl[s][k] for s in init_abl]) for k in keys}
+        for k in keys:  # per shifted scene, mean over the seeds (caches from before per_scene have none)
+            scenes = [a["per_scene"][k] for a in init_abl.values() if k in a.get("per_scene", {})]
+            if scenes:
+                out["init_ablation"][k]["scenes"] = {sc: _agg([r[sc] for r in scenes])["mean"] for sc in scenes[0]}
+    return out
+
+
+# Per-scene keys that are means over seeds (each seed ran the same number of rollouts), so a merge can
+# weight them by seed count and stay exact.
+_SEED_MEANS = ("collision", "coverage", "entropy", "steer_accuracy")
+
+
+def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """One ``results.json`` from several runs of the same protocol that hold different seeds (e.g. seeds run
+    on other machines or sessions). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
+
+    Refused, naming the files and the key: other env, rollouts, training settings or scenes, and a
+    (method, seed) present twice. Per-seed success lists are concatenated in seed order, mean / std
+    recomputed; the other per-scene figures are seed-weighted means of the runs' means."""
+    if len(results) < 2:
+        raise ValueError(f"merging needs at least two results files, got {len(results)}")
+    for name, res in results:
+        missing = [k for k in ("env", "rollouts", "seeds", "train", "methods") if not isinstance(res, dict) or k not in res]
+        if missing:
+            raise ValueError(f"{name}: not a benchmark results.json (no {', '.join(missing)})")
+    first_name, first = results[0]
+    for name, res in results[1:]:
+        for key in ("env", "rollouts", "quick", "train"):
+            if res.get(key) != first.get(key):
+                raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
+                                 "only runs of the same protocol can be merged")
+    # method -> [(seed, source name, entry)] with each seed's index into the entry's per-seed lists
+    rows: dict[str, list[tuple[int, str, dict[str, Any], int]]] = {}
+    for name, res in results:
+        for method, entry in res["methods"].items():
+            seeds = entry.get("seeds", res["seeds"])  # files from before per-method seeds: all seeds ran
+            short = [k for k in entry if k.startswith("scene") and len(entry[k]["success"]) != len(seeds)]
+            if short:  # an older file's method that missed some seeds: which ones is not recorded
+                raise ValueError(f"{name}: {method} {short[0]} has {len(entry[short[0]]['success'])} per-seed "
+                                 f"values for seeds {seeds}; cannot tell which seeds they are")
+            for i, seed in enumerate(seeds):
+                clash = [n for s, n, _, _ in rows.get(method, []) if s == seed]
+                if clash:
+                    raise ValueError(f"{method} seed {seed} is in both {clash[0]} and {name}; "
+                                     "merge runs of different seeds only")
+                rows.setdefault(method, []).append((seed, name, entry, i))
+    out: dict[str, Any] = {key: first[key] for key in ("env", "rollouts", "quick", "train")}
+    out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
+    out["merged_from"] = [name for name, _ in results]
+    out["methods"] = {}
+    for method, per_seed in rows.items():
+        per_seed.sort(key=lambda r: r[0])
+        scenes = [k for k in per_seed[0][2] if k.startswith("scene")]
+        for _, name, entry, _ in per_seed:
+            got = [k for k in entry if k.startswith("scene")]
+            if got != scenes:
+                raise ValueError(f"{name}: {method} has scenes {got} but {per_seed[0][1]} has {scenes}")
+        merged: dict[str, Any] = {"seeds": [r[0] for r in per_seed]}
+        for scene in scenes:
+            success = [entry[scene]["success"][i] for _, _, entry, i in per_seed]
+            a = _agg(success)
+            d: dict[str, Any] = {"success": success, "mean": a["mean"], "std": a["std"]}
+            for key in _SEED_MEANS:
+                if key in per_seed[0][2][scene]:
+                    d[key] = _agg([entry[scene].get(key) for _, _, entry, _ in per_seed])["mean"]
+            merged[scene] = d
+        shifted = [merged[s]["mean"] for s in scenes if s != "scene0" and merged[s]["mean"] is not None]
+        merged["shifted_avg"] = float(np.mean(shifted)) if shifted else None
+        steps_used = sorted({s for _, _, e, _ in per_seed for s in e.get("inference_steps", [])})
+        if steps_used:
+            merged["inference_steps"] = steps_used
+        out["methods"][method] = merged
+    abl = [res["init_ablation"] for _, res in results if "init_ablation" in res]
+    if abl:
+        keys = abl[0].keys()
+        out["init_ablation"] = {k: _agg([v for a in abl for v in a.get(k, {}).get("values", [])]) for k in keys}
+        for k in keys:  # per-scene means, weighted by each file's seed count; only if every file has them
+            parts = [(a[k]["scenes"], len(a[k]["values"])) for a in abl if a.get(k, {}).get("scenes")]
+            if parts and len(parts) == len(abl):
+                n = sum(w for _, w in parts)
+                out["init_ablation"][k]["scenes"] = {sc: sum(r[sc] * w for r, w in parts) / n for sc in parts[0][0]}
+    return out
+
+
+def _fmt(d: dict[str, Any] | None) -> str:
+    if not d or d.get("mean") is None:
+        return "–"
+    if len(d.get("success", d.get("values", []))) > 1:  # several seeds: mean ± std
+        return f"{100 * d['mean']:.1f} ± {100 * d['std']:.1f}"
+    return f"{100 * d['mean']:.1f}"
+
+
+def results_markdown(res: dict[str, Any]) -> str:
+    """The paper's table layout: rows = methods, columns = original scene and constraint shifts."""
+    scenes = [k for k in next(iter(res["methods"].values())) if k.startswith("scene")]
+    head = ["Method", *[("Original (scene 0)" if s == "scene0" else f"Shift {s[5:]}") for s in scenes],
+            "Shifted avg", "Scene-0 coverage"]
+    lines = [f"### {res['env']} — success rate (%), {res['rollouts']} rollouts per scene, seeds {res['seeds']}",
+             "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, entry in res["methods"].items():
+        cov = entry.get("scene0", {}).get("coverage")
+        label = name if entry.get("seeds", res["seeds"]) == res["seeds"] else f"{name} (seeds {entry['seeds']})"
+        row = [label, *[_fmt(entry[s]) for s in scenes],
+               "–" if entry.get("shifted_avg") is None else f"{100 * entry['shifted_avg']:.1f}",
+               "–" if cov is None else f"{100 * cov:.0f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    if "init_ablation" in res:
+        lines += ["", "#### Latent initialisation (PDP, mean success over shifted scenes, %)", "",
+                  "| init | " + " | ".join(f"{s} steps" for s in INIT_STEPS) + " |", "|---|" + "---|" * len(INIT_STEPS)]
+        for init in ("encoder", "random"):
+            cells = [_fmt(res["init_ablation"].get(f"{init}@{s}")) for s in INIT_STEPS]
+            lines.append(f"| {'warm (encoder)' if init == 'encoder' else 'random'} | " + " | ".join(cells) + " |")
+        per_scene = {k: v["scenes"] for k, v in res["init_ablation"].items() if v.get("scenes")}
+        if per_scene:
+            shifts = list(next(iter(per_scene.values())))
+            lines += ["", "| init @ fitting steps | " + " | ".join(f"Shift {sc}" for sc in shifts) + " |",
+                      "|---|" + "---|" * len(shifts)]
+            for k, rates in per_scene.items():
+                label = k.replace("encoder", "warm (encoder)").replace("@", " @ ")
+                lines.append(f"| {label} | " + " | ".join(f"{100 * rates[sc]:.1f}" for sc in shifts) + " |")
+    t = res["train"]
+    if res.get("merged_from"):
+        lines += ["", f"Merged from: {', '.join(res['merged_from'])}."]
+    lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
+              f"{t['episodes_per_mode']} demos/mode (same for every method)."]
+    sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}" for name, e in res["methods"].items()
+               if e.get("inference_steps")]
+    if sampler:
+        lines.append(f"DDIM sampler steps: {', '.join(sampler)}.")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,168 @@
+"""Training one (method, seed) with LeRobot's own ``lerobot-train`` process, checkpoint reuse, and loading a
+trained checkpoint with its processors the way ``lerobot-eval`` does."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ..atomic import write_text_atomic
+from .settings import Method, TrainSettings
+
+# lerobot-train spends ~3/4 of a step loading the batch (LeRobotDataset.__getitem__ per sample). Two
+# loader workers with one torch thread in the trainer overlap loading and the update on 2 cores:
+# 0.10 s/step instead of 0.18 s/step (num_workers=0, 2 threads); workers with 2 trainer threads
+# oversubscribe the cores and are slower than no workers at all (measured on reach-around, PDP, B = 64).
+TRAIN_NUM_WORKERS = int(os.environ.get("LEROBOT_PDP_TRAIN_WORKERS", "2"))
+
+
+TRAIN_THREADS_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"} if TRAIN_NUM_WORKERS > 0 else {}
+
+
+def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None:
+    """Run ``lerobot-train`` with its output in ``log``; a progress bar follows its logged step counter."""
+    import re
+
+    from tqdm.auto import tqdm
+
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV}
+    pattern = re.compile(r"step:(\d+)(K?)")
+    with open(log, "w") as fh, tqdm(total=total_steps, desc=desc, unit="step") as bar:
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            fh.write(line)
+            m = pattern.search(line)
+            if m:
+                # lerobot-train rounds large counters ("step:2K" at step 1500): never past the total
+                step = min(int(m.group(1)) * (1000 if m.group(2) else 1), total_steps)
+                bar.update(max(0, step - bar.n))
+        rc = proc.wait()
+        bar.update(total_steps - bar.n)
+    if rc != 0:
+        tail = "".join(log.read_text().splitlines(keepends=True)[-40:])
+        raise RuntimeError(f"{args[0]} failed with exit code {rc}; see {log}\n{tail}")
+
+
+def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings, steps: int,
+               device: str = "cpu") -> list[str]:
+    """The ``lerobot-train`` command line of one (method, seed) run, without ``--output_dir``."""
+    exe = Path(sys.executable).parent / "lerobot-train"
+    lr_args = [f"--policy.optimizer_lr={settings.lr}"]
+    if method.policy_type == "pdp":
+        lr_args.append(f"--policy.embedding_lr={settings.lr}")
+    warmup = (
+        [f"--policy.scheduler_warmup_steps={min(settings.warmup_steps, steps // 10)}"]
+        if method.policy_type in ("pdp", "diffusion") else []
+    )
+    args = [
+        str(exe) if exe.exists() else "lerobot-train",
+        f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", f"--policy.device={device}",
+        f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
+        f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
+        f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
+        "--wandb.enable=false",
+        # the shared budget comes last so that it wins over any per-method default (same lr for everyone)
+        *method.overrides, *lr_args, *warmup,
+    ]
+    if settings.drop_n_last_frames is not None:
+        args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
+    if method.policy_type in ("pdp", "diffusion"):
+        args.append(f"--policy.num_inference_steps={settings.inference_steps}")
+    return args
+
+
+def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
+                 steps: int, device: str = "cpu") -> Path:
+    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
+    ckpt = run_dir / "pretrained_model"
+    args = train_args(method, dataset, seed, settings, steps, device)
+    if (ckpt / "model.safetensors").is_file():
+        _check_reusable(run_dir, args)
+        return ckpt
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for stale in ("eval.json", "traces.json", "init_ablation.json", "train_info.json"):  # of an earlier model
+        (run_dir / stale).unlink(missing_ok=True)
+    tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
+    args.append(f"--output_dir={tmp_out}")
+    log = run_dir / "train.log"
+    t0 = time.time()
+    try:
+        _run_logged(args, log, steps, f"train {method.name} seed {seed}")
+        src = tmp_out / "checkpoints" / "last" / "pretrained_model"
+        if not (src / "model.safetensors").is_file():
+            raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
+        # train_info.json first: a checkpoint must never be found without the arguments it was trained with
+        # (that would pass as one copied in by hand and be reused unchecked).
+        write_text_atomic(run_dir / "train_info.json", json.dumps({"seconds": time.time() - t0, "steps": steps,
+                                                                   "args": args}, indent=1))
+        os.replace(src, ckpt)
+    finally:  # a failed run leaves its log, not half a training folder
+        shutil.rmtree(tmp_out.parent, ignore_errors=True)
+    return ckpt
+
+
+# Flags that do not change what a run learns: where it writes and how often it logs and saves, how many
+# loader processes feed it, the device it runs on, and the DDIM steps it samples with (evaluations record
+# their own sampler and are redone when it changes).
+_NOT_TRAINING = ("--output_dir", "--dataset.root", "--log_freq", "--save_freq", "--num_workers",
+                 "--policy.num_inference_steps", "--policy.device")
+
+
+def _flags(args: list[str]) -> dict[str, str]:
+    pairs = (a.partition("=") for a in args[1:] if a.startswith("--"))
+    return {k: v for k, _, v in pairs if k not in _NOT_TRAINING}
+
+
+def _check_reusable(run_dir: Path, args: list[str]) -> None:
+    """Refuse to reuse a checkpoint trained with other arguments (steps, lr, method flags): resuming into an
+    old ``--out`` after the protocol changed would otherwise put stale runs into the new table. Checkpoints
+    without a ``train_info.json`` (copied in by hand) are reused as they are."""
+    info = run_dir / "train_info.json"
+    recorded = json.loads(info.read_text()).get("args") if info.is_file() else None
+    if recorded is None:
+        return
+    old, new = _flags(recorded), _flags(args)
+    diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if diff:
+        shown = "; ".join(f"{k}: trained with {old.get(k, '(absent)')}, now {new.get(k, '(absent)')}" for k in diff)
+        raise ValueError(f"{run_dir} was trained with other lerobot-train arguments ({shown}); use another --out "
+                         f"or delete {run_dir} to retrain")
+
+
+def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "cpu"):
+    """Policy + its saved pre/post processors on ``device``, as lerobot-eval loads them.
+
+    ``inference_steps`` replaces the checkpoint's ``num_inference_steps`` (diffusion policies only).
+    """
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(ckpt)
+    cfg.device = device
+    if inference_steps is not None and hasattr(cfg, "num_inference_steps"):
+        if not 1 <= inference_steps <= cfg.num_train_timesteps:
+            raise ValueError(f"inference_steps={inference_steps} for {ckpt}: expected 1..{cfg.num_train_timesteps} "
+                             "(the checkpoint's num_train_timesteps)")
+        cfg.num_inference_steps = int(inference_steps)
+    policy = get_policy_class(cfg.type).from_pretrained(ckpt, config=cfg)
+    policy.eval()
+    # the saved device step holds the training device: point it at this one (lerobot-eval does the same)
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt),
+                                         preprocessor_overrides={"device_processor": {"device": device}})
+    return policy, pre, post
+
+
+def load_run(run_dir: Path):
+    """A benchmark run's policy + processors sampling as its ``eval.json`` was made (same DDIM steps; the
+    checkpoint's own when there is no evaluation yet). Diagnostics use it to replay the benchmark's rollouts."""
+    run_dir = Path(run_dir)
+    ev = run_dir / "eval.json"
+    steps = json.loads(ev.read_text()).get("inference_steps") if ev.is_file() else None
+    return load_policy(run_dir / "pretrained_model", steps)
