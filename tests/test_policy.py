@@ -393,3 +393,24 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
     assert p.demo_windows(ep).n_segments == 1  # "auto" on an unsegmented policy
     with pytest.raises(ValueError, match=r"segment \(10, 5\) is not a non-empty frame range"):
         p.demo_windows(ep, segments=[(10, 5)])
+
+
+def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
+    """``tests/data/pdp_checkpoint_v1`` was saved with its actions, mode latents and a 3-step fit (see
+    ``tests/data/make_pdp_checkpoint_v1.py``): the current code must load it and reproduce all three."""
+    import json
+    from pathlib import Path
+
+    ckpt = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
+    exp = json.loads((ckpt / "expected.json").read_text())
+    p = PDPPolicy.from_pretrained(ckpt)
+    p.eval()
+    t = {k: torch.tensor(exp[k]) for k in ("obs_cond", "z", "noise", "chunk")}
+    torch.testing.assert_close(p.generate(t["obs_cond"], t["z"], noise=t["noise"]), t["chunk"], atol=1e-5, rtol=1e-5)
+    means = p.mode_latents()
+    assert sorted(means) == sorted(int(k) for k in exp["mode_latents"])
+    for k, v in exp["mode_latents"].items():
+        torch.testing.assert_close(means[int(k)], torch.tensor(v), atol=1e-5, rtol=1e-5)
+    res = p.fit_latent({k: torch.tensor(v) for k, v in exp["demo"].items()}, steps=3, seed=0)
+    torch.testing.assert_close(res.z_init, torch.tensor(exp["fit_z_init"]), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(res.z, torch.tensor(exp["fit_z"]), atol=1e-5, rtol=1e-5)
