@@ -23,10 +23,11 @@ sys.path.insert(0, str(HERE.parent))
 def main() -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy
-    from synthetic import write_dataset
 
     from lerobot_pdp import PDPConfig
     from lerobot_pdp.episodes import read_episodes
+
+    from synthetic import write_dataset
 
     out = HERE / "pdp_checkpoint_v1"
     with tempfile.TemporaryDirectory() as tmp:
