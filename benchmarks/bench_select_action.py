@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     if args.device.startswith("cuda"):
         small["pdp_eager"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
-        small["pdp_eager"][0]._cuda_graphs = False
+        small["pdp_eager"][0].model._cuda_graphs = False
     for name in ("pdp", "pdp_eager"):
         if name in small:
             pdp = small[name][0]

@@ -40,11 +40,11 @@ def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
     p = _policy(synthetic_meta)
     p.train()
     batch = _batch(synthetic_meta, p)
-    assert batch[ACTION].is_cuda and p.behavior_traces.is_cuda and p.trace_distance_matrix.is_cuda
-    p.loss_terms(batch)  # first call: lazy CUDA initialisation may synchronise
+    assert batch[ACTION].is_cuda and p.model.behavior_traces.is_cuda and p.model.trace_distance_matrix.is_cuda
+    p.model.loss_terms(batch)  # first call: lazy CUDA initialisation may synchronise
     torch.cuda.set_sync_debug_mode("error")
     try:
-        loss, metrics = p.loss_terms(batch)
+        loss, metrics = p.model.loss_terms(batch)
         loss.backward()
     finally:
         torch.cuda.set_sync_debug_mode("default")
@@ -57,24 +57,24 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
     p = _policy(synthetic_meta)
     p.eval()
     g = torch.Generator(device="cuda").manual_seed(0)
-    obs = torch.randn(3, p.denoiser.obs_cond_dim, device="cuda", generator=g)
+    obs = torch.randn(3, p.model.denoiser.obs_cond_dim, device="cuda", generator=g)
     z = torch.randn(3, p.config.latent_dim, device="cuda", generator=g)
     noise = torch.randn(3, p.config.horizon, p.action_dim, device="cuda", generator=g)
     n = p.config.num_inference_steps
     for _ in range(2):  # capture, then replay
-        torch.testing.assert_close(p.generate(obs, z, noise=noise), p._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
-    assert len(p._graphs._calls) == 1
+        torch.testing.assert_close(p.generate(obs, z, noise=noise), p.model._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
+    assert len(p.model._graphs._calls) == 1
     torch.cuda.set_sync_debug_mode("error")  # a replayed chunk never waits for the GPU
     try:
         p.generate(obs, z, noise=noise)
     finally:
         torch.cuda.set_sync_debug_mode("default")
     with torch.no_grad():  # an optimizer step changes the weights in place: the graph is captured anew
-        for q in p.denoiser.parameters():
+        for q in p.model.denoiser.parameters():
             q.add_(0.01 * torch.randn_like(q))
-    torch.testing.assert_close(p.generate(obs, z, noise=noise), p._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(p.generate(obs, z, noise=noise), p.model._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
     out = p.generate(obs, z + 1.0, noise=noise)  # a new z through the same graph
-    torch.testing.assert_close(out, p._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out, p.model._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
 
 
 def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
@@ -89,7 +89,7 @@ def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
     for _ in range(6):
         a = p.select_action(batch)
         assert a.is_cuda and a.shape == (2, 2)
-    assert p._phase.is_cuda and p.current_latent(2).is_cuda
+    assert p.phases.phase.is_cuda and p.current_latent(2).is_cuda
 
 
 def test_fit_latent_on_the_gpu(synthetic_meta):

@@ -36,15 +36,15 @@ def _batch(meta, policy, n=8, seed=0):
 
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):
     p = _policy(synthetic_meta)
-    assert len(p.behavior_traces) == 40
-    assert p.trace_distance_matrix.shape == (40, 40)
-    assert torch.allclose(p.trace_distance_matrix, p.trace_distance_matrix.T, atol=1e-4)
+    assert len(p.model.behavior_traces) == 40
+    assert p.model.trace_distance_matrix.shape == (40, 40)
+    assert torch.allclose(p.model.trace_distance_matrix, p.model.trace_distance_matrix.T, atol=1e-4)
     assert p.config.mode_names == {"0": "left-tight", "1": "left-wide", "2": "right-tight", "3": "right-wide"}
     # distances: same-mode pairs are closer than cross-mode pairs
-    m = p.behavior_mode
+    m = p.model.behavior_mode
     same = m[:, None] == m[None]
     off = ~torch.eye(40, dtype=torch.bool)
-    assert p.trace_distance_matrix[same & off].mean() < p.trace_distance_matrix[~same].mean()
+    assert p.model.trace_distance_matrix[same & off].mean() < p.model.trace_distance_matrix[~same].mean()
 
 
 def test_forward_and_param_groups(synthetic_meta):
@@ -56,7 +56,7 @@ def test_forward_and_param_groups(synthetic_meta):
     assert {"loss_dp", "embed_rec", "embed_kl", "embed_geo", "loss_embed"} <= set(info)
     groups = p.get_optim_params()
     assert [g["lr"] for g in groups] == [p.config.embedding_lr, p.config.optimizer_lr]
-    vae_ids = {id(q) for q in p.vae.parameters()}
+    vae_ids = {id(q) for q in p.model.vae.parameters()}
     assert {id(q) for q in groups[0]["params"]} == vae_ids
     assert not vae_ids & {id(q) for q in groups[1]["params"]}
     # stop-gradient: L_DP alone gives the encoder no gradient
@@ -64,16 +64,16 @@ def test_forward_and_param_groups(synthetic_meta):
     p.eval()
     loss_dp, _ = p.forward(batch)
     loss_dp.backward()
-    assert all(q.grad is None or not q.grad.any() for q in p.vae.parameters())
-    assert any(q.grad is not None and q.grad.any() for q in p.denoiser.parameters())
+    assert all(q.grad is None or not q.grad.any() for q in p.model.vae.parameters())
+    assert any(q.grad is not None and q.grad.any() for q in p.model.denoiser.parameters())
 
 
 def test_behavior_lookup_by_episode_and_global_index(synthetic_meta):
     p = _policy(synthetic_meta)
-    ids = p._behavior_ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.behavior_global_start[5]) + 3, 10**6]))
+    ids = p.model.behavior_ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.model.behavior_global_start[5]) + 3, 10**6]))
     assert ids.tolist() == [0, 5, 39]
     with pytest.raises(KeyError, match=r"episode\(s\) \[99\]"):
-        p._behavior_ids(torch.tensor([99]), None)
+        p.model.behavior_ids(torch.tensor([99]), None)
 
 
 def test_batch_shape_errors_name_key(synthetic_meta):
@@ -175,7 +175,7 @@ def test_fit_latent_bad_episode(synthetic_meta, mutate, message):
 
 def test_mode_latents_without_labels_is_a_clear_error(synthetic_meta):
     p = _policy(synthetic_meta)
-    p.behavior_mode = torch.full_like(p.behavior_mode, -1)
+    p.model.behavior_mode = torch.full_like(p.model.behavior_mode, -1)
     with pytest.raises(ValueError, match="mode_latents\\(\\) needs mode labels"):
         p.mode_latents()
 
@@ -185,9 +185,14 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
     p.eval()
     p.save_pretrained(tmp_path / "ckpt")
     assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
+    from safetensors import safe_open
+
+    with safe_open(str(tmp_path / "ckpt" / "model.safetensors"), framework="pt") as f:  # first release's keys
+        keys = set(f.keys())
+    assert {"behavior_traces", "geo_kappa", "vae.trace_mean"} <= keys and not any(k.startswith("model.") for k in keys)
     q = PDPPolicy.from_pretrained(tmp_path / "ckpt")
     for name in ("behavior_traces", "trace_distance_matrix", "behavior_mode", "geo_kappa"):
-        assert torch.equal(getattr(p, name), getattr(q, name)), name
+        assert torch.equal(getattr(p.model, name), getattr(q.model, name)), name
     assert q.config.mode_names == p.config.mode_names
     for a, b in zip(p.mode_latents().values(), q.mode_latents().values(), strict=True):
         torch.testing.assert_close(a, b)
@@ -254,7 +259,7 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
     readme = (out / "README.md").read_text()
     assert "Parameterized Diffusion Policy" in readme and "steer_mode" in readme
     q = PDPPolicy.from_pretrained(out)
-    assert len(q.behavior_traces) == 40
+    assert len(q.model.behavior_traces) == 40
 
 
 @pytest.mark.parametrize("masked", [False, True])
@@ -317,14 +322,14 @@ def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
     act = _gripper_actions(p)
     for closed in (0, 1, 0, 0):  # open, one-action blip, open
         p._advance_phase(act(closed))
-    assert p._phase.tolist() == [0] and torch.equal(p.current_latent(1)[0], z[0])
+    assert p.phases.phase.tolist() == [0] and torch.equal(p.current_latent(1)[0], z[0])
     p._advance_phase(act(1))  # open -> closed ...
-    assert p._phase.tolist() == [0]
+    assert p.phases.phase.tolist() == [0]
     p._advance_phase(act(1))  # ... held for 2 actions
-    assert p._phase.tolist() == [1] and torch.equal(p.current_latent(1)[0], z[1])
+    assert p.phases.phase.tolist() == [1] and torch.equal(p.current_latent(1)[0], z[1])
     for closed in (0, 0, 0):  # last phase stays active
         p._advance_phase(act(closed))
-    assert p._phase.tolist() == [1]
+    assert p.phases.phase.tolist() == [1]
 
 
 def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
@@ -339,10 +344,10 @@ def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
     p._advance_phase(act(0, 0, 0))
     p._queues[ACTION].append(torch.zeros(3, 2))
     p._advance_phase(act(1, 0, 0))  # only env 0 grasps
-    assert p._phase.tolist() == [1, 0, 0] and len(p._queues[ACTION]) == 0  # replan under the new latent
+    assert p.phases.phase.tolist() == [1, 0, 0] and len(p._queues[ACTION]) == 0  # replan under the new latent
     assert torch.equal(p.current_latent(3), torch.stack([z[1], z[0], z[0]]))
     p._advance_phase(act(0, 1, 0))  # 0 releases, 1 grasps
-    assert p._phase.tolist() == [2, 1, 0]
+    assert p.phases.phase.tolist() == [2, 1, 0]
     assert torch.equal(p.current_latent(3), torch.stack([z[2], z[1], z[0]]))
     p.set_latent(z)  # a new latent restarts every env at phase 0
     assert torch.equal(p.current_latent(3), z[0].expand(3, -1))
@@ -351,11 +356,11 @@ def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
 def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):
     """Gripper-segmented training (several behaviors per episode): a mode's mean latent is per phase."""
     p = _policy(synthetic_meta)
-    n = len(p.behavior_episode)
+    n = len(p.model.behavior_episode)
     # re-index the behaviors as 2 phases of n // 2 episodes, all of mode 3 (phase order = start frame)
-    p.behavior_episode = torch.arange(n) // 2
-    p.behavior_start = (torch.arange(n) % 2) * 10
-    p.behavior_mode = torch.full((n,), 3)
+    p.model.behavior_episode = torch.arange(n) // 2
+    p.model.behavior_start = (torch.arange(n) % 2) * 10
+    p.model.behavior_mode = torch.full((n,), 3)
     assert p.behavior_phase().tolist() == [i % 2 for i in range(n)]
     z = p.behavior_latents().detach()
     means = p.mode_latents()

@@ -44,7 +44,7 @@ def main() -> None:
                                                               "action"], [5])[5].items() if k != "task"
                 and not isinstance(v, int)}
         g = torch.Generator().manual_seed(1)
-        obs_cond = torch.randn(2, policy.denoiser.obs_cond_dim, generator=g)
+        obs_cond = torch.randn(2, policy.model.denoiser.obs_cond_dim, generator=g)
         z = torch.randn(2, policy.config.latent_dim, generator=g)
         noise = torch.randn(2, policy.config.horizon, policy.action_dim, generator=g)
         chunk = policy.generate(obs_cond, z, noise=noise)

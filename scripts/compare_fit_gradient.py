@@ -1,6 +1,6 @@
 """Success after fit_latent with the autograd gradient vs the default finite-difference gradient.
 
-    .venv/bin/python benchmarks/compare_fit_gradient.py --env pick-place --out runs/pick_place_full2
+    .venv/bin/python scripts/compare_fit_gradient.py --env pick-place --out runs/pick_place_full2
 
 Uses a finished ``lerobot-pdp benchmark`` directory (its PDP seed-0 checkpoint and scene 1-3
 demonstrations). For each scene and fitting seed: fit z (default steps) with each gradient, then

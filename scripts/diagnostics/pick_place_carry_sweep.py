@@ -4,7 +4,7 @@ Keeps the reach latent the benchmark fitted for scene 3 and sweeps the carry lat
 spanning the training carry clusters (+30 %), one rollout each, printing where each carry crosses
 y = 0.18 (just before the wall at y = 0.25; the window's centre is x = 0.19, z = 0.59).
 
-    python examples/diagnostics/pick_place_carry_sweep.py runs/pick_place_full3/runs/pdp/seed0 -n 8
+    python scripts/diagnostics/pick_place_carry_sweep.py runs/pick_place_full3/runs/pdp/seed0 -n 8
 
 ``--fitted N`` instead rolls out the benchmark's own fitted latent N times (the protocol's rollout seeds)
 and prints each crossing next to the scene-3 demonstration's.

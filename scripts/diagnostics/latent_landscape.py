@@ -12,7 +12,7 @@ Prints one JSON line per grid point and writes a PNG with both maps, the trainin
 encoder's warm start and the latent the benchmark fitted (``eval.json``). If some grid latents succeed
 where the fitted one fails, the denoiser can produce the behaviour and the fit does not find it.
 
-    python examples/diagnostics/latent_landscape.py runs/kitchen_seeds/runs/pdp/seed0 \\
+    python scripts/diagnostics/latent_landscape.py runs/kitchen_seeds/runs/pdp/seed0 \\
         --env kitchen-microwave --scene 3 -n 6 --rollouts 10 --z0 -0.5 2.0 --z1 -3.5 -1.0 --out k3.png
 """
 
@@ -89,7 +89,7 @@ def main() -> None:
 
     # L_fit on every window with the same noise at every grid point (a fresh generator per point).
     windows = policy.demo_windows(demo)
-    den, sched = policy.denoiser, policy.noise_schedule
+    den, sched = policy.model.denoiser, policy.model.noise_schedule
     consts = den.weight_constants(list(range(sched.num_train_timesteps)))
     idx = torch.arange(len(windows.segment))
     if args.first_windows:

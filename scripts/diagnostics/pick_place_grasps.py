@@ -8,8 +8,8 @@ action, and prints per rollout where the gripper first closed (distance end effe
 grasped rollouts also where the carry ended (object - target distance when the gripper opened again, or how
 far along y the object got while still held).
 
-    python examples/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
-    python examples/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 0 -n 40
+    python scripts/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 1 -n 20
+    python scripts/diagnostics/pick_place_grasps.py runs/pick_place_full3/runs/pdp/seed0 --scene 0 -n 40
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ fits z to the scene's demonstration exactly as the benchmark does (warm start fr
 frozen), then rolls out with the benchmark's rollout seeds. One JSON line per (setting, fit seed), then a
 summary line per setting (mean +- std of success over fit seeds):
 
-    python examples/diagnostics/fit_spread.py runs/pick_place_centre/runs/pdp/seed1 \\
+    python scripts/diagnostics/fit_spread.py runs/pick_place_centre/runs/pdp/seed1 \\
         --env pick-place --scenes 3 --fit-seeds 5 --set fit_steps=100 fit_steps=300,fit_batch_size=64
 """
 

@@ -3,7 +3,7 @@
 Scene 0 rolls out each mode's mean latent as the benchmark does; scenes 1-3 reuse the latent the benchmark
 fitted there (``eval.json``). One JSON line per setting, e.g. denoising steps or executed actions per chunk:
 
-    python examples/diagnostics/reevaluate_with.py runs/pick_place_full3/runs/pdp/seed0 \\
+    python scripts/diagnostics/reevaluate_with.py runs/pick_place_full3/runs/pdp/seed0 \\
         --env pick-place --set num_inference_steps=5 num_inference_steps=10 num_inference_steps=20
 """
 

@@ -7,7 +7,7 @@ action units: a summed velocity error is a position drift if the policy replayed
 states). Separates "the fit found a poor z" (some grid latent has a far smaller bias) from "no nearby z
 makes this route" (every latent trades one dimension's error for another's):
 
-    python examples/diagnostics/open_loop_bias.py runs/pick_place_centre/runs/pdp/seed1 \\
+    python scripts/diagnostics/open_loop_bias.py runs/pick_place_centre/runs/pdp/seed1 \\
         --env pick-place --scene 3 --frames 78:123 --phase 1
 """
 

@@ -16,9 +16,9 @@ For scenes 1-3 it first prints how close the scene's demonstration comes to a ba
 that imitates it has). For each rollout it also prints when the fingers first closed (the mean of the two finger commands below 0),
 how far from the handle, the largest door opening and where the end effector ended.
 
-    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0
-    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/dp/seed0 --scene 0
-    python examples/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0 --episode-latents
+    python scripts/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0
+    python scripts/diagnostics/kitchen_failures.py runs/kitchen_full/runs/dp/seed0 --scene 0
+    python scripts/diagnostics/kitchen_failures.py runs/kitchen_full/runs/pdp/seed0 --scene 0 --episode-latents
 
 ``--episode-latents`` (PDP, scene 0): rollout i is conditioned on training demonstration i's own encoded latent
 instead of its mode's mean, which tells a poor mode mean apart from a denoiser that fails with any latent.

@@ -1,0 +1,241 @@
+"""The PDP model: training behaviors, trajectory VAE, FiLM denoiser, noise schedule, and the loss.
+
+What :class:`~lerobot_pdp.modeling_pdp.PDPPolicy` (the LeRobot face) trains and samples. Data flows one way:
+whole demonstrations -> behavior traces and their soft-DTW distances (``behavior.py``) -> encoder
+mu_phi -> z -> FiLM-modulated denoiser (``denoiser.py``) -> action chunks.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from torch import Tensor, nn
+
+from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
+from .configuration_pdp import PDPConfig
+from .cuda_graphs import GraphCache
+from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
+
+logger = logging.getLogger(__name__)
+
+# Buffers whose first dimension is the number of behaviors in the training set: their size is only known
+# from the dataset (at training) or from the checkpoint file (at load).
+BEHAVIOR_BUFFERS = ("behavior_traces", "behavior_episode", "behavior_start", "behavior_global_start",
+                    "behavior_end", "behavior_mode", "trace_distance_matrix")
+
+
+class PDPModel(nn.Module):
+    """Networks, training behaviors and loss of a PDP; built from the config and the feature sizes.
+
+    ``behaviors`` (read from the training dataset) must be given before the networks are built: the
+    one-hot ablation takes its latent size from the number of modes.
+    """
+
+    def __init__(self, config: PDPConfig, state_dim: int, env_dim: int, action_dim: int,
+                 behaviors: BehaviorTraces | None = None):
+        super().__init__()
+        cfg = self.config = config
+        self.state_dim, self.env_dim, self.action_dim = state_dim, env_dim, action_dim
+        # Behaviors of the training set (traces, where they sit in which episode, mode labels, delta^X).
+        self.register_buffer("behavior_traces", torch.zeros(0, cfg.trace_length, cfg.trace_dim))
+        self.register_buffer("behavior_episode", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("behavior_start", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("behavior_global_start", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("behavior_end", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("behavior_mode", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("trace_distance_matrix", torch.zeros(0, 0))
+        self.register_buffer("geo_kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
+        if behaviors is not None:
+            self.set_behaviors(behaviors)
+
+        self.vae = TrajectoryVAE(cfg.trace_length, cfg.trace_dim, cfg.latent_dim, tuple(cfg.vae_hidden_dims))
+        if len(self.behavior_traces):
+            self.vae.set_trace_stats(self.behavior_traces)
+        self.denoiser = FiLMUnet1d(
+            action_dim, (state_dim + env_dim) * cfg.n_obs_steps, cfg.latent_dim, cfg.latent_conditioning,
+            tuple(cfg.down_dims), cfg.kernel_size, cfg.n_groups, cfg.diffusion_step_embed_dim,
+            tuple(cfg.film_hidden_dims),
+        )
+        self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
+                                            cfg.clip_sample_range)
+        self._graphs = GraphCache()  # captured samplers on CUDA (see generate)
+        self._cuda_graphs = True
+
+    # ------------------------------------------------------------------ training behaviors
+
+    def set_behaviors(self, b: BehaviorTraces) -> None:
+        """Take the training behaviors and compute their soft-DTW distance matrix delta^X (and kappa)."""
+        cfg = self.config
+        self.behavior_traces = torch.as_tensor(b.traces, dtype=torch.float32)
+        self.behavior_episode = torch.as_tensor(b.episode_index, dtype=torch.long)
+        self.behavior_start = torch.as_tensor(b.start, dtype=torch.long)
+        self.behavior_global_start = torch.as_tensor(b.global_start, dtype=torch.long)
+        self.behavior_end = torch.as_tensor(b.end, dtype=torch.long)
+        self.behavior_mode = torch.as_tensor(b.mode, dtype=torch.long)
+        if b.mode_names:
+            cfg.mode_names = {str(k): v for k, v in sorted(b.mode_names.items())}
+        if cfg.latent_type == "onehot":
+            n_modes = int(b.mode.max()) + 1 if (b.mode >= 0).any() else 0
+            if n_modes < 1 or (b.mode == UNLABELED).any():
+                raise ValueError("latent_type='onehot' needs a mode label ('mode <id>: ...') in every episode's task")
+            if cfg.latent_dim != n_modes:
+                logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
+                cfg.latent_dim = n_modes
+            self.trace_distance_matrix = torch.zeros(len(b), len(b))
+            return
+        d = trace_distances(b.traces, cfg.sdtw_gamma, cfg.sdtw_normalize)
+        self.trace_distance_matrix = torch.as_tensor(d, dtype=torch.float32)
+        kappa = cfg.geo_kappa if cfg.geo_kappa is not None else choose_kappa(d, cfg.latent_dim)
+        self.geo_kappa = torch.tensor(float(kappa))
+
+    def resize_behaviors(self, shapes: dict[str, tuple[int, ...]]) -> None:
+        """Give the dataset-sized buffers the shapes a checkpoint holds, so that it loads into them."""
+        for name, shape in shapes.items():
+            setattr(self, name, torch.zeros(shape, dtype=getattr(self, name).dtype))
+
+    def behavior_phase(self) -> Tensor:
+        """Phase index of each training behavior within its episode (0 when episodes are not segmented)."""
+        same = self.behavior_episode.view(-1, 1) == self.behavior_episode.view(1, -1)
+        earlier = self.behavior_start.view(1, -1) < self.behavior_start.view(-1, 1)
+        return (same & earlier).sum(1)
+
+    def behavior_table(self) -> dict[str, np.ndarray]:
+        """Latent of every training behavior with its episode, frame range and mode (for maps/plots)."""
+        with torch.no_grad():
+            z = self.behavior_latents().cpu().numpy()
+        return {"z": z, "episode": self.behavior_episode.cpu().numpy(), "start": self.behavior_start.cpu().numpy(),
+                "end": self.behavior_end.cpu().numpy(), "mode": self.behavior_mode.cpu().numpy()}
+
+    # ------------------------------------------------------------------ training loss
+
+    def loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        """L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi) on a training batch, and its logged terms as 0-d
+        tensors, without a single host synchronisation (see ``PDPPolicy.forward``)."""
+        self.check_batch(batch)
+        z_bar, behavior = self.batch_latents(batch)
+        obs_cond = self.obs_cond(batch)
+        actions = batch[ACTION]
+        eps = torch.randn_like(actions)
+        k = torch.randint(0, self.config.num_train_timesteps, (actions.shape[0],), device=actions.device)
+        noisy = self.noise_schedule.add_noise(actions, eps, k)
+        pred = self.denoiser(noisy, k, obs_cond, z_bar)
+        is_pad = batch.get("action_is_pad") if self.config.do_mask_loss_for_padding else None
+        loss_dp = diffusion_loss(pred, eps, is_pad)
+        metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
+        loss = loss_dp
+        if self.config.latent_type == "continuous" and self.training:
+            loss_embed, embed_info = self.embedding_loss(actions.device)
+            loss = loss + loss_embed
+            metrics.update(embed_info, loss_embed=loss_embed)
+        return loss, metrics
+
+    def embedding_loss(self, device) -> tuple[Tensor, dict]:
+        n = len(self.behavior_traces)
+        idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
+        return self.vae.loss(
+            self.behavior_traces[idx], self.trace_distance_matrix[idx][:, idx], self.geo_kappa,
+            self.config.beta_kl, self.config.beta_geo,
+        )
+
+    def check_batch(self, batch: dict[str, Tensor]) -> None:
+        cfg = self.config
+        expect = {OBS_STATE: (cfg.n_obs_steps, self.state_dim), ACTION: (cfg.horizon, self.action_dim)}
+        if self.env_dim:
+            expect[OBS_ENV_STATE] = (cfg.n_obs_steps, self.env_dim)
+        for key, shape in expect.items():
+            if key not in batch:
+                raise KeyError(f"batch has no '{key}'; PDP needs {sorted(expect)} (got {sorted(batch)})")
+            if tuple(batch[key].shape[1:]) != shape:
+                raise ValueError(f"batch['{key}'] has shape {tuple(batch[key].shape)}, expected [B, {shape[0]}, {shape[1]}]")
+        if "episode_index" not in batch:
+            raise KeyError("batch has no 'episode_index': PDP conditions each window on its episode's latent")
+
+    def behavior_ids(self, episode_index: Tensor, global_index: Tensor | None) -> Tensor:
+        """Behavior (episode, or gripper phase of an episode) of each training sample."""
+        if len(self.behavior_episode) == 0:
+            raise RuntimeError(
+                "PDP has no behavior traces: build it with dataset_meta (lerobot-train does) or load a checkpoint"
+            )
+        ep = episode_index.view(-1, 1).to(self.behavior_episode.device)
+        match = ep == self.behavior_episode.view(1, -1)
+        known = match.any(1).all()
+        if known.device.type == "cpu":
+            if not bool(known):
+                missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
+                raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
+                               f"({self.behavior_episode.unique().numel()} episodes, "
+                               f"{len(self.behavior_episode)} behaviors)")
+        else:  # checked on the device: reading the flag back would stall the GPU every training step
+            torch._assert_async(known, "a training batch holds episodes that are not among the policy's "
+                                       "training episodes (run one step on CPU to see which)")
+        if global_index is not None:
+            # behaviors of one episode partition its frames in order: take the last one that starts <= frame
+            f = global_index.view(-1, 1).to(self.behavior_start.device)
+            later = match & (self.behavior_global_start.view(1, -1) <= f)
+            match = torch.where(later.any(1, keepdim=True), later, match)
+        ids = torch.arange(match.shape[1], device=match.device).view(1, -1).expand_as(match)
+        return torch.where(match, ids, torch.full_like(ids, -1)).max(1).values
+
+    def behavior_latents(self, ids: Tensor | None = None) -> Tensor:
+        """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``); one-hot mode codes for that ablation."""
+        if self.config.latent_type == "onehot":
+            modes = self.behavior_mode if ids is None else self.behavior_mode[ids]
+            return F.one_hot(modes, self.config.latent_dim).float()
+        traces = self.behavior_traces if ids is None else self.behavior_traces[ids]
+        return self.vae.encode(traces)[0]
+
+    def batch_latents(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        ids = self.behavior_ids(batch["episode_index"], batch.get("index"))
+        with torch.no_grad():  # stop-gradient: L_DP must not shape the latent geometry
+            if ids.device.type != "cpu":  # unique() has a data-dependent size: the host would wait for it
+                return self.behavior_latents(ids).to(batch[ACTION].device), ids
+            uniq, inverse = ids.unique(return_inverse=True)
+            z = self.behavior_latents(uniq)
+        return z[inverse].to(batch[ACTION].device), ids
+
+    def obs_cond(self, batch: dict[str, Tensor]) -> Tensor:
+        feats = [batch[OBS_STATE]]
+        if self.env_dim:
+            feats.append(batch[OBS_ENV_STATE])
+        return torch.cat(feats, dim=-1).flatten(1)
+
+    # ------------------------------------------------------------------ sampling
+
+    @torch.no_grad()
+    def generate(self, obs_cond: Tensor, z: Tensor, noise: Tensor | None = None,
+                 generator: torch.Generator | None = None) -> Tensor:
+        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z]."""
+        b = obs_cond.shape[0]
+        if noise is None:
+            noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
+                                generator=generator)
+        n = self.config.num_inference_steps
+        if obs_cond.device.type == "cuda" and self._cuda_graphs:
+            try:
+                return self._generate_graphed(obs_cond, z.to(obs_cond), noise.to(obs_cond), n)
+            except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
+                logger.warning("CUDA graph capture of the sampler failed (%r); acting eagerly", e)
+                self._cuda_graphs = False
+                self._graphs.clear()
+        return self._sample(obs_cond, z, noise, n)
+
+    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int, cache_latent: bool = True) -> Tensor:
+        context = self.denoiser.make_context(obs_cond, z, self.noise_schedule.timesteps(n), cache_latent)
+        return self.noise_schedule.sample(lambda x, i, k: self.denoiser.run_cached(x, context[i]), noise, n)
+
+    def _generate_graphed(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
+        """:meth:`_sample` replayed from a CUDA graph, captured per input shape and sampler steps.
+
+        Recaptured when the weights change (the graph reads the weight constants of the capture, and
+        ``weight_constants`` returns a new object after an optimizer step, ``load_state_dict`` or ``.to``).
+        """
+        consts = self.denoiser.weight_constants(self.noise_schedule.timesteps(n))
+        key = (tuple(obs_cond.shape), tuple(z.shape), tuple(noise.shape), n, obs_cond.dtype, obs_cond.device,
+               torch.is_inference_mode_enabled())
+        call = self._graphs.get(key, consts, lambda o, zz, x: self._sample(o, zz, x, n, cache_latent=False),
+                                (obs_cond, z, noise))
+        return call(obs_cond, z, noise)
