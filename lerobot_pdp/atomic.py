@@ -1,6 +1,6 @@
 """Whole files or nothing: every file and folder the package writes goes through here.
 
-Runs get cut off (a session ends, a disk fills, a user presses Ctrl-C); a resumed benchmark or a loading
+Runs get cut off (a machine is shut down, a disk fills, a user presses Ctrl-C); a resumed benchmark or a loading
 policy must never read a truncated file as a finished one. Files are written next to their target and
 renamed into place (``os.replace`` is atomic within one filesystem); folders are built in a staging
 folder next to theirs and moved in when complete.

@@ -39,8 +39,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Training windows whose action chunk would mostly run past the episode end are not sampled.
     drop_n_last_frames: int = 7
     # Leave copy-padded actions (chunk positions past the episode end) out of the denoising loss and of
-    # latent fitting. LeRobot's diffusion policy trains on the copies (False there); on pick-place that was
-    # worse (PDP seed 0, shifted average 80 -> 62 %, docs/results.md), so PDP masks them by default.
+    # latent fitting. LeRobot's diffusion policy trains on the copies (False there); PDP masks them by
+    # default, which kept pick-place's final release precise (docs/experiments.md).
     do_mask_loss_for_padding: bool = True
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
@@ -79,11 +79,16 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     geo_kappa: float | None = None
 
     # ---- Behavior latent and trajectory VAE ----
+    # d_z, the size of the behavior latent z (paper: 2, so that the latent map can be drawn).
     latent_dim: int = 2
     # "continuous" = the paper's VAE latent; "onehot" = ablation with a discrete one-hot mode latent.
     latent_type: str = "continuous"
+    # Hidden layer sizes of the trace encoder E_phi (the decoder D_psi mirrors them).
     vae_hidden_dims: tuple[int, ...] = (256, 256)
+    # Weight of the KL term of L_embed (paper: 1e-3).
     beta_kl: float = 1e-3
+    # Weight of the geometry term L_geo that aligns latent distances with trace distances (paper: 1.0;
+    # 0 is the "unaligned" ablation).
     beta_geo: float = 1.0
     # Behaviors per embedding step (all pairs among them enter L_geo).
     embed_batch_size: int = 64
@@ -92,45 +97,56 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # "film": gamma(z) * h + beta(z) in every residual block (the paper); "concat": z appended to the
     # global condition (ablation); "none": unconditioned diffusion policy (ablation).
     latent_conditioning: str = "film"
+    # Channels of the U-Net's levels (as LeRobot's diffusion policy; a small backbone trains on a CPU).
     down_dims: tuple[int, ...] = (32, 64, 128)
+    # Temporal convolution kernel size of the residual blocks.
     kernel_size: int = 5
+    # Groups of the GroupNorm layers.
     n_groups: int = 8
+    # Size of the sinusoidal diffusion-step embedding.
     diffusion_step_embed_dim: int = 64
     # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]). () = an affine
-    # map, so modulations combine linearly in z (a latent between two modes mixes theirs): used for
-    # pick-place, whose scene-3 window lies between two carry modes (benchmark/protocol.py PDP_OVERRIDES).
+    # map, so modulations combine linearly in z (a latent between two modes mixes theirs): the benchmark
+    # uses it for pick-place (benchmark/settings.py PDP_OVERRIDES; why: docs/experiments.md).
     film_hidden_dims: tuple[int, ...] = (16, 32)
 
     # ---- Diffusion ----
     # K: diffusion steps of the training forward process (paper: 20).
     num_train_timesteps: int = 20
     # Deterministic DDIM steps at inference (evenly spaced over the K training steps). 5 keeps a new chunk
-    # under 5 ms on one CPU core (docs/performance.md) and is as good as 10 or 20 on reach-around; tasks
-    # that need precise grasps want the whole chain (20): kitchen's handle grasp 77.5 -> 92.5 % on scene 0
-    # (docs/results.md), which is why the benchmark evaluates every env with 20.
+    # under 5 ms on one CPU core (docs/performance.md); tasks that need precise grasps want the whole
+    # chain (20), which the benchmark samples with on every env (docs/experiments.md).
     num_inference_steps: int = 5
+    # Noise schedule of the forward process: "squaredcos_cap_v2" (cosine, as LeRobot) or "linear".
     beta_schedule: str = "squaredcos_cap_v2"
+    # Clip the predicted clean action chunk to [-clip_sample_range, clip_sample_range] at every DDIM step
+    # (actions are min-max normalised to [-1, 1]).
     clip_sample: bool = True
     clip_sample_range: float = 1.0
 
     # ---- Optimisation (one optimizer, two parameter groups) ----
+    # AdamW learning rates (paper: 1e-4 for both). The benchmark trains every method with 1e-3 on its
+    # CPU budget of a few thousand steps (benchmark/settings.py).
     optimizer_lr: float = 1e-4  # denoiser theta
     embedding_lr: float = 1e-4  # encoder phi and decoder psi
+    # AdamW's other settings and the gradient clip, as LeRobot's diffusion policy.
     optimizer_betas: tuple[float, float] = (0.95, 0.999)
     optimizer_eps: float = 1e-8
     optimizer_weight_decay: float = 1e-6
     optimizer_grad_clip_norm: float = 10.0
+    # Linear warm-up steps of the cosine learning-rate schedule.
     scheduler_warmup_steps: int = 100
 
     # ---- Latent fitting defaults (policy.fit_latent) ----
+    # Gradient steps S on z after the encoder warm start (0 = the warm start alone).
     fit_steps: int = 100
+    # Adam step size on z.
     fit_lr: float = 0.05
     # lambda in L_fit = E|eps - eps_theta(A~^k, k, c~, z)|^2 + lambda |z|^2.
     fit_lambda: float = 1e-3
     # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). Fitting is
-    # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost. On reach-around
-    # scenes 1-3, 16 fitted as well as 32 (3 fit seeds x 20 rollouts each; see docs/performance.md) and
-    # 32 as well as 64.
+    # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost; 16 fitted as
+    # well as 32 and 64 on reach-around (docs/experiments.md).
     fit_batch_size: int = 16
     # Noise draws (k, eps) per chunk per fitting step.
     fit_noise_samples: int = 1

@@ -55,7 +55,7 @@ _SEED_MEANS = ("collision", "coverage", "entropy", "steer_accuracy")
 
 def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """One ``results.json`` from several runs of the same protocol that hold different seeds (e.g. seeds run
-    on other machines or sessions). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
+    on other machines or days). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
 
     Refused, naming the files and the key: other env, rollouts, training settings or scenes, and a
     (method, seed) present twice. Per-seed success lists are concatenated in seed order, mean / std

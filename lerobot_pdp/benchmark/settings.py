@@ -27,18 +27,16 @@ class TrainSettings:
     # whose last action matters (pick-place's release) needs windows that execute it right away.
     drop_n_last_frames: int | None = None
     # DDIM steps of PDP and DP, written into their checkpoints (lerobot-eval then samples the same way)
-    # and used when evaluating. The whole K = 20 chain: with PDPConfig's fast default of 5, kitchen's
-    # PDP lost 15-30 points to early finger closes at the handle; 20 is neutral to better elsewhere.
+    # and used when evaluating. The whole K = 20 chain: grasps need it (docs/experiments.md, "DDIM steps").
     inference_steps: int = 20
 
 
 # Per env: (full, quick). The paper's lr 1e-4 needs far more steps than a CPU budget allows; 1e-3 with a
 # cosine schedule converges in a few thousand steps for every method here. Quick settings sample with 5
 # DDIM steps: DP's noise adaptation backpropagates through every step (~4x longer at 20), which would
-# push `make demo` past its 15 minutes; reach-around succeeds equally with 5 and 20 (docs/results.md).
-# Pick-place trains twice as long: at 8000 steps its diffusion loss was still falling and releases landed up
-# to 4 cm off target; 16000 took PDP's shifted average over seeds 0-2 from 87.8 to 96.7 % (every method gets
-# the same budget).
+# push `make demo` past its time budget. Pick-place trains twice as long as the others: at 8000 steps its
+# diffusion loss was still falling and releases landed off target (every method gets the same budget).
+# These were chosen on the development scenes; docs/experiments.md has the numbers behind each choice.
 _QUICK_SAMPLER = 5
 
 
@@ -57,14 +55,9 @@ SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
 
 # Per-env PDP hyperparameters on top of the suite's trace / segmentation settings; like SETTINGS, the same
 # for every scene and seed of the env. Pick-place: an affine z -> (gamma, beta) instead of the paper's
-# [16, 32] MLP. Its carry latents form a cross (one arm per side of obstacle B, tight routes near the
-# centre, wide ones further out) and scene 3's window is far to one side *and* high, between two arms
-# where no training behavior lies. Through the MLP, latents there decoded to one arm or the other and
-# the carried cube hit the window's wall; with an affine map the modulations combine linearly. Over seeds 0-2
-# the shifted average rose from 76.7 to 85.0 % (higher on every seed; docs/results.md, pick-place).
-# And no |z|^2 penalty in the fit: the window route lies at the outer edge of the latent map, where the fit
-# loss is flat enough that lambda = 1e-3 held the fitted z ~0.07 short of it (closer to the origin =
-# narrower, lower routes); lambda = 0 raised the shifted average from 85.0 to 87.8 % on the same checkpoints.
+# [16, 32] MLP, so that a latent between two carry modes mixes their modulations (scene 3's window lies
+# between them), and no |z|^2 penalty in the fit, whose loss is flat at the outer edge of the latent map
+# where that route lies (docs/experiments.md, "Affine FiLM" and "Unpenalised fit").
 PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
     "pick-place": ("--policy.film_hidden_dims=[]", "--policy.fit_lambda=0"),
 }
