@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -198,7 +199,8 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     loaded = []
     for f in files:
         try:
-            loaded.append((str(f), json.loads(f.read_text())))
+            # named relative to the merged folder: the merged results.json records where its parts came from
+            loaded.append((os.path.relpath(f, args.out), json.loads(f.read_text())))
         except json.JSONDecodeError as e:
             raise ValueError(f"{f} is not JSON ({e})") from e
     res = merge_results(loaded)

@@ -67,7 +67,7 @@ def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_check
     settings = SETTINGS["reach-around"][1]
     run_dir = tmp_path / "runs" / "bc" / "seed0"
     run_dir.mkdir(parents=True)
-    for stale in ("eval.json", "traces.json", "init_ablation.json", "train_info.json"):
+    for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):
         (run_dir / stale).write_text("{}")
     with pytest.raises(RuntimeError, match=r"lerobot-train failed with exit code \d+; see .*train\.log"):
         train_method(method, tmp_path / "no_such_dataset", run_dir, 0, settings, 10)

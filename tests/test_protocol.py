@@ -34,6 +34,9 @@ def test_whole_protocol_tiny(tmp_path):
     out = tmp_path / "bench"
     # paths relative to the output folder (it can be moved or committed); the sweep is a cached result too
     assert all((out / p).is_file() and not p.startswith("/") for p in saved.get("figures", res["figures"]))
+    info = json.loads((out / "runs" / "pdp" / "seed0" / "train_info.json").read_text())
+    assert info["args"][0] == "lerobot-train" and not any(a.partition("=")[2].startswith("/") for a in info["args"])
+    assert "--dataset.root=../../../data/reach_around_scene0" in info["args"]
     sweep = json.loads((out / "runs" / "pdp" / "seed0" / "sweep.json").read_text())
     assert set(sweep["paths"]) == {"linear", "elliptical"} and len(sweep["paths"]["linear"]["rollouts"]) == 7
     assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [4, 4, None]

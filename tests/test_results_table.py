@@ -129,6 +129,7 @@ def test_merge_results_cli_writes_both_files_and_never_overwrites_an_input(tmp_p
                  "--out", str(tmp_path / "all")]) == 0
     res = json.loads((tmp_path / "all" / "results.json").read_text())
     assert res["methods"]["pdp"]["scene1"]["success"] == [0.5, 0.5]
+    assert res["merged_from"] == ["../seed0/results.json", "../seed1/results.json"]  # movable with its parts
     assert "| pdp | 100.0 ± 0.0 | 50.0 ± 0.0 |" in (tmp_path / "all" / "results.md").read_text()
     assert sorted(p.name for p in (tmp_path / "all").iterdir()) == ["results.json", "results.md"]
     capsys.readouterr()

@@ -87,7 +87,7 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         _check_reusable(run_dir, args)
         return ckpt
     run_dir.mkdir(parents=True, exist_ok=True)
-    for stale in ("eval.json", "traces.json", "init_ablation.json", "train_info.json"):  # of an earlier model
+    for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):  # earlier model
         (run_dir / stale).unlink(missing_ok=True)
     tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
     args.append(f"--output_dir={tmp_out}")
@@ -101,11 +101,23 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         # train_info.json first: a checkpoint must never be found without the arguments it was trained with
         # (that would pass as one copied in by hand and be reused unchecked).
         write_text_atomic(run_dir / "train_info.json", json.dumps({"seconds": time.time() - t0, "steps": steps,
-                                                                   "args": args}, indent=1))
+                                                                   "args": _portable(args, run_dir)}, indent=1))
         os.replace(src, ckpt)
     finally:  # a failed run leaves its log, not half a training folder
         shutil.rmtree(tmp_out.parent, ignore_errors=True)
     return ckpt
+
+
+def _portable(args: list[str], run_dir: Path) -> list[str]:
+    """The command as recorded in ``train_info.json``: the dataset relative to the run folder, no temporary
+    output folder, the bare program name, so that a results folder can be moved or committed."""
+    out = ["lerobot-train"]
+    for a in args[1:]:
+        key, _, value = a.partition("=")
+        if key == "--output_dir":
+            continue
+        out.append(f"{key}={os.path.relpath(value, run_dir)}" if key == "--dataset.root" else a)
+    return out
 
 
 # Flags that do not change what a run learns: where it writes and how often it logs and saves, how many
