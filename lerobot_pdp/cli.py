@@ -110,6 +110,33 @@ def cmd_plot_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "latent-map",
+        help="draw a PDP checkpoint's latent space: its training behaviors by mode or discovered cluster",
+        description="Scatter of every training behavior's latent, coloured by its mode label (or by the cluster "
+        "policy.discover_modes() finds when the data has no labels), and the behaviors' traces per mode.",
+    )
+    p.add_argument("checkpoint", type=Path, help="a pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--out", required=True, type=Path, help="output PNG")
+    p.add_argument("--k", type=int, default=None,
+                   help="colour by k discovered clusters even where labels exist (default: labels, else k by "
+                   "silhouette score)")
+    p.set_defaults(func=cmd_latent_map)
+
+
+def cmd_latent_map(args: argparse.Namespace) -> int:
+    from lerobot_pdp import PDPPolicy
+    from lerobot_pdp.latent_map import draw_latent_map
+
+    if not (args.checkpoint / "model.safetensors").is_file():
+        raise FileNotFoundError(f"{args.checkpoint} holds no model.safetensors: give a PDP pretrained_model folder")
+    policy = PDPPolicy.from_pretrained(args.checkpoint)
+    policy.eval()
+    print(f"wrote {draw_latent_map(policy, args.out, k=args.k)}")
+    return 0
+
+
 # ---- benchmark -------------------------------------------------------------------------------------
 
 
@@ -215,6 +242,7 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_make_dataset_parser,
     add_plot_dataset_parser,
+    add_latent_map_parser,
     add_benchmark_parser,
     add_merge_results_parser,
 ]

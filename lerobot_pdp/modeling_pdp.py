@@ -47,6 +47,7 @@ from .behavior import (
 from .configuration_pdp import PDPConfig
 from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent
 from .model_card import pdp_model_card
+from .modes import DiscoveredModes, discover
 from .normalization import FeatureStats
 from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
 from .phases import PhaseTracker
@@ -100,6 +101,7 @@ class PDPPolicy(PreTrainedPolicy):
         self.register_buffer("active_latent", torch.zeros(0, cfg.latent_dim), persistent=False)
         self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
         self._steering_initialised = False
+        self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
         self._queues: dict[str, deque] = {}
         self.reset()
 
@@ -265,18 +267,24 @@ class PDPPolicy(PreTrainedPolicy):
         self.phases.reset()
 
     def mode_latents(self) -> dict[int, Tensor]:
-        """Per-mode mean latent (mean of its training behaviors' encoder means); mode ids from task strings.
+        """Per-mode mean latent (mean of its training behaviors' encoder means).
 
-        With gripper-segmented behaviors (several per episode) each mode gets one mean per phase,
+        Mode ids are the training episodes' labels (task strings ``"mode <id>: <name>"``). Without labels
+        (e.g. a dataset of language instructions) the modes are discovered by clustering the training
+        latents (:meth:`discover_modes`; ids are then cluster ids, and a warning says so). With
+        gripper-segmented behaviors (several per episode) each mode gets one mean per phase,
         [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
         """
+        if len(self.model.behavior_mode) == 0:
+            raise ValueError("mode_latents() needs the training behaviors: build the policy with dataset_meta "
+                             "(lerobot-train does) or load a checkpoint")
         labeled = self.model.behavior_mode >= 0
-        if len(self.model.behavior_mode) == 0 or not bool(labeled.any()):
-            raise ValueError(
-                "mode_latents() needs mode labels: the training episodes' task strings must look like "
-                "'mode <id>: <name>' (this policy has "
-                f"{len(self.model.behavior_mode)} behaviors, {int(labeled.sum())} labeled)"
-            )
+        if not bool(labeled.any()):
+            found = self.discover_modes()
+            logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
+                           "discovered by clustering their latents (policy.discover_modes(); ids are cluster "
+                           "ids, see `lerobot-pdp latent-map`)", found.k)
+            return found.means
         with torch.no_grad():
             z = self.behavior_latents()
         phase = self.behavior_phase()
@@ -289,6 +297,29 @@ class PDPPolicy(PreTrainedPolicy):
                 out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
                                            for k in range(int(phase[of_mode].max()) + 1)]).cpu()
         return out
+
+    def discover_modes(self, k: int | None = None, max_k: int = 12, seed: int = 0) -> DiscoveredModes:
+        """Cluster the training episodes by their latents: the modes of a dataset without mode labels.
+
+        Args:
+            k: number of clusters; None chooses it in 2..``max_k`` by silhouette score.
+            seed: k-means seed (the result is deterministic for a given policy and seed).
+
+        Returns:
+            :class:`~lerobot_pdp.modes.DiscoveredModes`: ``labels`` (training episode index -> cluster id),
+            ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k`` and the
+            silhouette score of each candidate k.
+        """
+        if len(self.model.behavior_episode) == 0:
+            raise ValueError("discover_modes() needs the training behaviors: build the policy with dataset_meta "
+                             "or load a checkpoint")
+        with torch.no_grad():
+            z = self.behavior_latents().cpu().numpy()
+        key = (k, max_k, seed, hash(z.tobytes()))
+        if self._discovered is None or self._discovered[0] != key:
+            self._discovered = (key, discover(z, self.model.behavior_episode.cpu().numpy(),
+                                              self.behavior_phase().cpu().numpy(), k, max_k, seed))
+        return self._discovered[1]
 
     def behavior_latents(self, ids: Tensor | None = None) -> Tensor:
         """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``); one-hot codes for that ablation."""

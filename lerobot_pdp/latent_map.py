@@ -1,0 +1,81 @@
+"""The latent map of a PDP checkpoint: what behaviors its data holds, before a user steers it.
+
+Left, every training behavior's latent (the first two coordinates, or a PCA projection for d_z > 2),
+coloured by its mode label, or by its discovered cluster when the data has no labels; right, small
+multiples of the behaviors' traces X(tau), one panel per mode, in the same colours. Any checkpoint
+works: the traces and labels are stored in it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .atomic import write_file_atomic  # noqa: E402
+
+MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
+
+
+def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: str | None = None) -> Path:
+    """Draw ``policy``'s latent map into ``out_png``; ``k`` fixes the number of discovered clusters."""
+    table = policy.behavior_table()
+    z, episode, mode = table["z"], table["episode"], table["mode"]
+    if len(z) == 0:
+        raise ValueError("the policy has no training behaviors (a checkpoint trained with lerobot-train has them)")
+    if (mode >= 0).any() and k is None:
+        groups, what = mode, "mode label"
+        names = {int(m): (policy.config.mode_names or {}).get(str(int(m)), "") for m in np.unique(mode[mode >= 0])}
+    else:
+        found = policy.discover_modes(k=k)
+        groups, what = np.array([found.labels[int(e)] for e in episode]), f"discovered cluster (k = {found.k})"
+        names = {c: f"{int((groups == c).sum())} behaviors" for c in range(found.k)}
+    if z.shape[1] > 2:
+        from sklearn.decomposition import PCA
+
+        xy, axes_label = PCA(2, random_state=0).fit_transform(z), ("PC 1", "PC 2")
+    else:
+        xy, axes_label = (z, ("z[0]", "z[1]")) if z.shape[1] == 2 else (np.c_[z, np.zeros(len(z))], ("z[0]", ""))
+    ids = sorted(int(g) for g in np.unique(groups) if g >= 0)
+    cmap = plt.get_cmap("tab20" if len(ids) > 10 else "tab10")
+    color = {g: cmap(i % cmap.N) for i, g in enumerate(ids)}
+    shown = ids[:MAX_PANELS]
+    cols = min(4, max(1, len(shown)))
+    rows = -(-len(shown) // cols)
+    fig = plt.figure(figsize=(6 + 2.4 * cols, max(5.0, 2.2 * rows)))
+    grid = fig.add_gridspec(max(rows, 1), cols + 2)
+    ax = fig.add_subplot(grid[:, :2])
+    phase = policy.behavior_phase().cpu().numpy()
+    for g in ids:
+        for ph in np.unique(phase):
+            sel = (groups == g) & (phase == ph)
+            ax.scatter(xy[sel, 0], xy[sel, 1], s=14, color=color[g], marker="os^v"[int(ph) % 4],
+                       label=f"{g}" + (f" {names[g]}" if names[g] and len(ids) <= 12 else "") if ph == 0 else None)
+        center = xy[groups == g].mean(0)
+        ax.annotate(str(g), center, fontsize=8, ha="center", va="center", weight="bold")
+    ax.set_xlabel(axes_label[0])
+    ax.set_ylabel(axes_label[1])
+    ax.set_title(f"latent map: {len(z)} behaviors, coloured by {what}" +
+                 (" (markers = phases)" if len(np.unique(phase)) > 1 else ""), fontsize=10)
+    if len(ids) <= 12:
+        ax.legend(fontsize=7, loc="best")
+    traces = policy.model.behavior_traces.cpu().numpy()
+    j = 1 if traces.shape[2] > 1 else 0
+    for i, g in enumerate(shown):
+        tax = fig.add_subplot(grid[i // cols, 2 + i % cols])
+        for t in traces[groups == g]:
+            tax.plot(t[:, 0], t[:, j], color=color[g], lw=0.8, alpha=0.7)
+        tax.set_title(f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
+        tax.tick_params(labelsize=6)
+    more = f"; traces of the first {MAX_PANELS} of {len(ids)} shown" if len(ids) > MAX_PANELS else ""
+    fig.suptitle(title or f"behaviors of the training data (traces: trace dims 0 and {j}{more})", fontsize=11)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
+    plt.close(fig)
+    return out_png
