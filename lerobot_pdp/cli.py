@@ -196,7 +196,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     print((Path(args.out) / "results.md").read_text())
     print(f"results: {Path(args.out) / 'results.json'} and {Path(args.out) / 'results.md'}")
     for f in res.get("figures", []):
-        print(f"figure:  {f}")
+        print(f"figure:  {Path(args.out) / f}")  # results.json keeps it relative to the output folder
     return 0
 
 
