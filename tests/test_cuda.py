@@ -8,38 +8,16 @@ import json
 import pytest
 import torch
 from conftest import lerobot_cli, run_cli
-from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
-
-from lerobot_pdp import PDPConfig
+from policies import small_policy, training_batch
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
-def _policy(meta, **kw):
-    cfg = PDPConfig(device="cuda", push_to_hub=False, down_dims=(16, 32), **kw)
-    return make_policy(cfg, ds_meta=meta)
-
-
-def _batch(meta, policy, n=8, seed=0):
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    cfg = policy.config
-    fps = meta.fps
-    ds = LeRobotDataset("local/synthetic", root=meta.root, delta_timestamps={
-        OBS_STATE: [i / fps for i in cfg.observation_delta_indices],
-        OBS_ENV_STATE: [i / fps for i in cfg.observation_delta_indices],
-        ACTION: [i / fps for i in cfg.action_delta_indices],
-    })
-    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)  # moves the batch to cfg.device
-    g = torch.Generator().manual_seed(seed)
-    return pre(torch.utils.data.default_collate([ds[int(i)] for i in torch.randint(0, len(ds), (n,), generator=g)]))
-
-
 def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta, "cuda")
     p.train()
-    batch = _batch(synthetic_meta, p)
+    batch = training_batch(synthetic_meta, p)
     assert batch[ACTION].is_cuda and p.model.behavior_traces.is_cuda and p.model.trace_distance_matrix.is_cuda
     p.model.loss_terms(batch)  # first call: lazy CUDA initialisation may synchronise
     torch.cuda.set_sync_debug_mode("error")
@@ -54,7 +32,7 @@ def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
 
 
 def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta, "cuda")
     p.eval()
     g = torch.Generator(device="cuda").manual_seed(0)
     obs = torch.randn(3, p.model.denoiser.obs_cond_dim, device="cuda", generator=g)
@@ -79,7 +57,7 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
 
 def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
     """Several select_action calls with one latent per phase (the second call used to mix devices)."""
-    p = _policy(synthetic_meta, n_action_steps=2)
+    p = small_policy(synthetic_meta, "cuda", n_action_steps=2)
     p.eval()
     p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
     p.config.phase_switch_steps = 1
@@ -93,7 +71,7 @@ def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
 
 
 def test_fit_latent_on_the_gpu(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta, "cuda")
     res = p.fit_latent((synthetic_meta.root, 3), steps=5)
     assert torch.isfinite(res.z).all() and len(res.losses) == 5
     assert p.active_latent.is_cuda

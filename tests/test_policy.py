@@ -5,37 +5,16 @@ import math
 import numpy as np
 import pytest
 import torch
-from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.constants import ACTION
+from policies import small_policy, training_batch
 
-from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp import PDPPolicy
 from lerobot_pdp.behavior import read_episodes
 
 
-def _policy(meta, **kw):
-    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), **kw)
-    return make_policy(cfg, ds_meta=meta)
-
-
-def _batch(meta, policy, n=8, seed=0):
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    cfg = policy.config
-    fps = meta.fps
-    ds = LeRobotDataset("local/synthetic", root=meta.root, delta_timestamps={
-        "observation.state": [i / fps for i in cfg.observation_delta_indices],
-        "observation.environment_state": [i / fps for i in cfg.observation_delta_indices],
-        "action": [i / fps for i in cfg.action_delta_indices],
-    })
-    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
-    g = torch.Generator().manual_seed(seed)
-    items = [ds[int(i)] for i in torch.randint(0, len(ds), (n,), generator=g)]
-    batch = torch.utils.data.default_collate(items)
-    return pre(batch)
-
-
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     assert len(p.model.behavior_traces) == 40
     assert p.model.trace_distance_matrix.shape == (40, 40)
     assert torch.allclose(p.model.trace_distance_matrix, p.model.trace_distance_matrix.T, atol=1e-4)
@@ -48,9 +27,9 @@ def test_builds_behaviors_from_whole_episodes(synthetic_meta):
 
 
 def test_forward_and_param_groups(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.train()
-    batch = _batch(synthetic_meta, p)
+    batch = training_batch(synthetic_meta, p)
     loss, info = p.forward(batch)
     assert torch.isfinite(loss)
     assert {"loss_dp", "embed_rec", "embed_kl", "embed_geo", "loss_embed"} <= set(info)
@@ -69,7 +48,7 @@ def test_forward_and_param_groups(synthetic_meta):
 
 
 def test_behavior_lookup_by_episode_and_global_index(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     ids = p.model.behavior_ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.model.behavior_global_start[5]) + 3, 10**6]))
     assert ids.tolist() == [0, 5, 39]
     with pytest.raises(KeyError, match=r"episode\(s\) \[99\]"):
@@ -77,15 +56,15 @@ def test_behavior_lookup_by_episode_and_global_index(synthetic_meta):
 
 
 def test_batch_shape_errors_name_key(synthetic_meta):
-    p = _policy(synthetic_meta)
-    batch = _batch(synthetic_meta, p)
+    p = small_policy(synthetic_meta)
+    batch = training_batch(synthetic_meta, p)
     batch["action"] = batch["action"][:, :5]
     with pytest.raises(ValueError, match=r"batch\['action'\] has shape \(8, 5, 2\), expected \[B, 16, 2\]"):
         p.forward(batch)
 
 
 def test_select_action_and_steering_api(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.eval()
     pre, post = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
     obs = {"observation.state": torch.tensor([[0.0, -1.0]]), "observation.environment_state": torch.tensor([[0.0, 1.0]])}
@@ -134,7 +113,7 @@ def test_elliptical_interpolation_goes_around_the_map():
         PDPPolicy.interpolate(a, b, 3, path="spiral")
 
 def test_encode_and_fit_latent_inputs(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     root = synthetic_meta.root
     ep = read_episodes(root, ["observation.state", "observation.environment_state", "action"], [2])[2]
     z = p.encode(ep)
@@ -165,7 +144,7 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
     ],
 )
 def test_fit_latent_bad_episode(synthetic_meta, mutate, message):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     ep = read_episodes(synthetic_meta.root, ["observation.state", "observation.environment_state", "action"], [0])[0]
     ep = {k: v for k, v in ep.items() if isinstance(v, np.ndarray)}
     mutate(ep)
@@ -176,7 +155,7 @@ def test_fit_latent_bad_episode(synthetic_meta, mutate, message):
 
 
 def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.eval()
     p.save_pretrained(tmp_path / "ckpt")
     assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
@@ -200,7 +179,7 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
 def test_checkpoint_write_is_atomic(synthetic_meta, tmp_path, monkeypatch):
     import lerobot_pdp.modeling_pdp as mp
 
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
 
     def boom(*a, **k):
         raise RuntimeError("disk full")
@@ -213,13 +192,13 @@ def test_checkpoint_write_is_atomic(synthetic_meta, tmp_path, monkeypatch):
 
 
 def test_model_card_explains_pdp(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     card = p.generate_model_card("local/synthetic", "pdp", None, None)
     assert "Parameterized Diffusion Policy" in card.text and "fit_latent" in card.text
 
 
 def test_onehot_ablation_builds(synthetic_meta):
-    p = _policy(synthetic_meta, latent_type="onehot")
+    p = small_policy(synthetic_meta, latent_type="onehot")
     assert p.config.latent_dim == 4
     assert torch.equal(p.mode_latents()[2], torch.tensor([0.0, 0.0, 1.0, 0.0]))
 
@@ -244,7 +223,7 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
             return SimpleNamespace(repo_url=SimpleNamespace(url=f"file://{hub / repo_id}"))
 
     monkeypatch.setattr(pretrained, "HfApi", LocalHub)
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.config.repo_id = "me/pdp-synthetic"
     cfg = TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/synthetic", root=str(synthetic_meta.root)),
                               policy=p.config)
@@ -262,9 +241,9 @@ def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, mon
     """Copy-padded chunk steps count in the loss and in fitting exactly when the config does not mask them."""
     import lerobot_pdp.modeling_pdp as modeling
 
-    p = _policy(synthetic_meta, do_mask_loss_for_padding=masked)
+    p = small_policy(synthetic_meta, do_mask_loss_for_padding=masked)
     p.eval()  # the denoising loss only (the embedding loss draws its own random batch)
-    batch = _batch(synthetic_meta, p)
+    batch = training_batch(synthetic_meta, p)
     padded = dict(batch, action_is_pad=torch.zeros_like(batch["action_is_pad"]))
     padded["action_is_pad"][:, -5:] = True
     losses = []
@@ -286,7 +265,7 @@ def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, mon
 
 def test_fit_latent_works_under_inference_mode(synthetic_meta):
     """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there."""
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
     p.config.fit_steps = 3
     with torch.inference_mode():
@@ -308,7 +287,7 @@ def _gripper_actions(p):
 def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
     """With one latent per phase, the rollout moves to the next one when the gripper command flips
     and holds for phase_switch_steps actions; a shorter blip does not switch."""
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
     p.config.phase_switch_steps = 2
     z = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
@@ -329,7 +308,7 @@ def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
 
 def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
     """Vectorised rollout: one env's grasp must not switch the other envs to their next latent."""
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     p.config.segment_gripper_dim = 0
     p.config.phase_switch_steps = 1
     z = torch.tensor([[0.0, 1.0], [1.0, 0.0], [2.0, 2.0]])
@@ -350,7 +329,7 @@ def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
 
 def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):
     """Gripper-segmented training (several behaviors per episode): a mode's mean latent is per phase."""
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     n = len(p.model.behavior_episode)
     # re-index the behaviors as 2 phases of n // 2 episodes, all of mode 3 (phase order = start frame)
     p.model.behavior_episode = torch.arange(n) // 2
@@ -367,7 +346,7 @@ def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_m
 
 
 def test_segments_default_follows_training_and_bad_values_are_named(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     ep = (synthetic_meta.root, 2)
     assert p.encode(ep).shape == (p.config.latent_dim,)  # "auto" on an unsegmented policy: one z
     p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
@@ -379,7 +358,7 @@ def test_segments_default_follows_training_and_bad_values_are_named(synthetic_me
 
 
 def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
-    p = _policy(synthetic_meta)
+    p = small_policy(synthetic_meta)
     ep = (synthetic_meta.root, 2)
     arrays = p._episode_arrays(ep, need_action=True)
     T, cfg = len(arrays["action"]), p.config
