@@ -114,11 +114,13 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
         check_finite(trace_key, states, f"episode {ep}")
         if len(states) < min_length:
             raise ValueError(f"episode {ep} has {len(states)} frames; PDP needs at least {min_length} (one chunk)")
-        mode = parse_task_mode(item.get("task", ""))
-        if isinstance(mode, int):
+        if "mode" in item:  # an episode-level label (meta/mode_labels.json) leaves the task string alone
+            mode = int(item["mode"])
+            names.setdefault(mode, item.get("mode_name") or str(mode))
+        elif isinstance(mode := parse_task_mode(item.get("task", "")), int):  # "mode <id>: <name>"
             name = item["task"].split(":", 1)[1].strip() if ":" in item["task"] else str(mode)
             names.setdefault(mode, name)
-        else:
+        else:  # e.g. a language instruction: no label (modes can be discovered, see PDPPolicy.discover_modes)
             mode = UNLABELED
         segs = [(0, len(states))]
         if gripper_dim is not None:

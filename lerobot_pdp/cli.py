@@ -110,6 +110,47 @@ def cmd_plot_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_label_modes_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "label-modes",
+        help="add episode-level mode labels to an existing LeRobotDataset (meta/mode_labels.json)",
+        description="Writes DATASET/meta/mode_labels.json, which PDP reads as each episode's mode (its task "
+        'strings stay as they are). Format: {"episodes": {"<episode index>": <mode id>, ...}, "names": '
+        '{"<mode id>": "<name>", ...}}; every episode labelled, ids are integers >= 0, names optional.',
+    )
+    p.add_argument("dataset", type=Path, help="a local LeRobotDataset folder")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--labels", type=Path, help="a JSON file in the format above")
+    src.add_argument("--from-tasks", action="store_true",
+                     help='take the labels from task strings of the form "mode <id>: <name>"')
+    p.set_defaults(func=cmd_label_modes)
+
+
+def cmd_label_modes(args: argparse.Namespace) -> int:
+    from lerobot_pdp.episodes import parse_task_mode, read_episodes, validate_mode_labels, write_mode_labels
+
+    if args.labels is not None:
+        try:
+            data = json.loads(args.labels.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{args.labels} is not JSON ({e})") from e
+        if not isinstance(data, dict) or not isinstance(data.get("episodes"), dict):
+            raise ValueError(f'{args.labels}: expected {{"episodes": {{"<episode index>": <mode id>}}, "names": {{...}}}}')
+        labels, names = validate_mode_labels(data["episodes"], data.get("names") or {}, str(args.labels))
+    else:
+        labels, names = {}, {}
+        for ep, item in read_episodes(args.dataset, []).items():
+            mode = parse_task_mode(item["task"])
+            if not isinstance(mode, int):
+                raise ValueError(f"{args.dataset}: episode {ep}'s task {item['task']!r} carries no 'mode <id>: <name>' "
+                                 "label; give --labels")
+            labels[ep] = mode
+            names.setdefault(mode, item["task"].split(":", 1)[1].strip() if ":" in item["task"] else "")
+    path = write_mode_labels(args.dataset, labels, names)
+    print(f"wrote {path}: {len(labels)} episodes, {len(set(labels.values()))} modes")
+    return 0
+
+
 def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "latent-map",
@@ -242,6 +283,7 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_make_dataset_parser,
     add_plot_dataset_parser,
+    add_label_modes_parser,
     add_latent_map_parser,
     add_benchmark_parser,
     add_merge_results_parser,

@@ -1,4 +1,5 @@
-"""Whole demonstrations of a local LeRobotDataset, and the mode labels their task strings may carry.
+"""Whole demonstrations of a local LeRobotDataset, and their mode labels (an episode-level label file
+beside the dataset, or task strings of the form ``"mode <id>: <name>"``).
 
 The training loader yields windows; the behavior encoder, latent fitting and the benchmark need complete
 episodes, read here straight from the dataset's parquet files.
@@ -12,7 +13,8 @@ import numpy as np
 
 
 def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None) -> dict[int, dict]:
-    """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}}.
+    """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}},
+    plus ``"mode"`` / ``"mode_name"`` when the dataset has episode-level labels (``meta/mode_labels.json``).
 
     Reads the parquet files directly: the training loader only yields windows, but the behavior encoder
     needs complete demonstrations.
@@ -46,6 +48,14 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
         item["task"] = task_by_index.get(int(g["task_index"].iloc[0]), "")
         item["from_index"] = int(g["index"].iloc[0])  # global frame index of the episode's first frame
         out[int(ep)] = item
+    labels = read_mode_labels(root)
+    if labels is not None:
+        for ep, item in out.items():
+            if ep not in labels[0]:
+                raise ValueError(f"{root / 'meta' / MODE_LABELS_FILE}: episode {ep} has no mode label "
+                                 "(label every episode, or remove the file)")
+            item["mode"] = labels[0][ep]
+            item["mode_name"] = labels[1].get(labels[0][ep], "")
     return out
 
 
@@ -66,3 +76,72 @@ def parse_task_mode(task: str) -> int | str | None:
     if head.isdigit():
         return int(head)
     return head or None
+
+
+# Mode labels that live beside a dataset instead of in its task strings (which stay free for instructions).
+MODE_LABELS_FILE = "mode_labels.json"
+
+
+def read_mode_labels(root: str | Path) -> tuple[dict[int, int], dict[int, str]] | None:
+    """The episode-level mode labels of a dataset, ``meta/mode_labels.json``, or None when it has none.
+
+    Format (every episode listed, ids are integers >= 0, names optional)::
+
+        {"episodes": {"0": 3, "1": 3, "2": 0, ...}, "names": {"0": "left, tight", "3": "right, wide"}}
+
+    Returns ({episode index: mode id}, {mode id: name}). A malformed file is an error naming the key.
+    """
+    import json
+
+    path = Path(root) / "meta" / MODE_LABELS_FILE
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not JSON ({e})") from e
+    if not isinstance(data, dict) or not isinstance(data.get("episodes"), dict):
+        raise ValueError(f'{path}: expected {{"episodes": {{"<episode index>": <mode id>, ...}}, "names": {{...}}}}')
+    return validate_mode_labels(data["episodes"], data.get("names") or {}, str(path))
+
+
+def validate_mode_labels(episodes: dict, names: dict, where: str) -> tuple[dict[int, int], dict[int, str]]:
+    """Check and convert label mappings (keys may be strings, as in JSON); errors name the entry."""
+    labels: dict[int, int] = {}
+    for key, value in episodes.items():
+        if not str(key).lstrip("-").isdigit() or int(key) < 0:
+            raise ValueError(f"{where}: episode key {key!r} is not an episode index (an integer >= 0)")
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{where}: episode {key} has mode {value!r}; expected an integer mode id >= 0")
+        labels[int(key)] = value
+    out_names: dict[int, str] = {}
+    for key, value in names.items():
+        if not str(key).isdigit():
+            raise ValueError(f"{where}: names key {key!r} is not a mode id (an integer >= 0)")
+        if not isinstance(value, str):
+            raise ValueError(f"{where}: name of mode {key} is {value!r}; expected a string")
+        out_names[int(key)] = value
+    return labels, out_names
+
+
+def write_mode_labels(root: str | Path, labels: dict[int, int], names: dict[int, str] | None = None) -> Path:
+    """Write ``meta/mode_labels.json`` for the dataset at ``root`` (every episode must be labelled)."""
+    import json
+
+    from .atomic import write_text_atomic
+
+    root = Path(root)
+    info = root / "meta" / "info.json"
+    if not info.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
+    labels, names = validate_mode_labels(labels, names or {}, str(root / "meta" / MODE_LABELS_FILE))
+    total = json.loads(info.read_text()).get("total_episodes")
+    missing = sorted(set(range(total)) - set(labels)) if isinstance(total, int) else []
+    extra = sorted(set(labels) - set(range(total))) if isinstance(total, int) else []
+    if missing or extra:
+        raise ValueError(f"{root}: labels must cover episodes 0..{total - 1} exactly; missing {missing[:10]}, "
+                         f"not in the dataset {extra[:10]}")
+    path = root / "meta" / MODE_LABELS_FILE
+    write_text_atomic(path, json.dumps({"episodes": {str(k): v for k, v in sorted(labels.items())},
+                                        "names": {str(k): v for k, v in sorted(names.items())}}, indent=1))
+    return path

@@ -34,8 +34,10 @@ def demo_path(mode: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarr
     return pos.astype(np.float32), np.clip(act, -1, 1).astype(np.float32)
 
 
-def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=(0, 1, 2, 3)) -> Path:
-    """Write the dataset to ``root`` (must not exist); task strings are ``"mode <id>: <name>"``."""
+def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=(0, 1, 2, 3),
+                  task: str | None = None) -> Path:
+    """Write the dataset to ``root`` (must not exist); task strings are ``"mode <id>: <name>"``, or ``task``
+    for every episode (an instruction, as in most LeRobot datasets: no mode labels)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     rng = np.random.default_rng(seed)
@@ -50,7 +52,7 @@ def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=
             pos, act = demo_path(m, rng)
             for p, a in zip(pos, act, strict=True):
                 ds.add_frame({"observation.state": p, "observation.environment_state": GOAL.astype(np.float32),
-                              "action": a, "task": f"mode {m}: {MODES[m][0]}"})
+                              "action": a, "task": task or f"mode {m}: {MODES[m][0]}"})
             ds.save_episode()
     ds.finalize()
     return root

@@ -1,6 +1,7 @@
 """Modes without labels: clustering the training latents recovers the demonstrated routes."""
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -78,3 +79,102 @@ def test_latent_map_cli_draws_any_checkpoint_labels_or_clusters(embedded, tmp_pa
     capsys.readouterr()
     assert main(["latent-map", str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
     assert "holds no model.safetensors" in capsys.readouterr().err
+
+
+INSTRUCTION = "move the point from the bottom to the top, around the disc"
+
+
+@pytest.fixture(scope="module")
+def instruction_dataset(tmp_path_factory):
+    """The synthetic 4-mode data with one language instruction as every episode's task: no labels."""
+    from synthetic import write_dataset
+
+    return write_dataset(tmp_path_factory.mktemp("instr") / "instr", episodes_per_mode=3, seed=1, task=INSTRUCTION)
+
+
+def _meta(root):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    return LeRobotDatasetMetadata("local/instr", root=root)
+
+
+def test_instruction_task_strings_are_no_labels_and_a_label_file_adds_them(instruction_dataset, tmp_path, capsys):
+    import json
+    import shutil
+
+    from policies import small_policy
+
+    from lerobot_pdp.cli import main
+
+    p = small_policy(_meta(instruction_dataset))
+    assert (p.model.behavior_mode == -1).all() and p.config.mode_names is None
+    root = tmp_path / "labelled"
+    shutil.copytree(instruction_dataset, root)
+    true = [m for _ in range(3) for m in (0, 1, 2, 3)]  # write_dataset's episode order
+    labels = tmp_path / "labels.json"
+    labels.write_text(json.dumps({"episodes": {str(e): m for e, m in enumerate(true)},
+                                  "names": {"0": "left, tight", "3": "right, wide"}}))
+    assert main(["label-modes", str(root), "--labels", str(labels)]) == 0
+    q = small_policy(_meta(root))
+    assert q.model.behavior_mode.tolist() == true
+    assert q.config.mode_names == {"0": "left, tight", "1": "1", "2": "2", "3": "right, wide"}
+    assert sorted(q.mode_latents()) == [0, 1, 2, 3]
+    # the task strings are untouched
+    from lerobot_pdp.episodes import read_episodes
+
+    assert {e["task"] for e in read_episodes(root, []).values()} == {INSTRUCTION}
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ({"episodes": {"0": "left"}}, r"episode 0 has mode 'left'; expected an integer mode id >= 0"),
+    ({"episodes": {"first": 1}}, r"episode key 'first' is not an episode index"),
+    ({"episodes": {"0": 1}, "names": {"1": 5}}, r"name of mode 1 is 5; expected a string"),
+    ({"episodes": {"0": 1}}, r"labels must cover episodes 0\.\.11 exactly; missing \[1, 2,"),
+    ([1, 2], r'expected \{"episodes"'),
+])
+def test_bad_label_files_are_named_errors(instruction_dataset, tmp_path, capsys, content, message):
+    import json
+
+    from lerobot_pdp.cli import main
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(content))
+    assert main(["label-modes", str(instruction_dataset), "--labels", str(bad)]) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not (instruction_dataset / "meta" / "mode_labels.json").exists()
+
+
+def test_labels_from_task_strings_and_their_absence(synthetic_dataset, instruction_dataset, tmp_path, capsys):
+    import shutil
+
+    from lerobot_pdp.cli import main
+    from lerobot_pdp.episodes import read_mode_labels
+
+    root = tmp_path / "synthetic"
+    shutil.copytree(synthetic_dataset, root)
+    assert main(["label-modes", str(root), "--from-tasks"]) == 0
+    labels, names = read_mode_labels(root)
+    assert len(labels) == 40 and names == {0: "left-tight", 1: "left-wide", 2: "right-tight", 3: "right-wide"}
+    capsys.readouterr()
+    assert main(["label-modes", str(instruction_dataset), "--from-tasks"]) == 2
+    assert "carries no 'mode <id>: <name>' label; give --labels" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_lerobot_train_on_an_instruction_dataset_without_labels(instruction_dataset, tmp_path):
+    import json
+
+    from conftest import lerobot_cli, run_cli
+
+    out = tmp_path / "train"
+    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
+             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/instr", f"--dataset.root={instruction_dataset}",
+             "--steps=4", "--batch_size=8", "--num_workers=0", "--save_freq=4", "--log_freq=1",
+             "--wandb.enable=false", f"--output_dir={out}"])
+    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    cfg = json.loads((ckpt / "config.json").read_text())
+    assert cfg["type"] == "pdp" and cfg["mode_names"] is None
+    from lerobot_pdp import PDPPolicy
+
+    p = PDPPolicy.from_pretrained(ckpt)
+    assert len(p.discover_modes(k=4).labels) == 12
