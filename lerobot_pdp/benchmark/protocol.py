@@ -15,17 +15,11 @@ from typing import Any
 
 from ..atomic import write_text_atomic
 from ..envs.suite import get_suite_env
-
-# re-exported: scripts and tests import the protocol's parts from here
-from .data import demo_episode, demo_root, ensure_dataset, ensure_demo  # noqa: F401
-from .evaluation import adapt, evaluate_init_ablation, evaluate_method, evaluate_scene0, evaluate_sweep  # noqa: F401
-from .results import (
-    aggregate,
-    merge_results,  # noqa: F401
-    results_markdown,
-)
+from .data import ensure_dataset, ensure_demo
+from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
+from .results import aggregate, results_markdown
 from .settings import ABLATIONS, SETTINGS, BenchmarkConfig, TrainSettings, methods_for
-from .training import load_policy, load_run, train_args, train_method  # noqa: F401
+from .training import train_method
 
 
 def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
