@@ -81,7 +81,8 @@ class PDPModel(nn.Module):
         if cfg.latent_type == "onehot":
             n_modes = int(b.mode.max()) + 1 if (b.mode >= 0).any() else 0
             if n_modes < 1 or (b.mode == UNLABELED).any():
-                raise ValueError("latent_type='onehot' needs a mode label ('mode <id>: ...') in every episode's task")
+                raise ValueError("latent_type='onehot' needs a mode label for every episode (meta/mode_labels.json, "
+                                 "or task strings 'mode <id>: <name>')")
             if cfg.latent_dim != n_modes:
                 logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
                 cfg.latent_dim = n_modes
