@@ -8,7 +8,9 @@ embedding). PDP adds a second, *behavior* modulation in every residual block (pa
 
 with a small MLP per block (hidden sizes ``film_hidden_dims``). gamma starts at 1 and beta at 0, so an
 untrained z-branch is the identity and z has to earn its influence. Two ablations share the network:
-``concat`` appends z to the global condition, ``none`` ignores z.
+``concat`` appends the raw z to the global condition (after the condition encoder's Mish, which acts on
+the step embedding and observations only: the first map z meets is linear, as in the paper's ablation),
+``none`` ignores z.
 
 Also here: the noise schedule (K training steps) and the deterministic DDIM sampler used at inference.
 """
@@ -105,9 +107,13 @@ class ConditionalResidualBlock1d(nn.Module):
         self.latent_film = LatentFiLM(latent_dim, out_ch, film_hidden_dims) if latent_dim else None
         self.residual = nn.Conv1d(in_ch, out_ch, 1) if in_ch != out_ch else nn.Identity()
 
-    def forward(self, x: Tensor, cond: Tensor, z: Tensor | None) -> Tensor:
+    def forward(self, x: Tensor, cond: Tensor, z: Tensor | None, z_concat: Tensor | None = None) -> Tensor:
+        """``z`` FiLM-modulates (``film``); ``z_concat`` joins the condition after its Mish (``concat``)."""
         h = self.conv1(x)
-        scale, bias = self.cond_encoder(cond).unsqueeze(-1).chunk(2, dim=1)
+        act = self.cond_encoder[0](cond)
+        if z_concat is not None:
+            act = torch.cat([act, z_concat], dim=-1)
+        scale, bias = self.cond_encoder[1](act).unsqueeze(-1).chunk(2, dim=1)
         h = scale * h + bias
         if self.latent_film is not None:
             gamma, beta = self.latent_film(z)
@@ -186,22 +192,20 @@ class FiLMUnet1d(nn.Module):
     def forward(self, sample: Tensor, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
         """sample: [B, T, A]; k: [B] diffusion steps; obs_cond: [B, C]; z: [B, d_z] or None."""
         x = sample.transpose(1, 2)
-        cond = [self.step_encoder(k), obs_cond]
-        if self.latent_conditioning == "concat":
-            cond.append(z)
-        cond = torch.cat(cond, dim=-1)
+        cond = torch.cat([self.step_encoder(k), obs_cond], dim=-1)
         film_z = z if self.latent_conditioning == "film" else None
+        cat_z = z if self.latent_conditioning == "concat" else None
 
         skips = []
         for res1, res2, downsample in self.down:
-            x = res2(res1(x, cond, film_z), cond, film_z)
+            x = res2(res1(x, cond, film_z, cat_z), cond, film_z, cat_z)
             skips.append(x)
             x = downsample(x)
         for res in self.mid:
-            x = res(x, cond, film_z)
+            x = res(x, cond, film_z, cat_z)
         for res1, res2, upsample in self.up:
             x = torch.cat((x, skips.pop()), dim=1)
-            x = res2(res1(x, cond, film_z), cond, film_z)
+            x = res2(res1(x, cond, film_z, cat_z), cond, film_z, cat_z)
             x = upsample(x)
         return self.final(x).transpose(1, 2)
 
@@ -224,8 +228,8 @@ class FiLMUnet1d(nn.Module):
     def weight_constants(self, steps: list[int]) -> dict[str, Any]:
         """Quantities that depend only on the weights and the diffusion steps, cached until a weight changes.
 
-        ``Mish`` acts elementwise, so each block's ``Linear(Mish([s, c, z]))`` splits into
-        ``W_s Mish(s) + W_c Mish(c) + W_z Mish(z) + b``: the step part of every block and step is
+        ``Mish`` acts elementwise, so each block's ``Linear([Mish(s), Mish(c), z])`` splits into
+        ``W_s Mish(s) + W_c Mish(c) + W_z z + b`` (``z`` only for ``concat``): the step part of every block and step is
         precomputed, and the observation part of all blocks is one matmul. The ten z-FiLM MLPs are stacked
         into one MLP (block-diagonal weights) that outputs the FiLM of all blocks at once.
         """
@@ -284,7 +288,7 @@ class FiLMUnet1d(nn.Module):
     def latent_terms(self, consts: dict[str, Any], z: Tensor) -> tuple[Tensor | None, Tensor | None]:
         """z's contribution to the modulation rows: ``mod -> gain * mod + shift`` (differentiable in z)."""
         if self.latent_conditioning == "concat":
-            return None, F.linear(F.mish(z), consts["w_z"])
+            return None, F.linear(z, consts["w_z"])  # raw z: no nonlinearity before its first linear map
         if self.latent_conditioning != "film":
             return None, None
         film = consts["film"]

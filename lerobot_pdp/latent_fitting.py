@@ -190,3 +190,27 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
             z_sum += z.detach()
     z_final = z_sum / (steps - tail_start) if steps > 0 else z.detach()
     return FitResult(z=z_final.cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)
+
+
+def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,
+                noise_samples: int = 1, seed: int | None = 0) -> tuple[Tensor, Tensor]:
+    """Adaptation of a discrete latent: per phase, the one of ``codes`` [C, d_z] with the lowest L_fit.
+
+    Every code is scored on the same ``batches`` random batches of windows, steps and noise (common random
+    numbers, so the comparison is not decided by the draws). Returns the chosen codes [M, d_z] and the mean
+    loss of every code in every phase [C, M].
+    """
+    g = torch.Generator()
+    g.manual_seed(int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
+    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    codes = codes.float()
+    M = windows.n_segments
+    zs = codes[:, None, :].expand(len(codes), M, codes.shape[1])
+    total = torch.zeros(len(codes), M, device=codes.device)
+    with torch.no_grad():
+        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(codes.device))
+        for _ in range(max(1, batches)):
+            idx = _stratified_batch(windows.segment, M, batch_size, g)
+            total += _phase_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod)
+    mean = total / max(1, batches)
+    return codes[mean.argmin(0)], mean

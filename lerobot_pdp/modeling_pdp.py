@@ -45,7 +45,7 @@ from .behavior import (
     read_episodes,
 )
 from .configuration_pdp import PDPConfig
-from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent
+from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent, select_code
 from .model_card import pdp_model_card
 from .modes import DiscoveredModes, discover
 from .normalization import FeatureStats
@@ -452,15 +452,25 @@ class PDPPolicy(PreTrainedPolicy):
             z0 = torch.zeros(len(segs), cfg.latent_dim)
         else:
             raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
+        steps = cfg.fit_steps if steps is None else steps
         was_training = self.training
         self.eval()
         try:
-            result = fit_latent(
-                self.model.denoiser, self.model.noise_schedule, windows, z0.to(device),
-                steps=cfg.fit_steps if steps is None else steps, lr=cfg.fit_lr if lr is None else lr,
-                lam=cfg.fit_lambda if lam is None else lam, batch_size=cfg.fit_batch_size,
-                noise_samples=cfg.fit_noise_samples, seed=seed, progress=progress, gradient=cfg.fit_gradient,
-            )
+            if cfg.latent_type == "onehot" and steps > 0:
+                # the discrete ablation adapts by choosing one of its M codes per phase (it cannot
+                # interpolate between them): the code with the lowest L_fit over `steps` random batches
+                codes, mean = select_code(self.model.denoiser, self.model.noise_schedule, windows,
+                                          torch.eye(cfg.latent_dim, device=device), steps, cfg.fit_batch_size,
+                                          cfg.fit_noise_samples, seed)
+                result = FitResult(z=codes.cpu(), z_init=z0.detach().cpu(),
+                                   losses=[float(mean.min(0).values.sum())], steps=steps)
+            else:
+                result = fit_latent(
+                    self.model.denoiser, self.model.noise_schedule, windows, z0.to(device), steps=steps,
+                    lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
+                    batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
+                    progress=progress, gradient=cfg.fit_gradient,
+                )
         finally:
             self.train(was_training)
         if not demo.per_phase:

@@ -7,7 +7,13 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
-from lerobot_pdp.latent_fitting import episode_windows, fit_latent, fit_loss, fit_loss_and_grad_fd
+from lerobot_pdp.latent_fitting import (
+    episode_windows,
+    fit_latent,
+    fit_loss,
+    fit_loss_and_grad_fd,
+    select_code,
+)
 
 
 def test_windows_equal_lerobot_dataset_windows(synthetic_dataset):
@@ -101,3 +107,29 @@ def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
         assert float((got - want).norm() / want.norm()) < 0.02, (got, want)
     with pytest.raises(ValueError, match="gradient must be one of"):
         fit_latent(net, sched, w, torch.zeros(2, 2), steps=1, lr=0.05, lam=0.0, batch_size=4, gradient="exact")
+
+
+def test_discrete_latent_adapts_by_choosing_the_best_code_per_phase():
+    """The one-hot ablation picks one of its codes per phase (no interpolation): every code is scored on the
+    same windows and noise, so scoring them one at a time gives the same numbers, and the pick is the minimum."""
+    net, sched, w, T = _two_phase_setup("film")
+    codes = torch.eye(2)
+    chosen, mean = select_code(net, sched, w, codes, batches=4, batch_size=8, seed=3)
+    assert mean.shape == (2, 2) and chosen.shape == (2, 2)
+    assert torch.equal(chosen, codes[mean.argmin(0)])  # per phase, a whole code: one-hot rows
+    alone = torch.cat([select_code(net, sched, w, codes[c:c + 1], batches=4, batch_size=8, seed=3)[1]
+                       for c in range(2)])
+    torch.testing.assert_close(alone, mean)
+    assert not torch.equal(mean[0], mean[1])  # the codes do modulate this net
+
+
+def test_onehot_policy_fit_returns_one_of_its_codes(synthetic_meta):
+    from policies import small_policy
+
+    p = small_policy(synthetic_meta, latent_type="onehot")
+    for m in p.model.denoiser.modules():  # FiLM output layers start at zero: give the codes an effect
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.3)
+    res = p.fit_latent((synthetic_meta.root, 5), steps=3)
+    assert res.z.shape == (4,) and sorted(res.z.tolist()) == [0.0, 0.0, 0.0, 1.0]
+    assert torch.equal(p.active_latent[0], res.z) and len(res.losses) == 1
