@@ -129,3 +129,33 @@ def test_concat_ablation_feeds_the_raw_latent_to_a_linear_map():
     _, shift = net.latent_terms(consts, z1)
     _, shift2 = net.latent_terms(consts, z2)
     torch.testing.assert_close(shift2, 2 * shift, atol=1e-5, rtol=1e-4)
+
+
+def test_pdp_ddim_step_is_diffusers_ddim_on_a_self_consistent_grid():
+    """PDP's sampler step is diffusers' DDIM step (cosine schedule, x0 clipped to [-1, 1]) with the noise
+    re-derived from the clipped x0 (``use_clipped_model_output=True``). Pinned on diffusers' "leading" grid,
+    the one whose steps go to the next grid point (for K = 20, 5 steps: 16, 12, 8, 4, 0). LeRobot's
+    ``diffusion`` calls the same scheduler without re-deriving the noise, which differs whenever clipping
+    acts: the two policies' samplers are not identical (docs/experiments.md)."""
+    from diffusers import DDIMScheduler
+
+    ours = NoiseSchedule(20, "squaredcos_cap_v2", clip_sample=True, clip_sample_range=1.0)
+    ref = DDIMScheduler(num_train_timesteps=20, beta_schedule="squaredcos_cap_v2", clip_sample=True,
+                        clip_sample_range=1.0, set_alpha_to_one=True, timestep_spacing="leading",
+                        prediction_type="epsilon")
+    ref.set_timesteps(5)
+    grid = ref.timesteps.tolist()
+    assert grid == [16, 12, 8, 4, 0]
+    g = torch.Generator().manual_seed(0)
+    x, eps = torch.randn(4, 16, 2, generator=g) * 1.5, torch.randn(4, 16, 2, generator=g) * 2
+    differs = []
+    for i, k in enumerate(grid):
+        k_prev = grid[i + 1] if i + 1 < len(grid) else None
+        step = ours.ddim_step(eps, k, k_prev, x)
+        torch.testing.assert_close(step, ref.step(eps, k, x, use_clipped_model_output=True).prev_sample,
+                                   atol=2e-6, rtol=1e-5)
+        differs.append(float((step - ref.step(eps, k, x).prev_sample).abs().max()))
+    assert max(differs) > 0.1  # LeRobot DP's default step is another sampler once clipping acts
+    # PDP's own grid is evenly spaced from K - 1 (diffusers' "linspace" points, but diffusers steps from
+    # each of them by K // n instead of to the next one)
+    assert ours.timesteps(5) == [19, 14, 10, 5, 0]
