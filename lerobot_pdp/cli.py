@@ -127,16 +127,10 @@ def add_label_modes_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_label_modes(args: argparse.Namespace) -> int:
-    from lerobot_pdp.episodes import parse_task_mode, read_episodes, validate_mode_labels, write_mode_labels
+    from lerobot_pdp.episodes import parse_task_mode, read_episodes, read_mode_labels_file, write_mode_labels
 
     if args.labels is not None:
-        try:
-            data = json.loads(args.labels.read_text())
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{args.labels} is not JSON ({e})") from e
-        if not isinstance(data, dict) or not isinstance(data.get("episodes"), dict):
-            raise ValueError(f'{args.labels}: expected {{"episodes": {{"<episode index>": <mode id>}}, "names": {{...}}}}')
-        labels, names = validate_mode_labels(data["episodes"], data.get("names") or {}, str(args.labels))
+        labels, names = read_mode_labels_file(args.labels)
     else:
         labels, names = {}, {}
         for ep, item in read_episodes(args.dataset, []).items():

@@ -91,13 +91,16 @@ def read_mode_labels(root: str | Path) -> tuple[dict[int, int], dict[int, str]] 
 
     Returns ({episode index: mode id}, {mode id: name}). A malformed file is an error naming the key.
     """
+    path = Path(root) / "meta" / MODE_LABELS_FILE
+    return read_mode_labels_file(path) if path.is_file() else None
+
+
+def read_mode_labels_file(path: str | Path) -> tuple[dict[int, int], dict[int, str]]:
+    """A label file in the format of :func:`read_mode_labels`, checked; errors name the file and entry."""
     import json
 
-    path = Path(root) / "meta" / MODE_LABELS_FILE
-    if not path.is_file():
-        return None
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(Path(path).read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not JSON ({e})") from e
     if not isinstance(data, dict) or not isinstance(data.get("episodes"), dict):
