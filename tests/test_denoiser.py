@@ -134,7 +134,7 @@ def test_concat_ablation_feeds_the_raw_latent_to_a_linear_map():
 def test_pdp_ddim_step_is_diffusers_ddim_on_a_self_consistent_grid():
     """PDP's sampler step is diffusers' DDIM step (cosine schedule, x0 clipped to [-1, 1]) with the noise
     re-derived from the clipped x0 (``use_clipped_model_output=True``). Pinned on diffusers' "leading" grid,
-    the one whose steps go to the next grid point (for K = 20, 5 steps: 16, 12, 8, 4, 0). LeRobot's
+    whose steps go to the next grid point (for K = 20, 5 steps: 16, 12, 8, 4, 0). LeRobot's
     ``diffusion`` calls the same scheduler without re-deriving the noise, which differs whenever clipping
     acts: the two policies' samplers are not identical (docs/experiments.md)."""
     from diffusers import DDIMScheduler
