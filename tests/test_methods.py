@@ -37,12 +37,14 @@ def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
     run_dir = tmp_path / "runs" / "pdp" / "seed0"
     (run_dir / "pretrained_model").mkdir(parents=True)
     (run_dir / "pretrained_model" / "model.safetensors").write_bytes(b"")
-    recorded = {"--dataset.root": "/moved/data", "--num_workers": "0", "--log_freq": "100", "--save_freq": "1000",
-                "--policy.num_inference_steps": "5"}  # none of these changes the weights
-    args = ["/elsewhere/bin/lerobot-train"] + [
+    # as train_info.json records them: paths relative to the run folder, the bare program name
+    recorded = {"--dataset.root": "../../../moved/data", "--num_workers": "0", "--log_freq": "100",
+                "--save_freq": "1000", "--policy.num_inference_steps": "5",
+                "--policy.device": "cuda"}  # none of these changes the weights
+    args = ["lerobot-train"] + [
         next((f"{k}={v}" for k, v in recorded.items() if a.startswith(k + "=")), a)
         for a in train_args(method, data, 0, settings, settings.steps)[1:]
-    ] + ["--output_dir=/tmp/.train-x/out"]
+    ] + ["--output_dir=.train-x/out"]
     assert sum(a.split("=")[0] in recorded for a in args) == len(recorded)
     info = run_dir / "train_info.json"
     info.write_text(json.dumps({"seconds": 1.0, "steps": settings.steps, "args": args}))
