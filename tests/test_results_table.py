@@ -189,3 +189,15 @@ def test_atomic_write_replaces_whole_files_and_leaves_no_temp_file_when_it_fails
     with pytest.raises(OSError):
         write_text_atomic(tmp_path / "busy", "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["busy", "results.json"]
+
+
+@pytest.mark.parametrize(("device", "message"), [("gpu", "is not a torch device"), ("cuda:0", "no CUDA device")])
+def test_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys, device, message):
+    import torch
+
+    from lerobot_pdp.cli import main
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    assert main(["benchmark", "--env", "reach-around", "--out", str(tmp_path / "b"), "--device", device]) == 2
+    assert message in capsys.readouterr().err and not (tmp_path / "b").exists()

@@ -40,6 +40,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     if not 1 <= cfg.inference_steps <= k:  # checked before any training, not at the first evaluation
         raise ValueError(f"inference_steps must be in 1..{k} (the diffusion steps K every method trains with), "
                          f"got {cfg.inference_steps}")
+    check_device(cfg.device)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     all_methods = methods_for(suite)
@@ -74,3 +75,16 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         res["figures"] = [str(p.relative_to(out)) for p in write_figures(suite, out, cfg, ckpts, sweep)]
         write_text_atomic(out / "results.json", json.dumps(res, indent=1))
     return res
+
+
+def check_device(device: str) -> None:
+    """Refuse a device that is not a torch device, or a CUDA device on a machine without one, before any
+    dataset is generated or any method trained."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError as e:
+        raise ValueError(f"--device {device!r} is not a torch device (cpu, cuda, cuda:1, ...): {e}") from e
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {device!r}: this machine has no CUDA device (torch.cuda.is_available() is False)")
