@@ -1,12 +1,14 @@
 """lerobot-pdp: Parameterized Diffusion Policies as a LeRobot policy plugin.
 
 ``import lerobot_pdp`` registers ``--policy.type=pdp``, the ``lerobot_pdp/*-v0`` gym ids and the
-``--env.type=pdp_*`` LeRobot env configs.
+``--env.type=pdp_*`` LeRobot env configs, plus ``--robot.type=pdp_sim`` and ``--teleop.type=pdp_waypoints``.
 """
 
 from lerobot_pdp import (
     baselines,  # noqa: F401  (registers `--policy.type=mlp_bc`)
     envs,  # noqa: F401  (registers gym ids and `--env.type=pdp_*`)
+    robots,  # noqa: F401  (registers `--robot.type=pdp_sim`)
+    teleoperators,  # noqa: F401  (registers `--teleop.type=pdp_waypoints`)
 )
 from lerobot_pdp.configuration_pdp import PDPConfig
 from lerobot_pdp.modeling_pdp import PDPPolicy

@@ -1,0 +1,36 @@
+"""``--robot.type=pdp_sim``: a suite env driven through LeRobot's ``Robot`` interface (no hardware)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.robots import RobotConfig
+
+
+@RobotConfig.register_subclass("pdp_sim")
+@dataclass(kw_only=True)
+class PDPSimConfig(RobotConfig):
+    """A simulated robot: one benchmark env in one scene, with the env's own physics.
+
+    Attributes:
+        env: suite env name (``reach-around``, ``avoiding``, ``pick-place``, ``kitchen-microwave``), scene
+            key, gym id or ``pdp_*`` env type.
+        scene: scene index (``"0"``) or a scene file path.
+        outcomes: JSON-lines file; one line per finished episode (``success``, ``collided``, ``mode``, ...)
+            is appended to it. None: no file.
+        seed: reset noise of episode k comes from ``(seed, k)``, so a recording is reproducible.
+        end_episodes: inside ``lerobot-record``, end the recorded episode when the env episode ends
+            (success, collision, time limit), as the operator would press the "next episode" key, and hold
+            the robot still during the reset phase. False: the robot only resets itself and keeps going.
+        camera_names: env cameras to add as ``observation.images.<name>`` (not available yet: the suite
+            envs do not render cameras; a non-empty list is refused).
+        camera_size: (height, width) of the camera images, for when cameras exist.
+    """
+
+    env: str = "reach-around"
+    scene: str = "0"
+    outcomes: str | None = None
+    seed: int = 0
+    end_episodes: bool = True
+    camera_names: list[str] = field(default_factory=list)
+    camera_size: tuple[int, int] = (96, 96)

@@ -1,0 +1,242 @@
+"""The ``pdp_sim`` robot: a suite env behind LeRobot's ``Robot`` interface, so real CLIs run without hardware.
+
+Observations are the env's ``agent_pos`` and ``environment_state`` entries as named float values (the
+names ``make-dataset`` writes into its dataset features); actions are the env's action entries by name.
+An env episode ends on success, collision or the env's time limit; the robot then resets its own scene
+before the next observation, as a person would, and appends the episode's outcome to ``outcomes``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import weakref
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lerobot.robots import Robot
+
+from .config_pdp_sim import PDPSimConfig
+
+logger = logging.getLogger(__name__)
+
+# Live pdp_sim robots by id: the pdp_waypoints teleoperator watches "its" robot through this, as a person
+# with a leader arm watches the follower (LeRobot's record loop gives a teleoperator no observation).
+_LIVE: weakref.WeakValueDictionary[str, PDPSim] = weakref.WeakValueDictionary()
+
+
+def find_robot(robot_id: str | None = None) -> PDPSim:
+    """The live ``pdp_sim`` robot with ``robot_id`` (None: the only one); a clear error otherwise."""
+    live = dict(_LIVE)
+    if robot_id is not None:
+        if robot_id not in live:
+            raise LookupError(f"no pdp_sim robot with id {robot_id!r}; live: {sorted(live)}")
+        return live[robot_id]
+    if len(live) != 1:
+        raise LookupError(
+            f"pdp_waypoints drives a pdp_sim robot in the same process; found {len(live)} "
+            f"({sorted(live)}). Use --robot.type=pdp_sim, and --teleop.robot_id when there are several"
+        )
+    return next(iter(live.values()))
+
+
+class PDPSim(Robot):
+    """A simulated robot of config type ``pdp_sim`` (see :class:`PDPSimConfig`)."""
+
+    config_class = PDPSimConfig
+    name = "pdp_sim"
+
+    def __init__(self, config: PDPSimConfig):
+        import gymnasium as gym
+
+        import lerobot_pdp.envs  # noqa: F401  (registers the suite)
+        from lerobot_pdp.envs.recording import _dataset_features
+        from lerobot_pdp.envs.scene import load_scene
+        from lerobot_pdp.envs.suite import get_suite_env
+
+        if config.id is None:
+            config.id = "pdp_sim"
+        super().__init__(config)
+        self.config = config
+        if config.camera_names:
+            raise NotImplementedError(
+                f"pdp_sim: cameras {config.camera_names} were asked for, but the suite envs do not render "
+                "cameras yet; record without --robot.camera_names"
+            )
+        self.cameras: dict[str, Any] = {}  # lerobot-record sizes its image writers from len(robot.cameras)
+        self.suite = get_suite_env(config.env)  # KeyError naming the known envs
+        self.scene = load_scene(_scene_arg(config.scene), self.suite.scene_key)
+        self.env = gym.make(self.suite.gym_id, scene=self.scene, disable_env_checker=True)
+        features = _dataset_features(self.env)
+        self.state_names: list[str] = list(features["observation.state"]["names"])
+        self.env_state_names: list[str] = list(features["observation.environment_state"]["names"])
+        self.action_names: list[str] = list(features["action"]["names"])
+        clash = set(self.state_names) & set(self.env_state_names)
+        if clash:
+            raise ValueError(f"pdp_sim: {self.suite.name} has names in both state and environment state: {clash}")
+        self._connected = False
+        self.obs: dict[str, np.ndarray] | None = None  # the env's last observation (what the operator sees)
+        self.episode = -1  # increases at every scene reset; the teleoperator restarts its route on a change
+        self.holding = False  # True during lerobot-record's reset phase: actions are not applied
+        self._states: list[np.ndarray] = []
+        self._steps = 0
+        self._pending_reset = False
+        self._events: dict | None = None
+        self.recorded_labels: list[int | str] = []  # mode label of each recorded (saved) episode
+        self.dataset_root: Path | None = None
+        _LIVE[config.id] = self
+        from . import record_hooks
+
+        record_hooks.install()  # no-op outside lerobot-record
+
+    # ---- LeRobot Robot interface ----
+    @property
+    def observation_features(self) -> dict[str, type]:
+        return {n: float for n in self.state_names + self.env_state_names}
+
+    @property
+    def action_features(self) -> dict[str, type]:
+        return {n: float for n in self.action_names}
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def calibrate(self) -> None:
+        """Nothing to calibrate in simulation."""
+
+    def configure(self) -> None:
+        """Nothing to configure in simulation."""
+
+    def connect(self, calibrate: bool = True) -> None:
+        self._connected = True
+        self.reset_scene()
+
+    def disconnect(self) -> None:
+        if self._connected and self._steps > 0:
+            self._finish_episode({}, cut=True)
+        self._connected = False
+        self._write_mode_labels()
+        self.env.close()
+
+    def get_observation(self) -> dict[str, float]:
+        self._require_connected()
+        if self._pending_reset:
+            self.reset_scene()
+        assert self.obs is not None
+        values = np.concatenate([self.obs["agent_pos"], self.obs["environment_state"]]).astype(float)
+        return dict(zip(self.state_names + self.env_state_names, values.tolist(), strict=True))
+
+    def send_action(self, action: dict[str, Any]) -> dict[str, Any]:
+        self._require_connected()
+        missing = [n for n in self.action_names if n not in action]
+        if missing:
+            raise KeyError(f"pdp_sim: action lacks {missing}; expected {self.action_names}")
+        if self.holding or self._pending_reset:
+            return action  # reset phase / episode over: the scene stays as it is
+        vec = np.asarray([float(action[n]) for n in self.action_names], dtype=np.float32)
+        self.obs, _, terminated, truncated, info = self.env.step(vec)
+        self._steps += 1
+        self._states.append(np.asarray(self.obs["agent_pos"], dtype=float))
+        if terminated or truncated:
+            self._finish_episode(info, cut=False)
+            if self._events is not None and self.config.end_episodes:
+                self._events["exit_early"] = True  # the operator's "next episode" key
+        return action
+
+    # ---- episodes ----
+    def reset_scene(self) -> None:
+        """Start a new env episode in the configured scene (reset noise from ``(seed, episode)``)."""
+        self.episode += 1
+        seed = int(np.random.default_rng([self.config.seed, self.episode]).integers(2**31 - 1))
+        self.obs, _ = self.env.reset(seed=seed)
+        self._states = [np.asarray(self.obs["agent_pos"], dtype=float)]
+        self._steps = 0
+        self._pending_reset = False
+        self.last_label: int | str | None = None
+
+    def _finish_episode(self, info: dict, cut: bool) -> None:
+        """Classify the episode, append its outcome line and schedule a scene reset."""
+        label = self.suite.classify_mode(np.stack(self._states), scene=self.scene)
+        self.last_label = label
+        outcome = {
+            "episode": self.episode,
+            "env": self.suite.name,
+            "success": bool(info.get("is_success", False)) and not cut,
+            "collided": bool(info.get("collided", False)),
+            "mode": label if isinstance(label, str) else int(label),
+            "steps": self._steps,
+            "ended_by": "time" if cut else ("success" if info.get("is_success") else
+                                            "collision" if info.get("collided") else "time_limit"),
+        }
+        if self.config.outcomes:
+            path = Path(self.config.outcomes)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with path.open("a") as f:
+                f.write(json.dumps(outcome) + "\n")
+        logger.info("pdp_sim episode %d: %s", self.episode, outcome)
+        self._pending_reset = True
+
+    # ---- lerobot-record phases (called by record_hooks) ----
+    def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
+        """A record or reset phase starts: a fresh scene either way; hold still while resetting."""
+        self._events = events
+        if dataset is not None and getattr(dataset, "root", None) is not None:
+            self.dataset_root = Path(dataset.root)
+        if self._connected:
+            if self._steps > 0 and not self._pending_reset:
+                self._finish_episode({}, cut=True)
+            self.reset_scene()
+        self.holding = not recording
+
+    def end_phase(self, events: dict, recording: bool, dataset: Any = None, single_task: str | None = None) -> None:
+        """A phase ended: label the recorded episode (and its task string when none was given)."""
+        if recording:
+            if self._steps > 0 and not self._pending_reset:
+                self._finish_episode({}, cut=True)  # the record timer ran out first
+            label = self.last_label if self.last_label is not None else "novel"
+            self.recorded_labels.append(label)
+            if not single_task and dataset is not None:
+                _set_episode_task(dataset, self.suite.task_string(label))
+        elif events.get("rerecord_episode") and self.recorded_labels:
+            self.recorded_labels.pop()  # lerobot-record drops that episode
+        self.holding = False
+
+    def _write_mode_labels(self) -> None:
+        """``meta/mode_labels.json`` for the recorded dataset, when every episode has a training mode."""
+        if self.dataset_root is None or not self.recorded_labels:
+            return
+        from lerobot_pdp.episodes import write_mode_labels
+
+        info = self.dataset_root / "meta" / "info.json"
+        if not info.is_file():
+            return
+        total = json.loads(info.read_text()).get("total_episodes")
+        labels = self.recorded_labels
+        if total != len(labels) or not all(isinstance(x, (int, np.integer)) for x in labels):
+            logger.warning("pdp_sim: no meta/mode_labels.json (%s episodes, labels %s)", total, labels)
+            return
+        names = {int(m): self.suite.mode_names[int(m)] for m in set(labels)}
+        write_mode_labels(self.dataset_root, {i: int(m) for i, m in enumerate(labels)}, names)
+
+    def _require_connected(self) -> None:
+        if not self._connected:
+            raise ConnectionError(f"{self} is not connected; call connect() first")
+
+
+def _scene_arg(scene: str) -> int | str:
+    return int(scene) if str(scene).strip().isdigit() else scene
+
+
+def _set_episode_task(dataset: Any, task: str) -> None:
+    """Give every buffered frame of the current episode ``task`` (the mode label, as make-dataset writes it)."""
+    buf = getattr(getattr(dataset, "writer", None), "episode_buffer", None)
+    if isinstance(buf, dict) and isinstance(buf.get("task"), list):
+        buf["task"] = [task] * len(buf["task"])
+    else:  # pragma: no cover - another LeRobot layout
+        logger.warning("pdp_sim: cannot set the episode task string on this LeRobot version")
