@@ -11,6 +11,7 @@ Layouts:
     observation.environment_state (13): finish-line y, then x, y of the six posts of scene 0
         (row by row, left to right); the same vector in every scene.
     action (2): velocity fractions of 0.8 m/s along x, y (routes are up to ~1.3 m long).
+    observation.images.top (with ``camera="top"``): the field seen from above, +y up in the image.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .camera import CameraSpec, Solid
 from .point_mass import PointMassEnv, WaypointExpert, make_waypoint_expert, register_gym
 from .scene import Barrier
 from .suite import NOVEL, SuiteEnv, register_suite_env
@@ -38,6 +40,7 @@ MODE_NAMES = tuple(f"{a}-{b}-{c}" for a in ROW_GAP_NAMES[0] for b in ROW_GAP_NAM
 ROW_OFFSET = 0.045  # template way-points at each gap centre, this far before and after the row
 POST_HALF_HEIGHT = 0.05
 MAX_STEPS = 200
+CAMERAS = (CameraSpec("top", eye=(0.5, 0.04, 1.5), target=(0.5, 0.04, 0.0), up=(0.0, 1.0, 0.0), fovy=33.0),)
 
 
 def gap_centers(row: int) -> tuple[float, ...]:
@@ -72,6 +75,8 @@ class AvoidingEnv(PointMassEnv):
     default_episode_length: ClassVar[int] = MAX_STEPS
     render_views: ClassVar[tuple[tuple[int, int], ...]] = ((0, 1),)
     task_text: ClassVar[str] = "cross the finish line between the posts"
+    camera_specs: ClassVar[tuple[CameraSpec, ...]] = CAMERAS
+    floor_z: ClassVar[float] = -POST_HALF_HEIGHT  # the posts stand on the floor
 
     @classmethod
     def builtin_obstacles(cls) -> tuple[Barrier, ...]:
@@ -97,6 +102,12 @@ class AvoidingEnv(PointMassEnv):
         for i, (_, _, xs) in enumerate(ROWS):
             names += [f"post_r{i + 1}_{j}_{a}" for j in range(len(xs)) for a in "xy"]
         return names
+
+    def goal_marker(self) -> Solid:
+        """The finish line, a green strip on the floor between the walls."""
+        half_x = (WALL_X[1] - WALL_X[0]) / 2
+        return Solid("box", ((WALL_X[0] + WALL_X[1]) / 2, FINISH_Y + 0.005, self.floor_z), (half_x, 0.005, 0.001),
+                     (0.15, 0.7, 0.2))
 
     def goal_reached(self, pos: np.ndarray) -> bool:
         return bool(pos[1] > FINISH_Y)

@@ -15,6 +15,8 @@ Observations (LeRobot's ``preprocess_observation`` maps the keys):
     ``environment_state`` -> ``observation.environment_state``: the task layout of scene 0 (goal and
         built-in obstacle centres). It is deliberately the same vector in every scene: the constraint
         shift is not observed (as in the paper), and a fixed size lets a scene-0 policy run in scenes 1-3.
+    ``pixels`` (only with ``camera=...``) -> ``observation.images.<name>``: uint8 (H, W, 3) per camera, ray
+        cast from the scene (:mod:`.camera`), so a scene's barriers are seen even though the state omits them.
 """
 
 from __future__ import annotations
@@ -28,6 +30,16 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from .camera import (
+    DEFAULT_IMAGE_SIZE,
+    CameraSpec,
+    RayCaster,
+    Solid,
+    barrier_solid,
+    parse_image_size,
+    pixels_space,
+    resolve_cameras,
+)
 from .scene import Barrier, Scene, SceneError, load_scene
 from .suite import mode_info
 
@@ -195,6 +207,8 @@ class PointMassEnv(gym.Env):
     default_start_noise: ClassVar[float] = 0.005
     render_views: ClassVar[tuple[tuple[int, int], ...]] = ((0, 1),)  # axes pairs drawn side by side
     task_text: ClassVar[str] = ""
+    camera_specs: ClassVar[tuple[CameraSpec, ...]] = ()  # cameras ``camera=`` may name
+    floor_z: ClassVar[float] = 0.0  # height of the floor the cameras see
 
     def __init__(
         self,
@@ -202,7 +216,13 @@ class PointMassEnv(gym.Env):
         render_mode: str | None = None,
         episode_length: int | None = None,
         start_noise: float | None = None,
+        camera: str | Sequence[str] | None = None,
+        image_size: int | str | Sequence[int] = DEFAULT_IMAGE_SIZE,
     ):
+        """``camera``: a name of ``camera_specs`` (or several, comma-separated) adds ``obs["pixels"]``;
+        ``image_size``: N or (H, W) pixels of each camera image."""
+        self.cameras = resolve_cameras(camera, self.camera_specs, self.scene_key or type(self).__name__)
+        self.image_size = parse_image_size(image_size)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
@@ -247,12 +267,14 @@ class PointMassEnv(gym.Env):
         d = self.dims
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(d,), dtype=np.float32)
         env_state = self.environment_state()
-        self.observation_space = gym.spaces.Dict(
-            {
-                "agent_pos": gym.spaces.Box(-np.inf, np.inf, shape=(2 * d,), dtype=np.float32),
-                "environment_state": gym.spaces.Box(-np.inf, np.inf, shape=env_state.shape, dtype=np.float32),
-            }
-        )
+        obs_spaces: dict[str, gym.spaces.Space] = {
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, shape=(2 * d,), dtype=np.float32),
+            "environment_state": gym.spaces.Box(-np.inf, np.inf, shape=env_state.shape, dtype=np.float32),
+        }
+        if self.cameras:
+            obs_spaces["pixels"] = pixels_space(self.cameras, self.image_size)
+        self.observation_space = gym.spaces.Dict(obs_spaces)
+        self._casters: dict[str, RayCaster] | None = None
         self._lo = np.array(self.workspace_low, dtype=float)
         self._hi = np.array(self.workspace_high, dtype=float)
         self._desired = np.array(self.start, dtype=float)
@@ -413,7 +435,30 @@ class PointMassEnv(gym.Env):
 
     def _obs(self) -> dict[str, np.ndarray]:
         state = np.concatenate([self.data.qpos[: self.dims], self.data.qvel[: self.dims]]).astype(np.float32)
-        return {"agent_pos": state, "environment_state": self.environment_state()}
+        obs = {"agent_pos": state, "environment_state": self.environment_state()}
+        if self.cameras:
+            obs["pixels"] = self.camera_images()
+        return obs
+
+    # ---- cameras ----------------------------------------------------------------------------------
+
+    def goal_marker(self) -> Solid | None:
+        """A small green solid marking the goal in camera images (subclasses may override)."""
+        return Solid("sphere", tuple(map(float, self.ee_pos3(np.asarray(self.goal)))), (0.6 * self.ee_radius,),
+                     (0.15, 0.7, 0.2))
+
+    def camera_images(self) -> dict[str, np.ndarray]:
+        """What each of ``self.cameras`` sees now: the scene and the end effector (not its past path)."""
+        if self._casters is None:
+            static = [Solid("floor", (0.0, 0.0, self.floor_z), (), (0.78, 0.78, 0.74))]
+            static += [barrier_solid(b, self.plane_z, (0.35, 0.35, 0.4)) for b in self.obstacles]
+            static += [barrier_solid(b, self.plane_z, (0.85, 0.45, 0.2)) for b in self.barriers]
+            marker = self.goal_marker()
+            static += [marker] if marker is not None else []
+            specs = {s.name: s for s in self.camera_specs}
+            self._casters = {n: RayCaster(specs[n], self.image_size, static) for n in self.cameras}
+        ee = Solid("sphere", tuple(map(float, self.ee_pos3())), (self.ee_radius,), (0.9, 0.1, 0.1))
+        return {n: c.render([ee]) for n, c in self._casters.items()}
 
     def _info(self, success: bool) -> dict[str, Any]:
         return {

@@ -9,6 +9,9 @@ Layouts:
     observation.state (6): ee x, y, z, then ee vx, vy, vz.
     observation.environment_state (6): goal x, y, z, obstacle centre x, y, z (scene 0; same in all scenes).
     action (3): velocity fractions of 0.5 m/s along x, y, z.
+    observation.images.<camera> (with ``camera=``): "top" (looking down, +y up in the image), "front"
+        (from behind the start, looking along +y: shows over/under/left/right and scene 3's window) or
+        "oblique"; see :data:`CAMERAS`.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .camera import CameraSpec
 from .point_mass import PointMassEnv, WaypointExpert, make_waypoint_expert, register_gym
 from .scene import Barrier
 from .suite import NOVEL, SuiteEnv, register_suite_env
@@ -42,6 +46,11 @@ OBSTACLE_HALF = (0.08, 0.04, 0.08)
 PASS_Y = 0.12  # template way-points sit at y = -/+ PASS_Y, well before/after the obstacle's y extent
 WAYPOINT_JITTER = 0.012
 MAX_STEPS = 200
+CAMERAS = (
+    CameraSpec("top", eye=(0.0, 0.0, 2.2), target=(0.0, 0.0, 0.4), up=(0.0, 1.0, 0.0), fovy=30.0),
+    CameraSpec("front", eye=(0.0, -1.9, 0.45), target=(0.0, 0.0, 0.4), fovy=34.0),
+    CameraSpec("oblique", eye=(0.9, -1.0, 1.0), target=(0.0, 0.0, 0.38), fovy=45.0),
+)
 
 
 class ReachAroundEnv(PointMassEnv):
@@ -60,6 +69,7 @@ class ReachAroundEnv(PointMassEnv):
     goal_tolerance: ClassVar[float] = 0.03
     render_views: ClassVar[tuple[tuple[int, int], ...]] = ((0, 1), (0, 2))  # top (x-y), front (x-z)
     task_text: ClassVar[str] = "reach the goal around the box"
+    camera_specs: ClassVar[tuple[CameraSpec, ...]] = CAMERAS
 
     @classmethod
     def builtin_obstacles(cls) -> tuple[Barrier, ...]:
