@@ -32,6 +32,10 @@ Observation (float32): ``agent_pos`` = [ee x, y, z, gripper closed (0/1)] (-> ``
 ``environment_state`` = [object xyz, target xyz, obstacle A centre, obstacle B centre]
 (-> ``observation.environment_state``). A removed obstacle keeps its nominal centre in the observation.
 
+Camera (``camera="top" | "side" | "oblique"``, ``image_size`` default 96): ``obs["pixels"][name]`` uint8
+(H, W, 3) -> ``observation.images.<name>``, ray cast from the scene (:mod:`.camera`; no OpenGL, identical
+pixels on every machine): floor, obstacles, barriers, target marker, object and end effector.
+
 Success: the object was grasped, then released (gripper open) with its centre within 0.03 m of the
 target, without any collision.
 
@@ -64,6 +68,16 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from .camera import (
+    DEFAULT_IMAGE_SIZE,
+    CameraSpec,
+    RayCaster,
+    Solid,
+    barrier_solid,
+    parse_image_size,
+    pixels_space,
+    resolve_cameras,
+)
 from .scene import Barrier, Scene, SceneError, load_scene
 from .suite import NOVEL, SuiteEnv, mode_info, register_suite_env
 
@@ -112,6 +126,14 @@ TIGHT_WIDE_SPLIT = 0.19
 MIN_OFFSET = 0.09
 MAX_OFFSET = 0.34
 MAX_OFF_AXIS = 0.08  # beyond the obstacle's half-width the route rounds a corner: not a training mode
+
+# "top" looks down (+y up in the image); "side" looks along -x, seeing over / under routes and the phases'
+# progress along y; "oblique" is close to render()'s view.
+CAMERAS = (
+    CameraSpec("top", eye=(0.0, 0.0, 2.4), target=(0.0, 0.0, 0.4), up=(0.0, 1.0, 0.0), fovy=34.0),
+    CameraSpec("side", eye=(2.0, 0.0, 0.45), target=(0.0, 0.0, 0.4), fovy=36.0),
+    CameraSpec("oblique", eye=(1.0, -1.2, 1.1), target=(0.0, 0.0, 0.35), fovy=50.0),
+)
 
 
 # --------------------------------------------------------------------------------------------- env
@@ -193,7 +215,12 @@ class PickPlaceEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / DT)}
 
     def __init__(self, scene: Any = 0, render_mode: str | None = None,
-                 max_episode_steps: int = MAX_EPISODE_STEPS) -> None:
+                 max_episode_steps: int = MAX_EPISODE_STEPS, camera: str | Sequence[str] | None = None,
+                 image_size: int | str | Sequence[int] = DEFAULT_IMAGE_SIZE) -> None:
+        """``camera``: one of :data:`CAMERAS` (or several, comma-separated) adds ``obs["pixels"]``;
+        ``image_size``: N or (H, W) pixels of each camera image."""
+        self.cameras = resolve_cameras(camera, CAMERAS, "pick-place")
+        self.image_size = parse_image_size(image_size)
         self.scene = load_scene(scene, ENV_NAME)
         self.scene.check_clear({"start": START, "object": OBJECT, "target": TARGET}, SCENE_CLEAR_MARGIN,
                                default_z=WORKING_Z)
@@ -212,11 +239,15 @@ class PickPlaceEnv(gym.Env):
         self._grasp_eq = m.equality("grasp").id
         self._renderer: mujoco.Renderer | None = None
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
-        self.observation_space = spaces.Dict({
+        obs_spaces: dict[str, spaces.Space] = {
             # Positions stay inside the workspace clamp (|coord| < 0.85 m); 1 m bounds leave room for lag.
             "agent_pos": spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32),
             "environment_state": spaces.Box(-1.0, 1.0, shape=(12,), dtype=np.float32),
-        })
+        }
+        if self.cameras:
+            obs_spaces["pixels"] = pixels_space(self.cameras, self.image_size)
+        self.observation_space = spaces.Dict(obs_spaces)
+        self._casters: dict[str, RayCaster] | None = None
         self._reset_state()
 
     # state helpers ---------------------------------------------------------------------------------
@@ -260,7 +291,23 @@ class PickPlaceEnv(gym.Env):
     def _obs(self) -> dict[str, np.ndarray]:
         agent = np.concatenate([self.ee_pos, [float(self._gripper_closed)]]).astype(np.float32)
         env_state = np.concatenate([self.object_pos, TARGET, OBSTACLE_A, OBSTACLE_B]).astype(np.float32)
-        return {"agent_pos": agent, "environment_state": env_state}
+        obs = {"agent_pos": agent, "environment_state": env_state}
+        if self.cameras:
+            obs["pixels"] = self.camera_images()
+        return obs
+
+    def camera_images(self) -> dict[str, np.ndarray]:
+        """What each of ``self.cameras`` sees now: the scene, the object and the end effector."""
+        if self._casters is None:
+            static = [Solid("floor", (0.0, 0.0, 0.0), (), (0.85, 0.85, 0.85))]
+            static += [barrier_solid(b, WORKING_Z, (0.6, 0.3, 0.2)) for b in static_primitives(self.scene)]
+            static += [barrier_solid(b, WORKING_Z, (0.5, 0.5, 0.55)) for b in self.scene.barriers]
+            static.append(Solid("sphere", tuple(map(float, TARGET)), (0.6 * OBJECT_HALF,), (0.1, 0.8, 0.1)))
+            specs = {s.name: s for s in CAMERAS}
+            self._casters = {n: RayCaster(specs[n], self.image_size, static) for n in self.cameras}
+        obj = Solid("box", tuple(map(float, self.object_pos)), (OBJECT_HALF,) * 3, (0.9, 0.7, 0.1))
+        ee = Solid("sphere", tuple(map(float, self.ee_pos)), (EE_RADIUS,), (0.2, 0.4, 0.9))
+        return {n: c.render([obj, ee]) for n, c in self._casters.items()}
 
     def _phase(self) -> str:
         if self._success:
