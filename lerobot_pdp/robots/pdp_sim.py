@@ -118,7 +118,7 @@ class PDPSim(Robot):
         self.reset_scene()
 
     def disconnect(self) -> None:
-        if self._connected and self._steps > 0:
+        if self._connected and self._steps > 0 and not self._pending_reset:
             self._finish_episode({}, cut=True)
         self._connected = False
         self._write_mode_labels()
@@ -184,12 +184,12 @@ class PDPSim(Robot):
 
     # ---- lerobot-record phases (called by record_hooks) ----
     def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
-        """A record or reset phase starts: a fresh scene either way; hold still while resetting."""
+        """A record or reset phase starts: from a fresh scene either way; hold still while resetting."""
         self._events = events
         if dataset is not None and getattr(dataset, "root", None) is not None:
             self.dataset_root = Path(dataset.root)
-        if self._connected:
-            if self._steps > 0 and not self._pending_reset:
+        if self._connected and (self._steps > 0 or self._pending_reset):
+            if not self._pending_reset:
                 self._finish_episode({}, cut=True)
             self.reset_scene()
         self.holding = not recording
