@@ -50,8 +50,9 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "make-dataset",
         help="generate scripted demonstrations as a LeRobotDataset v3",
-        description="Run the scripted expert per mode (or along way-points) and write a state-only "
-        "LeRobotDataset whose episode task strings carry the mode label.",
+        description="Run the scripted expert per mode (or along way-points) and write a LeRobotDataset whose "
+        "episode task strings carry the mode label: state-only, or with --camera also camera images stored as "
+        "video (observation.images.<camera>).",
     )
     p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
     p.add_argument("--scene", default="0", help="scene index 0-3 or a scene file (JSON/YAML); default 0")
@@ -64,6 +65,10 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
                    help="record along way-points instead of mode templates: a JSON/YAML file (a list of "
                         "points or a scene file) or 'scene' for the scene's own")
     p.add_argument("--max-attempts", type=int, default=20, help="tries per episode before giving up")
+    p.add_argument("--camera", default=None,
+                   help="record camera images too: a camera of the env (reach-around: top, front, oblique; "
+                        "avoiding: top; pick-place: top, side, oblique), or several comma-separated")
+    p.add_argument("--image-size", default="96", help="camera image size, N or HxW pixels (default 96)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=cmd_make_dataset)
 
@@ -81,6 +86,8 @@ def cmd_make_dataset(args: argparse.Namespace) -> int:
         waypoints=args.waypoints,
         progress=not args.no_progress,
         max_attempts=args.max_attempts,
+        camera=args.camera,
+        image_size=args.image_size,
     )
     print(f"wrote {out}")
     return 0

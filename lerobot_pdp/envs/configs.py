@@ -6,6 +6,11 @@ always renders up to 10 episodes to video, so suite envs must support ``render_m
 
 Feature shapes come from the env's own spaces (the env is built once, lazily, when the config is
 created), so an env module is the single source of truth for its observation layout.
+
+``--env.camera=top --env.image_size=96`` adds camera images: the env returns ``obs["pixels"]["top"]``, the
+config declares ``features["pixels/top"]`` (VISUAL, (H, W, 3)) mapped to ``observation.images.top``, as
+LeRobot's own Aloha / RoboCasa configs do, so ``lerobot-eval`` feeds a policy the key a camera dataset
+made by ``make-dataset --camera top`` trains it on.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from typing import ClassVar
 import gymnasium as gym
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from .suite import SuiteEnv, get_suite_env
 
@@ -39,11 +44,12 @@ def _accepts_kwarg(gym_id: str, name: str) -> bool:
     return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
-def env_features(suite: SuiteEnv, scene: str | int = 0) -> dict[str, PolicyFeature]:
-    """Policy features read off the env's spaces: ``agent_pos``, ``environment_state`` and ``action``."""
+def env_features(suite: SuiteEnv, scene: str | int = 0, **env_kwargs) -> dict[str, PolicyFeature]:
+    """Policy features read off the env's spaces: ``agent_pos``, ``environment_state``, ``action`` and one
+    ``pixels/<camera>`` per camera (``env_kwargs`` are passed to the env, e.g. ``camera``)."""
     import lerobot_pdp.envs  # noqa: F401  (registers gym ids)
 
-    env = gym.make(suite.gym_id, scene=scene, disable_env_checker=True)
+    env = gym.make(suite.gym_id, scene=scene, disable_env_checker=True, **env_kwargs)
     try:
         obs_space = env.observation_space
         if not isinstance(obs_space, gym.spaces.Dict) or "agent_pos" not in obs_space.spaces:
@@ -56,6 +62,9 @@ def env_features(suite: SuiteEnv, scene: str | int = 0) -> dict[str, PolicyFeatu
             feats["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=tuple(obs_space["environment_state"].shape)
             )
+        if "pixels" in obs_space.spaces:
+            for cam, box in obs_space["pixels"].spaces.items():
+                feats[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=tuple(box.shape))
         feats[ACTION] = PolicyFeature(type=FeatureType.ACTION, shape=tuple(env.action_space.shape))
         return feats
     finally:
@@ -68,6 +77,8 @@ class PDPSuiteEnvConfig(EnvConfig):
 
     ``scene`` is a shipped scene index ("0"-"3") or a path to a scene file (JSON/YAML).
     ``episode_length`` defaults to the suite's ``max_episode_steps``.
+    ``camera`` names the env's camera(s) ("top", or "top,front"); None = state only. ``image_size`` is
+    N or HxW pixels per camera image.
     """
 
     lerobot_env_type: ClassVar[str] = ""
@@ -77,6 +88,8 @@ class PDPSuiteEnvConfig(EnvConfig):
     episode_length: int | None = None
     scene: str = "0"
     render_mode: str = "rgb_array"
+    camera: str | None = None
+    image_size: str = "96"
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(default_factory=_default_features_map)
 
@@ -98,8 +111,20 @@ class PDPSuiteEnvConfig(EnvConfig):
             raise ValueError(
                 f"env.fps={self.fps} but {suite.name} runs at a fixed {suite.fps} Hz; leave env.fps unset"
             )
+        if isinstance(self.image_size, int) and not isinstance(self.image_size, bool):
+            self.image_size = str(self.image_size)
+        if isinstance(self.camera, str) and not self.camera.strip():
+            self.camera = None
+        if self.camera is not None and not _accepts_kwarg(suite.gym_id, "camera"):
+            raise ValueError(f"--env.camera={self.camera}: {suite.name} has no camera observations")
         if not self.features:
-            self.features = env_features(suite, self.scene)
+            self.features = env_features(suite, self.scene, **self._camera_kwargs())
+        for key in self.features:
+            if key.startswith("pixels/"):
+                self.features_map.setdefault(key, f"{OBS_IMAGES}.{key.removeprefix('pixels/')}")
+
+    def _camera_kwargs(self) -> dict:
+        return {} if self.camera is None else {"camera": self.camera, "image_size": self.image_size}
 
     @property
     def suite(self) -> SuiteEnv:
@@ -128,6 +153,7 @@ class PDPSuiteEnvConfig(EnvConfig):
         kwargs: dict = {"scene": self.scene, "render_mode": self.render_mode, "max_episode_steps": steps}
         if _accepts_kwarg(suite.gym_id, "episode_length"):
             kwargs["episode_length"] = steps  # so an env's own time limit does not cut a longer TimeLimit
+        kwargs.update(self._camera_kwargs())
         return kwargs
 
 

@@ -1,4 +1,7 @@
-"""Scripted demonstrations -> LeRobotDataset v3 (state-only), one command per env and scene.
+"""Scripted demonstrations -> LeRobotDataset v3, one command per env and scene.
+
+State-only by default; with ``camera=`` each camera adds ``observation.images.<name>``, stored as video as
+LeRobot stores camera data.
 
 Every episode is a full expert rollout that reached the goal without collision (and, for mode demos, that
 the env's classifier labels with the intended mode); failed attempts are retried with fresh jitter, a
@@ -19,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 from ..atomic import staging_dir
+from .camera import DEFAULT_IMAGE_SIZE, parse_image_size
 from .scene import Scene, SceneError, load_scene, read_scene_file
 from .suite import NOVEL, SuiteEnv, get_suite_env
 
@@ -121,7 +125,7 @@ def _dataset_features(env: gym.Env) -> dict[str, dict]:
     n_state = int(spaces["agent_pos"].shape[0])
     n_env = int(spaces["environment_state"].shape[0])
     n_act = int(env.action_space.shape[0])
-    return {
+    features = {
         "observation.state": {"dtype": "float32", "shape": (n_state,), "names": names("state_names", n_state, "s")},
         "observation.environment_state": {
             "dtype": "float32",
@@ -130,17 +134,26 @@ def _dataset_features(env: gym.Env) -> dict[str, dict]:
         },
         "action": {"dtype": "float32", "shape": (n_act,), "names": names("action_names", n_act, "a")},
     }
+    if "pixels" in spaces.spaces:
+        for cam, box in spaces["pixels"].spaces.items():
+            features[f"observation.images.{cam}"] = {
+                "dtype": "video",
+                "shape": tuple(int(v) for v in box.shape),
+                "names": ["height", "width", "channels"],
+            }
+    return features
 
 
 @contextlib.contextmanager
 def _skip_image_embedding(features: dict[str, dict]) -> Iterator[None]:
-    """Skip LeRobot's per-row image-embedding pass when the dataset has no image features.
+    """Skip LeRobot's per-row image-embedding pass when the dataset has no ``image`` features.
 
     ``DatasetWriter._save_episode_data`` maps ``embed_table_storage`` over every row even for state-only
-    data, a no-op there that costs ~2 ms per frame (70 % of generation time). Only applied to datasets
-    without image/video features, and restored afterwards.
+    data, a no-op there that costs ~2 ms per frame (70 % of generation time). Video features are no
+    exception: their frames live in mp4 files, not in the table. Only applied to datasets without
+    ``image`` features, and restored afterwards.
     """
-    if any(ft.get("dtype") in ("image", "video") for ft in features.values()):
+    if any(ft.get("dtype") == "image" for ft in features.values()):
         yield
         return
     try:
@@ -190,6 +203,8 @@ def make_dataset(
     progress: bool = True,
     max_attempts: int = 20,
     repo_id: str | None = None,
+    camera: str | Sequence[str] | None = None,
+    image_size: int | str | Sequence[int] = DEFAULT_IMAGE_SIZE,
 ) -> Path:
     """Generate expert demonstrations for ``env`` in ``scene`` and write them as a LeRobotDataset at ``out``.
 
@@ -205,6 +220,9 @@ def make_dataset(
             carries the classifier's label (usually ``novel``).
         max_attempts: tries per episode before giving up with :class:`DemoGenerationError`.
         repo_id: LeRobot repo id stored in the metadata (default ``local/pdp_<env>_scene<k>``).
+        camera: camera name(s) of the env (``"top"``, ``"top,front"``); each adds a video feature
+            ``observation.images.<name>`` of ``image_size`` pixels. None: state-only, as before.
+        image_size: N or (H, W) pixels of each camera image.
 
     Returns:
         ``out`` as a :class:`Path`.
@@ -225,6 +243,7 @@ def make_dataset(
     if waypoints is not None and modes is not None:
         raise ValueError("give either modes or waypoints, not both")
     scene_obj = load_scene(scene, suite.scene_key)  # validate early, before any work
+    camera_kwargs = _camera_kwargs(suite, camera, image_size)
     wps = resolve_waypoints(waypoints, scene, suite) if waypoints is not None else None
     mode_list = _resolve_modes(suite, modes) if wps is None else []
     jobs: list[tuple[int | None, int]] = (
@@ -233,10 +252,11 @@ def make_dataset(
         else [(None, e) for e in range(episodes_per_mode)]
     )
 
-    gym_env = gym.make(suite.gym_id, scene=scene_obj, disable_env_checker=True)
+    gym_env = gym.make(suite.gym_id, scene=scene_obj, disable_env_checker=True, **camera_kwargs)
     rejected = 0
     labels: list[int | str] = []
     features = _dataset_features(gym_env)
+    cameras = [k.removeprefix("observation.images.") for k in features if k.startswith("observation.images.")]
     try:
         with staging_dir(out, prefix=f".{out.name}.partial-") as tmp, _skip_image_embedding(features):
             ds = LeRobotDataset.create(
@@ -245,7 +265,7 @@ def make_dataset(
                 features=features,
                 root=tmp / "dataset",
                 robot_type=f"pdp_{suite.scene_key}",
-                use_videos=False,
+                use_videos=bool(cameras),
             )
             bar = tqdm(jobs, desc=f"{suite.name} scene {_scene_tag(scene)}", unit="demo", disable=not progress)
             for mode, ep in bar:
@@ -282,14 +302,15 @@ def make_dataset(
                 task = suite.task_string(label if mode is None else mode)
                 labels.append(label if mode is None else mode)
                 for o, a in zip(observations[:-1], actions, strict=True):
-                    ds.add_frame(
-                        {
-                            "observation.state": np.asarray(o["agent_pos"], dtype=np.float32),
-                            "observation.environment_state": np.asarray(o["environment_state"], dtype=np.float32),
-                            "action": np.asarray(a, dtype=np.float32),
-                            "task": task,
-                        }
-                    )
+                    frame = {
+                        "observation.state": np.asarray(o["agent_pos"], dtype=np.float32),
+                        "observation.environment_state": np.asarray(o["environment_state"], dtype=np.float32),
+                        "action": np.asarray(a, dtype=np.float32),
+                        "task": task,
+                    }
+                    for cam in cameras:
+                        frame[f"observation.images.{cam}"] = o["pixels"][cam]
+                    ds.add_frame(frame)
                 ds.save_episode()
             ds.finalize()
             meta = {
@@ -302,11 +323,27 @@ def make_dataset(
                 "episode_modes": [lab if lab == NOVEL else int(lab) for lab in labels],
                 "rejected_attempts": rejected,
             }
+            if cameras:  # absent from state-only datasets, whose record stays as it was
+                meta["cameras"] = cameras
+                meta["image_size"] = list(parse_image_size(image_size))
             (tmp / "dataset" / "meta" / META_FILE).write_text(json.dumps(meta, indent=2))
             (tmp / "dataset").rename(out)
     finally:
         gym_env.close()
     return out
+
+
+def _camera_kwargs(suite: SuiteEnv, camera: str | Sequence[str] | None,
+                   image_size: int | str | Sequence[int]) -> dict[str, Any]:
+    """Env kwargs for ``camera`` (empty without one), checked up front with errors that name the fix."""
+    if camera is None or (isinstance(camera, str) and not camera.strip()):
+        return {}
+    from .configs import _accepts_kwarg
+
+    if not _accepts_kwarg(suite.gym_id, "camera"):
+        raise ValueError(f"{suite.name} has no camera observations; give no camera for it")
+    parse_image_size(image_size)  # a clear error before the env is built
+    return {"camera": camera, "image_size": image_size}
 
 
 def read_dataset_meta(dataset_dir: str | Path) -> dict[str, Any] | None:
