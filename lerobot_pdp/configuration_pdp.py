@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_pdp.chunk_config import ActionChunkConfigMixin
@@ -25,8 +25,10 @@ TRACE_NORMALIZE = ("none", "start", "endpoints")
 class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     """Configuration for :class:`~lerobot_pdp.modeling_pdp.PDPPolicy`.
 
-    Inputs: ``observation.state`` (required) and optionally ``observation.environment_state``; output:
-    ``action``. The behavior encoder reads whole demonstrations from the training dataset on disk.
+    Inputs: any of ``observation.state``, ``observation.environment_state`` and one or several cameras
+    ``observation.images.*`` condition the denoiser (as LeRobot's diffusion policy); ``trace_key`` (a
+    state-like vector, ``observation.state`` by default) forms the behavior trace; output: ``action``. The
+    behavior encoder reads whole demonstrations from the training dataset on disk.
     """
 
     # ---- Inputs / outputs (same meaning as LeRobot's diffusion policy) ----
@@ -44,11 +46,33 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     do_mask_loss_for_padding: bool = True
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
+            "VISUAL": NormalizationMode.MEAN_STD,
             "STATE": NormalizationMode.MIN_MAX,
             "ENV": NormalizationMode.MIN_MAX,
             "ACTION": NormalizationMode.MIN_MAX,
         }
     )
+    # Condition the denoiser on observation.state. False = on cameras and/or observation.environment_state
+    # only (the behavior trace is still read from trace_key, which may be observation.state).
+    condition_on_state: bool = True
+
+    # ---- Cameras (same fields and meaning as LeRobot's diffusion policy, whose encoder PDP reuses) ----
+    # torchvision ResNet that encodes each image into spatial-softmax keypoints.
+    vision_backbone: str = "resnet18"
+    # torchvision weights to start the backbone from, e.g. "ResNet18_Weights.IMAGENET1K_V1". None (default):
+    # random initialisation, because pretrained weights would be downloaded at start-up.
+    pretrained_backbone_weights: str | None = None
+    # (H, W) every image is resized to before cropping; None = keep the dataset's size.
+    resize_shape: tuple[int, int] | None = None
+    # (H, W) crop taken after resizing: random while training, centred at inference; None = no crop.
+    crop_shape: tuple[int, int] | None = None
+    crop_is_random: bool = True
+    # Replace the backbone's BatchNorm by GroupNorm (needs random initialisation; small batches train better).
+    use_group_norm: bool = True
+    # Keypoints of the spatial-softmax head: each camera adds 2 * this many features per observation frame.
+    spatial_softmax_num_keypoints: int = 32
+    # One backbone per camera (True) or one shared by all cameras (False, fewer weights, faster on a CPU).
+    use_separate_rgb_encoder_per_camera: bool = False
 
     # ---- Behavior trace X(tau) and its geometry ----
     # Feature whose dims form the behavior trace (positions work best: DTW compares paths).
@@ -225,6 +249,18 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             )
         if self.steer_latent is not None and len(self.steer_latent) != self.latent_dim:
             errors.append(f"steer_latent has {len(self.steer_latent)} values, latent_dim is {self.latent_dim}")
+        for name in ("resize_shape", "crop_shape"):
+            shape = getattr(self, name)
+            if shape is not None and (len(shape) != 2 or any(int(d) < 1 for d in shape)):
+                errors.append(f"{name} must be a pair of positive integers (H, W) or None, got {shape}")
+        if not self.vision_backbone.startswith("resnet"):
+            errors.append(f"vision_backbone must be a torchvision ResNet (resnet18, resnet34, ...), got "
+                          f"{self.vision_backbone!r}")
+        if self.use_group_norm and self.pretrained_backbone_weights:
+            errors.append("use_group_norm=True replaces the backbone's BatchNorm, which would ruin pretrained "
+                          f"weights {self.pretrained_backbone_weights!r}: set use_group_norm=false with them")
+        if self.spatial_softmax_num_keypoints < 1:
+            errors.append(f"spatial_softmax_num_keypoints must be >= 1, got {self.spatial_softmax_num_keypoints}")
         if (self.steer_dataset_root is None) != (self.steer_episode_index is None):
             errors.append("steer_dataset_root and steer_episode_index must be given together")
         if errors:
@@ -232,23 +268,29 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
 
     def validate_features(self) -> None:
         """Check the input/output features this policy needs; raise naming the key and shape."""
-        if self.robot_state_feature is None:
-            raise ValueError(f"PDP needs '{OBS_STATE}' among the input features; got {sorted(self.input_features)}")
+        have = sorted(self.input_features)
         if self.action_feature is None:
             raise ValueError(f"PDP needs '{ACTION}' among the output features; got {sorted(self.output_features)}")
-        if self.image_features:
-            raise ValueError(
-                f"PDP is state-based; image inputs {sorted(self.image_features)} are not supported "
-                "(drop them with --policy.input_features or use a state-only dataset)"
-            )
-        for key, ft in [(OBS_STATE, self.robot_state_feature), (ACTION, self.action_feature)] + (
-            [(OBS_ENV_STATE, self.env_state_feature)] if self.env_state_feature else []
-        ):
-            if len(ft.shape) != 1:
-                raise ValueError(f"'{key}' must be a flat vector, got shape {tuple(ft.shape)}")
         trace_ft = self.input_features.get(self.trace_key)
         if trace_ft is None:
-            raise ValueError(f"trace_key '{self.trace_key}' is not an input feature; have {sorted(self.input_features)}")
+            raise ValueError(
+                f"PDP reads its behavior trace from trace_key '{self.trace_key}', which is not an input feature; "
+                f"the input features are {have}. Set --policy.trace_key to a state-like vector among them "
+                "(e.g. joint or end-effector positions)"
+            )
+        if len(trace_ft.shape) != 1:
+            raise ValueError(f"trace_key '{self.trace_key}' must be a flat vector, got shape {tuple(trace_ft.shape)}")
+        if not self.condition_features:
+            raise ValueError(
+                "PDP needs something to condition on: observation.state (with condition_on_state=true), "
+                f"observation.environment_state or a camera observation.images.*; got {have}"
+            )
+        flat = [(ACTION, self.action_feature)] + [(k, ft) for k, ft in self.condition_features.items()
+                                                  if ft.type is not FeatureType.VISUAL]
+        for key, ft in flat:
+            if len(ft.shape) != 1:
+                raise ValueError(f"'{key}' must be a flat vector, got shape {tuple(ft.shape)}")
+        self._validate_images()
         if self.trace_dims is not None:
             bad = [d for d in self.trace_dims if not 0 <= d < trace_ft.shape[0]]
             if bad or not self.trace_dims:
@@ -261,6 +303,34 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                 f"segment_gripper_dim {self.segment_gripper_dim} is out of range for '{ACTION}' of shape "
                 f"{tuple(self.action_feature.shape)}"
             )
+
+    def _validate_images(self) -> None:
+        images = self.image_features
+        if not images:
+            return
+        shapes = {k: tuple(ft.shape) for k, ft in images.items()}
+        for key, shape in shapes.items():
+            if len(shape) != 3 or shape[0] != 3:
+                raise ValueError(f"camera '{key}' must have shape (3, H, W) (channel first, RGB), got {shape}")
+        if len(set(shapes.values())) > 1:
+            raise ValueError(f"all cameras must have the same shape (one encoder input size); got {shapes}. "
+                             "Resize them when recording, or set --policy.resize_shape")
+        size = self.resize_shape or next(iter(shapes.values()))[1:]
+        if self.crop_shape is not None and (self.crop_shape[0] > size[0] or self.crop_shape[1] > size[1]):
+            raise ValueError(f"crop_shape {tuple(self.crop_shape)} does not fit in the images "
+                             f"({'resized to ' if self.resize_shape else ''}{tuple(size)})")
+
+    @property
+    def condition_features(self) -> dict[str, PolicyFeature]:
+        """The observations the denoiser is conditioned on, in the order their features are concatenated
+        per frame: state (if ``condition_on_state``), environment state, then the cameras."""
+        out: dict[str, PolicyFeature] = {}
+        if self.condition_on_state and self.robot_state_feature is not None:
+            out[OBS_STATE] = self.robot_state_feature
+        if self.env_state_feature is not None:
+            out[OBS_ENV_STATE] = self.env_state_feature
+        out.update(self.image_features)
+        return out
 
     @property
     def trace_dim(self) -> int:

@@ -12,12 +12,14 @@ from pathlib import Path
 import numpy as np
 
 
-def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None) -> dict[int, dict]:
+def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None,
+                  images: list[str] = ()) -> dict[int, dict]:
     """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}},
     plus ``"mode"`` / ``"mode_name"`` when the dataset has episode-level labels (``meta/mode_labels.json``).
 
     Reads the parquet files directly: the training loader only yields windows, but the behavior encoder
-    needs complete demonstrations.
+    needs complete demonstrations. ``images``: camera columns stored as images, returned as their cells
+    (PNG bytes; see :func:`read_episode_frames`).
     """
     import pandas as pd
 
@@ -30,7 +32,7 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
     if tasks_path.is_file():
         t = pd.read_parquet(tasks_path)
         task_by_index = {int(i): str(task) for task, i in zip(t.index, t["task_index"], strict=True)}
-    cols = list(dict.fromkeys(["episode_index", "frame_index", "index", "task_index", *keys]))
+    cols = list(dict.fromkeys(["episode_index", "frame_index", "index", "task_index", *keys, *images]))
     frames = []
     for f in files:
         df = pd.read_parquet(f)
@@ -45,6 +47,7 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
     for ep, g in df.groupby("episode_index", sort=True):
         g = g.sort_values("frame_index")
         item = {k: np.stack(g[k].to_numpy()).astype(np.float64) for k in keys}
+        item.update({k: list(g[k]) for k in images})
         item["task"] = task_by_index.get(int(g["task_index"].iloc[0]), "")
         item["from_index"] = int(g["index"].iloc[0])  # global frame index of the episode's first frame
         out[int(ep)] = item
@@ -56,6 +59,45 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
                                  "(label every episode, or remove the file)")
             item["mode"] = labels[0][ep]
             item["mode_name"] = labels[1].get(labels[0][ep], "")
+    return out
+
+
+def read_episode_frames(root: str | Path, episode: int, keys: list[str]) -> dict[str, np.ndarray]:
+    """Camera frames of one episode of a local LeRobotDataset, uint8 [T, 3, H, W] by camera key.
+
+    Cameras stored as video are decoded with LeRobot's own decoder (all frames of the episode in one pass,
+    at the episode's offset in the shared video file); cameras stored as images are read from the parquet
+    files (PNG bytes). ``read_episodes`` gives the vectors of the same frames.
+    """
+    if not keys:
+        return {}
+    import io
+
+    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+    from lerobot.datasets.video_utils import decode_video_frames, get_safe_default_video_backend
+    from PIL import Image
+
+    root = Path(root)
+    meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    missing = [k for k in keys if k not in meta.video_keys and k not in meta.image_keys]
+    if missing:
+        raise KeyError(f"{root}: no camera {missing}; its cameras are {sorted(meta.video_keys + meta.image_keys)}")
+    image_keys = [k for k in keys if k in meta.image_keys]
+    frames = read_episodes(root, ["timestamp"], [episode], images=image_keys)
+    if episode not in frames:
+        raise KeyError(f"{root} has no episode {episode}")
+    item = frames[episode]
+    out: dict[str, np.ndarray] = {}
+    for key in keys:
+        if key in image_keys:
+            out[key] = np.stack([np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB")).transpose(2, 0, 1)
+                                 for cell in item[key]])
+            continue
+        offset = float(meta.episodes[episode][f"videos/{key}/from_timestamp"])
+        video = decode_video_frames(root / meta.get_video_file_path(episode, key),
+                                    [offset + float(t) for t in item["timestamp"]], tolerance_s=1e-4,
+                                    backend=get_safe_default_video_backend(), return_uint8=True)
+        out[key] = video.numpy()
     return out
 
 

@@ -45,7 +45,8 @@ from .behavior import (
     read_episodes,
 )
 from .configuration_pdp import PDPConfig
-from .latent_fitting import DemoWindows, FitResult, episode_windows, fit_latent, select_code
+from .episodes import read_episode_frames
+from .latent_fitting import DemoWindows, FitResult, fit_latent, frame_windows, select_code
 from .model_card import pdp_model_card
 from .modes import DiscoveredModes, discover
 from .normalization import FeatureStats
@@ -81,8 +82,6 @@ class PDPPolicy(PreTrainedPolicy):
         self.config = config
 
         cfg = config
-        self.state_dim = cfg.robot_state_feature.shape[0]
-        self.env_dim = cfg.env_state_feature.shape[0] if cfg.env_state_feature else 0
         self.action_dim = cfg.action_feature.shape[0]
 
         self.stats = FeatureStats(cfg)
@@ -92,7 +91,7 @@ class PDPPolicy(PreTrainedPolicy):
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             behaviors = self._read_behaviors(dataset_meta)
-        self.model = PDPModel(cfg, self.state_dim, self.env_dim, self.action_dim, behaviors)
+        self.model = PDPModel(cfg, self.action_dim, behaviors)
         # Checkpoints keep the flat key names of the first release ("vae.*", "behavior_traces", ...).
         self.register_state_dict_post_hook(_flatten_model_keys)
         self.register_load_state_dict_pre_hook(_nest_model_keys)
@@ -110,7 +109,8 @@ class PDPPolicy(PreTrainedPolicy):
     def _read_behaviors(self, dataset_meta: Any) -> BehaviorTraces:
         """Every whole episode of the local training dataset as behavior traces (the loader yields windows)."""
         cfg = self.config
-        keys = [k for k in (OBS_STATE, OBS_ENV_STATE, ACTION, cfg.trace_key) if k in dataset_meta.features]
+        keys = [k for k in (OBS_STATE, OBS_ENV_STATE, ACTION, cfg.trace_key)
+                if k in dataset_meta.features and k not in cfg.image_features]
         episodes = read_episodes(dataset_meta.root, keys)
         for ep, item in episodes.items():
             for k in keys:
@@ -135,18 +135,18 @@ class PDPPolicy(PreTrainedPolicy):
     # ------------------------------------------------------------------ LeRobot contract
 
     def get_optim_params(self) -> list[dict]:
-        """Two parameter groups: embedding (phi, psi) and denoiser (theta), each with its learning rate."""
+        """Two parameter groups: embedding (phi, psi) and denoiser (theta, with its camera encoders), each
+        with its learning rate."""
+        theta = [*self.model.denoiser.parameters(), *self.model.obs_encoder.parameters()]
         return [
             {"params": [p for p in self.model.vae.parameters() if p.requires_grad], "lr": self.config.embedding_lr},
-            {"params": [p for p in self.model.denoiser.parameters() if p.requires_grad], "lr": self.config.optimizer_lr},
+            {"params": [p for p in theta if p.requires_grad], "lr": self.config.optimizer_lr},
         ]
 
     def reset(self) -> None:
         """Clear the observation/action queues and restart the latent-phase sequence (call on env.reset())."""
-        self._queues = {OBS_STATE: deque(maxlen=self.config.n_obs_steps),
-                        ACTION: deque(maxlen=self.config.n_action_steps)}
-        if self.config.env_state_feature:
-            self._queues[OBS_ENV_STATE] = deque(maxlen=self.config.n_obs_steps)
+        self._queues = {k: deque(maxlen=self.config.n_obs_steps) for k in self.config.condition_features}
+        self._queues[ACTION] = deque(maxlen=self.config.n_action_steps)
         self.phases.reset()
         self._episode_latent: Tensor | None = None
 
@@ -176,9 +176,8 @@ class PDPPolicy(PreTrainedPolicy):
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
         """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent."""
-        queues_populated = len(self._queues[OBS_STATE]) > 0
-        if queues_populated:
-            batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+        if any(len(q) for k, q in self._queues.items() if k != ACTION):  # online: the observation history
+            batch = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
         chunk = self.generate(obs_cond, z, noise=noise)
@@ -430,8 +429,16 @@ class PDPPolicy(PreTrainedPolicy):
 
     def _demo_windows(self, demo: Demonstration) -> DemoWindows:
         cfg = self.config
-        return episode_windows(self.stats.normalize_episode(demo.arrays), cfg.n_obs_steps, cfg.horizon, OBS_STATE,
-                               OBS_ENV_STATE if self.env_dim else None, demo.segments)
+        norm = self.stats.normalize_episode({k: v for k, v in demo.arrays.items()
+                                             if k in cfg.condition_features or k == ACTION})
+        device = self.model.geo_kappa.device
+        was_training = self.model.obs_encoder.training
+        self.model.obs_encoder.eval()  # cameras: the centre crop, as at inference
+        try:
+            feats = self.model.obs_encoder.frame_features({k: v.to(device) for k, v in norm.items() if k != ACTION})
+        finally:
+            self.model.obs_encoder.train(was_training)
+        return frame_windows(feats, norm[ACTION], cfg.n_obs_steps, cfg.horizon, demo.segments)
 
     def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress) -> FitResult:
         cfg = self.config
@@ -494,7 +501,7 @@ class PDPPolicy(PreTrainedPolicy):
         return segments
 
     def _resolve_segments(self, ep: dict[str, np.ndarray], segments) -> list[tuple[int, int]]:
-        T = len(ep[OBS_STATE])
+        T = len(ep[self.config.trace_key])
         if segments is None:
             return [(0, T)]
         if isinstance(segments, str) and segments != "gripper":
@@ -512,8 +519,14 @@ class PDPPolicy(PreTrainedPolicy):
         return segs
 
     def _episode_arrays(self, episode: Episode, need_action: bool) -> dict[str, np.ndarray]:
-        """Validate a demonstration and return its arrays (float64, unnormalised) by feature key."""
+        """Validate a demonstration and return its arrays (unnormalised) by feature key: vectors as float64
+        [T, dim], cameras as float32 [T, 3, H, W] in [0, 1]. The trace is always needed; the denoiser's
+        observations and the actions only where the demonstration is fitted (``need_action``)."""
         cfg = self.config
+        required = {cfg.trace_key: tuple(cfg.input_features[cfg.trace_key].shape)}
+        if need_action:
+            required.update({k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
+            required[ACTION] = (self.action_dim,)
         where = "episode"
         if isinstance(episode, tuple):
             source, index = episode
@@ -521,33 +534,22 @@ class PDPPolicy(PreTrainedPolicy):
             if root is None:
                 raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
             where = f"episode {index} of {root}"
-            keys = [OBS_STATE, ACTION, cfg.trace_key] + ([OBS_ENV_STATE] if self.env_dim else [])
-            eps = read_episodes(root, list(dict.fromkeys(keys)), [int(index)])
+            cameras = [k for k in required if k in cfg.image_features]
+            eps = read_episodes(root, [k for k in required if k not in cameras], [int(index)])
             if int(index) not in eps:
                 raise KeyError(f"{root} has no episode {index}")
-            episode = eps[int(index)]
+            episode = {**eps[int(index)], **read_episode_frames(root, int(index), cameras)}
         if not isinstance(episode, dict):
             raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) pair, got {type(episode)}")
-        required = {OBS_STATE: self.state_dim}
-        if self.env_dim:
-            required[OBS_ENV_STATE] = self.env_dim
-        if need_action:
-            required[ACTION] = self.action_dim
-        if cfg.trace_key not in required:
-            required[cfg.trace_key] = cfg.input_features[cfg.trace_key].shape[0]
         out: dict[str, np.ndarray] = {}
-        lengths = {}
-        for key, dim in required.items():
+        for key, shape in required.items():
             if key not in episode:
                 raise KeyError(f"{where}: missing '{key}'; PDP needs {sorted(required)} (got {sorted(episode)})")
             v = episode[key]
             v = v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
-            v = v.astype(np.float64)
-            if v.ndim != 2 or v.shape[1] != dim:
-                raise ValueError(f"{where}: '{key}' has shape {tuple(v.shape)}, expected [T, {dim}]")
-            check_finite(key, v, where)
-            out[key] = v
-            lengths[key] = len(v)
+            out[key] = (_camera_frames(key, v, shape, where) if key in cfg.image_features
+                        else _vector_frames(key, v, shape[0], where))
+        lengths = {k: len(v) for k, v in out.items()}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"{where}: keys have different lengths {lengths}")
         T = next(iter(lengths.values()))
@@ -578,6 +580,33 @@ class PDPPolicy(PreTrainedPolicy):
                             tags: list[str] | None, cfg: Any = None, dataset_meta: Any = None):
         """LeRobot's model card plus what PDP is and how to steer it (validated against the Hub only online)."""
         return pdp_model_card(self.config, dataset_repo_id, model_type, license, tags, cfg, dataset_meta)
+
+
+def _vector_frames(key: str, v: np.ndarray, dim: int, where: str) -> np.ndarray:
+    v = v.astype(np.float64)
+    if v.ndim != 2 or v.shape[1] != dim:
+        raise ValueError(f"{where}: '{key}' has shape {tuple(v.shape)}, expected [T, {dim}]")
+    check_finite(key, v, where)
+    return v
+
+
+def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) -> np.ndarray:
+    """Camera frames as LeRobotDataset yields them, float32 [T, 3, H, W] in [0, 1]; uint8 frames (either
+    channel order, as a camera or ``lerobot-record`` gives them) are converted."""
+    c, h, w = shape
+    if v.ndim == 4 and v.shape[1:] == (h, w, c) and v.shape[1:] != (c, h, w):
+        v = v.transpose(0, 3, 1, 2)
+    if v.ndim != 4 or v.shape[1:] != (c, h, w):
+        raise ValueError(f"{where}: camera '{key}' has frames of shape {tuple(v.shape)}, expected [T, {c}, {h}, {w}] "
+                         f"(or [T, {h}, {w}, {c}] uint8), the shape the policy was trained on")
+    if v.dtype == np.uint8:
+        return v.astype(np.float32) / 255.0
+    v = v.astype(np.float32)
+    check_finite(key, v.reshape(len(v), -1), where)
+    if v.min() < -1e-3 or v.max() > 1 + 1e-3:
+        raise ValueError(f"{where}: camera '{key}' has float values in [{v.min():.3g}, {v.max():.3g}]; expected "
+                         "[0, 1] (as LeRobotDataset yields frames) or uint8")
+    return v
 
 
 def _flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:

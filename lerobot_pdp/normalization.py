@@ -25,7 +25,10 @@ from .configuration_pdp import PDPConfig
 
 
 class FeatureStats(nn.Module):
-    """Normalisation statistics of the policy's state, environment-state and action features."""
+    """Normalisation statistics of the policy's state, environment-state, camera and action features.
+
+    Camera statistics are per channel ([3, 1, 1]), as LeRobot computes them for images and videos.
+    """
 
     STATS = ("min", "max", "mean", "std")
 
@@ -33,10 +36,11 @@ class FeatureStats(nn.Module):
         super().__init__()
         self.config = config
         self.features = {k: ft for k, ft in {**config.input_features, **config.output_features}.items()
-                         if ft.type in (FeatureType.STATE, FeatureType.ENV, FeatureType.ACTION)}
+                         if ft.type in (FeatureType.STATE, FeatureType.ENV, FeatureType.ACTION, FeatureType.VISUAL)}
         for key, ft in self.features.items():
+            shape = (ft.shape[0], 1, 1) if ft.type is FeatureType.VISUAL else tuple(ft.shape)
             for s in self.STATS:
-                self.register_buffer(self._name(key, s), torch.zeros(ft.shape) if s != "std" else torch.ones(ft.shape))
+                self.register_buffer(self._name(key, s), torch.zeros(shape) if s != "std" else torch.ones(shape))
         self.register_buffer("loaded", torch.tensor(False))
         self._steps: tuple[NormalizerProcessorStep, UnnormalizerProcessorStep] | None = None
 
@@ -50,8 +54,12 @@ class FeatureStats(nn.Module):
                 continue
             for s in self.STATS:
                 if s in dataset_stats[key]:
-                    getattr(self, self._name(key, s)).copy_(torch.as_tensor(np.asarray(dataset_stats[key][s]),
-                                                                            dtype=torch.float32))
+                    buf = getattr(self, self._name(key, s))
+                    value = torch.as_tensor(np.asarray(dataset_stats[key][s]), dtype=torch.float32)
+                    if value.numel() != buf.numel():
+                        raise ValueError(f"dataset statistics '{key}' {s} have shape {tuple(value.shape)}, "
+                                         f"expected {tuple(buf.shape)}")
+                    buf.copy_(value.reshape(buf.shape))
         self.loaded.fill_(True)
         self._steps = None
 

@@ -12,13 +12,14 @@ import logging
 import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 
 from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
 from .configuration_pdp import PDPConfig
 from .cuda_graphs import GraphCache
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
+from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -35,11 +36,10 @@ class PDPModel(nn.Module):
     one-hot ablation takes its latent size from the number of modes.
     """
 
-    def __init__(self, config: PDPConfig, state_dim: int, env_dim: int, action_dim: int,
-                 behaviors: BehaviorTraces | None = None):
+    def __init__(self, config: PDPConfig, action_dim: int, behaviors: BehaviorTraces | None = None):
         super().__init__()
         cfg = self.config = config
-        self.state_dim, self.env_dim, self.action_dim = state_dim, env_dim, action_dim
+        self.action_dim = action_dim
         # Behaviors of the training set (traces, where they sit in which episode, mode labels, delta^X).
         self.register_buffer("behavior_traces", torch.zeros(0, cfg.trace_length, cfg.trace_dim))
         self.register_buffer("behavior_episode", torch.zeros(0, dtype=torch.long))
@@ -55,8 +55,9 @@ class PDPModel(nn.Module):
         self.vae = TrajectoryVAE(cfg.trace_length, cfg.trace_dim, cfg.latent_dim, tuple(cfg.vae_hidden_dims))
         if len(self.behavior_traces):
             self.vae.set_trace_stats(self.behavior_traces)
+        self.obs_encoder = ObservationEncoder(cfg)
         self.denoiser = FiLMUnet1d(
-            action_dim, (state_dim + env_dim) * cfg.n_obs_steps, cfg.latent_dim, cfg.latent_conditioning,
+            action_dim, self.obs_encoder.frame_dim * cfg.n_obs_steps, cfg.latent_dim, cfg.latent_conditioning,
             tuple(cfg.down_dims), cfg.kernel_size, cfg.n_groups, cfg.diffusion_step_embed_dim,
             tuple(cfg.film_hidden_dims),
         )
@@ -144,14 +145,14 @@ class PDPModel(nn.Module):
 
     def check_batch(self, batch: dict[str, Tensor]) -> None:
         cfg = self.config
-        expect = {OBS_STATE: (cfg.n_obs_steps, self.state_dim), ACTION: (cfg.horizon, self.action_dim)}
-        if self.env_dim:
-            expect[OBS_ENV_STATE] = (cfg.n_obs_steps, self.env_dim)
+        expect = {k: (cfg.n_obs_steps, *ft.shape) for k, ft in cfg.condition_features.items()}
+        expect[ACTION] = (cfg.horizon, self.action_dim)
         for key, shape in expect.items():
             if key not in batch:
                 raise KeyError(f"batch has no '{key}'; PDP needs {sorted(expect)} (got {sorted(batch)})")
             if tuple(batch[key].shape[1:]) != shape:
-                raise ValueError(f"batch['{key}'] has shape {tuple(batch[key].shape)}, expected [B, {shape[0]}, {shape[1]}]")
+                raise ValueError(f"batch['{key}'] has shape {tuple(batch[key].shape)}, expected "
+                                 f"[B, {', '.join(map(str, shape))}]")
         if "episode_index" not in batch:
             raise KeyError("batch has no 'episode_index': PDP conditions each window on its episode's latent")
 
@@ -199,10 +200,8 @@ class PDPModel(nn.Module):
         return z[inverse].to(batch[ACTION].device), ids
 
     def obs_cond(self, batch: dict[str, Tensor]) -> Tensor:
-        feats = [batch[OBS_STATE]]
-        if self.env_dim:
-            feats.append(batch[OBS_ENV_STATE])
-        return torch.cat(feats, dim=-1).flatten(1)
+        """The denoiser's observation condition [B, n_obs_steps * frame_dim] of observation histories."""
+        return self.obs_encoder(batch).flatten(1)
 
     # ------------------------------------------------------------------ sampling
 

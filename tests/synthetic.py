@@ -34,10 +34,23 @@ def demo_path(mode: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarr
     return pos.astype(np.float32), np.clip(act, -1, 1).astype(np.float32)
 
 
+def camera_image(pos: np.ndarray, size: int) -> np.ndarray:
+    """A top-down view [size, size, 3] uint8: the obstacle disc (grey), the goal (green), the point (red)."""
+    u = (np.arange(size) + 0.5) / size * 2.4 - 1.2
+    x, y = np.meshgrid(u, -u)
+    img = np.full((size, size, 3), 240, dtype=np.uint8)
+    img[x**2 + y**2 < 0.3**2] = (90, 90, 100)
+    img[(x - GOAL[0]) ** 2 + (y - GOAL[1]) ** 2 < 0.1**2] = (60, 180, 60)
+    img[(x - pos[0]) ** 2 + (y - pos[1]) ** 2 < 0.12**2] = (220, 0, 0)
+    return img
+
+
 def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=(0, 1, 2, 3),
-                  task: str | None = None) -> Path:
+                  task: str | None = None, cameras: tuple[str, ...] = (), image_size: int = 48,
+                  video: bool = True) -> Path:
     """Write the dataset to ``root`` (must not exist); task strings are ``"mode <id>: <name>"``, or ``task``
-    for every episode (an instruction, as in most LeRobot datasets: no mode labels)."""
+    for every episode (an instruction, as in most LeRobot datasets: no mode labels). ``cameras``: names of
+    top-down cameras ``observation.images.<name>`` (stored as video, or as images with ``video=False``)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     rng = np.random.default_rng(seed)
@@ -46,13 +59,21 @@ def write_dataset(root: Path, episodes_per_mode: int = 10, seed: int = 0, modes=
         "observation.environment_state": {"dtype": "float32", "shape": (2,), "names": ["goal_x", "goal_y"]},
         "action": {"dtype": "float32", "shape": (2,), "names": ["dx", "dy"]},
     }
-    ds = LeRobotDataset.create(repo_id="local/synthetic", fps=10, features=features, root=root, use_videos=False)
+    for cam in cameras:
+        features[f"observation.images.{cam}"] = {"dtype": "video" if video else "image",
+                                                 "shape": (image_size, image_size, 3),
+                                                 "names": ["height", "width", "channels"]}
+    ds = LeRobotDataset.create(repo_id="local/synthetic", fps=10, features=features, root=root,
+                               use_videos=video and bool(cameras))
     for _ in range(episodes_per_mode):
         for m in modes:
             pos, act = demo_path(m, rng)
             for p, a in zip(pos, act, strict=True):
-                ds.add_frame({"observation.state": p, "observation.environment_state": GOAL.astype(np.float32),
-                              "action": a, "task": task or f"mode {m}: {MODES[m][0]}"})
+                frame = {"observation.state": p, "observation.environment_state": GOAL.astype(np.float32),
+                         "action": a, "task": task or f"mode {m}: {MODES[m][0]}"}
+                for cam in cameras:
+                    frame[f"observation.images.{cam}"] = camera_image(p, image_size)
+                ds.add_frame(frame)
             ds.save_episode()
     ds.finalize()
     return root

@@ -1,0 +1,72 @@
+"""What the denoiser is conditioned on: each observation frame's state, environment state and cameras as
+one feature vector (the observation part of c_t in the paper; z is the other conditioning input).
+
+Cameras are encoded the way LeRobot's diffusion policy encodes them, with its own
+``DiffusionRgbEncoder`` (ResNet backbone, optional resize and crop, GroupNorm option, spatial-softmax
+keypoints): PDP's config carries the same fields, so the encoder is reused rather than copied, and a PDP
+and a ``diffusion`` policy with the same camera settings see images identically.
+"""
+
+from __future__ import annotations
+
+import torch
+from lerobot.configs import FeatureType
+from torch import Tensor, nn
+
+from .configuration_pdp import PDPConfig
+
+
+class ObservationEncoder(nn.Module):
+    """Per-frame condition features: ``[state | environment state | camera 1 | camera 2 | ...]``.
+
+    Without cameras it has no parameters and only concatenates (so state-only checkpoints keep their keys).
+    """
+
+    def __init__(self, config: PDPConfig):
+        super().__init__()
+        self.keys = list(config.condition_features)
+        self.vector_keys = [k for k in self.keys if config.condition_features[k].type is not FeatureType.VISUAL]
+        self.image_keys = [k for k in self.keys if config.condition_features[k].type is FeatureType.VISUAL]
+        self.vector_dim = sum(config.condition_features[k].shape[0] for k in self.vector_keys)
+        self.separate = config.use_separate_rgb_encoder_per_camera
+        self.rgb_encoder: nn.Module | None = None
+        image_dim = 0
+        if self.image_keys:
+            # LeRobot's encoder reads exactly the camera fields PDPConfig shares with DiffusionConfig.
+            from lerobot.policies.diffusion.modeling_diffusion import DiffusionRgbEncoder
+
+            n = len(self.image_keys) if self.separate else 1
+            encoders = [DiffusionRgbEncoder(config) for _ in range(n)]
+            self.rgb_encoder = nn.ModuleList(encoders) if self.separate else encoders[0]
+            image_dim = encoders[0].feature_dim * len(self.image_keys)
+        self.frame_dim = self.vector_dim + image_dim
+
+    def forward(self, batch: dict[str, Tensor]) -> Tensor:
+        """Features [B, S, frame_dim] of observation histories ``batch[key]``: [B, S, dim] or [B, S, 3, H, W]."""
+        feats = [batch[k] for k in self.vector_keys]
+        if self.image_keys:
+            b, s = batch[self.image_keys[0]].shape[:2]
+            feats.append(self.encode_images([batch[k].flatten(0, 1) for k in self.image_keys]).view(b, s, -1))
+        return torch.cat(feats, dim=-1)
+
+    def encode_images(self, images: list[Tensor]) -> Tensor:
+        """Camera features [N, n_cameras * 2 * keypoints] of N frames per camera (``images[c]``: [N, 3, H, W])."""
+        if self.separate:
+            return torch.cat([enc(x) for enc, x in zip(self.rgb_encoder, images, strict=True)], dim=-1)
+        n = images[0].shape[0]
+        out = self.rgb_encoder(torch.cat(images))  # one backbone pass over all cameras
+        return out.view(len(images), n, -1).transpose(0, 1).flatten(1)
+
+    @torch.no_grad()
+    def frame_features(self, frames: dict[str, Tensor], chunk: int = 64) -> Tensor:
+        """Features [T, frame_dim] of every frame of one (normalised) demonstration, ``frames[key]``: [T, ...].
+
+        Each frame is encoded once (cameras in chunks of ``chunk`` frames, so a long episode fits in memory);
+        latent fitting then windows these features instead of re-encoding every image in every window.
+        """
+        feats = [frames[k].float() for k in self.vector_keys]
+        if self.image_keys:
+            T = frames[self.image_keys[0]].shape[0]
+            feats.append(torch.cat([self.encode_images([frames[k][a : a + chunk].float() for k in self.image_keys])
+                                    for a in range(0, T, chunk)]))
+        return torch.cat(feats, dim=-1)

@@ -1,0 +1,207 @@
+"""PDP on camera datasets: image observations condition the denoiser (LeRobot's diffusion image encoder),
+demonstrations with cameras are fitted, and bad camera input is refused clearly.
+
+The datasets are the synthetic 4-mode paths with a rendered top-down camera, written as real LeRobotDatasets
+(video, as LeRobot stores cameras, or PNG images).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import lerobot_cli, run_cli
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_pdp import PDPConfig, PDPPolicy
+
+from synthetic import camera_image, demo_path, write_dataset
+
+TOP, SIDE = "observation.images.top", "observation.images.side"
+SMALL = {"push_to_hub": False, "down_dims": (16, 32), "spatial_softmax_num_keypoints": 8}
+
+
+@pytest.fixture(scope="module")
+def video_dataset(tmp_path_factory):
+    return write_dataset(tmp_path_factory.mktemp("cam") / "video", episodes_per_mode=2, cameras=("top",))
+
+
+@pytest.fixture(scope="module")
+def image_dataset(tmp_path_factory):
+    """Two cameras stored as PNG images (lossless, so a frame read back equals the rendered one)."""
+    return write_dataset(tmp_path_factory.mktemp("cam") / "images", episodes_per_mode=2, cameras=("top", "side"),
+                         video=False)
+
+
+def _meta(root):
+    return LeRobotDatasetMetadata("local/synthetic", root=root)
+
+
+def _batch(root, policy, n=6):
+    cfg = policy.config
+    meta = _meta(root)
+    dt = {k: [i / meta.fps for i in cfg.observation_delta_indices] for k in cfg.input_features}
+    dt[ACTION] = [i / meta.fps for i in cfg.action_delta_indices]
+    ds = LeRobotDataset("local/synthetic", root=root, delta_timestamps=dt, video_backend="pyav")
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    return pre(torch.utils.data.default_collate([ds[i] for i in range(0, 10 * n, 10)]))
+
+
+def test_camera_features_condition_the_denoiser_and_train_the_encoder(video_dataset):
+    policy = make_policy(PDPConfig(crop_shape=(40, 40), **SMALL), ds_meta=_meta(video_dataset))
+    enc = policy.model.obs_encoder
+    assert enc.image_keys == [TOP] and enc.vector_keys == [OBS_STATE, OBS_ENV_STATE]
+    assert enc.frame_dim == 2 + 2 + 2 * 8
+    batch = _batch(video_dataset, policy)
+    assert batch[TOP].shape[1:] == (2, 3, 48, 48)
+    loss, info = policy.forward(batch)
+    loss.backward()
+    grads = [p.grad for p in enc.rgb_encoder.parameters() if p.grad is not None]
+    assert grads and sum(float(g.abs().sum()) for g in grads) > 0  # L_DP trains the camera encoder
+    theta = {id(p) for p in policy.get_optim_params()[1]["params"]}
+    assert all(id(p) in theta for p in enc.parameters())
+    # the camera changes the action chunk: a different image, same state, other actions
+    policy.eval()
+    noise = torch.randn(1, policy.config.horizon, 2)
+    one = {k: v[:1] for k, v in batch.items() if k in policy.config.condition_features}
+    blank = {**one, TOP: torch.zeros_like(one[TOP])}
+    policy.set_latent(torch.zeros(2))
+    a = policy.model.generate(policy.model.obs_cond(one), torch.zeros(1, 2), noise=noise)
+    b = policy.model.generate(policy.model.obs_cond(blank), torch.zeros(1, 2), noise=noise)
+    assert not torch.allclose(a, b)
+
+
+def test_camera_policy_acts_from_a_rollout_observation_stream(video_dataset):
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    policy.eval()
+    batch = _batch(video_dataset, policy, n=3)
+    for _ in range(policy.config.n_action_steps + 2):  # a new chunk after the first n_action_steps
+        obs = {k: batch[k][:, -1] for k in policy.config.input_features}  # [B, ...] as lerobot-eval sends
+        action = policy.select_action(obs)
+        assert action.shape == (3, 2) and torch.isfinite(action).all()
+    assert len(policy._queues[TOP]) == policy.config.n_obs_steps
+
+
+def test_fit_latent_on_a_camera_demonstration_reads_its_frames(image_dataset):
+    """The fit reads the episode's camera frames from the dataset (PNG images here), and a demonstration
+    handed over as arrays (uint8 frames, channel last, as a camera gives them) fits to the same z."""
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(image_dataset))
+    from_disk = policy.fit_latent((image_dataset, 5), steps=4)
+    assert from_disk.z.shape == (2,) and torch.isfinite(from_disk.z).all() and len(from_disk.losses) == 4
+
+    ds = LeRobotDataset("local/synthetic", root=image_dataset, episodes=[5])
+    states = np.stack([ds[i][OBS_STATE].numpy() for i in range(len(ds))])
+    episode = {OBS_STATE: states,  # one episode as a user holds it: uint8 camera frames, channel last OBS_ENV_STATE: np.tile([0.0, 1.0], (len(states), 1)),
+               ACTION: np.stack([ds[i][ACTION].numpy() for i in range(len(ds))]),
+               TOP: np.stack([camera_image(p, 48) for p in states]),
+               SIDE: np.stack([camera_image(p, 48) for p in states])}
+    from_arrays = policy.fit_latent(episode, steps=4)
+    assert torch.allclose(from_arrays.z, from_disk.z, atol=1e-5)
+    assert torch.allclose(policy.encode(episode), policy.encode((image_dataset, 5)), atol=1e-6)
+
+
+def test_separate_encoder_per_camera(image_dataset):
+    policy = make_policy(PDPConfig(use_separate_rgb_encoder_per_camera=True, **SMALL), ds_meta=_meta(image_dataset))
+    assert len(policy.model.obs_encoder.rgb_encoder) == 2
+    loss, _ = policy.forward(_batch(image_dataset, policy, n=2))
+    assert torch.isfinite(loss)
+
+
+def test_image_only_and_environment_state_only_conditioning(video_dataset, synthetic_meta):
+    """State stays the trace (trace_key) but need not condition the denoiser."""
+    meta = _meta(video_dataset)
+    feats = {OBS_STATE: PolicyFeature(FeatureType.STATE, (2,)), TOP: PolicyFeature(FeatureType.VISUAL, (3, 48, 48))}
+    image_only = make_policy(PDPConfig(condition_on_state=False, input_features=feats, **SMALL), ds_meta=meta)
+    assert list(image_only.config.condition_features) == [TOP]
+    assert image_only.model.obs_encoder.frame_dim == 16
+    batch = _batch(video_dataset, image_only, n=2)
+    assert torch.isfinite(image_only.forward(batch)[0])
+    image_only.eval()
+    assert image_only.select_action({TOP: batch[TOP][:, -1]}).shape == (2, 2)  # no state needed to act
+    assert image_only.fit_latent((video_dataset, 2), steps=2).z.shape == (2,)
+
+    env_only = make_policy(PDPConfig(condition_on_state=False, **SMALL), ds_meta=synthetic_meta)
+    assert list(env_only.config.condition_features) == [OBS_ENV_STATE]
+    assert env_only.model.obs_encoder.frame_dim == 2
+    assert env_only.fit_latent((synthetic_meta.root, 0), steps=2).z.shape == (2,)
+
+
+def test_camera_checkpoint_round_trip(video_dataset, tmp_path):
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    policy.eval()
+    policy.save_pretrained(tmp_path / "ckpt")
+    loaded = PDPPolicy.from_pretrained(tmp_path / "ckpt")
+    loaded.eval()
+    batch = _batch(video_dataset, policy, n=2)
+    cond = {k: batch[k] for k in policy.config.condition_features}
+    assert torch.allclose(loaded.model.obs_cond(cond), policy.model.obs_cond(cond), atol=1e-6)
+    assert torch.allclose(loaded.stats.as_dict()[TOP]["mean"], policy.stats.as_dict()[TOP]["mean"])
+    assert loaded.stats.as_dict()[TOP]["mean"].shape == (3, 1, 1)
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+
+def test_no_trace_key_is_refused_naming_the_keys():
+    cfg = PDPConfig(input_features={TOP: PolicyFeature(FeatureType.VISUAL, (3, 48, 48))},
+                    output_features={ACTION: PolicyFeature(FeatureType.ACTION, (2,))})
+    with pytest.raises(ValueError, match=r"trace_key 'observation.state'.*\['observation.images.top'\]"):
+        cfg.validate_features()
+
+
+def test_cameras_of_different_shapes_are_refused():
+    cfg = PDPConfig(input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (2,)),
+                                    TOP: PolicyFeature(FeatureType.VISUAL, (3, 48, 48)),
+                                    SIDE: PolicyFeature(FeatureType.VISUAL, (3, 64, 64))},
+                    output_features={ACTION: PolicyFeature(FeatureType.ACTION, (2,))})
+    with pytest.raises(ValueError, match="same shape.*observation.images.side.*64, 64"):
+        cfg.validate_features()
+    cfg.input_features[SIDE] = PolicyFeature(FeatureType.VISUAL, (3, 48, 48))
+    cfg.crop_shape = (56, 56)
+    with pytest.raises(ValueError, match=r"crop_shape \(56, 56\) does not fit"):
+        cfg.validate_features()
+
+
+def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    pos, act = demo_path(0, np.random.default_rng(0))
+    ep = {OBS_STATE: pos, OBS_ENV_STATE: np.tile([0.0, 1.0], (len(pos), 1)), ACTION: act,
+          TOP: np.stack([camera_image(p, 32) for p in pos])}
+    with pytest.raises(ValueError, match=r"camera 'observation.images.top' has frames of shape \(\d+, 32, 32, 3\)"):
+        policy.fit_latent(ep, steps=1)
+    ep[TOP] = np.stack([camera_image(p, 48) for p in pos]).transpose(0, 3, 1, 2).astype(np.float32)  # 0..255
+    with pytest.raises(ValueError, match=r"float values in \[.*\]; expected \[0, 1\]"):
+        policy.fit_latent(ep, steps=1)
+    del ep[TOP]
+    with pytest.raises(KeyError, match="missing 'observation.images.top'"):
+        policy.fit_latent(ep, steps=1)
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+
+
+@pytest.mark.slow
+def test_lerobot_train_on_a_camera_dataset_then_load_fit_and_act(video_dataset, tmp_path):
+    """A real lerobot-train process trains PDP on a video camera dataset; the checkpoint loads, fits z to a
+    camera episode and acts from camera observations."""
+    out = tmp_path / "train"
+    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false",
+             "--policy.down_dims=[16,32]", "--policy.spatial_softmax_num_keypoints=8", "--policy.crop_shape=[40,40]",
+             "--dataset.repo_id=local/synthetic", f"--dataset.root={video_dataset}", "--dataset.video_backend=pyav",
+             "--steps=6", "--batch_size=4", "--save_freq=6", "--log_freq=2", "--num_workers=0",
+             "--wandb.enable=false", f"--output_dir={out}"], timeout=600)
+    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    cfg = json.loads((ckpt / "config.json").read_text())
+    assert TOP in cfg["input_features"] and cfg["crop_shape"] == [40, 40]
+    policy = PDPPolicy.from_pretrained(ckpt)
+    policy.eval()
+    res = policy.fit_latent((video_dataset, 3), steps=3)
+    assert torch.isfinite(res.z).all() and torch.equal(policy.current_latent()[0], res.z)
+    batch = _batch(video_dataset, policy, n=2)
+    obs = {k: batch[k][:, -1] for k in policy.config.input_features}
+    assert torch.isfinite(policy.select_action(obs)).all()
