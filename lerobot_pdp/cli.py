@@ -76,6 +76,9 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
 def cmd_make_dataset(args: argparse.Namespace) -> int:
     from lerobot_pdp.envs.recording import make_dataset
 
+    if args.camera:  # the AV1 encoder logs its whole configuration per episode; keep only its errors
+        os.environ.setdefault("SVT_LOG", "1")
+
     out = make_dataset(
         args.env,
         args.out,
