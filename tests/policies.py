@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 from lerobot.policies.factory import make_policy, make_pre_post_processors
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION
 
 from lerobot_pdp import PDPConfig
 
@@ -20,9 +20,8 @@ def training_batch(meta, policy, n: int = 8, seed: int = 0) -> dict:
 
     cfg = policy.config
     fps = meta.fps
-    ds = LeRobotDataset("local/synthetic", root=meta.root, delta_timestamps={
-        OBS_STATE: [i / fps for i in cfg.observation_delta_indices],
-        OBS_ENV_STATE: [i / fps for i in cfg.observation_delta_indices],
+    ds = LeRobotDataset("local/synthetic", root=meta.root, video_backend="pyav", delta_timestamps={
+        **{k: [i / fps for i in cfg.observation_delta_indices] for k in cfg.input_features},
         ACTION: [i / fps for i in cfg.action_delta_indices],
     })
     pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)

@@ -70,6 +70,35 @@ def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
     assert p.phases.phase.is_cuda and p.current_latent(2).is_cuda
 
 
+def test_camera_policy_trains_acts_and_fits_on_the_gpu(tmp_path):
+    """Cameras: the image encoder on the GPU, a training step without host syncs, acting, fitting."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from synthetic import write_dataset
+
+    root = write_dataset(tmp_path / "cam", episodes_per_mode=1, cameras=("top",), video=False)
+    meta = LeRobotDatasetMetadata("local/synthetic", root=root)
+    p = small_policy(meta, "cuda", spatial_softmax_num_keypoints=8, crop_shape=(40, 40))
+    assert all(q.is_cuda for q in p.model.obs_encoder.parameters())
+    p.train()
+    batch = training_batch(meta, p)
+    assert batch["observation.images.top"].is_cuda
+    p.model.loss_terms(batch)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        loss, _ = p.model.loss_terms(batch)
+        loss.backward()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    p.eval()
+    p.reset()
+    for _ in range(p.config.n_action_steps + 1):
+        action = p.select_action({k: batch[k][:2, -1] for k in p.config.input_features})
+        assert action.is_cuda and action.shape == (2, 2)
+    res = p.fit_latent((root, 1), steps=3)
+    assert torch.isfinite(res.z).all() and p.current_latent().is_cuda
+
+
 def test_fit_latent_on_the_gpu(synthetic_meta):
     p = small_policy(synthetic_meta, "cuda")
     res = p.fit_latent((synthetic_meta.root, 3), steps=5)
