@@ -20,8 +20,10 @@ class PDPSimConfig(RobotConfig):
             is appended to it. None: no file.
         seed: reset noise of episode k comes from ``(seed, k)``, so a recording is reproducible.
         end_episodes: inside ``lerobot-record``, end the recorded episode when the env episode ends
-            (success, collision, time limit), as the operator would press the "next episode" key, and hold
-            the robot still during the reset phase. False: the robot only resets itself and keeps going.
+            (success, collision, time limit), as the operator would press the "next episode" key, and end the
+            reset phase at once (the robot has reset its scene itself). False: recorded episodes last
+            ``--dataset.episode_time_s``; after the env episode ends the robot holds still until the next
+            phase. Outside ``lerobot-record`` the robot resets its scene right after an episode ends.
         camera_names: env cameras to add as ``observation.images.<name>`` (not available yet: the suite
             envs do not render cameras; a non-empty list is refused).
         camera_size: (height, width) of the camera images, for when cameras exist.

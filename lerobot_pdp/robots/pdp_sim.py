@@ -126,7 +126,7 @@ class PDPSim(Robot):
 
     def get_observation(self) -> dict[str, float]:
         self._require_connected()
-        if self._pending_reset:
+        if self._pending_reset and self._events is None:  # in lerobot-record the next phase resets
             self.reset_scene()
         assert self.obs is not None
         values = np.concatenate([self.obs["agent_pos"], self.obs["environment_state"]]).astype(float)
@@ -193,6 +193,8 @@ class PDPSim(Robot):
                 self._finish_episode({}, cut=True)
             self.reset_scene()
         self.holding = not recording
+        if not recording and self.config.end_episodes:
+            events["exit_early"] = True  # the scene is reset already: no need to wait out reset_time_s
 
     def end_phase(self, events: dict, recording: bool, dataset: Any = None, single_task: str | None = None) -> None:
         """A phase ended: label the recorded episode (and its task string when none was given)."""
