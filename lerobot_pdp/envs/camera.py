@@ -252,7 +252,10 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
 
 
 def barrier_solid(b, default_z: float, rgb: Sequence[float]) -> Solid:
-    """A scene :class:`~lerobot_pdp.envs.scene.Barrier` as a :class:`Solid` (its own rgba wins over ``rgb``)."""
+    """A scene :class:`~lerobot_pdp.envs.scene.Barrier` as a :class:`Solid` (its own rgba wins over ``rgb``).
+
+    Alpha is dropped: barriers are solid to the camera as they are to the end effector.
+    """
     col = tuple(float(v) for v in (b.rgba[:3] if b.rgba else rgb))
     c = tuple(float(v) for v in b.center3(default_z))
     if b.shape == "box":
