@@ -3,8 +3,8 @@
 Three timings, one and two 96x96 cameras (``--cameras``), in one process on one device:
 
 - ``select_action`` new-chunk latency (B = 1, action queue cleared before each call, the observation
-  history filled, as mid-episode), interleaved rounds;
-- one training step (forward, backward, AdamW step) on a batch of ``--batch`` windows, interleaved rounds;
+  history filled, as mid-episode; weights fixed, as in a rollout);
+- one training step (forward, backward, AdamW step) on a batch of ``--batch`` windows;
 - PDP's ``fit_latent`` on a camera demonstration of ``--demo-frames`` frames (``--fit-steps`` steps), which
   encodes every frame once and then fits z on the windows' features.
 
@@ -130,19 +130,25 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
         optims[name].zero_grad(set_to_none=True)
 
     times = {(n, t): [] for n in policies for t in ("select_action_new_chunk", "train_step")}
-    for name, p in policies.items():
+    # Acting first, with the weights fixed as in a rollout (an optimizer step in between would make PDP
+    # recapture its CUDA graph every call), then training; interleaved rounds inside each, so that load
+    # changes on the machine hit both policies alike.
+    for p in policies.values():
         p.eval()
         p.reset()
+    for name in policies:
         for _ in range(args.warmup):
             act(name)
+    for _ in range(args.calls):
+        for name in policies:
+            times[(name, "select_action_new_chunk")].append(_timed(dev, lambda n=name: act(n)))
+    for p in policies.values():
         p.train()
+    for name in policies:
         for _ in range(args.warmup):
             train(name)
-    for _ in range(args.calls):  # interleaved rounds: load changes hit both policies alike
-        for name, p in policies.items():
-            p.eval()
-            times[(name, "select_action_new_chunk")].append(_timed(dev, lambda n=name: act(n)))
-            p.train()
+    for _ in range(args.calls):
+        for name in policies:
             times[(name, "train_step")].append(_timed(dev, lambda n=name: train(n)))
     res = {}
     for (name, bench), t in times.items():
