@@ -216,6 +216,12 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    "re-evaluates cached runs made with other steps, without retraining")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
+    p.add_argument("--obs", choices=("state", "images"), default="state",
+                   help="images: the camera variant - datasets, policies and rollouts observe one camera "
+                   "(observation.images.<camera>) besides the state; methods pdp and dp (default state)")
+    p.add_argument("--camera", default=None,
+                   help="camera of --obs images (default: the env's benchmark camera, e.g. oblique on reach-around)")
+    p.add_argument("--image-size", type=int, default=None, help="camera image size with --obs images (default 64)")
     p.set_defaults(func=cmd_benchmark)
 
 
@@ -226,11 +232,17 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
 
     seeds = args.seeds if args.seeds is not None else [0] if args.quick else [0, 1, 2]
     rollouts = args.rollouts if args.rollouts is not None else 20 if args.quick else 40
-    methods = args.methods if args.methods is not None else ["pdp", "dp"] if args.quick else ["pdp", "dp", "bc"]
+    methods = (args.methods if args.methods is not None else ["pdp", "dp"] if args.quick or args.obs == "images"
+               else ["pdp", "dp", "bc"])
+    if args.obs == "state" and (args.camera is not None or args.image_size is not None):
+        raise SystemExit("--camera / --image-size need --obs images")
+    camera = {"obs": args.obs, "camera": args.camera}
+    if args.image_size is not None:
+        camera["image_size"] = args.image_size
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                            quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
-                           figures=not args.no_figures, device=args.device)
+                           figures=not args.no_figures, device=args.device, **camera)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
 from ..latent_fitting import episode_windows
@@ -130,7 +130,8 @@ def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Te
     Window at frame t: observations t-n_obs+1..t, actions t-n_obs+1..t-n_obs+horizon, indices clamped
     to the episode, ``action_is_pad`` where they were clamped: what LeRobotDataset yields with the
     policy's delta indices. Keys: ``observation.state`` [N, n_obs, S], ``observation.environment_state``
-    [N, n_obs, E] (if the policy uses it), ``action`` [N, horizon, A], ``action_is_pad`` [N, horizon].
+    [N, n_obs, E] (if the policy uses it), each camera [N, n_obs, 3, H, W] (if the policy has cameras),
+    ``action`` [N, horizon, A], ``action_is_pad`` [N, horizon].
     """
     cfg = policy.config
     n_obs, horizon = int(cfg.n_obs_steps), int(cfg.horizon)
@@ -138,7 +139,8 @@ def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Te
         range(1 - n_obs, 1 - n_obs + horizon)
     ):
         raise ValueError(f"{type(cfg).__name__} does not use the standard n_obs_steps/horizon windows")
-    for key in (OBS_STATE, ACTION) + ((OBS_ENV_STATE,) if cfg.env_state_feature is not None else ()):
+    cameras = tuple(getattr(cfg, "image_features", {}) or {})
+    for key in (OBS_STATE, ACTION) + ((OBS_ENV_STATE,) if cfg.env_state_feature is not None else ()) + cameras:
         if key not in episode:
             raise KeyError(f"episode has no '{key}'; keys are {sorted(episode)}")
     norm = normalize_episode(preprocessor, episode)
@@ -152,6 +154,9 @@ def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Te
     batch = {OBS_STATE: obs[..., :s].contiguous(), ACTION: w.actions, "action_is_pad": w.is_pad}
     if env_key is not None:
         batch[OBS_ENV_STATE] = obs[..., s:].contiguous()
+    obs_idx = (torch.arange(T)[:, None] + torch.arange(1 - n_obs, 1)[None]).clamp(0, T - 1)
+    for cam in cameras:  # the same clamped observation frames as the vectors
+        batch[cam] = norm[cam][obs_idx]
     device = _device(policy)
     return {k: v.to(device) for k, v in batch.items()}
 
@@ -198,11 +203,20 @@ def _check_dp(policy) -> None:
                        type(policy.diffusion.noise_scheduler).__name__)
 
 
+def _stack_cameras(policy, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """DP's own camera layout: every camera's history stacked under ``observation.images`` [N, n_obs, n_cam, ...]
+    (what ``DiffusionPolicy.forward`` builds before ``_prepare_global_conditioning``)."""
+    cameras = list(policy.config.image_features)
+    if cameras:
+        batch = {**batch, OBS_IMAGES: torch.stack([batch[k] for k in cameras], dim=-4)}
+    return batch
+
+
 def dp_noise_matching_loss(policy, preprocessor, episode: Mapping[str, Any], noise: Tensor) -> float:
     """MSE between DP's generation from ``noise`` and the demo's normalised action chunks, over
     ALL windows of ``episode`` (the objective :func:`adapt_dp_noise` minimises on minibatches)."""
     _check_dp(policy)
-    batch = demo_batch(policy, preprocessor, episode)
+    batch = _stack_cameras(policy, demo_batch(policy, preprocessor, episode))
     with torch.no_grad():
         cond = policy.diffusion._prepare_global_conditioning(batch)
         pred = _dp_generate(policy, cond, noise.to(cond.device, cond.dtype))
@@ -232,10 +246,13 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
     """
     _check_dp(policy)
     cfg = policy.config
-    batch = demo_batch(policy, preprocessor, episode)
+    batch = _stack_cameras(policy, demo_batch(policy, preprocessor, episode))
     model = policy.diffusion
+    was_training = model.training
+    model.eval()  # cameras: the centre crop, as when acting
     with torch.no_grad():
         cond_all = model._prepare_global_conditioning(batch)
+    model.train(was_training)
     is_pad = _loss_pad(policy, batch)
     n = cond_all.shape[0]
     g = torch.Generator().manual_seed(int(seed))

@@ -20,11 +20,12 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
     """The scene-0 training dataset (generated once, then reused)."""
     from ..envs.recording import make_dataset
 
-    root = out / "data" / f"{suite.scene_key}_scene0"
+    root = out / "data" / f"{suite.scene_key}_scene0{_camera_tag(suite)}"
     info = root / "meta" / "info.json"
     if not info.is_file():
         print(f"[benchmark] generating {suite.name} scene-0 dataset ({settings.episodes_per_mode}/mode) -> {root}")
-        make_dataset(suite.name, root, scene=0, episodes_per_mode=settings.episodes_per_mode, seed=seed)
+        make_dataset(suite.name, root, scene=0, episodes_per_mode=settings.episodes_per_mode, seed=seed,
+                     **suite.camera_kwargs)
     # Reusing a dataset of another size would silently mix runs trained on different data in one table.
     expected = suite.n_modes * settings.episodes_per_mode
     found = json.loads(info.read_text()).get("total_episodes")
@@ -33,6 +34,12 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
                          f"({settings.episodes_per_mode} per mode x {suite.n_modes} modes); use another --out "
                          f"or delete {out / 'data'} and {out / 'runs'}")
     return root
+
+
+def _camera_tag(suite: SuiteEnv) -> str:
+    """Folder-name suffix of a camera variant's data (``_oblique64``): state and camera runs never share data."""
+    cam = suite.camera_kwargs
+    return f"_{cam['camera']}{cam['image_size']}" if cam else ""
 
 
 def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[int]:
@@ -45,7 +52,7 @@ def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[
 
 def demo_root(suite: SuiteEnv, out: Path, scene: int) -> Path:
     """Where a benchmark output folder ``out`` keeps the demonstration of ``scene``."""
-    return out / "data" / f"{suite.scene_key}_scene{scene}_demo"
+    return out / "data" / f"{suite.scene_key}_scene{scene}_demo{_camera_tag(suite)}"
 
 
 def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:
@@ -70,13 +77,19 @@ def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[
     if root.exists():
         shutil.rmtree(root)
     make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene, progress=False,
-                 **kwargs)
+                 **kwargs, **suite.camera_kwargs)
     write_text_atomic(info_file, json.dumps({"source": source}))
     return root, source
 
 
 def demo_episode(root: Path) -> dict[str, np.ndarray]:
-    from ..behavior import read_episodes
+    """The demonstration's arrays: state, environment state, action, and its cameras as float32
+    [T, 3, H, W] in [0, 1] (as LeRobotDataset yields frames)."""
+    from ..episodes import read_episode_frames, read_episodes
 
     eps = read_episodes(root, ["observation.state", "observation.environment_state", "action"], [0])
-    return {k: v for k, v in eps[0].items() if isinstance(v, np.ndarray)}
+    out = {k: v for k, v in eps[0].items() if isinstance(v, np.ndarray)}
+    features = json.loads((Path(root) / "meta" / "info.json").read_text())["features"]
+    cameras = [k for k, ft in features.items() if ft.get("dtype") in ("video", "image")]
+    out.update({k: v.astype(np.float32) / 255.0 for k, v in read_episode_frames(root, 0, cameras).items()})
+    return out

@@ -9,6 +9,7 @@ The jobs live in their own modules: ``settings`` (budgets, methods), ``data`` (d
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from ..envs.suite import get_suite_env
 from .data import ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, results_markdown
-from .settings import ABLATIONS, SETTINGS, BenchmarkConfig, TrainSettings, methods_for
+from .settings import ABLATIONS, CAMERAS, SETTINGS, BenchmarkConfig, TrainSettings, methods_for
 from .training import train_method
 
 
@@ -28,6 +29,15 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
 
     suite = get_suite_env(cfg.env)
     full, quick = SETTINGS[suite.name]
+    if cfg.obs not in ("state", "images"):
+        raise ValueError(f"obs must be 'state' or 'images', got {cfg.obs!r}")
+    if cfg.obs == "images":
+        camera = cfg.camera or CAMERAS.get(suite.name)
+        if camera is None:
+            raise ValueError(f"{suite.name} has no camera for the image benchmark; envs with one: {sorted(CAMERAS)}")
+        suite = suite.with_camera(camera, cfg.image_size)
+        cfg = replace(cfg, camera=camera)
+        os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder would log its configuration per episode
     settings = quick if cfg.quick else full
     if cfg.episodes_per_mode is not None:
         settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})
@@ -47,7 +57,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
     unknown = [n for n in names if n not in all_methods]
     if unknown:
-        raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(all_methods)}")
+        why = " (with --obs images: mlp_bc and the ablations take state only)" if suite.camera_kwargs else ""
+        raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(all_methods)}{why}")
     dataset = ensure_dataset(suite, out, settings)
     demos = {s: ensure_demo(suite, out, s)[0] for s in cfg.scenes if s != 0}
     per_run: dict[str, dict[int, dict]] = {}

@@ -21,6 +21,8 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     """``results.json`` layout: methods -> scene<k> -> success [per seed], mean, std (+ collision, modes)."""
     out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "device": cfg.device, "methods": {}}
+    if cfg.obs != "state":
+        out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
     for name, runs in per_run.items():
         entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
         for scene in cfg.scenes:
@@ -164,6 +166,10 @@ def results_markdown(res: dict[str, Any]) -> str:
     t = res["train"]
     if res.get("merged_from"):
         lines += ["", f"Merged from: {', '.join(res['merged_from'])}."]
+    if res.get("observation"):
+        o = res["observation"]
+        lines += ["", f"Observations: state, environment state and camera '{o['camera']}' "
+                  f"({o['image_size']}x{o['image_size']}) for every method."]
     lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
     sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}" for name, e in res["methods"].items()

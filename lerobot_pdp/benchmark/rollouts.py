@@ -94,7 +94,7 @@ def make_vector_env(suite: SuiteEnv, scene: Any, n_envs: int) -> gym.vector.Sync
 
     def make():
         env = gym.make(suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
-                       disable_env_checker=True)
+                       disable_env_checker=True, **suite.camera_kwargs)
         return EpisodeRecorder(env, suite.trace_dims)
 
     return gym.vector.SyncVectorEnv([make for _ in range(n_envs)])

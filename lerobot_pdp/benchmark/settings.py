@@ -63,6 +63,21 @@ PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
 }
 
 
+# The camera variant (``benchmark --obs images``). One camera per env, chosen so that the agent, the goal and
+# every scene's barriers are in view (reach-around's top view shows scene 3's wall edge-on, hiding its
+# window; the oblique view shows the window), at a size a CPU trains on in a session.
+CAMERAS = {"reach-around": "oblique", "avoiding": "top", "pick-place": "oblique"}
+IMAGE_SIZE = 64
+# The vision encoder of every camera method, identical for PDP and DP (LeRobot's diffusion image encoder):
+# ResNet-18 without pretrained weights (LeRobot DP's default ImageNet weights would be downloaded at start-up,
+# which fails offline), GroupNorm, 32 spatial-softmax keypoints, no crop (both policies' defaults).
+VISION_FLAGS = ("--policy.vision_backbone=resnet18", "--policy.pretrained_backbone_weights=null",
+                "--policy.use_group_norm=true", "--policy.spatial_softmax_num_keypoints=32",
+                "--policy.use_separate_rgb_encoder_per_camera=false")
+# Methods that take camera observations (mlp_bc is state-only).
+IMAGE_METHODS = ("pdp", "dp")
+
+
 @dataclass(frozen=True)
 class Method:
     """How one method is trained (LeRobot policy type + CLI overrides) and adapted to a new scene."""
@@ -75,7 +90,10 @@ class Method:
 
 
 def methods_for(suite: SuiteEnv) -> dict[str, Method]:
-    """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it)."""
+    """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it).
+
+    For a camera variant of an env (``suite.camera_kwargs``) only the methods that take images, each with
+    the same :data:`VISION_FLAGS`."""
     try:
         from ..configuration_pdp import PDPConfig
         from .baselines import dp_config_matching
@@ -87,6 +105,9 @@ def methods_for(suite: SuiteEnv) -> dict[str, Method]:
     if suite.segment_on_gripper is not None:
         pdp += [f"--policy.segment_gripper_dim={suite.segment_on_gripper}", "--policy.trace_normalize=endpoints"]
     pdp = (*pdp, *PDP_OVERRIDES.get(suite.name, ()))
+    if suite.camera_kwargs:
+        return {"pdp": Method("pdp", "pdp", (*pdp, *VISION_FLAGS)),
+                "dp": Method("dp", "diffusion", (*dp, *VISION_FLAGS), adapt="noise", steerable=False)}
     return {
         "pdp": Method("pdp", "pdp", pdp),
         "dp": Method("dp", "diffusion", dp, adapt="noise", steerable=False),
@@ -124,3 +145,7 @@ class BenchmarkConfig:
     # Where every method trains, adapts and acts ("cpu", "cuda", "cuda:1", ...). Not a training setting:
     # a run trained on one device is reused on another.
     device: str = "cpu"
+    # "state" (default) or "images": the camera variant (CAMERAS[env] at IMAGE_SIZE, or camera / image_size)
+    obs: str = "state"
+    camera: str | None = None
+    image_size: int = IMAGE_SIZE

@@ -7,7 +7,7 @@ goes through this table, so adding an env means adding one entry, not editing th
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -58,6 +58,17 @@ class SuiteEnv:
     @property
     def n_modes(self) -> int:
         return len(self.mode_names)
+
+    @property
+    def camera_kwargs(self) -> dict[str, Any]:
+        """``camera`` / ``image_size`` keywords for the env and ``make_dataset`` when this entry is the camera
+        variant of an env (see :meth:`with_camera`); empty for the state-only env."""
+        return dict(self.extra.get("camera_kwargs", {}))
+
+    def with_camera(self, camera: str, image_size: int) -> SuiteEnv:
+        """The same env observed through ``camera`` (``observation.images.<camera>``, ``image_size`` pixels):
+        datasets, rollouts and evaluations made from the returned entry carry the image."""
+        return replace(self, extra={**self.extra, "camera_kwargs": {"camera": camera, "image_size": image_size}})
 
     def impl(self):
         """The implementing module: exposes ``make_expert``, ``expert_from_waypoints``, ``classify_mode``."""
