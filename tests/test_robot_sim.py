@@ -50,6 +50,27 @@ def test_robot_and_teleop_step_with_named_values_and_reset_themselves(tmp_path):
     assert sum(d["steps"] for d in lines) == steps
 
 
+def test_cameras_when_asked_for(tmp_path):
+    """Camera frames come as the env renders them, uint8 (H, W, 3), declared as LeRobot camera features."""
+    robot, teleop = _pair(tmp_path, {"env": "reach-around", "scene": "3", "camera_names": ["oblique", "top"],
+                                     "camera_size": (32, 48)}, mode="0")
+    try:
+        teleop.connect()
+        robot.connect()
+        assert robot.observation_features["oblique"] == (32, 48, 3) == robot.observation_features["top"]
+        assert len(robot.cameras) == 2
+        first = robot.get_observation()
+        for _ in range(5):
+            robot.send_action(teleop.get_action())
+        later = robot.get_observation()
+        for cam in ("oblique", "top"):
+            assert first[cam].shape == (32, 48, 3) and first[cam].dtype.name == "uint8"
+        assert (first["top"] != later["top"]).any()  # the camera sees the agent move
+    finally:
+        robot.disconnect()
+        teleop.disconnect()
+
+
 def test_an_unfinished_episode_is_logged_as_ended_by_time_on_disconnect(tmp_path):
     outcomes = tmp_path / "o.jsonl"
     robot, teleop = _pair(tmp_path, {"env": "avoiding", "scene": "3", "outcomes": str(outcomes)},
@@ -67,8 +88,8 @@ def test_an_unfinished_episode_is_logged_as_ended_by_time_on_disconnect(tmp_path
 def test_bad_input_gets_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="unknown env 'nope'"):
         make_robot_from_config(PDPSimConfig(env="nope", calibration_dir=tmp_path))
-    with pytest.raises(ValueError, match="cameras"):
-        make_robot_from_config(PDPSimConfig(camera_names=["front"], calibration_dir=tmp_path))
+    with pytest.raises(ValueError, match="unknown camera 'side'.*top, front, oblique"):
+        make_robot_from_config(PDPSimConfig(env="reach-around", camera_names=["side"], calibration_dir=tmp_path))
     with pytest.raises(ValueError, match="exactly one of"):
         PDPWaypointsConfig()
     with pytest.raises(ValueError, match="exactly one of"):

@@ -24,9 +24,9 @@ class PDPSimConfig(RobotConfig):
             reset phase at once (the robot has reset its scene itself). False: recorded episodes last
             ``--dataset.episode_time_s``; after the env episode ends the robot holds still until the next
             phase. Outside ``lerobot-record`` the robot resets its scene right after an episode ends.
-        camera_names: env cameras to add as ``observation.images.<name>`` (not available yet: the suite
-            envs do not render cameras; a non-empty list is refused).
-        camera_size: (height, width) of the camera images, for when cameras exist.
+        camera_names: env cameras recorded as ``observation.images.<name>`` (e.g. ``[oblique]`` on
+            reach-around; the env names its valid cameras when one is unknown).
+        camera_size: (height, width) of the camera images.
     """
 
     env: str = "reach-around"

@@ -59,15 +59,13 @@ class PDPSim(Robot):
             config.id = "pdp_sim"
         super().__init__(config)
         self.config = config
-        if config.camera_names:
-            raise NotImplementedError(
-                f"pdp_sim: cameras {config.camera_names} were asked for, but the suite envs do not render "
-                "cameras yet; record without --robot.camera_names"
-            )
-        self.cameras: dict[str, Any] = {}  # lerobot-record sizes its image writers from len(robot.cameras)
+        # the env renders the cameras itself; lerobot-record sizes its image writers from len(robot.cameras)
+        self.cameras: dict[str, Any] = {name: None for name in config.camera_names}
         self.suite = get_suite_env(config.env)  # KeyError naming the known envs
         self.scene = load_scene(_scene_arg(config.scene), self.suite.scene_key)
-        self.env = gym.make(self.suite.gym_id, scene=self.scene, disable_env_checker=True)
+        cams = ({"camera": ",".join(config.camera_names), "image_size": tuple(config.camera_size)}
+                if config.camera_names else {})
+        self.env = gym.make(self.suite.gym_id, scene=self.scene, disable_env_checker=True, **cams)  # bad name: ValueError
         features = _dataset_features(self.env)
         self.state_names: list[str] = list(features["observation.state"]["names"])
         self.env_state_names: list[str] = list(features["observation.environment_state"]["names"])
@@ -92,8 +90,10 @@ class PDPSim(Robot):
 
     # ---- LeRobot Robot interface ----
     @property
-    def observation_features(self) -> dict[str, type]:
-        return {n: float for n in self.state_names + self.env_state_names}
+    def observation_features(self) -> dict[str, type | tuple[int, int, int]]:
+        h, w = self.config.camera_size
+        return {**{n: float for n in self.state_names + self.env_state_names},
+                **{name: (h, w, 3) for name in self.config.camera_names}}
 
     @property
     def action_features(self) -> dict[str, type]:
@@ -124,13 +124,16 @@ class PDPSim(Robot):
         self._write_mode_labels()
         self.env.close()
 
-    def get_observation(self) -> dict[str, float]:
+    def get_observation(self) -> dict[str, float | np.ndarray]:
         self._require_connected()
         if self._pending_reset and self._events is None:  # in lerobot-record the next phase resets
             self.reset_scene()
         assert self.obs is not None
         values = np.concatenate([self.obs["agent_pos"], self.obs["environment_state"]]).astype(float)
-        return dict(zip(self.state_names + self.env_state_names, values.tolist(), strict=True))
+        out: dict[str, float | np.ndarray] = dict(zip(self.state_names + self.env_state_names, values.tolist(),
+                                                      strict=True))
+        out.update({name: self.obs["pixels"][name] for name in self.config.camera_names})  # uint8 (H, W, 3)
+        return out
 
     def send_action(self, action: dict[str, Any]) -> dict[str, Any]:
         self._require_connected()
