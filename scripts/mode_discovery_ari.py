@@ -1,0 +1,75 @@
+"""How well ``policy.discover_modes()`` recovers the demonstrated modes of a benchmark dataset, labels hidden.
+
+For each env: the scene-0 benchmark dataset (generated, or given with ``--dataset``), PDP trained on it by the
+benchmark's own ``lerobot-train`` command (``benchmark.training.train_method``; PDP never reads mode labels
+while training a continuous latent), then ``discover_modes()`` with k chosen by silhouette score and with k =
+the number of modes, each compared with the dataset's mode labels by the adjusted Rand index (sklearn). One
+JSON line per env on stdout; the checkpoint stays in ``--out/<env>/run``.
+
+    .venv/bin/python scripts/mode_discovery_ari.py --env reach-around avoiding pick-place kitchen-microwave \
+        --out outputs/ari [--steps 1500] [--episodes-per-mode 10] [--device cuda] [--dataset ENV=DIR ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+
+def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | None, device: str,
+            dataset: Path | None) -> dict:
+    from dataclasses import replace
+
+    from sklearn.metrics import adjusted_rand_score
+
+    from lerobot_pdp import PDPPolicy
+    from lerobot_pdp.benchmark.data import ensure_dataset
+    from lerobot_pdp.benchmark.settings import SETTINGS, methods_for
+    from lerobot_pdp.benchmark.training import train_method
+    from lerobot_pdp.envs import get_suite_env
+    from lerobot_pdp.episodes import parse_task_mode, read_episodes
+
+    suite = get_suite_env(env)
+    full, quick = SETTINGS[suite.name]
+    settings = replace(quick, episodes_per_mode=episodes_per_mode or full.episodes_per_mode)
+    steps = steps or quick.steps
+    root = dataset or ensure_dataset(suite, out / env, settings)
+    t0 = time.time()
+    ckpt = train_method(methods_for(suite)["pdp"], root, out / env / "run", 0, settings, steps, device)
+    train_s = time.time() - t0
+    policy = PDPPolicy.from_pretrained(ckpt)
+    episodes = read_episodes(root, [], None)
+    truth = {ep: item["mode"] if "mode" in item else parse_task_mode(item["task"]) for ep, item in episodes.items()}
+    row = {"env": env, "episodes": len(truth), "modes": len(set(truth.values())), "steps": steps,
+           "episodes_per_mode": settings.episodes_per_mode, "device": device, "train_s": round(train_s, 1)}
+    for name, k in (("auto", None), ("k_true", len(set(truth.values())))):
+        found = policy.discover_modes(k=k)
+        eps = sorted(found.labels)
+        row[f"ari_{name}"] = round(float(adjusted_rand_score([truth[e] for e in eps],
+                                                             [found.labels[e] for e in eps])), 4)
+        row[f"k_{name}"] = found.k
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", nargs="+", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--steps", type=int, default=None, help="training steps (default: the env's quick budget)")
+    ap.add_argument("--episodes-per-mode", type=int, default=None,
+                    help="dataset size (default: the env's full benchmark dataset)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--dataset", nargs="*", default=[], help="ENV=DIR: use this dataset instead of generating one")
+    args = ap.parse_args(argv)
+    given = dict(item.split("=", 1) for item in args.dataset)
+    for env in args.env:
+        row = measure(env, args.out, args.steps, args.episodes_per_mode, args.device,
+                      Path(given[env]) if env in given else None)
+        print(json.dumps(row), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
