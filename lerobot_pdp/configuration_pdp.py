@@ -187,6 +187,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration).
     steer_dataset_root: str | None = None
     steer_episode_index: int | None = None
+    # Live steering: a JSON file polled at every new action chunk; when it changes, its request
+    # ({"mode": 3}, {"latent": [..]}, {"dataset": DIR, "episode": 0}) sets the active latent without
+    # reloading the policy (lerobot_pdp/steering.py). Its request, once read, overrides the fields above.
+    steer_file: str | None = None
     # With no steering set: "episode" = a random training behavior's latent per reset (multimodal, like
     # DP); "prior" = a draw from N(0, I); "zero" = the prior mean.
     inference_latent: str = "episode"

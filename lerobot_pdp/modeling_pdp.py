@@ -52,6 +52,7 @@ from .modes import DiscoveredModes, discover
 from .normalization import FeatureStats
 from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
 from .phases import PhaseTracker
+from .steering import SteerFile
 
 logger = logging.getLogger(__name__)
 
@@ -101,6 +102,7 @@ class PDPPolicy(PreTrainedPolicy):
         self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
         self._steering_initialised = False
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
+        self._steer_file = SteerFile(config.steer_file) if config.steer_file else None
         self._queues: dict[str, deque] = {}
         self.reset()
 
@@ -178,6 +180,8 @@ class PDPPolicy(PreTrainedPolicy):
         """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent."""
         if any(len(q) for k, q in self._queues.items() if k != ACTION):  # online: the observation history
             batch = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
+        if self._steer_file is not None:  # live steering: a changed file sets z before this chunk
+            self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
         chunk = self.generate(obs_cond, z, noise=noise)

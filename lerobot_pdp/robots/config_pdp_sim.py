@@ -27,6 +27,9 @@ class PDPSimConfig(RobotConfig):
         camera_names: env cameras recorded as ``observation.images.<name>`` (e.g. ``[oblique]`` on
             reach-around; the env names its valid cameras when one is unknown).
         camera_size: (height, width) of the camera images.
+        episodes: stop after this many env episodes: the robot then holds still and, inside
+            ``lerobot-rollout`` (which has no episode count of its own, only ``--duration``), ends the run as
+            the operator's Ctrl-C would. None: run on. Ignored by ``lerobot-record`` (``--dataset.num_episodes``).
     """
 
     env: str = "reach-around"
@@ -36,3 +39,9 @@ class PDPSimConfig(RobotConfig):
     end_episodes: bool = True
     camera_names: list[str] = field(default_factory=list)
     camera_size: tuple[int, int] = (96, 96)
+    episodes: int | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.episodes is not None and self.episodes < 1:
+            raise ValueError(f"pdp_sim: episodes must be >= 1 or None, got {self.episodes}")

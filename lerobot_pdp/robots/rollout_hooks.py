@@ -1,0 +1,96 @@
+"""What ``lerobot-rollout`` lacks for a simulated robot, added around two functions its context builder calls.
+
+LeRobot's rollout (0.6.x) routes only scalar features named ``*.pos`` / ``*.vel`` to the policy (the rest are
+dropped silently), merges every float observation into one ``observation.state``, has no notion of an
+episode (the policy is reset once, and ``--duration`` bounds the run in wall time) and gives the robot no
+way to end the run. For a ``pdp_sim`` robot built by ``build_rollout_context``, and only then:
+
+* the robot names its features ``<name>.pos`` (observations) and ``<name>.vel`` (actions)
+  (:func:`building_rollout_context` tells it, see ``PDPSim.__init__``);
+* ``aggregate_pipeline_dataset_features`` is wrapped to split ``observation.state`` into ``observation.state``
+  and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on;
+* ``create_inference_engine`` is wrapped to hand the robot the engine and the run's shutdown event, so it
+  resets the policy when it resets its scene (a new episode) and ends the run after ``--robot.episodes``.
+
+Nothing of LeRobot is changed on disk; other robots are untouched.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from typing import Any
+
+from .record_hooks import split_environment_state
+
+logger = logging.getLogger(__name__)
+
+CONTEXT_MODULE = "lerobot.rollout.context"
+_MARK = "_pdp_sim_hook"
+
+
+def building_rollout_context(max_depth: int = 12) -> bool:
+    """True when called (within ``max_depth`` frames) from ``lerobot.rollout.context.build_rollout_context``.
+
+    Precise where a ``sys.modules`` test is not: a test process may have imported LeRobot's rollout
+    package without running it.
+    """
+    frame = sys._getframe(1)
+    for _ in range(max_depth):
+        if frame is None:
+            return False
+        if frame.f_code.co_name == "build_rollout_context" and frame.f_globals.get("__name__") == CONTEXT_MODULE:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def install() -> bool:
+    """Wrap the context builder's functions once; False when LeRobot's rollout is not loaded."""
+    mod = sys.modules.get(CONTEXT_MODULE)
+    if mod is None:
+        return False
+    agg, make_engine = getattr(mod, "aggregate_pipeline_dataset_features", None), getattr(mod, "create_inference_engine", None)
+    if agg is None or make_engine is None:
+        logger.warning("pdp_sim: this lerobot-rollout has no aggregate_pipeline_dataset_features/create_inference_engine; "
+                       "environment_state stays in the state and episodes do not reset the policy")
+        return False
+    if not getattr(agg, _MARK, False):
+        mod.aggregate_pipeline_dataset_features = _wrap_aggregate(agg)
+    if not getattr(make_engine, _MARK, False):
+        mod.create_inference_engine = _wrap_create_engine(make_engine)
+    return True
+
+
+def _rollout_robots() -> list:
+    from .pdp_sim import _LIVE
+
+    return [r for r in list(_LIVE.values()) if r.in_rollout]
+
+
+def _wrap_aggregate(original):
+    @functools.wraps(original)
+    def aggregate_pipeline_dataset_features(*args: Any, **kwargs: Any):
+        features = original(*args, **kwargs)
+        for robot in _rollout_robots():
+            features = split_environment_state(features, robot.state_keys, robot.env_state_keys)
+        return features
+
+    setattr(aggregate_pipeline_dataset_features, _MARK, True)
+    return aggregate_pipeline_dataset_features
+
+
+def _wrap_create_engine(original):
+    @functools.wraps(original)
+    def create_inference_engine(*args: Any, **kwargs: Any):
+        engine = original(*args, **kwargs)
+        wrapper = kwargs.get("robot_wrapper")
+        robot = getattr(wrapper, "inner", wrapper)
+        for live in _rollout_robots():
+            if live is robot:
+                live.attach_rollout(engine, kwargs.get("shutdown_event"))
+        return engine
+
+    setattr(create_inference_engine, _MARK, True)
+    return create_inference_engine

@@ -1,0 +1,124 @@
+"""Live steering of a running PDP through a small JSON file (``--policy.steer_file=PATH``).
+
+LeRobot's deployment loops (``lerobot-rollout``, ``lerobot-eval``) offer no channel into a running policy,
+and reloading the policy would stop the robot. So the policy polls one file at each new action chunk: when
+its content changed, the request in it sets the active latent before the chunk is generated. Requests:
+
+* ``{"mode": 3}`` (a mode id, or a mode name): the mean latent of that training mode;
+* ``{"latent": [0.1, -0.4]}``: that latent (``[[..], [..]]``: one per phase); ``{"latent": null}``: back to
+  the policy's default (``inference_latent``);
+* ``{"dataset": DIR, "episode": 0}``: fit z to that episode of a local LeRobotDataset (e.g. a new
+  ``lerobot-record`` demonstration); ``"steps"`` overrides ``fit_steps``. A relative ``DIR`` is taken
+  relative to the steering file's folder. Fitting blocks the control loop for its duration (~1 s on a CPU).
+
+Write the file whole (:func:`write_steering`, or ``lerobot-pdp steer``): a reader must never see half a
+request. A bad request is logged and the current latent kept: a typo must not stop a running robot.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from .atomic import write_text_atomic
+
+logger = logging.getLogger(__name__)
+
+REQUEST_KEYS = ("mode", "latent", "dataset")
+
+
+def write_steering(path: str | Path, request: dict[str, Any]) -> None:
+    """Validate ``request`` (its form, not against a policy) and write it atomically to ``path``."""
+    check_request(request)
+    write_text_atomic(path, json.dumps(request) + "\n")
+
+
+def check_request(request: Any) -> dict[str, Any]:
+    """The request's form: a JSON object with exactly one of ``mode``, ``latent``, ``dataset``."""
+    if not isinstance(request, dict):
+        raise ValueError(f"a steering request must be a JSON object, got {type(request).__name__}: {request!r}")
+    given = [k for k in REQUEST_KEYS if k in request]
+    if len(given) != 1:
+        raise ValueError(f"a steering request needs exactly one of {list(REQUEST_KEYS)}, got {sorted(request)}")
+    allowed = {"dataset": {"dataset", "episode", "steps"}}.get(given[0], {given[0]})
+    extra = sorted(set(request) - allowed)
+    if extra:
+        raise ValueError(f"unknown keys {extra} in a {given[0]!r} steering request (allowed: {sorted(allowed)})")
+    return request
+
+
+def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None = None) -> Any:
+    """Set ``policy``'s active latent from one request (see the module docstring); returns the new latent.
+
+    Raises ValueError / KeyError / FileNotFoundError naming what is wrong (unknown mode, latent of the wrong
+    size, recording that does not match the checkpoint, ...).
+    """
+    check_request(request)
+    if "latent" in request:
+        policy.set_latent(request["latent"])
+        return request["latent"]
+    if "mode" in request:
+        mode = _mode_id(policy, request["mode"])
+        means = policy.mode_latents()
+        if mode not in means:
+            raise KeyError(f"steering: mode {request['mode']!r} is not a training mode; modes are {sorted(means)}")
+        policy.set_latent(means[mode])
+        return means[mode]
+    root = Path(request["dataset"])
+    if base is not None and not root.is_absolute():
+        root = Path(base) / root
+    if not (root / "meta" / "info.json").is_file():
+        raise FileNotFoundError(f"steering: {root} is not a LeRobotDataset (no meta/info.json)")
+    episode = request.get("episode", 0)
+    if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
+        raise ValueError(f"steering: episode must be an episode index >= 0, got {episode!r}")
+    steps = request.get("steps")
+    if steps is not None and (not isinstance(steps, int) or steps < 0):
+        raise ValueError(f"steering: steps must be an integer >= 0, got {steps!r}")
+    return policy.fit_latent((root, episode), steps=steps).z
+
+
+def _mode_id(policy: Any, mode: Any) -> int:
+    """A mode id from an int, a digit string or a mode name of the checkpoint (``config.mode_names``)."""
+    if isinstance(mode, int) and not isinstance(mode, bool):
+        return mode
+    if isinstance(mode, str):
+        if mode.strip().lstrip("-").isdigit():
+            return int(mode)
+        names = policy.config.mode_names or {}
+        for k, name in names.items():
+            if name == mode:
+                return int(k)
+        raise KeyError(f"steering: unknown mode name {mode!r}; the checkpoint's modes are {names or 'unnamed'}")
+    raise ValueError(f"steering: mode must be a mode id or name, got {mode!r}")
+
+
+class SteerFile:
+    """Polls one steering file; :meth:`poll` applies its request once per change of the file."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._seen: tuple[int, int, int] | None = None
+
+    def poll(self, policy: Any) -> bool:
+        """Apply the file's request if the file changed since the last poll; True when the latent changed."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return False
+        signature = (st.st_mtime_ns, st.st_size, st.st_ino)
+        if signature == self._seen:
+            return False
+        self._seen = signature
+        try:
+            request = json.loads(self.path.read_text())
+            z = apply_steering(policy, request, base=self.path.parent)
+        except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
+            logger.error("steering file %s: %s; keeping the current latent", self.path, e)
+            return False
+        logger.info("steering file %s: %s -> latent %s", self.path, request,
+                    z.tolist() if hasattr(z, "tolist") else z)
+        return True
