@@ -182,6 +182,41 @@ def cmd_latent_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_steer_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "steer",
+        help="steer a running PDP: write its --policy.steer_file (a mode, a latent or a recording to fit)",
+        description="Write one steering request, whole, to the file a running PDP polls at each new action "
+        "chunk (--policy.steer_file=FILE, e.g. under lerobot-rollout): the robot changes behavior at its next "
+        "chunk, without reloading the policy.",
+    )
+    p.add_argument("file", type=Path, help="the policy's --policy.steer_file")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--mode", help="a training mode, by id or name")
+    g.add_argument("--latent", type=float, nargs="+", help="a latent z (latent_dim values)")
+    g.add_argument("--dataset", help="a recording (LeRobotDataset folder) to fit z to")
+    g.add_argument("--default", action="store_true", help="back to the policy's default latent")
+    p.add_argument("--episode", type=int, default=0, help="episode of --dataset (default 0)")
+    p.add_argument("--steps", type=int, default=None, help="fitting steps for --dataset (default: fit_steps)")
+    p.set_defaults(func=cmd_steer)
+
+
+def cmd_steer(args: argparse.Namespace) -> int:
+    from lerobot_pdp.steering import write_steering
+
+    if args.dataset is not None:
+        request: dict = {"dataset": str(Path(args.dataset).resolve()), "episode": args.episode}
+        if args.steps is not None:
+            request["steps"] = args.steps
+    elif args.mode is not None:
+        request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}
+    else:
+        request = {"latent": None if args.default else args.latent}
+    write_steering(args.file, request)
+    print(f"wrote {args.file}: {request}")
+    return 0
+
+
 # ---- benchmark -------------------------------------------------------------------------------------
 
 
@@ -301,6 +336,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_plot_dataset_parser,
     add_label_modes_parser,
     add_latent_map_parser,
+    add_steer_parser,
     add_benchmark_parser,
     add_merge_results_parser,
 ]

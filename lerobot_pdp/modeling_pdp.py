@@ -52,7 +52,7 @@ from .modes import DiscoveredModes, discover
 from .normalization import FeatureStats
 from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
 from .phases import PhaseTracker
-from .steering import SteerFile
+from .steering import SteerFile, check_recording
 
 logger = logging.getLogger(__name__)
 
@@ -538,6 +538,7 @@ class PDPPolicy(PreTrainedPolicy):
             if root is None:
                 raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
             where = f"episode {index} of {root}"
+            check_recording(root, int(index), required)  # empty / interrupted / mismatched: a clear error
             cameras = [k for k in required if k in cfg.image_features]
             eps = read_episodes(root, [k for k in required if k not in cameras], [int(index)])
             if int(index) not in eps:

@@ -4,6 +4,8 @@ Observations are the env's ``agent_pos`` and ``environment_state`` entries as na
 names ``make-dataset`` writes into its dataset features); actions are the env's action entries by name.
 An env episode ends on success, collision or the env's time limit; the robot then resets its own scene
 before the next observation, as a person would, and appends the episode's outcome to ``outcomes``.
+Inside ``lerobot-rollout`` the names carry ``.pos`` / ``.vel`` suffixes and the robot resets the policy per
+episode and ends the run after ``episodes`` (see :mod:`.rollout_hooks`).
 """
 
 from __future__ import annotations
@@ -73,6 +75,17 @@ class PDPSim(Robot):
         clash = set(self.state_names) & set(self.env_state_names)
         if clash:
             raise ValueError(f"pdp_sim: {self.suite.name} has names in both state and environment state: {clash}")
+        from . import rollout_hooks
+
+        # lerobot-rollout routes only "*.pos" / "*.vel" scalars to the policy: there the names carry suffixes
+        self.in_rollout = rollout_hooks.building_rollout_context()
+        obs_sfx, act_sfx = (".pos", ".vel") if self.in_rollout else ("", "")
+        self.state_keys = [n + obs_sfx for n in self.state_names]  # the names LeRobot sees
+        self.env_state_keys = [n + obs_sfx for n in self.env_state_names]
+        self.action_keys = [n + act_sfx for n in self.action_names]
+        self._engine: Any = None  # lerobot-rollout's inference engine (reset per episode)
+        self._stop_event: Any = None  # lerobot-rollout's shutdown event (set after `episodes`)
+        self.finished = 0  # env episodes finished (success, collision, time limit or cut)
         self._connected = False
         self.obs: dict[str, np.ndarray] | None = None  # the env's last observation (what the operator sees)
         self.episode = -1  # increases at every scene reset; the teleoperator restarts its route on a change
@@ -87,17 +100,19 @@ class PDPSim(Robot):
         from . import record_hooks
 
         record_hooks.install()  # no-op outside lerobot-record
+        if self.in_rollout:
+            rollout_hooks.install(self)
 
     # ---- LeRobot Robot interface ----
     @property
     def observation_features(self) -> dict[str, type | tuple[int, int, int]]:
         h, w = self.config.camera_size
-        return {**{n: float for n in self.state_names + self.env_state_names},
+        return {**{n: float for n in self.state_keys + self.env_state_keys},
                 **{name: (h, w, 3) for name in self.config.camera_names}}
 
     @property
     def action_features(self) -> dict[str, type]:
-        return {n: float for n in self.action_names}
+        return {n: float for n in self.action_keys}
 
     @property
     def is_connected(self) -> bool:
@@ -126,23 +141,29 @@ class PDPSim(Robot):
 
     def get_observation(self) -> dict[str, float | np.ndarray]:
         self._require_connected()
-        if self._pending_reset and self._events is None:  # in lerobot-record the next phase resets
+        if self._pending_reset and self._events is None and not self.done:  # in lerobot-record the next phase resets
             self.reset_scene()
+            if self._engine is not None:
+                self._engine.reset()  # a new episode: a fresh observation history and action queue
         assert self.obs is not None
         values = np.concatenate([self.obs["agent_pos"], self.obs["environment_state"]]).astype(float)
-        out: dict[str, float | np.ndarray] = dict(zip(self.state_names + self.env_state_names, values.tolist(),
+        out: dict[str, float | np.ndarray] = dict(zip(self.state_keys + self.env_state_keys, values.tolist(),
                                                       strict=True))
         out.update({name: self.obs["pixels"][name] for name in self.config.camera_names})  # uint8 (H, W, 3)
         return out
 
     def send_action(self, action: dict[str, Any]) -> dict[str, Any]:
         self._require_connected()
-        missing = [n for n in self.action_names if n not in action]
+        missing = [n for n in self.action_keys if n not in action]
+        if missing and action and set(action) <= set(self.state_keys + self.env_state_keys):
+            # lerobot-rollout's "return to the initial position" sends observed values as targets; a simulated
+            # robot resets its scene itself instead
+            return action
         if missing:
-            raise KeyError(f"pdp_sim: action lacks {missing}; expected {self.action_names}")
+            raise KeyError(f"pdp_sim: action lacks {missing}; expected {self.action_keys}")
         if self.holding or self._pending_reset:
             return action  # reset phase / episode over: the scene stays as it is
-        vec = np.asarray([float(action[n]) for n in self.action_names], dtype=np.float32)
+        vec = np.asarray([float(action[n]) for n in self.action_keys], dtype=np.float32)
         self.obs, _, terminated, truncated, info = self.env.step(vec)
         self._steps += 1
         self._states.append(np.asarray(self.obs["agent_pos"], dtype=float))
@@ -153,6 +174,15 @@ class PDPSim(Robot):
         return action
 
     # ---- episodes ----
+    @property
+    def done(self) -> bool:
+        """All ``config.episodes`` env episodes are finished: the robot holds still."""
+        return self.config.episodes is not None and self.finished >= self.config.episodes
+
+    def attach_rollout(self, engine: Any, stop_event: Any) -> None:
+        """lerobot-rollout's inference engine (reset on every scene reset) and shutdown event (set when done)."""
+        self._engine, self._stop_event = engine, stop_event
+
     def reset_scene(self) -> None:
         """Start a new env episode in the configured scene (reset noise from ``(seed, episode)``)."""
         self.episode += 1
@@ -184,6 +214,10 @@ class PDPSim(Robot):
                 f.write(json.dumps(outcome) + "\n")
         logger.info("pdp_sim episode %d: %s", self.episode, outcome)
         self._pending_reset = True
+        self.finished += 1
+        if self.done and self._stop_event is not None:
+            logger.info("pdp_sim: %d episodes done, ending the rollout", self.finished)
+            self._stop_event.set()  # as the operator's Ctrl-C would
 
     # ---- lerobot-record phases (called by record_hooks) ----
     def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
@@ -212,6 +246,14 @@ class PDPSim(Robot):
             self.recorded_labels.pop()  # lerobot-record drops that episode
         self.holding = False
 
+    def abort_phase(self) -> None:
+        """The record loop was interrupted: the env episode is logged as cut; the episode being recorded is
+        never saved (``lerobot-record`` finalizes only the saved ones), so it gets no mode label and
+        ``meta/mode_labels.json`` still matches the saved episodes."""
+        if self._steps > 0 and not self._pending_reset:
+            self._finish_episode({}, cut=True)
+        self.holding = False
+
     def _write_mode_labels(self) -> None:
         """``meta/mode_labels.json`` for the recorded dataset, when every episode has a training mode."""
         if self.dataset_root is None or not self.recorded_labels:
@@ -222,7 +264,11 @@ class PDPSim(Robot):
         if not info.is_file():
             return
         total = json.loads(info.read_text()).get("total_episodes")
-        labels = self.recorded_labels
+        # saved episodes are a prefix of the recorded ones: only the last can be unsaved (interrupted before
+        # lerobot-record's save_episode)
+        labels = self.recorded_labels[:total] if isinstance(total, int) else self.recorded_labels
+        if not labels:
+            return  # nothing saved (an empty recording)
         if total != len(labels) or not all(isinstance(x, (int, np.integer)) for x in labels):
             logger.warning("pdp_sim: no meta/mode_labels.json (%s episodes, labels %s)", total, labels)
             return

@@ -64,9 +64,12 @@ def _wrap_record_loop(original):
                            robot.suite.fps, robot.suite.name)
         robot.begin_phase(events, recording=recording, dataset=dataset)
         try:
-            return original(*args, **kwargs)
-        finally:
-            robot.end_phase(events, recording=recording, dataset=dataset, single_task=kwargs.get("single_task"))
+            result = original(*args, **kwargs)
+        except BaseException:
+            robot.abort_phase()  # Ctrl-C / an error: LeRobot drops the unsaved episode, so no label for it
+            raise
+        robot.end_phase(events, recording=recording, dataset=dataset, single_task=kwargs.get("single_task"))
+        return result
 
     setattr(record_loop, _MARK, True)
     return record_loop

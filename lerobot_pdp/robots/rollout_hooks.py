@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import logging
 import sys
+import weakref
 from typing import Any
 
 from .record_hooks import split_environment_state
@@ -46,8 +47,14 @@ def building_rollout_context(max_depth: int = 12) -> bool:
     return False
 
 
-def install() -> bool:
-    """Wrap the context builder's functions once; False when LeRobot's rollout is not loaded."""
+# the pdp_sim robots built by lerobot-rollout in this process (they register themselves: no import of pdp_sim)
+_ROBOTS: weakref.WeakSet = weakref.WeakSet()
+
+
+def install(robot: Any) -> bool:
+    """Register ``robot`` and wrap the context builder's functions once; False when LeRobot's rollout is not
+    loaded."""
+    _ROBOTS.add(robot)
     mod = sys.modules.get(CONTEXT_MODULE)
     if mod is None:
         return False
@@ -64,9 +71,7 @@ def install() -> bool:
 
 
 def _rollout_robots() -> list:
-    from .pdp_sim import _LIVE
-
-    return [r for r in list(_LIVE.values()) if r.in_rollout]
+    return list(_ROBOTS)
 
 
 def _wrap_aggregate(original):
@@ -84,13 +89,45 @@ def _wrap_aggregate(original):
 def _wrap_create_engine(original):
     @functools.wraps(original)
     def create_inference_engine(*args: Any, **kwargs: Any):
-        engine = original(*args, **kwargs)
         wrapper = kwargs.get("robot_wrapper")
         robot = getattr(wrapper, "inner", wrapper)
-        for live in _rollout_robots():
-            if live is robot:
-                live.attach_rollout(engine, kwargs.get("shutdown_event"))
+        ours = [r for r in _rollout_robots() if r is robot]
+        policy = kwargs.get("policy")
+        if ours and policy is not None:  # before the first action: a policy for another env fails here, clearly
+            check_policy_inputs(getattr(policy, "config", None), kwargs.get("dataset_features") or {}, ours[0])
+        engine = original(*args, **kwargs)
+        for live in ours:
+            live.attach_rollout(engine, kwargs.get("shutdown_event"))
         return engine
 
     setattr(create_inference_engine, _MARK, True)
     return create_inference_engine
+
+
+def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], robot: Any) -> None:
+    """The robot must give every input the policy was trained on, with its shape (PDP's trace key included).
+
+    LeRobot would fail later, deep in the preprocessor, or not at all for a same-sized vector of another env.
+    """
+    inputs = getattr(policy_config, "input_features", None) or {}
+    problems = []
+    for key, ft in inputs.items():
+        have = dataset_features.get(key)
+        want = tuple(ft.shape)
+        if have is None:
+            problems.append(f"no '{key}'")
+            continue
+        got = tuple(have.get("shape") or ())
+        if have.get("dtype") in ("image", "video") and len(got) == 3:
+            got = (got[2], got[0], got[1])  # stored (H, W, C), the policy's (C, H, W)
+        if got != want:
+            problems.append(f"'{key}' of shape {got}, the policy was trained on {want}")
+    trace_key = getattr(policy_config, "trace_key", None)
+    if trace_key is not None and trace_key not in inputs and trace_key not in dataset_features:
+        problems.append(f"no trace key '{trace_key}' (PDP's behavior trace)")
+    if problems:
+        gives = {k: tuple(v.get("shape") or ()) for k, v in dataset_features.items() if k.startswith("observation.")}
+        raise ValueError(
+            f"pdp_sim ({robot.suite.name}, scene {robot.config.scene}) does not give what the policy needs: "
+            + "; ".join(dict.fromkeys(problems)) + f". The robot gives {gives}: was the policy trained on "
+            f"another env? (cameras: --robot.camera_names)")

@@ -86,7 +86,7 @@ class PDPWaypoints(Teleoperator):
         if not self._connected or self.robot is None:
             raise ConnectionError(f"{self} is not connected; call connect() first")
         robot = self.robot
-        names = robot.action_names
+        names = robot.action_keys  # suffixed inside lerobot-rollout
         if robot.obs is None or robot.holding:
             return dict.fromkeys(names, 0.0)
         if self._episode != robot.episode:  # the scene was reset: start the route again
