@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .atomic import write_file_atomic
+from .distributed import main_process_first
 from .episodes import check_finite, parse_task_mode, read_episodes  # noqa: F401  (re-exported)
 
 logger = logging.getLogger(__name__)
@@ -137,8 +138,19 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
 
 
 def trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir: str | Path | None = None,
-                    progress: bool = True) -> np.ndarray:
-    """delta^X: all-pairs soft-DTW between traces, cached on disk by content hash (traces are fixed data)."""
+                    progress: bool = True, report: dict[str, str] | None = None) -> np.ndarray:
+    """delta^X: all-pairs soft-DTW between traces, cached on disk by content hash (traces are fixed data).
+
+    Under multi-process training rank 0 goes first and caches the matrix, which the other ranks then read
+    instead of computing it again (see ``distributed.py``). ``report["source"]`` says which happened here:
+    ``"computed"`` or ``"read from cache"``.
+    """
+    with main_process_first():
+        return _trace_distances(traces, gamma, normalize, cache_dir, progress, report if report is not None else {})
+
+
+def _trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir: str | Path | None,
+                     progress: bool, report: dict[str, str]) -> np.ndarray:
     from .soft_dtw import soft_dtw_cdist
 
     traces = np.ascontiguousarray(traces, dtype=np.float64)
@@ -151,12 +163,14 @@ def trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir
         if cache.is_file():
             d = np.load(cache)
             if d.shape == (len(traces), len(traces)):
+                report["source"] = "read from cache"
                 return d
     except OSError:
         cache = None
     d = np.asarray(soft_dtw_cdist(traces, gamma, normalize=normalize, progress=progress), dtype=np.float64)
     d = np.maximum(d, 0.0)  # soft-DTW can dip a hair below 0 (-gamma*log #paths); distances are >= 0
     np.fill_diagonal(d, 0.0)
+    report["source"] = "computed"
     if cache is not None:
         try:
             cache.parent.mkdir(parents=True, exist_ok=True)

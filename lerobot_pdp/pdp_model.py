@@ -7,6 +7,7 @@ mu_phi -> z -> FiLM-modulated denoiser (``denoiser.py``) -> action chunks.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 
 import numpy as np
@@ -19,6 +20,7 @@ from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, tr
 from .configuration_pdp import PDPConfig
 from .cuda_graphs import GraphCache
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
+from .distributed import agree_across_ranks, world
 from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
@@ -88,11 +90,36 @@ class PDPModel(nn.Module):
                 logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
                 cfg.latent_dim = n_modes
             self.trace_distance_matrix = torch.zeros(len(b), len(b))
+            self.check_ranks_agree("not needed (one-hot latents)")
             return
-        d = trace_distances(b.traces, cfg.sdtw_gamma, cfg.sdtw_normalize)
+        report: dict[str, str] = {}
+        d = trace_distances(b.traces, cfg.sdtw_gamma, cfg.sdtw_normalize, report=report)
         self.trace_distance_matrix = torch.as_tensor(d, dtype=torch.float32)
         kappa = cfg.geo_kappa if cfg.geo_kappa is not None else choose_kappa(d, cfg.latent_dim)
         self.geo_kappa = torch.tensor(float(kappa))
+        self.check_ranks_agree(report.get("source", "computed"))
+
+    def behavior_digest(self) -> str:
+        """SHA-1 of the behavior bank (traces, where they sit, modes, delta^X, kappa): equal iff the banks are."""
+        h = hashlib.sha1()
+        for name in (*BEHAVIOR_BUFFERS, "geo_kappa"):
+            t = getattr(self, name).detach().cpu().contiguous()
+            h.update(f"{name}{tuple(t.shape)}{t.dtype}".encode())
+            h.update(t.numpy().tobytes())
+        return h.hexdigest()
+
+    def check_ranks_agree(self, distance_source: str) -> None:
+        """Under multi-process training, make sure every rank built the same behavior bank, and log (rank 0)
+        which rank computed delta^X and which read it from the cache. A no-op in a single process."""
+        rank, size = world()
+        if size == 1:
+            return
+        digest = self.behavior_digest()
+        sources = agree_across_ranks("the behavior bank", digest, distance_source)
+        if rank == 0:
+            logger.info("behavior bank: %d behaviors, identical on all %d ranks (sha1 %s); soft-DTW distances: %s",
+                        len(self.behavior_traces), size, digest[:12],
+                        ", ".join(f"rank {r} {s}" for r, s in enumerate(sources)))
 
     def resize_behaviors(self, shapes: dict[str, tuple[int, ...]]) -> None:
         """Give the dataset-sized buffers the shapes a checkpoint holds, so that it loads into them."""

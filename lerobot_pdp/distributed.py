@@ -1,0 +1,64 @@
+"""Multi-process training (``accelerate launch``, ``torchrun``): one rank computes, every rank agrees.
+
+``lerobot-train`` builds the policy on every rank, and PDP's constructor reads the whole dataset and computes
+the soft-DTW distance matrix of its behaviors. Uncoordinated, every rank would compute it at the same time
+(N times the work on shared cores, all racing to write the same cache file). With these helpers rank 0
+computes and caches, the others then read the cache, and all check that they hold the same behavior bank.
+
+Everything here is a no-op without an initialised ``torch.distributed`` process group (``accelerate`` creates
+one for multi-process runs only), so single-process use is unchanged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+
+
+def world() -> tuple[int, int]:
+    """(rank, number of processes) of the default process group; (0, 1) without one."""
+    dist = torch.distributed
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+@contextmanager
+def main_process_first() -> Iterator[None]:
+    """Rank 0 runs the block first; the other ranks wait at a barrier and run it afterwards.
+
+    Rank 0 reaches the barrier also when its block raises, so the others are not left waiting: they run the
+    block themselves (and most likely raise the same error).
+    """
+    rank, size = world()
+    if size == 1:
+        yield
+        return
+    if rank != 0:
+        torch.distributed.barrier()
+    try:
+        yield
+    finally:
+        if rank == 0:
+            torch.distributed.barrier()
+
+
+def agree_across_ranks(what: str, digest: str, note: str = "") -> list[str]:
+    """Check that every rank holds the same ``what`` (compared by ``digest``); return every rank's ``note``.
+
+    All ranks must call it (a collective). On a mismatch every rank raises the same error, instead of
+    training on different data and averaging gradients that do not belong together.
+    """
+    rank, size = world()
+    if size == 1:
+        return [note]
+    gathered: list[tuple[str, str] | None] = [None] * size
+    torch.distributed.all_gather_object(gathered, (digest, note))
+    digests = [g[0] for g in gathered if g is not None]
+    if len(set(digests)) != 1:
+        by_rank = ", ".join(f"rank {r}: {d[:12]}" for r, d in enumerate(digests))
+        raise RuntimeError(f"the ranks disagree on {what} ({by_rank}); every rank must read the same dataset "
+                           "(same --dataset.root, same files) with the same policy config")
+    return [g[1] for g in gathered if g is not None]
