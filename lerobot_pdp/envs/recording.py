@@ -23,7 +23,7 @@ import numpy as np
 
 from ..atomic import staging_dir
 from .camera import DEFAULT_IMAGE_SIZE, parse_image_size
-from .scene import Scene, SceneError, load_scene, read_scene_file
+from .scene import VALIDATION_SCENE, Scene, SceneError, load_scene, read_scene_file
 from .suite import NOVEL, SuiteEnv, get_suite_env
 
 META_FILE = "pdp_suite.json"  # extra file in meta/: which env/scene generated the dataset (for plotting)
@@ -187,6 +187,8 @@ def _scene_meta(scene: Any) -> Any:
         return scene
     if isinstance(scene, Path):
         return str(scene.resolve())
+    if isinstance(scene, str) and VALIDATION_SCENE.match(scene.strip()):
+        return scene.strip()  # a shipped validation scene: its name, not a path in the working directory
     if isinstance(scene, str) and not scene.strip().isdigit():
         return str(Path(scene).resolve())
     return int(scene) if scene is not None else 0

@@ -9,8 +9,9 @@ A scene file is JSON or YAML in the env's world coordinates (metres)::
      "remove": ["<name of a built-in obstacle>"],
      "waypoints": [[x, y, z], ...]}          # optional: a feasible route for a scripted demo
 
-Scenes 0-3 of every env ship as ``scenes/<env>_scene<k>.json``; any other file can be passed to
-``gym.make(id, scene=PATH)`` without code changes. Validation errors name the file, the key and what
+Scenes 0-3 of every env ship as ``scenes/<env>_scene<k>.json`` (the test scenes); validation scenes ship as
+``scenes/<env>_val<k>.json`` and load by name (``scene="val1"``), so settings can be chosen on scenes that are
+never reported. Any other file can be passed to ``gym.make(id, scene=PATH)`` without code changes. Validation errors name the file, the key and what
 was expected, so a typo never silently yields the original scene.
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -228,14 +230,29 @@ def _reject_constant(c: str, path: Path):
     raise SceneError(f"{path}: non-finite number {c} is not allowed in a scene file")
 
 
-def shipped_scene_path(env_name: str, index: int) -> Path:
-    """Path of a scene file shipped with the package, e.g. ``("reach_around", 1)``."""
-    p = resources.files("lerobot_pdp.envs") / "scenes" / f"{env_name}_scene{index}.json"
+VALIDATION_SCENE = re.compile(r"^val[0-9]+$")  # names of shipped validation scenes: val1, val2, ...
+
+
+def shipped_scene_path(env_name: str, index: int | str) -> Path:
+    """Path of a scene file shipped with the package: ``("reach_around", 1)`` is test scene 1,
+    ``("reach_around", "val1")`` validation scene 1."""
+    stem = f"{env_name}_{index}" if isinstance(index, str) else f"{env_name}_scene{index}"
+    p = resources.files("lerobot_pdp.envs") / "scenes" / f"{stem}.json"
     return Path(str(p))
 
 
+def validation_scene_names(env_name: str) -> list[str]:
+    """Names of the validation scenes ``env_name`` ships (``["val1", "val2", ...]``, numeric order)."""
+    folder = resources.files("lerobot_pdp.envs") / "scenes"
+    prefix = f"{env_name}_"
+    names = [f.name[len(prefix):-5] for f in folder.iterdir()
+             if f.name.startswith(prefix) and f.name.endswith(".json")]
+    return sorted((n for n in names if VALIDATION_SCENE.match(n)), key=lambda n: int(n[3:]))
+
+
 def load_scene(scene: int | str | Path | Scene | dict | None, env_name: str) -> Scene:
-    """Resolve ``scene=`` as accepted by every env: an int 0-3, a path, a mapping or a :class:`Scene`."""
+    """Resolve ``scene=`` as accepted by every env: an int 0-3, a validation scene name (``"val1"``), a path,
+    a mapping or a :class:`Scene`."""
     if scene is None:
         scene = 0
     if isinstance(scene, Scene):
@@ -248,6 +265,12 @@ def load_scene(scene: int | str | Path | Scene | dict | None, env_name: str) -> 
         path = shipped_scene_path(env_name, int(scene))
         if not path.is_file():
             raise SceneError(f"env {env_name!r} ships no scene {int(scene)} (looked for {path})")
+        return read_scene_file(path)
+    if isinstance(scene, str) and VALIDATION_SCENE.match(scene.strip()):
+        path = shipped_scene_path(env_name, scene.strip())
+        if not path.is_file():
+            raise SceneError(f"env {env_name!r} ships no validation scene {scene.strip()!r} (looked for {path}); "
+                             f"it ships {validation_scene_names(env_name)}")
         return read_scene_file(path)
     if isinstance(scene, (str, Path)):
         return read_scene_file(scene)
