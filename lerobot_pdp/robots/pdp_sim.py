@@ -12,20 +12,20 @@ from __future__ import annotations
 
 import json
 import logging
-import weakref
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from lerobot.robots import Robot
 
+from . import record_hooks
 from .config_pdp_sim import PDPSimConfig
+from .live import LIVE
 
 logger = logging.getLogger(__name__)
 
-# Live pdp_sim robots by id: the pdp_waypoints teleoperator watches "its" robot through this, as a person
-# with a leader arm watches the follower (LeRobot's record loop gives a teleoperator no observation).
-_LIVE: weakref.WeakValueDictionary[str, PDPSim] = weakref.WeakValueDictionary()
+# Live pdp_sim robots by id (LeRobot's record loop gives a teleoperator no observation: it watches the robot).
+_LIVE = LIVE
 
 
 def find_robot(robot_id: str | None = None) -> PDPSim:
@@ -97,8 +97,6 @@ class PDPSim(Robot):
         self.recorded_labels: list[int | str] = []  # mode label of each recorded (saved) episode
         self.dataset_root: Path | None = None
         _LIVE[config.id] = self
-        from . import record_hooks
-
         record_hooks.install()  # no-op outside lerobot-record
         if self.in_rollout:
             rollout_hooks.install(self)

@@ -21,6 +21,8 @@ import logging
 import sys
 from typing import Any
 
+from .live import LIVE
+
 logger = logging.getLogger(__name__)
 
 RECORD_MODULE = "lerobot.scripts.lerobot_record"
@@ -50,11 +52,9 @@ def install() -> bool:
 def _wrap_record_loop(original):
     @functools.wraps(original)
     def record_loop(*args: Any, **kwargs: Any):
-        from .pdp_sim import PDPSim
-
         robot = kwargs.get("robot", args[0] if args else None)
         events = kwargs.get("events", args[1] if len(args) > 1 else None)
-        if not isinstance(robot, PDPSim) or not isinstance(events, dict):
+        if not any(robot is r for r in LIVE.values()) or not isinstance(events, dict):  # not a pdp_sim robot
             return original(*args, **kwargs)
         dataset = kwargs.get("dataset")
         recording = dataset is not None
@@ -91,10 +91,8 @@ def split_environment_state(features: dict[str, dict], state_names: list[str],
 def _wrap_aggregate(original):
     @functools.wraps(original)
     def aggregate_pipeline_dataset_features(*args: Any, **kwargs: Any):
-        from .pdp_sim import _LIVE
-
         features = original(*args, **kwargs)
-        for robot in list(_LIVE.values()):
+        for robot in list(LIVE.values()):
             features = split_environment_state(features, robot.state_names, robot.env_state_names)
         return features
 
