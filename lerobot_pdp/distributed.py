@@ -11,10 +11,14 @@ one for multi-process runs only), so single-process use is unchanged.
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
+
+logger = logging.getLogger(__name__)
 
 
 def world() -> tuple[int, int]:
@@ -62,3 +66,21 @@ def agree_across_ranks(what: str, digest: str, note: str = "") -> list[str]:
         raise RuntimeError(f"the ranks disagree on {what} ({by_rank}); every rank must read the same dataset "
                            "(same --dataset.root, same files) with the same policy config")
     return [g[1] for g in gathered if g is not None]
+
+
+def warn_if_cpu_launch_ran_one_process() -> bool:
+    """Warn when ``accelerate launch --cpu --num_processes N`` (N > 1) started a single process.
+
+    Without ``--mpirun_hostfile`` accelerate's ``--cpu`` launcher runs the script once, with no process group,
+    and says nothing: training then silently uses one process. Its trace is ``MASTER_ADDR`` set (only for
+    N > 1) with no world size in the environment. Returns whether it warned.
+    """
+    env = os.environ
+    if (env.get("ACCELERATE_USE_CPU", "").lower() not in ("true", "1") or "MASTER_ADDR" not in env
+            or any(k in env for k in ("WORLD_SIZE", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MV2_COMM_WORLD_SIZE"))
+            or world()[1] > 1):
+        return False
+    logger.warning("accelerate launch --cpu started ONE process (it needs --mpirun_hostfile for more); for N "
+                   "CPU processes use: accelerate launch --multi_gpu --num_processes N ... lerobot-train "
+                   "--policy.device=cpu ...")
+    return True

@@ -20,7 +20,7 @@ from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, tr
 from .configuration_pdp import PDPConfig
 from .cuda_graphs import GraphCache
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
-from .distributed import agree_across_ranks, world
+from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
 from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
@@ -113,6 +113,7 @@ class PDPModel(nn.Module):
         which rank computed delta^X and which read it from the cache. A no-op in a single process."""
         rank, size = world()
         if size == 1:
+            warn_if_cpu_launch_ran_one_process()
             return
         digest = self.behavior_digest()
         sources = agree_across_ranks("the behavior bank", digest, distance_source)
