@@ -67,17 +67,20 @@ def untrained_reach_around(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def run_rollout(ckpt: Path, robot: PDPSimConfig, before_run=None, fps: float = 50, duration: float = 60,
-                **policy_fields):
-    """What ``lerobot-rollout --strategy.type=base`` does, in this process; returns the rollout context."""
+                strategy=None, dataset=None, **policy_fields):
+    """What ``lerobot-rollout`` does (``--strategy.type=base`` unless ``strategy``), in this process; returns
+    the rollout context."""
     from lerobot.configs import PreTrainedConfig
     from lerobot.rollout import RolloutConfig, build_rollout_context, create_strategy
+    from lerobot.rollout.configs import BaseStrategyConfig
 
     pcfg = PreTrainedConfig.from_pretrained(ckpt)
     pcfg.pretrained_path = ckpt
     for k, v in policy_fields.items():
         setattr(pcfg, k, v)
     cfg = RolloutConfig(robot=robot, policy=pcfg, fps=fps, duration=duration, play_sounds=False,
-                        return_to_initial_position=False)
+                        return_to_initial_position=False, strategy=strategy or BaseStrategyConfig(),
+                        dataset=dataset)
     ctx = build_rollout_context(cfg, Event())
     strategy = create_strategy(cfg.strategy)
     strategy.setup(ctx)
@@ -167,6 +170,30 @@ def test_live_steering_through_a_file_on_a_running_robot(untrained_reach_around,
     means = ctx.policy.policy.mode_latents()
     assert torch.allclose(used[0], means[0]) and torch.allclose(used[-1], means[2])
     assert len(_outcomes(outcomes)) == 2
+
+
+def test_episodic_rollout_records_one_dataset_episode_per_env_episode(untrained_reach_around, tmp_path):
+    """``--strategy.type=episodic`` records deployments: each env episode is one dataset episode (the robot ends
+    the recorded episode as the "next episode" key would), and PDP can fit z to such a recording."""
+    from lerobot.configs.dataset import DatasetRecordConfig
+    from lerobot.rollout.configs import EpisodicStrategyConfig
+
+    from lerobot_pdp.episodes import read_episodes
+
+    ckpt, _ = untrained_reach_around
+    outcomes, root = tmp_path / "o.jsonl", tmp_path / "rollouts"
+    ctx = run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes),
+                                         calibration_dir=tmp_path),
+                      strategy=EpisodicStrategyConfig(),
+                      dataset=DatasetRecordConfig(repo_id="local/rollout_ra", root=str(root), num_episodes=2,
+                                                  episode_time_s=20, reset_time_s=0.1, video=False,
+                                                  push_to_hub=False, single_task="reach", no_stamp=True))
+    lines = _outcomes(outcomes)
+    eps = read_episodes(root, ["observation.state", "observation.environment_state", "action"])
+    assert [len(e["action"]) for e in eps.values()] == [d["steps"] for d in lines]
+    policy = ctx.policy.policy
+    longest = int(np.argmax([d["steps"] for d in lines]))  # one chunk at least (an early collision is shorter)
+    assert policy.fit_latent((root, longest), steps=1).z.shape == (2,)
 
 
 def test_a_policy_for_another_env_fails_before_the_robot_moves(untrained_reach_around, tmp_path):
@@ -410,7 +437,8 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
     from lerobot_pdp.steering import check_recording
 
     root = tmp_path / "demo"
-    proc = subprocess.Popen(_record(tmp_path, root, 3, "--robot.scene=0", "--teleop.mode=1"),
+    proc = subprocess.Popen(_record(tmp_path, root, 3, "--robot.scene=0", "--teleop.mode=1",
+                                    f"--robot.outcomes={tmp_path / 'o.jsonl'}"),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, **CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home"),
                                  "OMP_NUM_THREADS": "1"})
@@ -430,5 +458,8 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
     total = json.loads(info.read_text())["total_episodes"]
     assert 1 <= total < 3, err[-3000:]
     assert read_mode_labels(root)[0] == dict.fromkeys(range(total), 1)
+    # every env episode has its outcome line; the interrupted one says so (unless the signal fell between two)
+    lines = _outcomes(tmp_path / "o.jsonl")
+    assert len(lines) >= total and all(d["success"] for d in lines[:total])
     for ep in range(total):
         check_recording(root, ep, {"observation.state": (6,), "observation.environment_state": (6,), "action": (3,)})

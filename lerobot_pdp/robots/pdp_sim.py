@@ -85,6 +85,7 @@ class PDPSim(Robot):
         self.action_keys = [n + act_sfx for n in self.action_names]
         self._engine: Any = None  # lerobot-rollout's inference engine (reset per episode)
         self._stop_event: Any = None  # lerobot-rollout's shutdown event (set after `episodes`)
+        self._rollout_events: dict | None = None  # the episodic strategy's keyboard flags
         self.finished = 0  # env episodes finished (success, collision, time limit or cut)
         self._connected = False
         self.obs: dict[str, np.ndarray] | None = None  # the env's last observation (what the operator sees)
@@ -154,8 +155,10 @@ class PDPSim(Robot):
         self._require_connected()
         missing = [n for n in self.action_keys if n not in action]
         if missing and action and set(action) <= set(self.state_keys + self.env_state_keys):
-            # lerobot-rollout's "return to the initial position" sends observed values as targets; a simulated
-            # robot resets its scene itself instead
+            # lerobot-rollout's "return to the initial position" (between episodic episodes, at teardown) sends
+            # observed values as targets: a simulated robot resets its scene instead, as the operator would
+            if self._steps > 0 and not self._pending_reset:
+                self._finish_episode({}, cut=True)
             return action
         if missing:
             raise KeyError(f"pdp_sim: action lacks {missing}; expected {self.action_keys}")
@@ -180,6 +183,10 @@ class PDPSim(Robot):
     def attach_rollout(self, engine: Any, stop_event: Any) -> None:
         """lerobot-rollout's inference engine (reset on every scene reset) and shutdown event (set when done)."""
         self._engine, self._stop_event = engine, stop_event
+
+    def attach_events(self, events: dict) -> None:
+        """The episodic strategy's keyboard flags: an env episode's end ends the recorded episode."""
+        self._rollout_events = events
 
     def reset_scene(self) -> None:
         """Start a new env episode in the configured scene (reset noise from ``(seed, episode)``)."""
@@ -213,6 +220,8 @@ class PDPSim(Robot):
         logger.info("pdp_sim episode %d: %s", self.episode, outcome)
         self._pending_reset = True
         self.finished += 1
+        if self._rollout_events is not None and self.config.end_episodes:
+            self._rollout_events["exit_early"] = True  # the operator's "next episode" key
         if self.done and self._stop_event is not None:
             logger.info("pdp_sim: %d episodes done, ending the rollout", self.finished)
             self._stop_event.set()  # as the operator's Ctrl-C would

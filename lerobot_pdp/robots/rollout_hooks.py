@@ -10,7 +10,10 @@ way to end the run. For a ``pdp_sim`` robot built by ``build_rollout_context``, 
 * ``aggregate_pipeline_dataset_features`` is wrapped to split ``observation.state`` into ``observation.state``
   and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on;
 * ``create_inference_engine`` is wrapped to hand the robot the engine and the run's shutdown event, so it
-  resets the policy when it resets its scene (a new episode) and ends the run after ``--robot.episodes``.
+  resets the policy when it resets its scene (a new episode) and ends the run after ``--robot.episodes``;
+  a policy whose inputs the robot does not give fails there, before the first action;
+* the episodic strategy's ``init_keyboard_listener`` is wrapped to hand the robot its flags, so a recorded
+  episode ends with its env episode (``--strategy.type=episodic``: one dataset episode per env episode).
 
 Nothing of LeRobot is changed on disk; other robots are untouched.
 """
@@ -28,6 +31,7 @@ from .record_hooks import split_environment_state
 logger = logging.getLogger(__name__)
 
 CONTEXT_MODULE = "lerobot.rollout.context"
+EPISODIC_MODULE = "lerobot.rollout.strategies.episodic"
 _MARK = "_pdp_sim_hook"
 
 
@@ -67,6 +71,10 @@ def install(robot: Any) -> bool:
         mod.aggregate_pipeline_dataset_features = _wrap_aggregate(agg)
     if not getattr(make_engine, _MARK, False):
         mod.create_inference_engine = _wrap_create_engine(make_engine)
+    episodic = sys.modules.get(EPISODIC_MODULE)
+    keys = getattr(episodic, "init_keyboard_listener", None)
+    if keys is not None and not getattr(keys, _MARK, False):
+        episodic.init_keyboard_listener = _wrap_keyboard(keys)
     return True
 
 
@@ -102,6 +110,21 @@ def _wrap_create_engine(original):
 
     setattr(create_inference_engine, _MARK, True)
     return create_inference_engine
+
+
+def _wrap_keyboard(original):
+    """The episodic strategy's keyboard flags go to the robot too: it ends a recorded episode when its env
+    episode ends, as ``lerobot-record`` does with the record hooks."""
+
+    @functools.wraps(original)
+    def init_keyboard_listener(*args: Any, **kwargs: Any):
+        listener, events = original(*args, **kwargs)
+        for robot in _rollout_robots():
+            robot.attach_events(events)
+        return listener, events
+
+    setattr(init_keyboard_listener, _MARK, True)
+    return init_keyboard_listener
 
 
 def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], robot: Any) -> None:
