@@ -55,7 +55,8 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
         "video (observation.images.<camera>).",
     )
     p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
-    p.add_argument("--scene", default="0", help="scene index 0-3 or a scene file (JSON/YAML); default 0")
+    p.add_argument("--scene", default="0",
+                   help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
     p.add_argument("--seed", type=int, default=0, help="seed of all jitter; same seed -> same dataset")
     p.add_argument("--out", required=True, type=Path, help="output dataset directory (must not exist)")
@@ -225,14 +226,15 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
         "benchmark",
         help="the paper's evaluation protocol: train PDP and baselines, evaluate scenes 0-3",
         description="Generate (or reuse) the scene-0 dataset, train every method with lerobot-train, evaluate "
-        "scene 0 (per-mode latents) and scenes 1-3 (adapted to one demonstration), write results.json, "
-        "results.md and figures/. Finished (method, seed) runs are reused.",
+        "scene 0 (per-mode latents) and scenes 1-3 (adapted to one demonstration; with --split validation the "
+        "env's validation scenes instead), write results.json, results.md and figures/. Finished (method, seed) "
+        "runs are reused.",
     )
     p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
     p.add_argument("--out", required=True, type=Path, help="output folder (reused to resume)")
     # None = not given: the defaults depend on --quick (resolved in cmd_benchmark)
     p.add_argument("--seeds", type=int, nargs="+", default=None,
-                   help="training seeds (default 0 1 2; 0 with --quick)")
+                   help="training seeds (default 0 1 2, with --split validation 100 101 102; the first with --quick)")
     p.add_argument("--rollouts", type=int, default=None, help="rollouts per scene (default 40; 20 with --quick)")
     p.add_argument("--methods", nargs="+", default=None,
                    help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond "
@@ -244,7 +246,11 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="override the env's training steps")
     p.add_argument("--episodes-per-mode", type=int, default=None,
                    help="override the env's demonstrations per mode in the scene-0 dataset")
-    p.add_argument("--scenes", type=int, nargs="+", default=[0, 1, 2, 3], help="scenes to evaluate")
+    p.add_argument("--split", choices=("test", "validation"), default="test",
+                   help="test (default): scene 0 and test scenes 1-3; validation: scene 0 and the env's validation "
+                   "scenes (val1, val2, ...) on validation seeds, where settings are chosen")
+    p.add_argument("--scenes", nargs="+", default=None,
+                   help="scenes to evaluate: indices and/or validation scene names (default: those of --split)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--inference-steps", type=int, default=None,
                    help="DDIM steps when evaluating PDP and DP (default: each checkpoint's own); "
@@ -262,10 +268,18 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
 
 def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     """The ``BenchmarkConfig`` of parsed ``benchmark`` arguments: --quick changes the defaults of seeds,
-    rollouts and methods, never a value given explicitly."""
-    from lerobot_pdp.benchmark.settings import BenchmarkConfig
+    rollouts and methods, --split those of scenes and seeds, never a value given explicitly."""
+    from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes, split_seeds
 
-    seeds = args.seeds if args.seeds is not None else [0] if args.quick else [0, 1, 2]
+    seeds = args.seeds if args.seeds is not None else split_seeds(args.split, args.quick)
+    if args.scenes is None and args.split == "test":
+        scenes = split_scenes(args.env, "test")
+    elif args.scenes is None:
+        import lerobot_pdp.envs as envs  # registers the suite, so --env may be any of an env's names
+
+        scenes = split_scenes(envs.get_suite_env(args.env).name, args.split)
+    else:
+        scenes = tuple(int(s) if s.strip().lstrip("-").isdigit() else s.strip() for s in args.scenes)
     rollouts = args.rollouts if args.rollouts is not None else 20 if args.quick else 40
     methods = (args.methods if args.methods is not None else ["pdp", "dp"] if args.quick or args.obs == "images"
                else ["pdp", "dp", "bc"])
@@ -275,7 +289,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     if args.image_size is not None:
         camera["image_size"] = args.image_size
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
-                           quick=args.quick, ablations=args.ablations, scenes=tuple(args.scenes), steps=args.steps,
+                           quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            figures=not args.no_figures, device=args.device, **camera)
 

@@ -13,7 +13,7 @@ import numpy as np
 from ..atomic import write_text_atomic
 from ..envs.scene import load_scene
 from ..envs.suite import SuiteEnv
-from .settings import TrainSettings
+from .settings import TrainSettings, scene_label, scene_seed_offset
 
 
 def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: int = 0) -> Path:
@@ -50,12 +50,12 @@ def feasible_training_modes(suite: SuiteEnv, scene: Any, seed: int = 0) -> list[
             if run_expert_episode(suite, scene, mode=m, seed=seed + m)[0].get("is_success")]
 
 
-def demo_root(suite: SuiteEnv, out: Path, scene: int) -> Path:
-    """Where a benchmark output folder ``out`` keeps the demonstration of ``scene``."""
-    return out / "data" / f"{suite.scene_key}_scene{scene}_demo{_camera_tag(suite)}"
+def demo_root(suite: SuiteEnv, out: Path, scene: int | str) -> Path:
+    """Where a benchmark output folder ``out`` keeps the demonstration of ``scene`` (an int or ``"val<k>"``)."""
+    return out / "data" / f"{suite.scene_key}_{scene_label(scene)}_demo{_camera_tag(suite)}"
 
 
-def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[Path, str]:
+def ensure_demo(suite: SuiteEnv, out: Path, scene: int | str, seed: int = 0) -> tuple[Path, str]:
     """One successful demonstration in ``scene``: the scene's way-points if it ships them, else its only
     feasible training mode. Returns the dataset folder and a description."""
     from ..envs.recording import make_dataset
@@ -76,8 +76,8 @@ def ensure_demo(suite: SuiteEnv, out: Path, scene: int, seed: int = 0) -> tuple[
         kwargs = {"modes": [modes[0]]}
     if root.exists():
         shutil.rmtree(root)
-    make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene, progress=False,
-                 **kwargs, **suite.camera_kwargs)
+    make_dataset(suite.name, root, scene=scene, episodes_per_mode=1, seed=seed + 1000 * scene_seed_offset(scene),
+                 progress=False, **kwargs, **suite.camera_kwargs)
     write_text_atomic(info_file, json.dumps({"source": source}))
     return root, source
 

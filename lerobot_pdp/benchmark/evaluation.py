@@ -1,5 +1,6 @@
-"""The protocol's evaluation of one trained (method, seed): scene 0 steered per mode, scenes 1-3 after adapting
-to one demonstration, the latent-initialisation ablation; cached in the run folder so a rerun resumes.
+"""The protocol's evaluation of one trained (method, seed): scene 0 steered per mode, scenes 1-3 (or the
+validation scenes) after adapting to one demonstration, the latent-initialisation ablation; cached in the run
+folder so a rerun resumes.
 
 - Scene 0: rollouts spread evenly over the training modes; PDP conditions on each mode's mean latent,
   the baselines sample freely. Success, collision, mode coverage and entropy.
@@ -22,7 +23,7 @@ from ..atomic import write_text_atomic
 from ..envs.suite import SuiteEnv
 from .data import demo_episode
 from .rollouts import RolloutBatch, run_rollouts
-from .settings import INIT_STEPS, BenchmarkConfig, Method
+from .settings import INIT_STEPS, BenchmarkConfig, Method, scene_seed_offset
 from .training import load_policy
 
 
@@ -92,7 +93,7 @@ def _summary(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, A
     return d
 
 
-def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig,
+def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int | str, Path], cfg: BenchmarkConfig,
                     seed: int, run_dir: Path) -> dict[str, Any]:
     """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
     cache = run_dir / "eval.json"
@@ -112,8 +113,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
         else:
             demo = demo_episode(demos[scene])
             actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed)
-            batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene,
-                                 label=f"scene {scene}")
+            batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts,
+                                 seed * 10_000 + scene_seed_offset(scene), label=f"scene {scene}")
             summary = {**_summary(batch, suite.n_modes, with_modes=False), **info}
             if method.adapt == "fit_latent":
                 policy.set_latent(None)
@@ -131,7 +132,7 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     return result
 
 
-def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], cfg: BenchmarkConfig, seed: int,
+def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, Path], cfg: BenchmarkConfig, seed: int,
                            run_dir: Path) -> dict[str, Any]:
     """Warm (encoder) vs random initialisation of z at 0 / 10 / 100 fitting steps, scenes 1-3.
 
@@ -152,7 +153,8 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int, Path], 
             for scene in [s for s in cfg.scenes if s != 0]:
                 demo = demo_episode(demos[scene])
                 actor, _ = adapt(method, policy, pre, demo, seed, steps=steps, init=init)
-                batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts, seed * 10_000 + scene)
+                batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts,
+                                     seed * 10_000 + scene_seed_offset(scene))
                 rates[str(scene)] = batch.success_rate
             out[key] = float(np.mean(list(rates.values()))) if rates else None
             per_scene[key] = rates

@@ -1,4 +1,5 @@
-"""The paper's evaluation protocol in one call: train every method with ``lerobot-train``, evaluate scenes 0-3.
+"""The paper's evaluation protocol in one call: train every method with ``lerobot-train``, evaluate scenes 0-3
+(the test split) or scene 0 and the env's validation scenes (``BenchmarkConfig.split="validation"``).
 
 Every (method, seed) is trained and evaluated once; results are cached under ``out/`` so a rerun resumes.
 The jobs live in their own modules: ``settings`` (budgets, methods), ``data`` (demonstrations),
@@ -19,7 +20,7 @@ from ..envs.suite import get_suite_env
 from .data import ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, results_markdown
-from .settings import ABLATIONS, CAMERAS, SETTINGS, BenchmarkConfig, TrainSettings, methods_for
+from .settings import ABLATIONS, CAMERAS, SETTINGS, BenchmarkConfig, TrainSettings, check_split, methods_for
 from .training import train_method
 
 
@@ -29,6 +30,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
 
     suite = get_suite_env(cfg.env)
     full, quick = SETTINGS[suite.name]
+    check_split(cfg.split, tuple(cfg.scenes), list(cfg.seeds))
     if cfg.obs not in ("state", "images"):
         raise ValueError(f"obs must be 'state' or 'images', got {cfg.obs!r}")
     if cfg.obs == "images":

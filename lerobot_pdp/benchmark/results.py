@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .settings import INIT_STEPS, BenchmarkConfig, TrainSettings
+from .settings import INIT_STEPS, BenchmarkConfig, TrainSettings, scene_label
 
 
 def _agg(values: list[float]) -> dict[str, Any]:
@@ -18,8 +18,10 @@ def _agg(values: list[float]) -> dict[str, Any]:
 
 def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
               settings: TrainSettings, steps: int) -> dict[str, Any]:
-    """``results.json`` layout: methods -> scene<k> -> success [per seed], mean, std (+ collision, modes)."""
-    out: dict[str, Any] = {"env": env, "seeds": cfg.seeds, "rollouts": cfg.rollouts, "quick": cfg.quick,
+    """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
+    mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated."""
+    out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
+                           "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "device": cfg.device, "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
@@ -33,8 +35,9 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
             for k in ("coverage", "entropy", "steer_accuracy"):
                 if rows and k in rows[0]:
                     d[k] = _agg([r.get(k) for r in rows])["mean"]
-            entry[f"scene{scene}"] = d
-        shifted = [entry[f"scene{s}"]["mean"] for s in cfg.scenes if s != 0 and entry[f"scene{s}"]["mean"] is not None]
+            entry[scene_label(scene)] = d
+        shifted = [entry[scene_label(s)]["mean"] for s in cfg.scenes
+                   if s != 0 and entry[scene_label(s)]["mean"] is not None]
         entry["shifted_avg"] = float(np.mean(shifted)) if shifted else None
         steps_used = sorted({r["inference_steps"] for r in runs.values() if r.get("inference_steps") is not None})
         if steps_used:
@@ -70,6 +73,9 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             raise ValueError(f"{name}: not a benchmark results.json (no {', '.join(missing)})")
     first_name, first = results[0]
     for name, res in results[1:]:
+        if res.get("split", "test") != first.get("split", "test"):  # files from before splits: test
+            raise ValueError(f"{name}: split is {res.get('split', 'test')!r} but {first_name} has "
+                             f"{first.get('split', 'test')!r}; validation and test runs are never merged")
         for key in ("env", "rollouts", "quick", "train"):
             if res.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
@@ -90,6 +96,8 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
                                      "merge runs of different seeds only")
                 rows.setdefault(method, []).append((seed, name, entry, i))
     out: dict[str, Any] = {key: first[key] for key in ("env", "rollouts", "quick", "train")}
+    if "split" in first:
+        out["split"] = first["split"]
     out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
     out["merged_from"] = [name for name, _ in results]
     out["methods"] = {}
@@ -138,9 +146,10 @@ def _fmt(d: dict[str, Any] | None) -> str:
 def results_markdown(res: dict[str, Any]) -> str:
     """The paper's table layout: rows = methods, columns = original scene and constraint shifts."""
     scenes = [k for k in next(iter(res["methods"].values())) if k.startswith("scene")]
-    head = ["Method", *[("Original (scene 0)" if s == "scene0" else f"Shift {s[5:]}") for s in scenes],
-            "Shifted avg", "Scene-0 coverage"]
-    lines = [f"### {res['env']} — success rate (%), {res['rollouts']} rollouts per scene, seeds {res['seeds']}",
+    head = ["Method", *[("Original (scene 0)" if s == "scene0" else f"Validation {s[6:]}" if s.startswith("scene_")
+                         else f"Shift {s[5:]}") for s in scenes], "Shifted avg", "Scene-0 coverage"]
+    split = " (validation split)" if res.get("split") == "validation" else ""
+    lines = [f"### {res['env']}{split} — success rate (%), {res['rollouts']} rollouts per scene, seeds {res['seeds']}",
              "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, entry in res["methods"].items():
         cov = entry.get("scene0", {}).get("coverage")

@@ -10,7 +10,69 @@ from pathlib import Path
 
 from ..envs.suite import SuiteEnv
 
-SCENES = (0, 1, 2, 3)
+SCENES = (0, 1, 2, 3)  # the test split: scene 0 and the test scenes 1-3, evaluated once with frozen settings
+
+# The validation split: scene 0 plus shipped validation scenes (``scenes/<scene_key>_val<k>.json``), of the
+# same families as scenes 1-3 (one training mode left open; none open, with the scene's own way-points) but
+# other geometry: other open modes, and new routes that leave the training modes elsewhere than scene 3's
+# (another window row / side / stage, beyond wide instead of diagonal). Every setting is chosen on these
+# scenes and VALIDATION_SEEDS, so that the test scenes and seeds stay unseen until the frozen run.
+VALIDATION_SCENES: dict[str, tuple[str, ...]] = {
+    "reach-around": ("val1", "val2", "val3", "val4"),
+    "avoiding": ("val1", "val2", "val3", "val4"),
+    "pick-place": ("val1", "val2", "val3", "val4"),
+}
+SPLITS = ("test", "validation")
+TEST_SEEDS = (0, 1, 2)  # the development seeds so far; fresh test seeds come from range(VALIDATION_SEED_MIN)
+VALIDATION_SEEDS = (100, 101, 102)
+VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never reported as test numbers
+
+
+def split_scenes(env: str, split: str = "test") -> tuple[int | str, ...]:
+    """Scenes ``split`` evaluates on ``env`` (a suite name): scene 0 always, then the test scenes 1-3 or the
+    env's validation scenes."""
+    if split == "test":
+        return SCENES
+    if split != "validation":
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if env not in VALIDATION_SCENES:
+        raise ValueError(f"{env} ships no validation scenes yet; envs with them: {sorted(VALIDATION_SCENES)}")
+    return (0, *VALIDATION_SCENES[env])
+
+
+def split_seeds(split: str = "test", quick: bool = False) -> list[int]:
+    """Default training seeds of ``split`` (the first one only with ``quick``)."""
+    seeds = list(VALIDATION_SEEDS if split == "validation" else TEST_SEEDS)
+    return seeds[:1] if quick else seeds
+
+
+def check_split(split: str, scenes: tuple[int | str, ...], seeds: list[int]) -> None:
+    """Refuse a run that mixes the splits: test scenes or test seeds in a validation run, validation scenes
+    or seeds in a test run (numbers from either would then no longer mean what their split says)."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    val_scenes = [s for s in scenes if isinstance(s, str)]
+    test_scenes = [s for s in scenes if not isinstance(s, str) and s != 0]
+    val_seeds = [s for s in seeds if s >= VALIDATION_SEED_MIN]
+    test_seeds = [s for s in seeds if s < VALIDATION_SEED_MIN]
+    if split == "validation" and (test_scenes or test_seeds):
+        raise ValueError(f"--split validation evaluates validation scenes on seeds >= {VALIDATION_SEED_MIN}; "
+                         f"got test scene(s) {test_scenes} / test seed(s) {test_seeds}")
+    if split == "test" and (val_scenes or val_seeds):
+        raise ValueError(f"--split test got validation scene(s) {val_scenes} / seed(s) {val_seeds}; "
+                         "use --split validation for them")
+
+
+def scene_label(scene: int | str) -> str:
+    """Folder / results key of a scene: ``scene1`` for test scene 1, ``scene_val1`` for validation scene val1
+    (the ``scene`` prefix keeps every per-scene key of results.json recognisable)."""
+    return f"scene_{scene}" if isinstance(scene, str) else f"scene{int(scene)}"
+
+
+def scene_seed_offset(scene: int | str) -> int:
+    """Offset of a scene in the rollout and demonstration seeds: k for scene k, 100 + k for val<k>, so that
+    no two scenes share rollout seeds."""
+    return 100 + int(scene[3:]) if isinstance(scene, str) else int(scene)
 
 
 @dataclass(frozen=True)
@@ -135,7 +197,8 @@ class BenchmarkConfig:
     methods: list[str] = field(default_factory=lambda: ["pdp", "dp", "bc"])
     quick: bool = False
     ablations: bool = False
-    scenes: tuple[int, ...] = SCENES
+    scenes: tuple[int | str, ...] = SCENES  # ints: test scenes; "val<k>": validation scenes (see split_scenes)
+    split: str = "test"  # "test" or "validation": recorded in results.json, checked by check_split
     steps: int | None = None  # override the env's training steps (tests)
     episodes_per_mode: int | None = None  # override the env's dataset size (tests)
     figures: bool = True

@@ -75,7 +75,8 @@ def env_features(suite: SuiteEnv, scene: str | int = 0, **env_kwargs) -> dict[st
 class PDPSuiteEnvConfig(EnvConfig):
     """Base of the ``pdp_*`` env types: one subclass per suite env, looked up by ``lerobot_env_type``.
 
-    ``scene`` is a shipped scene index ("0"-"3") or a path to a scene file (JSON/YAML).
+    ``scene`` is a shipped scene index ("0"-"3"), a shipped validation scene ("val1", ...) or a path to a scene
+    file (JSON/YAML).
     ``episode_length`` defaults to the suite's ``max_episode_steps``.
     ``camera`` names the env's camera(s) ("top", or "top,front"); None = state only. ``image_size`` is
     N or HxW pixels per camera image.
