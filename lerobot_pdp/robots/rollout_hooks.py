@@ -1,4 +1,4 @@
-"""What ``lerobot-rollout`` lacks for a simulated robot, added around two functions its context builder calls.
+"""What ``lerobot-rollout`` lacks for a simulated robot, added around three functions it calls.
 
 LeRobot's rollout (0.6.x) routes only scalar features named ``*.pos`` / ``*.vel`` to the policy (the rest are
 dropped silently), merges every float observation into one ``observation.state``, has no notion of an
