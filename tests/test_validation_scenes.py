@@ -182,3 +182,28 @@ def test_results_record_the_split_and_its_scenes():
     assert test["split"] == "test" and test["scenes"] == [0, 1, 2, 3] and "scene1" in test["methods"]["pdp"]
     with pytest.raises(ValueError, match="never merged"):
         merge_results([("a", test), ("b", {**res, "train": test["train"]})])
+
+
+def test_make_dataset_and_plot_by_validation_scene_name(tmp_path):
+    """``make-dataset --scene val1`` records the name (not a path in the working directory), so
+    ``plot-dataset`` finds the scene again."""
+    from lerobot_pdp.cli import main
+    from lerobot_pdp.envs.recording import read_dataset_meta
+
+    out = tmp_path / "ds"
+    assert main(["make-dataset", "--env", "avoiding", "--scene", "val1", "--modes", "13", "--episodes-per-mode", "1",
+                 "--out", str(out), "--no-progress"]) == 0
+    assert read_dataset_meta(out)["scene"] == "val1"
+    assert main(["plot-dataset", str(out), "--out", str(tmp_path / "ds.png")]) == 0
+    assert (tmp_path / "ds.png").is_file()
+
+
+def test_lerobot_eval_env_config_takes_a_validation_scene():
+    """``lerobot-eval --env.scene=val3`` builds the validation scene."""
+    from lerobot.envs.factory import make_env_config
+
+    cfg = make_env_config("pdp_avoiding", scene="val3")
+    assert cfg.scene == "val3" and cfg.gym_kwargs["scene"] == "val3"
+    e = gym.make(get_suite_env("avoiding").gym_id, **cfg.gym_kwargs)
+    assert "post_r2_0" not in {b.name for b in e.unwrapped.obstacles}
+    e.close()
