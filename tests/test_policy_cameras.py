@@ -96,7 +96,8 @@ def test_fit_latent_on_a_camera_demonstration_reads_its_frames(image_dataset):
 
     ds = LeRobotDataset("local/synthetic", root=image_dataset, episodes=[5])
     states = np.stack([ds[i][OBS_STATE].numpy() for i in range(len(ds))])
-    episode = {OBS_STATE: states,  # one episode as a user holds it: uint8 camera frames, channel last OBS_ENV_STATE: np.tile([0.0, 1.0], (len(states), 1)),
+    # the same episode as a user holds it: uint8 camera frames, channel last
+    episode = {OBS_STATE: states, OBS_ENV_STATE: np.tile([0.0, 1.0], (len(states), 1)),
                ACTION: np.stack([ds[i][ACTION].numpy() for i in range(len(ds))]),
                TOP: np.stack([camera_image(p, 48) for p in states]),
                SIDE: np.stack([camera_image(p, 48) for p in states])}
