@@ -441,9 +441,12 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
     root, outcomes = tmp_path / "demo", tmp_path / "o.jsonl"
     args = [a.replace("--dataset.fps=50", "--dataset.fps=25") for a in
             _record(tmp_path, root, 3, "--robot.scene=0", "--teleop.mode=1", f"--robot.outcomes={outcomes}")]
+    # A shell runs background jobs with SIGINT ignored and children inherit that (a CI started with `&`
+    # would make this test's Ctrl-C a no-op): restore the default so the interrupt reaches lerobot-record.
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, **CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home"),
-                                 "OMP_NUM_THREADS": "1"})
+                                 "OMP_NUM_THREADS": "1"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 200
         while time.monotonic() < deadline and proc.poll() is None and not _outcomes(outcomes):
