@@ -43,10 +43,14 @@ class ObservationEncoder(nn.Module):
 
     def forward(self, batch: dict[str, Tensor]) -> Tensor:
         """Features [B, S, frame_dim] of observation histories ``batch[key]``: [B, S, dim] or [B, S, 3, H, W]."""
-        feats = [batch[k] for k in self.vector_keys]
+        b, s = batch[self.keys[0]].shape[:2]
+        return self._features({k: batch[k].flatten(0, 1) for k in self.keys}).view(b, s, -1)
+
+    def _features(self, frames: dict[str, Tensor]) -> Tensor:
+        """Features [N, frame_dim] of N frames, ``frames[key]``: [N, dim] or [N, 3, H, W]."""
+        feats = [frames[k].float() for k in self.vector_keys]
         if self.image_keys:
-            b, s = batch[self.image_keys[0]].shape[:2]
-            feats.append(self.encode_images([batch[k].flatten(0, 1) for k in self.image_keys]).view(b, s, -1))
+            feats.append(self.encode_images([frames[k].float() for k in self.image_keys]))
         return torch.cat(feats, dim=-1)
 
     def encode_images(self, images: list[Tensor]) -> Tensor:
@@ -61,12 +65,8 @@ class ObservationEncoder(nn.Module):
     def frame_features(self, frames: dict[str, Tensor], chunk: int = 64) -> Tensor:
         """Features [T, frame_dim] of every frame of one (normalised) demonstration, ``frames[key]``: [T, ...].
 
-        Each frame is encoded once (cameras in chunks of ``chunk`` frames, so a long episode fits in memory);
-        latent fitting then windows these features instead of re-encoding every image in every window.
+        Each frame is encoded once (in chunks of ``chunk`` frames, so a long episode fits in memory); latent
+        fitting then windows these features instead of re-encoding every image in every window.
         """
-        feats = [frames[k].float() for k in self.vector_keys]
-        if self.image_keys:
-            T = frames[self.image_keys[0]].shape[0]
-            feats.append(torch.cat([self.encode_images([frames[k][a : a + chunk].float() for k in self.image_keys])
-                                    for a in range(0, T, chunk)]))
-        return torch.cat(feats, dim=-1)
+        T = frames[self.keys[0]].shape[0]
+        return torch.cat([self._features({k: frames[k][a : a + chunk] for k in self.keys}) for a in range(0, T, chunk)])
