@@ -255,6 +255,12 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inference-steps", type=int, default=None,
                    help="DDIM steps when evaluating PDP and DP (default: each checkpoint's own); "
                    "re-evaluates cached runs made with other steps, without retraining")
+    p.add_argument("--timestep-spacing", choices=("leading", "trailing", "even"), default=None,
+                   help="DDIM grid of PDP's and DP's shared sampler (default: the env's setting); 'even' is PDP's "
+                   "own sampler, without dp; re-evaluates like --inference-steps")
+    p.add_argument("--validate", action="store_true",
+                   help="with --split validation: evaluate every method's candidate samplers and adaptation "
+                   "settings (lerobot_pdp/benchmark/validation.py) and write validation.json / validation.md")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--obs", choices=("state", "images"), default="state",
@@ -291,7 +297,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                            quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
-                           figures=not args.no_figures, device=args.device, **camera)
+                           timestep_spacing=args.timestep_spacing, validate=args.validate, figures=not args.no_figures, device=args.device, **camera)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

@@ -147,6 +147,13 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # (actions are min-max normalised to [-1, 1]).
     clip_sample: bool = True
     clip_sample_range: float = 1.0
+    # Grid of the DDIM steps: "even" (evenly spaced from K-1 to 0, each step to the next grid point) or
+    # diffusers' DDIMScheduler spacings "leading" (LeRobot diffusion's) / "trailing" (steps of K // n).
+    # All three visit every step when num_inference_steps = K.
+    timestep_spacing: str = "even"
+    # After clipping the clean chunk, re-derive the predicted noise from it (diffusers'
+    # use_clipped_model_output). LeRobot's diffusion does not; "leading" + False is its sampler exactly.
+    use_clipped_model_output: bool = True
 
     # ---- Optimisation (one optimizer, two parameter groups) ----
     # AdamW learning rates (paper: 1e-4 for both). The benchmark trains every method with 1e-3 on its
@@ -168,6 +175,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_lr: float = 0.05
     # lambda in L_fit = E|eps - eps_theta(A~^k, k, c~, z)|^2 + lambda |z|^2.
     fit_lambda: float = 1e-3
+    # What z is fitted to: "denoise" (the paper's L_fit, the noise-prediction error at random diffusion
+    # steps) or "sample" (the error of the chunks the policy samples under z with its own DDIM sampler,
+    # num_inference_steps forward passes per fitting step instead of one).
+    fit_objective: str = "denoise"
     # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). Fitting is
     # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost; 16 fitted as
     # well as 32 and 64 on reach-around (docs/experiments.md).
@@ -237,6 +248,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"trace_length must be >= 2, got {self.trace_length}")
         if self.fit_steps < 0:
             errors.append(f"fit_steps must be >= 0, got {self.fit_steps}")
+        if self.fit_objective not in ("denoise", "sample"):
+            errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
+        if self.timestep_spacing not in ("even", "leading", "trailing"):
+            errors.append(f"timestep_spacing must be 'even', 'leading' or 'trailing', got {self.timestep_spacing!r}")
         if self.num_inference_steps > self.num_train_timesteps:
             errors.append(
                 f"num_inference_steps ({self.num_inference_steps}) must be <= num_train_timesteps "

@@ -2,6 +2,8 @@
 
     L_fit(z) = E_{t,k,eps} |eps - eps_theta(A~_t^k, k, c~_t, z)|^2 + lambda |z|^2
 
+or, with ``fit_objective="sample"``, the error of the chunk the policy itself samples from noise under z
+(its DDIM chain, as DP's noise adaptation scores a noise): E_{t,eps} |DDIM_z(eps, c~_t) - A_t|^2 + lambda |z|^2.
 The demonstration is cut into the same (observation history, action chunk) windows the denoiser was
 trained on. Gradients are taken with ``torch.autograd.grad`` w.r.t. z alone, so no parameter of the
 policy is touched (not even its ``.grad``). With segments, each phase m has its own z^(m) and the
@@ -111,27 +113,65 @@ def _phase_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Ten
     return seg_sum / seg_cnt.clamp_min(1)
 
 
+def _phase_sample_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor, noise_samples: int,
+                         g: torch.Generator, consts: dict, obs_mod: Tensor, sample_steps: int) -> Tensor:
+    """Per-phase mean error of the *sampled* chunk: each window's chunk denoised from fresh noise in
+    ``sample_steps`` DDIM steps (the policy's own sampler) under each latent set ``zs`` [P, M, d_z], against
+    the demonstration's chunk -> [P, M]. Common random numbers as in :func:`_phase_losses`."""
+    device = zs.device
+    P, M = zs.shape[:2]
+    idx = idx.repeat(noise_samples)
+    n = len(idx)
+    actions = windows.actions[idx].to(device)
+    x = torch.randn(actions.shape, generator=g).to(device).repeat(P, 1, 1)
+    seg = windows.segment[idx].to(device)
+    gain, shift = denoiser.latent_terms(consts, zs.reshape(P * M, -1))
+    rows = (torch.arange(P, device=device)[:, None] * M + seg[None]).reshape(-1)
+    base = obs_mod[idx.to(device)].repeat(P, 1)
+    for k, k_prev in schedule.steps(sample_steps):
+        mod = consts["step"][k] + base
+        if shift is not None:
+            mod = mod + shift[rows] if gain is None else torch.addcmul(shift[rows], gain[rows], mod)
+        eps = denoiser.forward_cached(x, denoiser.split_modulation(consts, mod), fast_conv=False)
+        x = schedule.ddim_step(eps, k, k_prev, x)
+    err = (x - actions.repeat(P, 1, 1)).pow(2).view(P, n, *actions.shape[1:])
+    mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)
+    per_window = (err * mask).sum((2, 3)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)
+    seg_sum = torch.zeros(P, M, device=device).index_add(1, seg, per_window)
+    seg_cnt = torch.zeros(M, device=device).index_add(0, seg, torch.ones(n, device=device))
+    return seg_sum / seg_cnt.clamp_min(1)
+
+
+def _errors(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps):
+    if sample_steps is None:
+        return _phase_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod)
+    return _phase_sample_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps)
+
+
 def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-             lam: float, g: torch.Generator, obs_mod: Tensor | None = None, consts: dict | None = None) -> Tensor:
+             lam: float, g: torch.Generator, obs_mod: Tensor | None = None, consts: dict | None = None,
+             sample_steps: int | None = None) -> Tensor:
     """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2.
 
     The denoiser runs on precomputed modulations (:meth:`FiLMUnet1d.weight_constants`): the step and
     observation parts are fixed while z is fitted, so only z's FiLM is recomputed (and differentiated)
     per step. ``obs_mod`` / ``consts``: the windows' observation modulation and the weight constants, if
     already computed (a fitting loop computes them once; the weights are frozen while it runs).
+    ``sample_steps``: instead of the noise-prediction error, the error of the chunk sampled in that many
+    DDIM steps (``fit_objective="sample"``).
     """
     if consts is None:
         consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
     if obs_mod is None:
         with torch.no_grad():
             obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
-    losses = _phase_losses(denoiser, schedule, windows, z[None], idx, noise_samples, g, consts, obs_mod)
+    losses = _errors(denoiser, schedule, windows, z[None], idx, noise_samples, g, consts, obs_mod, sample_steps)
     return losses[0].sum() + lam * z.pow(2).sum()
 
 
 def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
                          lam: float, g: torch.Generator, obs_mod: Tensor, consts: dict,
-                         h: float = 1e-3) -> tuple[Tensor, Tensor]:
+                         h: float = 1e-3, sample_steps: int | None = None) -> tuple[Tensor, Tensor]:
     """L_fit and its gradient in z by forward differences: no backward pass, d_z + 1 latent sets per step.
 
     The error of a phase depends only on that phase's z, so moving coordinate j of every phase's z at
@@ -145,8 +185,8 @@ def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, id
     M, d = z.shape
     dirs = torch.cat([torch.zeros(1, d, device=z.device), torch.eye(d, device=z.device) * h])  # [d + 1, d]
     with torch.no_grad():
-        losses = _phase_losses(denoiser, schedule, windows, z[None] + dirs[:, None], idx, noise_samples, g,
-                               consts, obs_mod)  # [d + 1, M]
+        losses = _errors(denoiser, schedule, windows, z[None] + dirs[:, None], idx, noise_samples, g,
+                         consts, obs_mod, sample_steps)  # [d + 1, M]
         grad = (losses[1:] - losses[:1]).T / h + 2 * lam * z
         loss = losses[0].sum() + lam * z.pow(2).sum()
     return loss, grad
@@ -154,15 +194,18 @@ def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, id
 
 def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int, lr: float, lam: float,
                batch_size: int, noise_samples: int = 1, seed: int | None = 0, progress: bool = False,
-               gradient: str = "auto") -> FitResult:
+               gradient: str = "auto", sample_steps: int | None = None) -> FitResult:
     """Adam on z (weights frozen). Each step samples demonstration chunks and noise afresh (Alg. 3).
 
     ``gradient``: ``"autograd"`` (backward to z), ``"finite_difference"`` (:func:`fit_loss_and_grad_fd`)
-    or ``"auto"`` (finite differences for d_z <= 3, where they are cheaper).
+    or ``"auto"`` (finite differences for d_z <= 3 where they are cheaper, on the noise-prediction loss only).
+    ``sample_steps``: fit the
+    chunks the policy samples in that many DDIM steps instead of its noise predictions (see :func:`fit_loss`).
     """
     if gradient not in FIT_GRADIENTS:
         raise ValueError(f"gradient must be one of {FIT_GRADIENTS}, got {gradient!r}")
-    use_fd = gradient == "finite_difference" or (gradient == "auto" and z0.shape[-1] <= 3)
+    # the sampled-chunk loss has kinks where x0 clipping starts to act, which one-sided differences smear
+    use_fd = gradient == "finite_difference" or (gradient == "auto" and z0.shape[-1] <= 3 and sample_steps is None)
     g = torch.Generator()
     g.manual_seed(int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
     z = z0.detach().clone().float().requires_grad_(True)
@@ -184,9 +227,9 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
         if use_fd:
             loss, grad = fit_loss_and_grad_fd(denoiser, schedule, windows, z.detach(), idx, noise_samples, lam, g,
-                                              obs_mod, consts)
+                                              obs_mod, consts, sample_steps=sample_steps)
         else:
-            loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod, consts)
+            loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod, consts, sample_steps)
             (grad,) = torch.autograd.grad(loss, z)
         z.grad = grad
         opt.step()

@@ -399,7 +399,7 @@ class PDPPolicy(PreTrainedPolicy):
     def fit_latent(self, episode: Episode, steps: int | None = None, init: str | Tensor = "encoder",
                    lr: float | None = None, lam: float | None = None,
                    segments: list[tuple[int, int]] | str | None = "auto", seed: int | None = 0,
-                   activate: bool = True, progress: bool = False) -> FitResult:
+                   activate: bool = True, progress: bool = False, objective: str | None = None) -> FitResult:
         """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments).
 
         Args:
@@ -409,6 +409,7 @@ class PDPPolicy(PreTrainedPolicy):
             init: ``"encoder"`` (z0 = mu_phi(X(tau)), the semantic warm start), ``"random"`` (N(0, I)),
                 ``"zero"``, or a tensor.
             lr, lam: Adam step size and the weight of lambda |z|^2.
+            objective: "denoise" or "sample" (default ``config.fit_objective``, which documents both).
             segments: None (one z), a list of frame ranges, or ``"gripper"`` (split on gripper events of
                 ``config.segment_gripper_dim``): one z per phase, used in order during the rollout.
                 ``"auto"`` (default): as the policy was trained, i.e. ``"gripper"`` when
@@ -421,7 +422,7 @@ class PDPPolicy(PreTrainedPolicy):
         # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. when
         # lerobot-eval's first select_action triggers fitting from --policy.steer_dataset_root.
         with torch.inference_mode(False), torch.enable_grad():
-            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress)
+            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress, objective)
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
         """The (normalised) training-style windows of one demonstration, each tagged with its phase.
@@ -444,8 +445,10 @@ class PDPPolicy(PreTrainedPolicy):
             self.model.obs_encoder.train(was_training)
         return frame_windows(feats, norm[ACTION], cfg.n_obs_steps, cfg.horizon, demo.segments)
 
-    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress) -> FitResult:
+    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress, objective) -> FitResult:
         cfg = self.config
+        if objective not in (None, "denoise", "sample"):
+            raise ValueError(f"objective must be 'denoise' or 'sample', got {objective!r}")
         demo = self._demonstration(episode, segments, need_action=True)  # validated and split once
         segs = demo.segments
         windows = self._demo_windows(demo)
@@ -481,6 +484,7 @@ class PDPPolicy(PreTrainedPolicy):
                     lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
                     batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
                     progress=progress, gradient=cfg.fit_gradient,
+                    sample_steps=cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None,
                 )
         finally:
             self.train(was_training)

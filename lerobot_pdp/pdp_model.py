@@ -64,7 +64,8 @@ class PDPModel(nn.Module):
             tuple(cfg.film_hidden_dims),
         )
         self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
-                                            cfg.clip_sample_range)
+                                            cfg.clip_sample_range, cfg.timestep_spacing,
+                                            cfg.use_clipped_model_output)
         self._graphs = GraphCache()  # captured samplers on CUDA (see generate)
         self._cuda_graphs = True
 

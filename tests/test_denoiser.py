@@ -159,3 +159,52 @@ def test_pdp_ddim_step_is_diffusers_ddim_on_a_self_consistent_grid():
     # PDP's own grid is evenly spaced from K - 1 (diffusers' "linspace" points, but diffusers steps from
     # each of them by K // n instead of to the next one)
     assert ours.timesteps(5) == [19, 14, 10, 5, 0]
+
+
+@pytest.mark.parametrize("spacing", ["leading", "trailing"])
+@pytest.mark.parametrize("clipped", [False, True])
+def test_pdp_sampler_is_diffusers_ddim_on_diffusers_grids(spacing, clipped):
+    """With ``timestep_spacing`` "leading" / "trailing" PDP's whole sampler (grid, step rule, final step)
+    is diffusers' DDIM loop, at step counts that divide K and at ones that do not; "leading" without the
+    clipped-noise re-derivation is exactly what LeRobot's ``diffusion`` runs, so the benchmark can give both
+    methods one sampler."""
+    from diffusers import DDIMScheduler
+
+    def denoise(x: torch.Tensor, k: int) -> torch.Tensor:  # any deterministic function of (x, k)
+        return torch.tanh(0.7 * x + 0.05 * k) * 1.8
+
+    g = torch.Generator().manual_seed(1)
+    noise = torch.randn(3, 16, 2, generator=g) * 1.2
+    for n in (1, 3, 5, 7, 10, 20):
+        ours = NoiseSchedule(20, "squaredcos_cap_v2", clip_sample=True, clip_sample_range=1.0,
+                             timestep_spacing=spacing, use_clipped_model_output=clipped)
+        ref = DDIMScheduler(num_train_timesteps=20, beta_schedule="squaredcos_cap_v2", clip_sample=True,
+                            clip_sample_range=1.0, set_alpha_to_one=True, timestep_spacing=spacing,
+                            prediction_type="epsilon")
+        ref.set_timesteps(n)
+        assert ours.timesteps(n) == ref.timesteps.tolist()
+        x = noise
+        for t in ref.timesteps:
+            x = ref.step(denoise(x, int(t)), t, x, use_clipped_model_output=clipped).prev_sample
+        got = ours.sample(lambda xx, i, k: denoise(xx, k), noise, n)
+        torch.testing.assert_close(got, x, atol=3e-6, rtol=1e-5)
+    # at n = K every grid visits every step: the three spacings differ only below K
+    assert ours.timesteps(20) == list(range(19, -1, -1)) == NoiseSchedule(20).timesteps(20)
+    if spacing == "trailing":
+        assert ours.timesteps(5) == [19, 15, 11, 7, 3]  # starts from pure noise, unlike "leading"'s 16
+
+
+def test_sampler_fields_reach_the_policy_and_old_configs_keep_the_even_grid(synthetic_meta):
+    """A config without the fields (every checkpoint written before them) samples on the even grid with the
+    clipped-noise rule, as it always did; the fields reach the policy's sampler; a bad spacing is refused."""
+    from policies import small_policy
+
+    from lerobot_pdp import PDPConfig
+
+    assert (PDPConfig.timestep_spacing, PDPConfig.use_clipped_model_output) == ("even", True)
+    sched = small_policy(synthetic_meta).model.noise_schedule
+    assert sched.timesteps(5) == [19, 14, 10, 5, 0] and sched.use_clipped_model_output
+    sched = small_policy(synthetic_meta, timestep_spacing="leading", use_clipped_model_output=False).model.noise_schedule
+    assert sched.timesteps(5) == [16, 12, 8, 4, 0] and not sched.use_clipped_model_output
+    with pytest.raises(ValueError, match="timestep_spacing"):
+        PDPConfig(device="cpu", timestep_spacing="linspace")

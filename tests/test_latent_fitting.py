@@ -133,3 +133,50 @@ def test_onehot_policy_fit_returns_one_of_its_codes(synthetic_meta):
     res = p.fit_latent((synthetic_meta.root, 5), steps=3)
     assert res.z.shape == (4,) and sorted(res.z.tolist()) == [0.0, 0.0, 0.0, 1.0]
     assert torch.equal(p.active_latent[0], res.z) and len(res.losses) == 1
+
+
+@pytest.mark.parametrize("mode", ["film", "concat"])
+def test_sample_objective_is_the_error_of_the_policy_sampler(mode):
+    """fit_objective="sample": the fitted quantity is the error of the chunk the network samples with the
+    shared sampler (NoiseSchedule.sample over the plain forward), per phase, plus lambda|z|^2, and its
+    gradient is that of the plain computation."""
+    net, sched, w, T = _two_phase_setup(mode)
+    z = torch.randn(2, 2, requires_grad=True)
+    idx = torch.arange(0, T, 3)
+    got = fit_loss(net, sched, w, z, idx, 1, 1e-3, torch.Generator().manual_seed(5), sample_steps=4)
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(w.actions[idx].shape, generator=g)
+    seg = w.segment[idx]
+    sampled = sched.sample(lambda xx, i, k: net(xx, torch.full((len(idx),), k), w.obs_cond[idx], z[seg]), x, 4)
+    mask = (~w.is_pad[idx]).unsqueeze(-1).float()
+    per = ((sampled - w.actions[idx]) ** 2 * mask).sum((1, 2)) / (mask.sum((1, 2)) * 2)
+    want = sum(per[seg == m].mean() for m in (0, 1)) + 1e-3 * z.pow(2).sum()
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    (g_got,) = torch.autograd.grad(got, z, retain_graph=True)
+    (g_want,) = torch.autograd.grad(want, z)
+    # looser than the loss: float round-off decides whether an x0 right at the clip bound is clipped
+    torch.testing.assert_close(g_got, g_want, atol=1e-3, rtol=1e-2)
+    # "auto" takes the backward pass here: the clipped x0 puts kinks into this loss, where one-sided
+    # differences are off by far more than on the smooth noise-prediction loss
+    res = fit_latent(net, sched, w, torch.zeros(2, 2), steps=3, lr=0.05, lam=1e-3, batch_size=16, seed=0,
+                     sample_steps=4)
+    fd = fit_latent(net, sched, w, torch.zeros(2, 2), steps=3, lr=0.05, lam=1e-3, batch_size=16, seed=0,
+                    sample_steps=4, gradient="finite_difference")
+    auto = fit_latent(net, sched, w, torch.zeros(2, 2), steps=3, lr=0.05, lam=1e-3, batch_size=16, seed=0,
+                      sample_steps=4, gradient="autograd")
+    assert res.losses == auto.losses and fd.losses[0] == pytest.approx(auto.losses[0], rel=1e-5)
+
+
+def test_policy_fit_objective_sample(synthetic_meta):
+    """PDPPolicy.fit_latent(objective="sample") fits on the policy's own sampler (config.fit_objective the
+    default); a wrong objective is refused."""
+    from policies import small_policy
+
+    p = small_policy(synthetic_meta, num_inference_steps=3)
+    res = p.fit_latent((synthetic_meta.root, 5), steps=4, objective="sample")
+    assert res.z.shape == (p.config.latent_dim,) and len(res.losses) == 4 and np.isfinite(res.losses).all()
+    p.config.fit_objective = "sample"
+    again = p.fit_latent((synthetic_meta.root, 5), steps=4)
+    torch.testing.assert_close(again.z, res.z)
+    with pytest.raises(ValueError, match="objective must be"):
+        p.fit_latent((synthetic_meta.root, 5), steps=1, objective="trajectory")

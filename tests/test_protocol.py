@@ -40,9 +40,11 @@ def test_whole_protocol_tiny(tmp_path):
     sweep = json.loads((out / "runs" / "pdp" / "seed0" / "sweep.json").read_text())
     assert set(sweep["paths"]) == {"linear", "elliptical"} and len(sweep["paths"]["linear"]["rollouts"]) == 7
     assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [4, 4, None]
-    for m in ("pdp", "dp"):  # the env's sampler is written into the checkpoints, so lerobot-eval uses it too
+    for m in ("dp", "pdp"):  # the env's sampler is written into the checkpoints, so lerobot-eval uses it too
         saved_cfg = json.loads((out / "runs" / m / "seed0" / "pretrained_model" / "config.json").read_text())
         assert saved_cfg["num_inference_steps"] == 20
+    # and PDP's its share of the sampler DP has (diffusers' DDIM on the env's grid, LeRobot's step rule)
+    assert (saved_cfg["timestep_spacing"], saved_cfg["use_clipped_model_output"]) == ("leading", False)
     # resumable: a rerun reuses every trained checkpoint and cached evaluation; an eval.json from before
     # the "inference_steps" key existed counts as made with the checkpoint's own DDIM steps (here 20)
     stamps = {m: (out / "runs" / m / "seed0" / "train_info.json").stat().st_mtime for m in ("pdp", "dp", "bc")}
@@ -56,7 +58,7 @@ def test_whole_protocol_tiny(tmp_path):
     proc = run_cli([lerobot_cli("lerobot-pdp"), "benchmark", "--env", "reach-around", "--out", str(out), "--seeds", "0",
                     "--rollouts", "2", "--methods", "pdp", "dp", "bc", "--steps", "20", "--episodes-per-mode", "1",
                     "--no-figures", "--inference-steps", "2"])
-    assert "DDIM sampler steps: pdp 2, dp 2." in proc.stdout
+    assert "DDIM sampler steps (grid): pdp 2 (leading), dp 2 (leading)." in proc.stdout
     res = json.loads((out / "results.json").read_text())
     assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [2, 2, None]
     assert res["methods"]["pdp"]["inference_steps"] == [2] and "inference_steps" not in res["methods"]["bc"]
@@ -67,6 +69,19 @@ def test_whole_protocol_tiny(tmp_path):
     assert policy.diffusion.num_inference_steps == 2
     with pytest.raises(ValueError, match=r"inference_steps=21 .*expected 1\.\.20"):
         load_policy(out / "runs" / "pdp" / "seed0" / "pretrained_model", inference_steps=21)
+    # one grid for both methods: DP's scheduler is rebuilt with it, PDP's sampler follows its config
+    dp, _, _ = load_policy(out / "runs" / "dp" / "seed0" / "pretrained_model", 5, timestep_spacing="trailing")
+    dp.diffusion.noise_scheduler.set_timesteps(5)
+    pdp, _, _ = load_policy(out / "runs" / "pdp" / "seed0" / "pretrained_model", 5, timestep_spacing="trailing")
+    assert dp.diffusion.noise_scheduler.timesteps.tolist() == pdp.model.noise_schedule.timesteps(5) == [19, 15, 11, 7, 3]
+    assert not pdp.model.noise_schedule.use_clipped_model_output
+    with pytest.raises(ValueError, match="PDP's own sampler"):
+        load_policy(out / "runs" / "dp" / "seed0" / "pretrained_model", timestep_spacing="even")
+    # --timestep-spacing re-evaluates like --inference-steps, recorded per evaluation
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["pdp"], "figures": False, "inference_steps": 2,
+                                     "timestep_spacing": "trailing"}))
+    assert _eval_json(out, "pdp")["timestep_spacing"] == "trailing"
+    assert json.loads((out / "results.json").read_text())["methods"]["pdp"]["timestep_spacing"] == ["trailing"]
 
 
 def test_camera_variant_tiny(tmp_path):

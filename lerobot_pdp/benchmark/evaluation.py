@@ -35,13 +35,34 @@ def sampler_steps(ckpt: Path, override: int | None = None) -> int | None:
     return int(override) if override is not None else saved["num_inference_steps"]
 
 
-def _cached(path: Path, steps: int | None, ckpt: Path) -> dict[str, Any] | None:
-    """A cached evaluation made with the same sampler steps (files from before the key existed were made
-    with the checkpoint's own steps)."""
+def own_spacing(ckpt: Path) -> str | None:
+    """The DDIM grid a checkpoint samples on by itself: PDP's config field ("even" before it existed),
+    "leading" for LeRobot's diffusion (diffusers' default), None without a sampler."""
+    saved = json.loads((Path(ckpt) / "config.json").read_text())
+    if "num_inference_steps" not in saved:
+        return None
+    return saved.get("timestep_spacing", "even") if saved.get("type") == "pdp" else "leading"
+
+
+def sampler_of(ckpt: Path, cfg: BenchmarkConfig) -> dict[str, Any]:
+    """What an evaluation of ``ckpt`` samples with under ``cfg`` (recorded in its cache file)."""
+    steps = sampler_steps(ckpt, cfg.inference_steps)
+    if steps is None:
+        return {"inference_steps": None}
+    return {"inference_steps": steps, "timestep_spacing": cfg.timestep_spacing or own_spacing(ckpt)}
+
+
+def _cached(path: Path, sampler: dict[str, Any], ckpt: Path, adapt_kwargs: dict[str, Any] | None = None
+            ) -> dict[str, Any] | None:
+    """A cached evaluation made with the same sampler and adaptation settings (files from before a key
+    existed were made with the checkpoint's own sampler and the default adaptation)."""
     if not path.is_file():
         return None
     cached = json.loads(path.read_text())
-    return cached if cached.get("inference_steps", sampler_steps(ckpt)) == steps else None
+    same = (cached.get("inference_steps", sampler_steps(ckpt)) == sampler["inference_steps"]
+            and cached.get("timestep_spacing", own_spacing(ckpt)) == sampler.get("timestep_spacing")
+            and cached.get("adapt", {}) == (adapt_kwargs or {}))
+    return cached if same else None
 
 
 def _spread(n: int, k: int) -> list[int]:
@@ -66,19 +87,24 @@ def evaluate_scene0(suite: SuiteEnv, method: Method, policy, pre, post, n: int, 
 
 
 def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, steps: int | None = None,
-          init: str = "encoder"):
-    """Adapt a policy to one demonstration the method's own way; returns (policy to roll out, info)."""
+          init: str = "encoder", **kwargs: Any):
+    """Adapt a policy to one demonstration the method's own way; returns (policy to roll out, info).
+
+    ``kwargs``: the adaptation's settings besides the defaults (``steps``, ``lr``; PDP also ``lam``), as the
+    validation sweep varies them."""
     from .baselines import FixedNoisePolicy, adapt_dp_noise, finetune_bc
 
+    if steps is not None:
+        kwargs["steps"] = steps
     if method.adapt == "fit_latent":
         # segments="auto": a gripper-segmented policy fits one z per phase (paper Eq. 12)
-        res = policy.fit_latent(demo, steps=steps, init=init, seed=seed)
+        res = policy.fit_latent(demo, init=init, seed=seed, **kwargs)
         return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None}
     if method.adapt == "noise":
-        noise = adapt_dp_noise(policy, pre, demo, seed=seed)
+        noise = adapt_dp_noise(policy, pre, demo, seed=seed, **kwargs)
         return FixedNoisePolicy(policy, noise), {}
     if method.adapt == "finetune":
-        return finetune_bc(policy, pre, demo, seed=seed), {}
+        return finetune_bc(policy, pre, demo, seed=seed, **kwargs), {}
     raise ValueError(f"unknown adaptation {method.adapt!r}")
 
 
@@ -94,16 +120,20 @@ def _summary(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, A
 
 
 def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int | str, Path], cfg: BenchmarkConfig,
-                    seed: int, run_dir: Path) -> dict[str, Any]:
-    """All scenes for one trained (method, seed); cached in ``run_dir/eval.json``."""
-    cache = run_dir / "eval.json"
-    sampler = sampler_steps(ckpt, cfg.inference_steps)
-    cached = _cached(cache, sampler, ckpt)
+                    seed: int, run_dir: Path, adapt_kwargs: dict[str, Any] | None = None,
+                    cache: Path | None = None) -> dict[str, Any]:
+    """All scenes for one trained (method, seed); cached in ``cache`` (default ``run_dir/eval.json``).
+
+    ``adapt_kwargs``: adaptation settings besides the method's defaults (see :func:`adapt`)."""
+    cache = cache or run_dir / "eval.json"
+    adapt_kwargs = dict(adapt_kwargs or {})
+    sampler = sampler_of(ckpt, cfg)
+    cached = _cached(cache, sampler, ckpt, adapt_kwargs)
     if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
         return cached
-    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
-    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts,
-                              "inference_steps": sampler, "scenes": {}}
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
+    result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, **sampler,
+                              "adapt": adapt_kwargs, "scenes": {}}
     traces: dict[str, Any] = {}
     for scene in cfg.scenes:
         t0 = time.time()
@@ -112,7 +142,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
             summary = _summary(batch, suite.n_modes, with_modes=True)
         else:
             demo = demo_episode(demos[scene])
-            actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed)
+            actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed,
+                                **adapt_kwargs)
             batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts,
                                  seed * 10_000 + scene_seed_offset(scene), label=f"scene {scene}")
             summary = {**_summary(batch, suite.n_modes, with_modes=False), **info}
@@ -126,8 +157,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
               f" collision {summary['collision']:.0%}")
     if method.policy_type == "pdp":
         result["latents"] = {k: v.tolist() for k, v in policy.behavior_table().items()}
-    run_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(run_dir / "traces.json", json.dumps(traces))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(cache.with_name(cache.name.replace("eval", "traces", 1)), json.dumps(traces))
     write_text_atomic(cache, json.dumps(result, indent=1))
     return result
 
@@ -139,11 +170,11 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
     ``{"encoder@0": mean success over the shifted scenes, ..., "per_scene": {"encoder@0": {"1": rate, ...}}}``;
     the per-scene rates say *where* an initialisation wins or loses, which the mean hides."""
     cache = run_dir / "init_ablation.json"
-    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    sampler = sampler_of(ckpt, cfg)
     cached = _cached(cache, sampler, ckpt)
     if cached:
-        return {k: v for k, v in cached.items() if k != "inference_steps"}
-    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
+        return {k: v for k, v in cached.items() if k not in sampler}
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
     per_scene: dict[str, dict[str, float]] = {}
@@ -161,7 +192,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
             print(f"[benchmark] init {init} steps {steps}: success {out[key]} per scene {rates}")
     policy.set_latent(None)
     out["per_scene"] = per_scene
-    write_text_atomic(cache, json.dumps({**out, "inference_steps": sampler}, indent=1))
+    write_text_atomic(cache, json.dumps({**out, **sampler}, indent=1))
     return out
 
 
@@ -171,11 +202,11 @@ def evaluate_sweep(suite: SuiteEnv, ckpt: Path, run_dir: Path, cfg: BenchmarkCon
     rollout each: what the interpolation figure shows. Cached in ``run_dir/sweep.json``; None for a policy
     without a latent or with fewer than two modes."""
     cache = run_dir / "sweep.json"
-    sampler = sampler_steps(ckpt, cfg.inference_steps)
+    sampler = sampler_of(ckpt, cfg)
     cached = _cached(cache, sampler, ckpt)
     if cached and cached.get("n") == n and cached.get("seed") == seed:
         return cached
-    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device)
+    policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     if policy.config.latent_conditioning == "none":
         return None
     means = policy.mode_latents()
@@ -195,7 +226,7 @@ def evaluate_sweep(suite: SuiteEnv, ckpt: Path, run_dir: Path, cfg: BenchmarkCon
             rollouts.append({"trace": r.trace.tolist(), "success": r.success})
         policy.set_latent(None)
         paths[path] = {"z": zs.tolist(), "rollouts": rollouts}
-    out = {"inference_steps": sampler, "n": n, "seed": seed, "modes": [a, b], "paths": paths,
+    out = {**sampler, "n": n, "seed": seed, "modes": [a, b], "paths": paths,
            "behaviors": {k: v.tolist() for k, v in policy.behavior_table().items()}}
     write_text_atomic(cache, json.dumps(out))
     return out

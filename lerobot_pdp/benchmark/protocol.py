@@ -20,7 +20,16 @@ from ..envs.suite import get_suite_env
 from .data import ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, results_markdown
-from .settings import ABLATIONS, CAMERAS, SETTINGS, BenchmarkConfig, TrainSettings, check_split, methods_for
+from .settings import (
+    ABLATIONS,
+    CAMERAS,
+    SETTINGS,
+    SPACINGS,
+    BenchmarkConfig,
+    TrainSettings,
+    check_split,
+    methods_for,
+)
 from .training import train_method
 
 
@@ -31,6 +40,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     suite = get_suite_env(cfg.env)
     full, quick = SETTINGS[suite.name]
     check_split(cfg.split, tuple(cfg.scenes), list(cfg.seeds))
+    if cfg.validate and cfg.split != "validation":
+        raise ValueError("--validate chooses settings on the validation split only: add --split validation")
     if cfg.obs not in ("state", "images"):
         raise ValueError(f"obs must be 'state' or 'images', got {cfg.obs!r}")
     if cfg.obs == "images":
@@ -46,6 +57,11 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     steps = cfg.steps or settings.steps
     if cfg.inference_steps is None:
         cfg = replace(cfg, inference_steps=settings.inference_steps)
+    if cfg.timestep_spacing is None:
+        cfg = replace(cfg, timestep_spacing=settings.timestep_spacing)
+    if cfg.timestep_spacing not in SPACINGS or (cfg.timestep_spacing == "even" and "dp" in cfg.methods):
+        raise ValueError(f"timestep_spacing must be one of {SPACINGS} ('even', PDP's own sampler, without dp), "
+                         f"got {cfg.timestep_spacing!r}")
     from ..configuration_pdp import PDPConfig
 
     k = PDPConfig.num_train_timesteps  # DP's matched config takes PDP's K too
@@ -76,6 +92,13 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
             if cfg.ablations and name == "pdp":
                 init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, cfg, seed, run_dir)
     res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)
+    if cfg.validate:
+        from .validation import validate, validation_markdown
+
+        runs = {name: {seed: out / "runs" / name / f"seed{seed}" for seed in cfg.seeds} for name in names}
+        val = validate(cfg, suite, all_methods, runs, demos)
+        write_text_atomic(out / "validation.md", validation_markdown(val))
+        res["validation"] = {name: rec["chosen"] for name, rec in val["methods"].items()}
     write_text_atomic(out / "results.json", json.dumps(res, indent=1))
     write_text_atomic(out / "results.md", results_markdown(res))
     if cfg.figures:

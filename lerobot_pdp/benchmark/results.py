@@ -42,6 +42,10 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
         steps_used = sorted({r["inference_steps"] for r in runs.values() if r.get("inference_steps") is not None})
         if steps_used:
             entry["inference_steps"] = steps_used
+            entry["timestep_spacing"] = sorted({r.get("timestep_spacing", "unrecorded") for r in runs.values()})
+        adapt_used = [r["adapt"] for r in runs.values() if r.get("adapt")]
+        if adapt_used:
+            entry["adapt"] = adapt_used[0] if all(a == adapt_used[0] for a in adapt_used) else adapt_used
         out["methods"][name] = entry
     if init_abl:
         keys = [k for k in next(iter(init_abl.values())) if k != "per_scene"]
@@ -122,6 +126,7 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         steps_used = sorted({s for _, _, e, _ in per_seed for s in e.get("inference_steps", [])})
         if steps_used:
             merged["inference_steps"] = steps_used
+            merged["timestep_spacing"] = sorted({s for _, _, e, _ in per_seed for s in e.get("timestep_spacing", [])})
         out["methods"][method] = merged
     abl = [res["init_ablation"] for _, res in results if "init_ablation" in res]
     if abl:
@@ -181,8 +186,12 @@ def results_markdown(res: dict[str, Any]) -> str:
                   f"({o['image_size']}x{o['image_size']}) for every method."]
     lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
-    sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}" for name, e in res["methods"].items()
-               if e.get("inference_steps")]
+    sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}"
+               + (f" ({'/'.join(e['timestep_spacing'])})" if e.get("timestep_spacing") else "")
+               for name, e in res["methods"].items() if e.get("inference_steps")]
     if sampler:
-        lines.append(f"DDIM sampler steps: {', '.join(sampler)}.")
+        lines.append(f"DDIM sampler steps (grid): {', '.join(sampler)}.")
+    adapted = [f"{name} {e['adapt']}" for name, e in res["methods"].items() if e.get("adapt")]
+    if adapted:
+        lines.append(f"Adaptation settings besides the defaults: {'; '.join(adapted)}.")
     return "\n".join(lines) + "\n"

@@ -24,6 +24,7 @@ VALIDATION_SCENES: dict[str, tuple[str, ...]] = {
     "kitchen-microwave": ("val1", "val2", "val3"),  # one zero-mode scene so far: the arm sweeps a large volume
 }
 SPLITS = ("test", "validation")
+SPACINGS = ("leading", "trailing", "even")  # DDIM grids of the shared sampler (TrainSettings.timestep_spacing)
 TEST_SEEDS = (0, 1, 2)  # the development seeds so far; fresh test seeds come from range(VALIDATION_SEED_MIN)
 VALIDATION_SEEDS = (100, 101, 102)
 VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never reported as test numbers
@@ -92,6 +93,10 @@ class TrainSettings:
     # DDIM steps of PDP and DP, written into their checkpoints (lerobot-eval then samples the same way)
     # and used when evaluating. The whole K = 20 chain: grasps need it (docs/experiments.md, "DDIM steps").
     inference_steps: int = 20
+    # Grid of those steps, one sampler for PDP and DP: diffusers' DDIM as LeRobot's diffusion steps it,
+    # "leading" (LeRobot's default) or "trailing" (starts from pure noise below K steps). At K = 20 steps
+    # both visit every step. "even" = PDP's own sampler (not available to DP).
+    timestep_spacing: str = "leading"
 
 
 # Per env: (full, quick). The paper's lr 1e-4 needs far more steps than a CPU budget allows; 1e-3 with a
@@ -206,6 +211,11 @@ class BenchmarkConfig:
     # DDIM steps when evaluating PDP and DP (None: the env's TrainSettings.inference_steps). Sampling
     # only: cached evaluations made with other steps are redone on the same checkpoints.
     inference_steps: int | None = None
+    # Their DDIM grid (None: the env's TrainSettings.timestep_spacing); likewise sampling only.
+    timestep_spacing: str | None = None
+    # With split="validation": also evaluate the candidate settings of validation.py and write
+    # validation.json / validation.md (what each method would freeze for the test run).
+    validate: bool = False
     # Where every method trains, adapts and acts ("cpu", "cuda", "cuda:1", ...). Not a training setting:
     # a run trained on one device is reused on another.
     device: str = "cpu"

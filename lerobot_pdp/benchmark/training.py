@@ -78,7 +78,18 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
         args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
     if method.policy_type in ("pdp", "diffusion"):
         args.append(f"--policy.num_inference_steps={settings.inference_steps}")
+    if method.policy_type == "pdp":  # DP's LeRobot config has no such fields: load_policy sets its scheduler
+        args += pdp_sampler_args(settings.timestep_spacing)
     return args
+
+
+def pdp_sampler_args(spacing: str) -> list[str]:
+    """PDP flags for the benchmark's shared sampler: diffusers' DDIM on ``spacing``'s grid, stepped as
+    LeRobot's ``diffusion`` steps (no clipped-noise re-derivation), so both methods sample identically;
+    "even" keeps PDP's own grid and rule (checkpoints trained before the shared sampler)."""
+    if spacing == "even":
+        return ["--policy.timestep_spacing=even", "--policy.use_clipped_model_output=true"]
+    return [f"--policy.timestep_spacing={spacing}", "--policy.use_clipped_model_output=false"]
 
 
 def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
@@ -92,6 +103,7 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):  # earlier model
         (run_dir / stale).unlink(missing_ok=True)
+    shutil.rmtree(run_dir / "validation", ignore_errors=True)
     tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
     args.append(f"--output_dir={tmp_out}")
     log = run_dir / "train.log"
@@ -124,10 +136,11 @@ def _portable(args: list[str], run_dir: Path) -> list[str]:
 
 
 # Flags that do not change what a run learns: where it writes and how often it logs and saves, how many
-# loader processes feed it, the device it runs on, and the DDIM steps it samples with (evaluations record
+# loader processes feed it, the device it runs on, and the DDIM sampler it acts with (evaluations record
 # their own sampler and are redone when it changes).
 _NOT_TRAINING = ("--output_dir", "--dataset.root", "--log_freq", "--save_freq", "--num_workers",
-                 "--policy.num_inference_steps", "--policy.device")
+                 "--policy.num_inference_steps", "--policy.timestep_spacing", "--policy.use_clipped_model_output",
+                 "--policy.device")
 
 
 def _flags(args: list[str]) -> dict[str, str]:
@@ -151,10 +164,14 @@ def _check_reusable(run_dir: Path, args: list[str]) -> None:
                          f"or delete {run_dir} to retrain")
 
 
-def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "cpu"):
+def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "cpu",
+                timestep_spacing: str | None = None):
     """Policy + its saved pre/post processors on ``device``, as lerobot-eval loads them.
 
-    ``inference_steps`` replaces the checkpoint's ``num_inference_steps`` (diffusion policies only).
+    ``inference_steps`` replaces the checkpoint's ``num_inference_steps`` and ``timestep_spacing`` its DDIM
+    grid (diffusion policies only): "leading" / "trailing" give PDP and DP the same sampler, diffusers' DDIM
+    as LeRobot's ``diffusion`` steps it (DP's scheduler is rebuilt from its own config with that spacing);
+    "even" is PDP's own grid and step rule, which DP does not have.
     """
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -166,8 +183,20 @@ def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "c
             raise ValueError(f"inference_steps={inference_steps} for {ckpt}: expected 1..{cfg.num_train_timesteps} "
                              "(the checkpoint's num_train_timesteps)")
         cfg.num_inference_steps = int(inference_steps)
+    if timestep_spacing is not None and cfg.type == "pdp":
+        for flag in pdp_sampler_args(timestep_spacing):
+            key, _, value = flag.removeprefix("--policy.").partition("=")
+            setattr(cfg, key, value == "true" if value in ("true", "false") else value)
     policy = get_policy_class(cfg.type).from_pretrained(ckpt, config=cfg)
     policy.eval()
+    if timestep_spacing is not None and cfg.type == "diffusion":
+        if timestep_spacing == "even":
+            raise ValueError("timestep_spacing='even' is PDP's own sampler; LeRobot's diffusion samples on "
+                             "diffusers' grids: use 'leading' or 'trailing'")
+        from diffusers import DDIMScheduler
+
+        sched = policy.diffusion.noise_scheduler
+        policy.diffusion.noise_scheduler = DDIMScheduler.from_config(sched.config, timestep_spacing=timestep_spacing)
     # the saved device step holds the training device: point it at this one (lerobot-eval does the same)
     pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt),
                                          preprocessor_overrides={"device_processor": {"device": device}})
@@ -175,9 +204,10 @@ def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "c
 
 
 def load_run(run_dir: Path):
-    """A benchmark run's policy + processors sampling as its ``eval.json`` was made (same DDIM steps; the
-    checkpoint's own when there is no evaluation yet). Diagnostics use it to replay the benchmark's rollouts."""
+    """A benchmark run's policy + processors sampling as its ``eval.json`` was made (same DDIM steps and
+    grid; the checkpoint's own when there is no evaluation yet). Diagnostics use it to replay the
+    benchmark's rollouts."""
     run_dir = Path(run_dir)
     ev = run_dir / "eval.json"
-    steps = json.loads(ev.read_text()).get("inference_steps") if ev.is_file() else None
-    return load_policy(run_dir / "pretrained_model", steps)
+    made = json.loads(ev.read_text()) if ev.is_file() else {}
+    return load_policy(run_dir / "pretrained_model", made.get("inference_steps"), timestep_spacing=made.get("timestep_spacing"))

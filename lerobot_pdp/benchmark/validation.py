@@ -1,0 +1,133 @@
+"""Choosing inference-time settings on the validation split, with the same budget for every method.
+
+Two stages, each a fixed list of candidates evaluated on the trained validation runs (scene 0 and the env's
+validation scenes, validation seeds); nothing here ever touches a test scene or test seed:
+
+1. **Sampler** (PDP and DP, one shared list): DDIM steps and grid. Both methods sample with diffusers' DDIM
+   as LeRobot's ``diffusion`` steps it (``TrainSettings.timestep_spacing``), so a candidate is the same
+   sampler for both. Scored on every scene of the split (scene 0 included: the sampler acts there too).
+2. **Adaptation** (every method, as many candidates each): the steps and step size of PDP's latent fit,
+   DP's noise optimisation and BC's fine-tuning, each evaluated with that method's chosen sampler. Scored
+   on the validation scenes only (scene 0 adapts nothing).
+
+A candidate's score is its mean success over those scenes and the seeds; the first candidate listed (the
+current default) wins ties, so a setting changes only on evidence. ``validate`` writes
+``out/validation.json``: every candidate's per-scene, per-seed success and the choice per method, which
+``settings.py`` then freezes for the test run (by hand, so that the change is reviewed).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import write_text_atomic
+from .evaluation import evaluate_method
+from .settings import BenchmarkConfig, Method, split_scenes
+
+# (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
+SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
+    (20, "leading"), (10, "leading"), (10, "trailing"), (5, "leading"), (5, "trailing"),
+)
+
+# Per adaptation, six candidates each (the default first): steps x step size around each default
+# (PDP fit 100 x 0.05 with |z|^2 weight 1e-3, DP noise 100 x 0.05, BC fine-tuning 100 x 1e-5); PDP also tries
+# fitting the chunks it samples instead of its noise predictions (what DP's noise adaptation scores).
+ADAPT_CANDIDATES: dict[str, tuple[dict[str, Any], ...]] = {
+    "fit_latent": ({}, {"steps": 0}, {"steps": 10}, {"steps": 300}, {"lam": 0.0}, {"objective": "sample"}),
+    "noise": ({}, {"steps": 30}, {"steps": 300}, {"lr": 0.01}, {"lr": 0.2}, {"steps": 300, "lr": 0.2}),
+    "finetune": ({}, {"lr": 1e-4}, {"lr": 1e-3}, {"steps": 300, "lr": 1e-4}, {"steps": 300, "lr": 1e-3},
+                 {"steps": 30, "lr": 1e-3}),
+}
+
+
+def candidate_tag(sampler: tuple[int, str] | None, adapt: dict[str, Any]) -> str:
+    """File-name tag of one candidate, e.g. ``s20-leading`` or ``s20-leading_lr0.2_steps300``."""
+    tag = f"s{sampler[0]}-{sampler[1]}" if sampler else "nosampler"
+    return tag + "".join(f"_{k}{v}" for k, v in sorted(adapt.items()))
+
+
+def _score(evals: list[dict[str, Any]], scenes: list[int | str]) -> float:
+    return float(np.mean([e["scenes"][str(s)]["success"] for e in evals for s in scenes]))
+
+
+def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig,
+              sampler: tuple[int, str] | None, adapt: dict[str, Any], scenes: list[int | str]) -> list[dict[str, Any]]:
+    from dataclasses import replace
+
+    sub = replace(cfg, scenes=tuple(scenes), inference_steps=sampler[0] if sampler else None,
+                  timestep_spacing=sampler[1] if sampler else None)
+    tag = candidate_tag(sampler, adapt)
+    return [evaluate_method(suite, method, run / "pretrained_model", demos, sub, seed, run, adapt_kwargs=adapt,
+                            cache=run / "validation" / f"eval_{tag}.json")
+            for seed, run in runs.items()]
+
+
+def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig) -> dict[str, Any]:
+    """Both stages for one method over its trained validation runs ``{seed: run_dir}``."""
+    scenes = list(cfg.scenes)
+    shifted = [s for s in scenes if s != 0]
+    has_sampler = method.policy_type in ("pdp", "diffusion")
+    record: dict[str, Any] = {"seeds": sorted(runs), "scenes": [str(s) for s in scenes], "sampler": [],
+                              "adapt": []}
+
+    def row(sampler, adapt, evals, scored):
+        return {"tag": candidate_tag(sampler, adapt), "sampler": list(sampler) if sampler else None,
+                "adapt": adapt, "score": _score(evals, scored),
+                "success": {str(s): [e["scenes"][str(s)]["success"] for e in evals] for s in scenes
+                            if all(str(s) in e["scenes"] for e in evals)}}
+
+    best_sampler: tuple[int, str] | None = None
+    if has_sampler:
+        rows = []
+        for sampler in SAMPLER_CANDIDATES:
+            evals = _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes)
+            rows.append(row(sampler, {}, evals, scenes))
+            print(f"[validate] {method.name} sampler {sampler}: {rows[-1]['score']:.1%}", flush=True)
+        record["sampler"] = rows
+        best = max(range(len(rows)), key=lambda i: (rows[i]["score"], -i))
+        best_sampler = SAMPLER_CANDIDATES[best]
+    rows = []
+    for adapt in ADAPT_CANDIDATES[method.adapt]:
+        evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
+        rows.append(row(best_sampler, adapt, evals, shifted))
+        print(f"[validate] {method.name} adapt {adapt or 'default'}: {rows[-1]['score']:.1%}", flush=True)
+    record["adapt"] = rows
+    best = max(range(len(rows)), key=lambda i: (rows[i]["score"], -i))
+    record["chosen"] = {"sampler": list(best_sampler) if best_sampler else None, "adapt": rows[best]["adapt"]}
+    return record
+
+
+def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict[str, dict[int, Path]],
+             demos) -> dict[str, Any]:
+    """Both stages for every method; writes and returns ``cfg.out/validation.json``."""
+    if cfg.split != "validation":
+        raise ValueError("settings are chosen on the validation split only (--split validation)")
+    expected = set(map(str, split_scenes(suite.name, "validation")))
+    if set(map(str, cfg.scenes)) != expected:
+        raise ValueError(f"validation uses all of {sorted(expected)}, got {sorted(map(str, cfg.scenes))}")
+    out = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
+           "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
+           "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()},
+           "methods": {name: validate_method(suite, methods[name], runs[name], demos, cfg) for name in runs}}
+    write_text_atomic(Path(cfg.out) / "validation.json", json.dumps(out, indent=1))
+    return out
+
+
+def validation_markdown(res: dict[str, Any]) -> str:
+    """The candidates and choices of ``validation.json`` as tables (success %, mean over seeds)."""
+    lines = [f"# Validation: {res['env']} ({res['rollouts']} rollouts per scene)", ""]
+    for name, rec in res["methods"].items():
+        lines += [f"## {name} (seeds {', '.join(map(str, rec['seeds']))})", "",
+                  "| stage | candidate | " + " | ".join(f"scene {s}" for s in rec["scenes"]) + " | score |",
+                  "|---|---|" + "---|" * len(rec["scenes"]) + "---|"]
+        for stage in ("sampler", "adapt"):
+            for r in rec[stage]:
+                cells = [f"{100 * np.mean(r['success'][s]):.1f}" if s in r["success"] else "" for s in rec["scenes"]]
+                lines.append(f"| {stage} | {r['tag']} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
+        lines += ["", f"Chosen: sampler {rec['chosen']['sampler']}, adaptation {rec['chosen']['adapt'] or 'default'}.",
+                  ""]
+    return "\n".join(lines)

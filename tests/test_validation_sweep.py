@@ -1,0 +1,68 @@
+"""``benchmark --split validation --validate``: every method's candidate samplers and adaptation settings are
+evaluated on the validation split only (real lerobot-train runs, real rollouts), with as many candidates per
+method, and the choice is the best mean success (ties: the default, listed first)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lerobot_pdp.benchmark import validation
+from lerobot_pdp.benchmark.protocol import run_benchmark
+from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes
+
+pytestmark = pytest.mark.slow
+
+
+def test_validate_tiny(tmp_path, monkeypatch):
+    # a shorter candidate list keeps the test quick; the shipped lists are checked below
+    monkeypatch.setattr(validation, "SAMPLER_CANDIDATES", ((4, "leading"), (4, "trailing")))
+    monkeypatch.setattr(validation, "ADAPT_CANDIDATES", {"fit_latent": ({}, {"steps": 0}),
+                                                         "noise": ({}, {"steps": 3}),
+                                                         "finetune": ({}, {"lr": 1e-3})})
+    scenes = split_scenes("reach-around", "validation")
+    cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "val", seeds=[100], rollouts=2,
+                          methods=["pdp", "dp", "bc"], steps=20, episodes_per_mode=1, scenes=scenes,
+                          split="validation", validate=True, figures=False)
+    res = run_benchmark(cfg)
+    val = json.loads((tmp_path / "val" / "validation.json").read_text())
+    assert val["split"] == "validation" and set(val["methods"]) == {"pdp", "dp", "bc"}
+    for name, rec in val["methods"].items():
+        assert rec["seeds"] == [100] and rec["scenes"] == [str(s) for s in scenes]
+        assert len(rec["sampler"]) == (0 if name == "bc" else 2) and len(rec["adapt"]) == 2
+        for row in rec["sampler"] + rec["adapt"]:
+            assert all(s in rec["scenes"] for s in row["success"])  # validation scenes only, never 1-3
+            assert all(0.0 <= x <= 1.0 for xs in row["success"].values() for x in xs)
+        # the choice is the best score, the earlier candidate on ties
+        scores = [r["score"] for r in rec["adapt"]]
+        assert rec["chosen"]["adapt"] == rec["adapt"][scores.index(max(scores))]["adapt"]
+        if rec["sampler"]:
+            scores = [r["score"] for r in rec["sampler"]]
+            assert rec["chosen"]["sampler"] == rec["sampler"][scores.index(max(scores))]["sampler"]
+            # adaptation candidates are evaluated with the chosen sampler
+            assert all(r["sampler"] == rec["chosen"]["sampler"] for r in rec["adapt"])
+        evals = sorted(p.name for p in (tmp_path / "val" / "runs" / name / "seed100" / "validation").glob("eval_*"))
+        assert len(evals) == len(rec["sampler"]) + len(rec["adapt"]) - (1 if rec["sampler"] else 0)
+        last = rec["adapt"][-1]
+        made = json.loads((tmp_path / "val" / "runs" / name / "seed100" / "validation" / f"eval_{last['tag']}.json")
+                          .read_text())
+        assert made["adapt"] == last["adapt"] != {} and set(made["scenes"]) == set(map(str, scenes[1:]))
+    assert res["validation"] == {n: r["chosen"] for n, r in val["methods"].items()}
+    md = (tmp_path / "val" / "validation.md").read_text()
+    assert "| sampler | s4-trailing |" in md and "Chosen:" in md
+    # a second call reuses every cached candidate evaluation
+    stamps = {p: p.stat().st_mtime for p in (tmp_path / "val" / "runs").rglob("validation/eval_*.json")}
+    run_benchmark(cfg)
+    assert stamps == {p: p.stat().st_mtime for p in stamps}
+    # never on the test split
+    with pytest.raises(ValueError, match="validation split only"):
+        run_benchmark(BenchmarkConfig(env="reach-around", out=tmp_path / "t", seeds=[0], validate=True))
+
+
+def test_every_method_gets_as_many_candidates():
+    """Same tuning budget: as many adaptation candidates per method, each list led by the default."""
+    sizes = {len(v) for v in validation.ADAPT_CANDIDATES.values()}
+    assert sizes == {6} and all(v[0] == {} for v in validation.ADAPT_CANDIDATES.values())
+    assert len(set(validation.SAMPLER_CANDIDATES)) == len(validation.SAMPLER_CANDIDATES)
+    assert validation.candidate_tag((20, "leading"), {"steps": 300, "lr": 0.2}) == "s20-leading_lr0.2_steps300"
