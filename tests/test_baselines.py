@@ -246,6 +246,33 @@ def test_fixed_noise_policy_passes_its_noise(reach_meta, episode):
     assert torch.allclose(a[0], a[1]) and torch.allclose(a[0], a[2])  # one noise for all envs of the batch
 
 
+def test_per_chunk_noise_is_fitted_per_chunk_and_played_in_order(reach_meta, episode):
+    """per_chunk: one noise per executed chunk of the demo (n_action_steps = 8 frames each); the wrapper
+    hands noise j to the j-th generated chunk and repeats the last one, from the first again after reset."""
+    policy, pre, _ = _dp(reach_meta)
+    T = len(episode["action"])
+    seq = adapt_dp_noise(policy, pre, episode, steps=4, lr=0.1, batch_size=16, seed=0, per_chunk=True)
+    assert seq.shape == (-(-T // 8), 16, 3) and not torch.equal(seq[0], seq[1])
+    wrapped = FixedNoisePolicy(policy, seq[:2])
+    seen = []
+    original = policy.select_action
+
+    def spy(batch, noise=None):
+        if len(policy._queues["action"]) == 0:
+            seen.append(noise[0].clone())
+        return original(batch, noise=noise)
+
+    policy.select_action = spy
+    for _ in range(2):
+        wrapped.reset()
+        seen.clear()
+        for t in range(3 * 8):
+            wrapped.select_action(pre(_obs(episode, t, batch=2)))
+        assert len(seen) == 3
+        assert torch.equal(seen[0], seq[0]) and torch.equal(seen[1], seq[1]) and torch.equal(seen[2], seq[1])
+    del policy.select_action
+
+
 # ----------------------------------------------------------------------------- BC
 
 

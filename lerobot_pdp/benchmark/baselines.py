@@ -224,7 +224,7 @@ def dp_noise_matching_loss(policy, preprocessor, episode: Mapping[str, Any], noi
 
 
 def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: int = 100, lr: float = 0.05,
-                   batch_size: int = 32, seed: int = 0) -> Tensor:
+                   batch_size: int = 32, seed: int = 0, per_chunk: bool = False) -> Tensor:
     """Noise-space adaptation of a LeRobot ``diffusion`` policy to ONE demonstration (weights frozen).
 
     Optimises a single initial noise x_K [1, horizon, A] with Adam so that the deterministic DDIM chain
@@ -238,11 +238,16 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
     Why one shared x_K: it is the only input DP has besides observations, the paper's DP adaptation
     ("optimize denoising noise seed at test time"). Roll it out with :class:`FixedNoisePolicy`.
 
+    ``per_chunk``: one x_K per executed chunk of the demonstration instead (chunk j fitted on the windows
+    starting at its n_action_steps frames), played in order during the rollout (the last one repeats):
+    a noise *sequence*, as free as DP's input allows.
+
     Args:
         episode: raw (unnormalised) arrays [T, ...]: ``observation.state``, ``observation.environment_state``,
             ``action`` (e.g. ``read_episodes(root, keys, [i])[i]``).
     Returns:
-        The optimised x_K, [1, horizon, action_dim], detached, on the policy's device.
+        The optimised x_K, [1, horizon, action_dim] ([C, horizon, action_dim] with ``per_chunk``), detached,
+        on the policy's device.
     """
     _check_dp(policy)
     cfg = policy.config
@@ -256,8 +261,10 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
     is_pad = _loss_pad(policy, batch)
     n = cond_all.shape[0]
     g = torch.Generator().manual_seed(int(seed))
-    x = torch.randn(1, cfg.horizon, cfg.action_feature.shape[0], generator=g).to(cond_all.device, cond_all.dtype)
-    x.requires_grad_(True)
+    chunk_of = torch.arange(n) // cfg.n_action_steps if per_chunk else torch.zeros(n, dtype=torch.long)
+    x = torch.randn(int(chunk_of.max()) + 1, cfg.horizon, cfg.action_feature.shape[0], generator=g)
+    x = x.to(cond_all.device, cond_all.dtype).requires_grad_(True)
+    chunk_of = chunk_of.to(cond_all.device)
     opt = torch.optim.Adam([x], lr=lr)
     params = list(model.parameters())
     flags = [p.requires_grad for p in params]
@@ -268,7 +275,7 @@ def adapt_dp_noise(policy, preprocessor, episode: dict[str, np.ndarray], steps: 
         model.eval()
         for _ in range(int(steps)):
             idx = _minibatch(n, batch_size, g).to(cond_all.device)
-            pred = _dp_generate(policy, cond_all[idx], x)
+            pred = _dp_generate(policy, cond_all[idx], x[chunk_of[idx]])
             loss = _masked_mse(pred, batch[ACTION][idx], is_pad[idx])
             (grad,) = torch.autograd.grad(loss, x)
             x.grad = grad
@@ -295,23 +302,31 @@ class FixedNoisePolicy(nn.Module):
         noise = torch.as_tensor(noise).detach().float()
         if noise.dim() == 2:
             noise = noise[None]
-        if noise.dim() != 3 or noise.shape[0] != 1:
-            raise ValueError(f"noise must have shape [1, horizon, action_dim], got {tuple(noise.shape)}")
+        if noise.dim() != 3:
+            raise ValueError(f"noise must have shape [C, horizon, action_dim] (C = 1, or one per chunk), "
+                             f"got {tuple(noise.shape)}")
         self.register_buffer("noise", noise.to(_device(policy)))
+        self._chunk = 0  # chunks generated since reset: which noise of a sequence comes next
 
-    def _noise_for(self, batch: Mapping[str, Tensor]) -> Tensor:
+    def _noise_for(self, batch: Mapping[str, Tensor], advance: bool) -> Tensor:
         b = batch[OBS_STATE].shape[0] if batch[OBS_STATE].dim() > 1 else 1
-        return self.noise.expand(b, -1, -1)
+        x = self.noise[min(self._chunk, len(self.noise) - 1)]
+        if advance:
+            self._chunk += 1
+        return x[None].expand(b, -1, -1)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        return self.policy.select_action(batch, noise=self._noise_for(batch))
+        # DP generates a chunk only when its action queue is empty (vectorised envs step in lockstep)
+        new_chunk = len(self.policy._queues[ACTION]) == 0
+        return self.policy.select_action(batch, noise=self._noise_for(batch, advance=new_chunk))
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        return self.policy.predict_action_chunk(batch, noise=self._noise_for(batch))
+        return self.policy.predict_action_chunk(batch, noise=self._noise_for(batch, advance=True))
 
     def reset(self) -> None:
+        self._chunk = 0
         self.policy.reset()
 
     def __getattr__(self, name: str):

@@ -35,10 +35,11 @@ SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
 
 # Per adaptation, six candidates each (the default first): steps x step size around each default
 # (PDP fit 100 x 0.05 with |z|^2 weight 1e-3, DP noise 100 x 0.05, BC fine-tuning 100 x 1e-5); PDP also tries
-# fitting the chunks it samples instead of its noise predictions (what DP's noise adaptation scores).
+# fitting the chunks it samples instead of its noise predictions (what DP's noise adaptation scores), DP one
+# noise per executed chunk instead of one for the whole rollout.
 ADAPT_CANDIDATES: dict[str, tuple[dict[str, Any], ...]] = {
     "fit_latent": ({}, {"steps": 0}, {"steps": 10}, {"steps": 300}, {"lam": 0.0}, {"objective": "sample"}),
-    "noise": ({}, {"steps": 30}, {"steps": 300}, {"lr": 0.01}, {"lr": 0.2}, {"steps": 300, "lr": 0.2}),
+    "noise": ({}, {"steps": 30}, {"steps": 300}, {"lr": 0.01}, {"lr": 0.2}, {"per_chunk": True}),
     "finetune": ({}, {"lr": 1e-4}, {"lr": 1e-3}, {"steps": 300, "lr": 1e-4}, {"steps": 300, "lr": 1e-3},
                  {"steps": 30, "lr": 1e-3}),
 }
