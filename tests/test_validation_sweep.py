@@ -24,7 +24,7 @@ def test_validate_tiny(tmp_path, monkeypatch):
     scenes = split_scenes("reach-around", "validation")
     cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "val", seeds=[100], rollouts=2,
                           methods=["pdp", "dp", "bc"], steps=20, episodes_per_mode=1, scenes=scenes,
-                          split="validation", validate=True, figures=False)
+                          split="validation", validate=True, figures=False, inference_steps=4)
     res = run_benchmark(cfg)
     val = json.loads((tmp_path / "val" / "validation.json").read_text())
     assert val["split"] == "validation" and set(val["methods"]) == {"pdp", "dp", "bc"}

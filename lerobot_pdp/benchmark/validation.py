@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import write_text_atomic
-from .evaluation import evaluate_method
+from .evaluation import _cached, evaluate_method, sampler_of
 from .settings import BenchmarkConfig, Method, split_scenes
 
 # (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
@@ -62,9 +62,17 @@ def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: Benchmar
     sub = replace(cfg, scenes=tuple(scenes), inference_steps=sampler[0] if sampler else None,
                   timestep_spacing=sampler[1] if sampler else None)
     tag = candidate_tag(sampler, adapt)
-    return [evaluate_method(suite, method, run / "pretrained_model", demos, sub, seed, run, adapt_kwargs=adapt,
-                            cache=run / "validation" / f"eval_{tag}.json")
-            for seed, run in runs.items()]
+    out = []
+    for seed, run in runs.items():
+        cache = run / "validation" / f"eval_{tag}.json"
+        made = _cached(run / "eval.json", sampler_of(run / "pretrained_model", sub), run / "pretrained_model", adapt)
+        if not cache.is_file() and made and made.get("rollouts") == sub.rollouts \
+                and set(map(str, scenes)) <= set(made["scenes"]):
+            cache.parent.mkdir(parents=True, exist_ok=True)  # the protocol's own evaluation is this candidate
+            write_text_atomic(cache, json.dumps(made, indent=1))
+        out.append(evaluate_method(suite, method, run / "pretrained_model", demos, sub, seed, run,
+                                   adapt_kwargs=adapt, cache=cache))
+    return out
 
 
 def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig) -> dict[str, Any]:
