@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from lerobot_pdp.benchmark import validation
+from lerobot_pdp.benchmark import settings, validation
 from lerobot_pdp.benchmark.protocol import run_benchmark
 from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes
 
@@ -55,6 +55,12 @@ def test_validate_tiny(tmp_path, monkeypatch):
     stamps = {p: p.stat().st_mtime for p in (tmp_path / "val" / "runs").rglob("validation/eval_*.json")}
     run_benchmark(cfg)
     assert stamps == {p: p.stat().st_mtime for p in stamps}
+    # a frozen choice (settings.ADAPT) is what the protocol's own evaluation adapts with, recorded in results.json
+    monkeypatch.setitem(settings.ADAPT, "reach-around", {"bc": {"lr": 1e-3}})
+    res = run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["bc"], "validate": False}))
+    made = json.loads((tmp_path / "val" / "runs" / "bc" / "seed100" / "eval.json").read_text())
+    assert made["adapt"] == {"lr": 1e-3} == res["methods"]["bc"]["adapt"]
+    assert res["frozen"]["adapt"] == {"bc": {"lr": 1e-3}}
     # never on the test split
     with pytest.raises(ValueError, match="validation split only"):
         run_benchmark(BenchmarkConfig(env="reach-around", out=tmp_path / "t", seeds=[0], validate=True))

@@ -22,6 +22,7 @@ from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, results_markdown
 from .settings import (
     ABLATIONS,
+    ADAPT,
     CAMERAS,
     SETTINGS,
     SPACINGS,
@@ -88,7 +89,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
             run_dir = out / "runs" / name / f"seed{seed}"
             ckpt = train_method(method, dataset, run_dir, seed, settings, steps, cfg.device)
             ckpts[(name, seed)] = ckpt
-            per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, cfg, seed, run_dir)
+            per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, cfg, seed, run_dir,
+                                                                 adapt_kwargs=ADAPT.get(suite.name, {}).get(name))
             if cfg.ablations and name == "pdp":
                 init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, cfg, seed, run_dir)
     res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)

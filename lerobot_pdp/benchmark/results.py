@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .settings import INIT_STEPS, BenchmarkConfig, TrainSettings, scene_label
+from .settings import ADAPT, INIT_STEPS, VALIDATION_RECORDS, BenchmarkConfig, TrainSettings, scene_label
 
 
 def _agg(values: list[float]) -> dict[str, Any]:
@@ -22,7 +22,10 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated."""
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
-                           "train": {**asdict(settings), "steps": steps}, "device": cfg.device, "methods": {}}
+                           "train": {**asdict(settings), "steps": steps}, "device": cfg.device,
+                           # what was frozen for this run besides "train", and the validation record it came from
+                           "frozen": {"adapt": ADAPT.get(env, {}), "validation_record": VALIDATION_RECORDS.get(env)},
+                           "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
     for name, runs in per_run.items():

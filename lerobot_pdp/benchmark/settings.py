@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ..envs.suite import SuiteEnv
 
@@ -129,6 +130,15 @@ SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
 PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
     "pick-place": ("--policy.film_hidden_dims=[]", "--policy.fit_lambda=0"),
 }
+
+
+# Adaptation settings besides each method's defaults (the keyword arguments of ``evaluation.adapt``: steps,
+# lr; PDP also lam and objective, DP per_chunk), per env and method, as chosen on the validation split by
+# ``benchmark --split validation --validate`` (validation.py) and frozen here before a test run; an env or
+# method missing here adapts with the defaults. VALIDATION_RECORDS names the committed validation.json each
+# choice came from; both are recorded in results.json.
+ADAPT: dict[str, dict[str, dict[str, Any]]] = {}
+VALIDATION_RECORDS: dict[str, str] = {}
 
 
 # The camera variant (``benchmark --obs images``). One camera per env, chosen so that the agent, the goal and

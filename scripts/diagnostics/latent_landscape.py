@@ -38,6 +38,7 @@ def main() -> None:
 
     from lerobot_pdp.benchmark.data import demo_episode, demo_root
     from lerobot_pdp.benchmark.rollouts import run_rollouts
+    from lerobot_pdp.benchmark.settings import scene_seed_offset
     from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
     from lerobot_pdp.latent_fitting import fit_loss
@@ -45,12 +46,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
     ap.add_argument("--env", required=True)
-    ap.add_argument("--scene", type=int, required=True, choices=(1, 2, 3))
+    ap.add_argument("--scene", type=lambda v: int(v) if v.isdigit() else v, required=True,
+                    help="a shifted scene: 1, 2, 3 or a validation scene (val1, ...)")
     ap.add_argument("-n", type=int, default=11, help="grid points per latent axis")
     ap.add_argument("--z0", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[0] (default: around the "
                     "mode means, the warm start and the fitted z, +30 %%)")
     ap.add_argument("--z1", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[1] (default: as --z0)")
     ap.add_argument("--noise-draws", type=int, default=32, help="(k, eps) draws per demonstration window")
+    ap.add_argument("--objective", choices=("denoise", "sample"), default="denoise",
+                    help="the fit objective mapped: noise prediction (L_fit) or the sampled chunks' error")
     ap.add_argument("--rollouts", type=int, default=0, help="rollouts per grid point (0: L_fit only)")
     ap.add_argument("--first-windows", type=int, metavar="W",
                     help="L_fit on the demonstration's first W windows only (where does the early part point?)")
@@ -102,7 +106,9 @@ def main() -> None:
         def objective(z: np.ndarray) -> float:
             g = torch.Generator().manual_seed(0)
             zt = torch.tensor(z, dtype=torch.float32)[None]
-            return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs_mod, consts))
+            steps = cfg.num_inference_steps if args.objective == "sample" else None
+            return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs_mod, consts,
+                                  sample_steps=steps))
 
         loss = np.zeros((args.n, args.n))
         success = np.full((args.n, args.n), np.nan)
@@ -114,7 +120,7 @@ def main() -> None:
                 if args.rollouts:
                     policy.set_latent(torch.tensor(z))
                     batch = run_rollouts(suite, args.scene, policy, pre, post, args.rollouts,
-                                         meta["seed"] * 10_000 + args.scene)
+                                         meta["seed"] * 10_000 + scene_seed_offset(args.scene))
                     success[i, j] = batch.success_rate
                     row |= {"success": batch.success_rate, "collision": batch.collision_rate}
                 print(json.dumps(row), flush=True)
