@@ -5,8 +5,10 @@ For a benchmark run with a 2-D, unsegmented latent, evaluates on an n x n grid o
 - ``L_fit`` of the scene's demonstration (the objective ``fit_latent`` minimises, with the checkpoint's
   ``fit_lambda``): every demonstration window, ``--noise-draws`` (k, eps) draws each, the same draws at every
   grid point (common random numbers), so the map is smooth and its minimum is where a converged fit lands;
+- with ``--objective sample``: instead of L_fit, the error of the chunks the policy samples under z (the
+  ``fit_objective="sample"`` loss, ``--noise-draws`` noises per window);
 - with ``--rollouts N``: the scene's success and collision rates with z held at that grid point (the
-  protocol's rollout seeds for that scene).
+  protocol's rollout seeds for that scene). ``--scene`` takes test (1-3) and validation (val1, ...) scenes.
 
 Prints one JSON line per grid point and writes a PNG with both maps, the training modes' mean latents, the
 encoder's warm start and the latent the benchmark fitted (``eval.json``). If some grid latents succeed
