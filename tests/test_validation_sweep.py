@@ -34,12 +34,11 @@ def test_validate_tiny(tmp_path, monkeypatch):
         for row in rec["sampler"] + rec["adapt"]:
             assert all(s in rec["scenes"] for s in row["success"])  # validation scenes only, never 1-3
             assert all(0.0 <= x <= 1.0 for xs in row["success"].values() for x in xs)
-        # the choice is the best score, the earlier candidate on ties
-        scores = [r["score"] for r in rec["adapt"]]
-        assert rec["chosen"]["adapt"] == rec["adapt"][scores.index(max(scores))]["adapt"]
+        # the choice follows the rule of validation.choose (2 rollouts x scenes x 1 seed behind each score)
+        assert rec["chosen"]["adapt"] == rec["adapt"][validation.choose(rec["adapt"], 2 * 4)]["adapt"]
         if rec["sampler"]:
-            scores = [r["score"] for r in rec["sampler"]]
-            assert rec["chosen"]["sampler"] == rec["sampler"][scores.index(max(scores))]["sampler"]
+            assert rec["sampler"][0]["sampler"] == [4, "leading"]  # the run's own sampler is the default
+            assert rec["chosen"]["sampler"] == rec["sampler"][validation.choose(rec["sampler"], 2 * 5)]["sampler"]
             # adaptation candidates are evaluated with the chosen sampler
             assert all(r["sampler"] == rec["chosen"]["sampler"] for r in rec["adapt"])
         evals = sorted(p.name for p in (tmp_path / "val" / "runs" / name / "seed100" / "validation").glob("eval_*"))
@@ -72,3 +71,14 @@ def test_every_method_gets_as_many_candidates():
     assert sizes == {6} and all(v[0] == {} for v in validation.ADAPT_CANDIDATES.values())
     assert len(set(validation.SAMPLER_CANDIDATES)) == len(validation.SAMPLER_CANDIDATES)
     assert validation.candidate_tag((20, "leading"), {"steps": 300, "lr": 0.2}) == "s20-leading_lr0.2_steps300"
+
+
+def test_a_setting_changes_only_on_evidence():
+    """The default (row 0) stays unless the best candidate beats it by more than one standard error."""
+    rows = [{"score": 0.60}, {"score": 0.62}, {"score": 0.55}]
+    assert validation.choose(rows, 120) == 0  # +2 points over 120 rollouts: noise (se ~4.5 points)
+    rows[1]["score"] = 0.70
+    assert validation.choose(rows, 120) == 1
+    rows[2]["score"] = 0.70
+    assert validation.choose(rows, 120) == 1  # ties: the earlier
+    assert validation.choose([{"score": 1.0}, {"score": 1.0}], 40) == 0

@@ -10,8 +10,9 @@ validation scenes, validation seeds); nothing here ever touches a test scene or 
    DP's noise optimisation and BC's fine-tuning, each evaluated with that method's chosen sampler. Scored
    on the validation scenes only (scene 0 adapts nothing).
 
-A candidate's score is its mean success over those scenes and the seeds; the first candidate listed (the
-current default) wins ties, so a setting changes only on evidence. ``validate`` writes
+A candidate's score is its mean success over those scenes and the seeds. The default (the env's current
+setting, listed first) is kept unless the best candidate beats it by more than one binomial standard error
+of the default's score over the rollouts behind it: a setting changes on evidence, not on one rollout. ``validate`` writes
 ``out/validation.json``: every candidate's per-scene, per-seed success and the choice per method, which
 ``settings.py`` then freezes for the test run (by hand, so that the change is reviewed).
 """
@@ -26,7 +27,7 @@ import numpy as np
 
 from ..atomic import write_text_atomic
 from .evaluation import _cached, evaluate_method, sampler_of
-from .settings import BenchmarkConfig, Method, split_scenes
+from .settings import ADAPT, BenchmarkConfig, Method, split_scenes
 
 # (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
 SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
@@ -53,6 +54,15 @@ def candidate_tag(sampler: tuple[int, str] | None, adapt: dict[str, Any]) -> str
 
 def _score(evals: list[dict[str, Any]], scenes: list[int | str]) -> float:
     return float(np.mean([e["scenes"][str(s)]["success"] for e in evals for s in scenes]))
+
+
+def choose(rows: list[dict[str, Any]], rollouts: int) -> int:
+    """Index of the chosen candidate: the best score if it beats the default (row 0) by more than one
+    standard error of the default's score (``rollouts`` = rollouts behind each score), else the default."""
+    best = max(range(len(rows)), key=lambda i: (rows[i]["score"], -i))
+    p = rows[0]["score"]
+    se = float(np.sqrt(max(p * (1 - p), 1e-12) / max(rollouts, 1)))
+    return best if rows[best]["score"] - p > se else 0
 
 
 def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig,
@@ -92,20 +102,22 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     best_sampler: tuple[int, str] | None = None
     if has_sampler:
         rows = []
-        for sampler in SAMPLER_CANDIDATES:
+        current = (cfg.inference_steps, cfg.timestep_spacing)  # the env's setting is the default candidate
+        samplers = [current, *[c for c in SAMPLER_CANDIDATES if c != current]]
+        for sampler in samplers:
             evals = _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes)
             rows.append(row(sampler, {}, evals, scenes))
             print(f"[validate] {method.name} sampler {sampler}: {rows[-1]['score']:.1%}", flush=True)
         record["sampler"] = rows
-        best = max(range(len(rows)), key=lambda i: (rows[i]["score"], -i))
-        best_sampler = SAMPLER_CANDIDATES[best]
+        best_sampler = samplers[choose(rows, cfg.rollouts * len(scenes) * len(runs))]
     rows = []
-    for adapt in ADAPT_CANDIDATES[method.adapt]:
+    current = ADAPT.get(suite.name, {}).get(method.name, {})  # a frozen choice is the default candidate
+    for adapt in [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]:
         evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
         rows.append(row(best_sampler, adapt, evals, shifted))
         print(f"[validate] {method.name} adapt {adapt or 'default'}: {rows[-1]['score']:.1%}", flush=True)
     record["adapt"] = rows
-    best = max(range(len(rows)), key=lambda i: (rows[i]["score"], -i))
+    best = choose(rows, cfg.rollouts * len(shifted) * len(runs))
     record["chosen"] = {"sampler": list(best_sampler) if best_sampler else None, "adapt": rows[best]["adapt"]}
     return record
 
