@@ -54,12 +54,19 @@ def test_validate_tiny(tmp_path, monkeypatch):
     stamps = {p: p.stat().st_mtime for p in (tmp_path / "val" / "runs").rglob("validation/eval_*.json")}
     run_benchmark(cfg)
     assert stamps == {p: p.stat().st_mtime for p in stamps}
-    # a frozen choice (settings.ADAPT) is what the protocol's own evaluation adapts with, recorded in results.json
-    monkeypatch.setitem(settings.ADAPT, "reach-around", {"bc": {"lr": 1e-3}})
-    res = run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["bc"], "validate": False}))
-    made = json.loads((tmp_path / "val" / "runs" / "bc" / "seed100" / "eval.json").read_text())
-    assert made["adapt"] == {"lr": 1e-3} == res["methods"]["bc"]["adapt"]
-    assert res["frozen"]["adapt"] == {"bc": {"lr": 1e-3}}
+    # a frozen choice (settings.FROZEN) is what the protocol's own evaluation samples and adapts with, unless
+    # the command line names a sampler; recorded in results.json
+    frozen = {"bc": {"adapt": {"lr": 1e-3}}, "pdp": {"sampler": [4, "trailing"], "adapt": {"steps": 0}}}
+    monkeypatch.setitem(settings.FROZEN, ("reach-around", "full"), frozen)
+    res = run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["pdp", "bc"], "validate": False,
+                                           "inference_steps": None}))
+    made = {m: json.loads((tmp_path / "val" / "runs" / m / "seed100" / "eval.json").read_text()) for m in ("pdp", "bc")}
+    assert made["bc"]["adapt"] == {"lr": 1e-3} == res["methods"]["bc"]["adapt"]
+    assert (made["pdp"]["inference_steps"], made["pdp"]["timestep_spacing"], made["pdp"]["adapt"]) == (4, "trailing",
+                                                                                                        {"steps": 0})
+    assert res["frozen"]["methods"] == frozen
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["pdp"], "validate": False, "inference_steps": 3}))
+    assert json.loads((tmp_path / "val" / "runs" / "pdp" / "seed100" / "eval.json").read_text())["inference_steps"] == 3
     # never on the test split
     with pytest.raises(ValueError, match="validation split only"):
         run_benchmark(BenchmarkConfig(env="reach-around", out=tmp_path / "t", seeds=[0], validate=True))

@@ -22,13 +22,13 @@ from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, results_markdown
 from .settings import (
     ABLATIONS,
-    ADAPT,
     CAMERAS,
     SETTINGS,
     SPACINGS,
     BenchmarkConfig,
     TrainSettings,
     check_split,
+    frozen_for,
     methods_for,
 )
 from .training import train_method
@@ -56,6 +56,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     if cfg.episodes_per_mode is not None:
         settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})
     steps = cfg.steps or settings.steps
+    user_sampler = cfg.inference_steps is not None or cfg.timestep_spacing is not None  # wins over FROZEN
     if cfg.inference_steps is None:
         cfg = replace(cfg, inference_steps=settings.inference_steps)
     if cfg.timestep_spacing is None:
@@ -83,16 +84,26 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     per_run: dict[str, dict[int, dict]] = {}
     init_abl: dict[int, dict] = {}
     ckpts: dict[tuple[str, int], Path] = {}
+    method_cfgs: dict[str, BenchmarkConfig] = {}
     for name in names:
         method = all_methods[name]
+        # what the validation split chose for this method (settings.FROZEN): its sampler, unless given on
+        # the command line, is written into its checkpoints and used to evaluate; its adaptation settings
+        chosen = frozen_for(suite.name, cfg.quick, name)
+        mcfg, msettings = cfg, settings
+        if chosen.get("sampler") and not user_sampler:
+            n, spacing = chosen["sampler"]
+            mcfg = replace(cfg, inference_steps=int(n), timestep_spacing=spacing)
+            msettings = replace(settings, inference_steps=int(n), timestep_spacing=spacing)
+        method_cfgs[name] = mcfg
         for seed in cfg.seeds:
             run_dir = out / "runs" / name / f"seed{seed}"
-            ckpt = train_method(method, dataset, run_dir, seed, settings, steps, cfg.device)
+            ckpt = train_method(method, dataset, run_dir, seed, msettings, steps, cfg.device)
             ckpts[(name, seed)] = ckpt
-            per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, cfg, seed, run_dir,
-                                                                 adapt_kwargs=ADAPT.get(suite.name, {}).get(name))
+            per_run.setdefault(name, {})[seed] = evaluate_method(suite, method, ckpt, demos, mcfg, seed, run_dir,
+                                                                 adapt_kwargs=chosen.get("adapt"))
             if cfg.ablations and name == "pdp":
-                init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, cfg, seed, run_dir)
+                init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, mcfg, seed, run_dir)
     res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)
     if cfg.validate:
         from .validation import validate, validation_markdown
@@ -107,7 +118,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         from .figures import write_figures
 
         seed = cfg.seeds[0]
-        sweep = (evaluate_sweep(suite, ckpts[("pdp", seed)], out / "runs" / "pdp" / f"seed{seed}", cfg, seed)
+        sweep = (evaluate_sweep(suite, ckpts[("pdp", seed)], out / "runs" / "pdp" / f"seed{seed}", method_cfgs["pdp"],
+                                seed)
                  if ("pdp", seed) in ckpts else None)
         # relative to the output folder, so that a results folder can be moved or committed as it is
         res["figures"] = [str(p.relative_to(out)) for p in write_figures(suite, out, cfg, ckpts, sweep)]

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .settings import ADAPT, INIT_STEPS, VALIDATION_RECORDS, BenchmarkConfig, TrainSettings, scene_label
+from .settings import FROZEN, INIT_STEPS, VALIDATION_RECORDS, BenchmarkConfig, TrainSettings, scene_label
 
 
 def _agg(values: list[float]) -> dict[str, Any]:
@@ -20,11 +20,13 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
               settings: TrainSettings, steps: int) -> dict[str, Any]:
     """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
     mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated."""
+    budget = "quick" if cfg.quick else "full"
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "device": cfg.device,
                            # what was frozen for this run besides "train", and the validation record it came from
-                           "frozen": {"adapt": ADAPT.get(env, {}), "validation_record": VALIDATION_RECORDS.get(env)},
+                           "frozen": {"methods": FROZEN.get((env, budget), {}),
+                                      "validation_record": VALIDATION_RECORDS.get((env, budget))},
                            "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}

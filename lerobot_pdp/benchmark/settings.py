@@ -132,13 +132,19 @@ PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
 }
 
 
-# Adaptation settings besides each method's defaults (the keyword arguments of ``evaluation.adapt``: steps,
-# lr; PDP also lam and objective, DP per_chunk), per env and method, as chosen on the validation split by
-# ``benchmark --split validation --validate`` (validation.py) and frozen here before a test run; an env or
-# method missing here adapts with the defaults. VALIDATION_RECORDS names the committed validation.json each
-# choice came from; both are recorded in results.json.
-ADAPT: dict[str, dict[str, dict[str, Any]]] = {}
-VALIDATION_RECORDS: dict[str, str] = {}
+# What the validation split chose per method (``benchmark --split validation --validate``, validation.py),
+# frozen here before a test run, per (env, "full" | "quick") budget: {"sampler": [DDIM steps, grid],
+# "adapt": keyword arguments of ``evaluation.adapt`` (steps, lr; PDP lam / objective, DP per_chunk)}, the
+# shape of validation.json's "chosen". A missing entry means the env's TrainSettings sampler and each
+# method's default adaptation. VALIDATION_RECORDS names the committed validation.json of each budget; both
+# are recorded in results.json.
+FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
+VALIDATION_RECORDS: dict[tuple[str, str], str] = {}
+
+
+def frozen_for(env: str, quick: bool, method: str) -> dict[str, Any]:
+    """The frozen choice of ``method`` on ``env`` at the full or quick budget ({} if none)."""
+    return FROZEN.get((env, "quick" if quick else "full"), {}).get(method, {})
 
 
 # The camera variant (``benchmark --obs images``). One camera per env, chosen so that the agent, the goal and

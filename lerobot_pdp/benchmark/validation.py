@@ -27,7 +27,7 @@ import numpy as np
 
 from ..atomic import write_text_atomic
 from .evaluation import _cached, evaluate_method, sampler_of
-from .settings import ADAPT, BenchmarkConfig, Method, split_scenes
+from .settings import BenchmarkConfig, Method, frozen_for, split_scenes
 
 # (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
 SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
@@ -102,7 +102,9 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     best_sampler: tuple[int, str] | None = None
     if has_sampler:
         rows = []
-        current = (cfg.inference_steps, cfg.timestep_spacing)  # the env's setting is the default candidate
+        # the method's current sampler (frozen, else the env's) is the default candidate
+        current = tuple(frozen_for(suite.name, cfg.quick, method.name).get("sampler")
+                        or (cfg.inference_steps, cfg.timestep_spacing))
         samplers = [current, *[c for c in SAMPLER_CANDIDATES if c != current]]
         for sampler in samplers:
             evals = _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes)
@@ -111,7 +113,7 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
         record["sampler"] = rows
         best_sampler = samplers[choose(rows, cfg.rollouts * len(scenes) * len(runs))]
     rows = []
-    current = ADAPT.get(suite.name, {}).get(method.name, {})  # a frozen choice is the default candidate
+    current = frozen_for(suite.name, cfg.quick, method.name).get("adapt", {})  # likewise
     for adapt in [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]:
         evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
         rows.append(row(best_sampler, adapt, evals, shifted))
