@@ -52,7 +52,7 @@ def sampler_of(ckpt: Path, cfg: BenchmarkConfig) -> dict[str, Any]:
     return {"inference_steps": steps, "timestep_spacing": cfg.timestep_spacing or own_spacing(ckpt)}
 
 
-def _cached(path: Path, sampler: dict[str, Any], ckpt: Path, adapt_kwargs: dict[str, Any] | None = None
+def cached_evaluation(path: Path, sampler: dict[str, Any], ckpt: Path, adapt_kwargs: dict[str, Any] | None = None
             ) -> dict[str, Any] | None:
     """A cached evaluation made with the same sampler and adaptation settings (files from before a key
     existed were made with the checkpoint's own sampler and the default adaptation)."""
@@ -128,7 +128,7 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     cache = cache or run_dir / "eval.json"
     adapt_kwargs = dict(adapt_kwargs or {})
     sampler = sampler_of(ckpt, cfg)
-    cached = _cached(cache, sampler, ckpt, adapt_kwargs)
+    cached = cached_evaluation(cache, sampler, ckpt, adapt_kwargs)
     if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
         return cached
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
@@ -171,7 +171,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
     the per-scene rates say *where* an initialisation wins or loses, which the mean hides."""
     cache = run_dir / "init_ablation.json"
     sampler = sampler_of(ckpt, cfg)
-    cached = _cached(cache, sampler, ckpt)
+    cached = cached_evaluation(cache, sampler, ckpt)
     if cached:
         return {k: v for k, v in cached.items() if k not in sampler}
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
@@ -203,7 +203,7 @@ def evaluate_sweep(suite: SuiteEnv, ckpt: Path, run_dir: Path, cfg: BenchmarkCon
     without a latent or with fewer than two modes."""
     cache = run_dir / "sweep.json"
     sampler = sampler_of(ckpt, cfg)
-    cached = _cached(cache, sampler, ckpt)
+    cached = cached_evaluation(cache, sampler, ckpt)
     if cached and cached.get("n") == n and cached.get("seed") == seed:
         return cached
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)

@@ -3,18 +3,19 @@
 Two stages, each a fixed list of candidates evaluated on the trained validation runs (scene 0 and the env's
 validation scenes, validation seeds); nothing here ever touches a test scene or test seed:
 
-1. **Sampler** (PDP and DP, one shared list): DDIM steps and grid. Both methods sample with diffusers' DDIM
-   as LeRobot's ``diffusion`` steps it (``TrainSettings.timestep_spacing``), so a candidate is the same
-   sampler for both. Scored on every scene of the split (scene 0 included: the sampler acts there too).
+1. **Sampler** (PDP and DP, one shared list, each method choosing its own): DDIM steps and grid. Both
+   sample with diffusers' DDIM as LeRobot's ``diffusion`` steps it, so a candidate is the same sampler for
+   both. Scored on every scene of the split (scene 0 included: the sampler acts there too).
 2. **Adaptation** (every method, as many candidates each): the steps and step size of PDP's latent fit,
    DP's noise optimisation and BC's fine-tuning, each evaluated with that method's chosen sampler. Scored
    on the validation scenes only (scene 0 adapts nothing).
 
-A candidate's score is its mean success over those scenes and the seeds. The default (the env's current
-setting, listed first) is kept unless the best candidate beats it by more than one binomial standard error
-of the default's score over the rollouts behind it: a setting changes on evidence, not on one rollout. ``validate`` writes
-``out/validation.json``: every candidate's per-scene, per-seed success and the choice per method, which
-``settings.py`` then freezes for the test run (by hand, so that the change is reviewed).
+A candidate's score is its mean success over those scenes and the seeds. The default (the method's current
+setting: ``settings.FROZEN``, else the env's sampler and the adaptation's defaults; listed first) is kept
+unless the best candidate beats it by more than one binomial standard error of the default's score over the
+rollouts behind it: a setting changes on evidence, not on one rollout. ``validate`` writes
+``out/validation.json`` (every candidate's per-scene, per-seed success and each method's choice), which
+``settings.FROZEN`` then freezes for the test run, by hand so that the change is reviewed.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import write_text_atomic
-from .evaluation import _cached, evaluate_method, sampler_of
+from .evaluation import cached_evaluation, evaluate_method, sampler_of
 from .settings import BenchmarkConfig, Method, frozen_for, split_scenes
 
 # (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
@@ -75,7 +76,7 @@ def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: Benchmar
     out = []
     for seed, run in runs.items():
         cache = run / "validation" / f"eval_{tag}.json"
-        made = _cached(run / "eval.json", sampler_of(run / "pretrained_model", sub), run / "pretrained_model", adapt)
+        made = cached_evaluation(run / "eval.json", sampler_of(run / "pretrained_model", sub), run / "pretrained_model", adapt)
         if not cache.is_file() and made and made.get("rollouts") == sub.rollouts \
                 and set(map(str, scenes)) <= set(made["scenes"]):
             cache.parent.mkdir(parents=True, exist_ok=True)  # the protocol's own evaluation is this candidate
