@@ -135,7 +135,8 @@ def main() -> None:
     policy.set_latent(None)
 
     part = f", first {len(idx)} windows" if args.first_windows else ""
-    panels = [(f"L_fit (lambda = {cfg.fit_lambda:g}{part})", loss, "viridis")]
+    name = "sampled-chunk error" if args.objective == "sample" else "L_fit"
+    panels = [(f"{name} (lambda = {cfg.fit_lambda:g}{part})", loss, "viridis")]
     if args.rollouts:
         panels.append((f"scene-{args.scene} success ({args.rollouts} rollouts per z)", success, "RdYlGn"))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.6), squeeze=False)
