@@ -89,7 +89,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         method = all_methods[name]
         # what the validation split chose for this method (settings.FROZEN): its sampler, unless given on
         # the command line, is written into its checkpoints and used to evaluate; its adaptation settings
-        chosen = frozen_for(suite.name, cfg.quick, name)
+        chosen = frozen_for(suite.name, cfg.quick, name, cfg.obs)
         mcfg, msettings = cfg, settings
         if chosen.get("sampler") and not user_sampler:
             n, spacing = chosen["sampler"]

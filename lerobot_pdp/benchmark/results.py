@@ -25,8 +25,9 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "device": cfg.device,
                            # what was frozen for this run besides "train", and the validation record it came from
-                           "frozen": {"methods": FROZEN.get((env, budget), {}),
-                                      "validation_record": VALIDATION_RECORDS.get((env, budget))},
+                           "frozen": ({"methods": FROZEN.get((env, budget), {}),
+                                       "validation_record": VALIDATION_RECORDS.get((env, budget))}
+                                      if cfg.obs == "state" else {"methods": {}, "validation_record": None}),
                            "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}

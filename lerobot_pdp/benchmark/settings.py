@@ -138,12 +138,24 @@ PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
 # shape of validation.json's "chosen". A missing entry means the env's TrainSettings sampler and each
 # method's default adaptation. VALIDATION_RECORDS names the committed validation.json of each budget; both
 # are recorded in results.json.
-FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
-VALIDATION_RECORDS: dict[tuple[str, str], str] = {}
+FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {
+    # seed 100, 20 rollouts per scene, scene 0 + val1-4 (docs/results/reach-around/validation_quick.md)
+    ("reach-around", "quick"): {"pdp": {"sampler": [10, "trailing"], "adapt": {"lam": 0.0}},
+                                "dp": {"sampler": [5, "trailing"]}},
+    # seed 100, 40 rollouts, scene 0 + val1-3; PDP kept its defaults, DP's sweep is not run yet
+    ("kitchen-microwave", "full"): {"bc": {"adapt": {"lr": 1e-4}}},
+}
+VALIDATION_RECORDS: dict[tuple[str, str], str] = {
+    ("reach-around", "quick"): "docs/results/reach-around/validation_quick.json",
+    ("kitchen-microwave", "full"): "docs/results/kitchen-microwave/validation.json",
+}
 
 
-def frozen_for(env: str, quick: bool, method: str) -> dict[str, Any]:
-    """The frozen choice of ``method`` on ``env`` at the full or quick budget ({} if none)."""
+def frozen_for(env: str, quick: bool, method: str, obs: str = "state") -> dict[str, Any]:
+    """The frozen choice of ``method`` on ``env`` at the full or quick budget ({} if none; choices were made
+    on state observations and are not carried over to the camera variant)."""
+    if obs != "state":
+        return {}
     return FROZEN.get((env, "quick" if quick else "full"), {}).get(method, {})
 
 

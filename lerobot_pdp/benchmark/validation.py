@@ -104,7 +104,7 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     if has_sampler:
         rows = []
         # the method's current sampler (frozen, else the env's) is the default candidate
-        current = tuple(frozen_for(suite.name, cfg.quick, method.name).get("sampler")
+        current = tuple(frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("sampler")
                         or (cfg.inference_steps, cfg.timestep_spacing))
         samplers = [current, *[c for c in SAMPLER_CANDIDATES if c != current]]
         for sampler in samplers:
@@ -114,7 +114,7 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
         record["sampler"] = rows
         best_sampler = samplers[choose(rows, cfg.rollouts * len(scenes) * len(runs))]
     rows = []
-    current = frozen_for(suite.name, cfg.quick, method.name).get("adapt", {})  # likewise
+    current = frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("adapt", {})  # likewise
     for adapt in [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]:
         evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
         rows.append(row(best_sampler, adapt, evals, shifted))
