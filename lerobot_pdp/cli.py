@@ -253,11 +253,11 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="scenes to evaluate: indices and/or validation scene names (default: those of --split)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--inference-steps", type=int, default=None,
-                   help="DDIM steps when evaluating PDP and DP (default: each checkpoint's own); "
-                   "re-evaluates cached runs made with other steps, without retraining")
+                   help="DDIM steps of PDP and DP (default: each method's validated setting, settings.FROZEN, else "
+                   "the env's); re-evaluates cached runs made with other steps, without retraining")
     p.add_argument("--timestep-spacing", choices=("leading", "trailing", "even"), default=None,
-                   help="DDIM grid of PDP's and DP's shared sampler (default: the env's setting); 'even' is PDP's "
-                   "own sampler, without dp; re-evaluates like --inference-steps")
+                   help="DDIM grid of PDP's and DP's shared sampler (default as --inference-steps); 'even' is "
+                   "PDP's own sampler, without dp; re-evaluates like --inference-steps")
     p.add_argument("--validate", action="store_true",
                    help="with --split validation: evaluate every method's candidate samplers and adaptation "
                    "settings (lerobot_pdp/benchmark/validation.py) and write validation.json / validation.md")
@@ -297,7 +297,8 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                            quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
-                           timestep_spacing=args.timestep_spacing, validate=args.validate, figures=not args.no_figures, device=args.device, **camera)
+                           timestep_spacing=args.timestep_spacing, validate=args.validate,
+                           figures=not args.no_figures, device=args.device, **camera)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

@@ -42,7 +42,8 @@ def test_validate_tiny(tmp_path, monkeypatch):
             # adaptation candidates are evaluated with the chosen sampler
             assert all(r["sampler"] == rec["chosen"]["sampler"] for r in rec["adapt"])
         evals = sorted(p.name for p in (tmp_path / "val" / "runs" / name / "seed100" / "validation").glob("eval_*"))
-        assert len(evals) == len(rec["sampler"]) + len(rec["adapt"]) - (1 if rec["sampler"] else 0)
+        # the default candidate is the protocol's own eval.json, not a second evaluation
+        assert len(evals) == len(rec["sampler"]) + len(rec["adapt"]) - (2 if rec["sampler"] else 1)
         last = rec["adapt"][-1]
         made = json.loads((tmp_path / "val" / "runs" / name / "seed100" / "validation" / f"eval_{last['tag']}.json")
                           .read_text())

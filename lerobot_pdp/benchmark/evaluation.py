@@ -27,40 +27,35 @@ from .settings import INIT_STEPS, BenchmarkConfig, Method, scene_seed_offset
 from .training import load_policy
 
 
-def sampler_steps(ckpt: Path, override: int | None = None) -> int | None:
-    """DDIM steps an evaluation of ``ckpt`` uses: ``override``, else the checkpoint's own (None: no sampler)."""
+def checkpoint_sampler(ckpt: Path) -> tuple[int | None, str | None]:
+    """The DDIM steps and grid a checkpoint samples with by itself, from one read of its config: PDP's
+    fields ("even" before the grid field existed), "leading" for LeRobot's diffusion (diffusers' default),
+    (None, None) without a sampler."""
     saved = json.loads((Path(ckpt) / "config.json").read_text())
     if "num_inference_steps" not in saved:
-        return None
-    return int(override) if override is not None else saved["num_inference_steps"]
-
-
-def own_spacing(ckpt: Path) -> str | None:
-    """The DDIM grid a checkpoint samples on by itself: PDP's config field ("even" before it existed),
-    "leading" for LeRobot's diffusion (diffusers' default), None without a sampler."""
-    saved = json.loads((Path(ckpt) / "config.json").read_text())
-    if "num_inference_steps" not in saved:
-        return None
-    return saved.get("timestep_spacing", "even") if saved.get("type") == "pdp" else "leading"
+        return None, None
+    spacing = saved.get("timestep_spacing", "even") if saved.get("type") == "pdp" else "leading"
+    return saved["num_inference_steps"], spacing
 
 
 def sampler_of(ckpt: Path, cfg: BenchmarkConfig) -> dict[str, Any]:
     """What an evaluation of ``ckpt`` samples with under ``cfg`` (recorded in its cache file)."""
-    steps = sampler_steps(ckpt, cfg.inference_steps)
+    steps, spacing = checkpoint_sampler(ckpt)
     if steps is None:
         return {"inference_steps": None}
-    return {"inference_steps": steps, "timestep_spacing": cfg.timestep_spacing or own_spacing(ckpt)}
+    return {"inference_steps": int(cfg.inference_steps or steps), "timestep_spacing": cfg.timestep_spacing or spacing}
 
 
 def cached_evaluation(path: Path, sampler: dict[str, Any], ckpt: Path, adapt_kwargs: dict[str, Any] | None = None
-            ) -> dict[str, Any] | None:
+                      ) -> dict[str, Any] | None:
     """A cached evaluation made with the same sampler and adaptation settings (files from before a key
     existed were made with the checkpoint's own sampler and the default adaptation)."""
     if not path.is_file():
         return None
     cached = json.loads(path.read_text())
-    same = (cached.get("inference_steps", sampler_steps(ckpt)) == sampler["inference_steps"]
-            and cached.get("timestep_spacing", own_spacing(ckpt)) == sampler.get("timestep_spacing")
+    steps, spacing = checkpoint_sampler(ckpt)
+    same = (cached.get("inference_steps", steps) == sampler["inference_steps"]
+            and cached.get("timestep_spacing", spacing) == sampler.get("timestep_spacing")
             and cached.get("adapt", {}) == (adapt_kwargs or {}))
     return cached if same else None
 

@@ -75,14 +75,12 @@ def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: Benchmar
     tag = candidate_tag(sampler, adapt)
     out = []
     for seed, run in runs.items():
-        cache = run / "validation" / f"eval_{tag}.json"
-        made = cached_evaluation(run / "eval.json", sampler_of(run / "pretrained_model", sub), run / "pretrained_model", adapt)
-        if not cache.is_file() and made and made.get("rollouts") == sub.rollouts \
-                and set(map(str, scenes)) <= set(made["scenes"]):
-            cache.parent.mkdir(parents=True, exist_ok=True)  # the protocol's own evaluation is this candidate
-            write_text_atomic(cache, json.dumps(made, indent=1))
-        out.append(evaluate_method(suite, method, run / "pretrained_model", demos, sub, seed, run,
-                                   adapt_kwargs=adapt, cache=cache))
+        ckpt = run / "pretrained_model"
+        made = cached_evaluation(run / "eval.json", sampler_of(ckpt, sub), ckpt, adapt)
+        own = made and made.get("rollouts") == sub.rollouts and set(map(str, scenes)) <= set(made["scenes"])
+        # the protocol's own evaluation, when it is this candidate; else one cache file per candidate
+        cache = run / "eval.json" if own else run / "validation" / f"eval_{tag}.json"
+        out.append(evaluate_method(suite, method, ckpt, demos, sub, seed, run, adapt_kwargs=adapt, cache=cache))
     return out
 
 

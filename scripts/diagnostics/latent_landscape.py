@@ -6,7 +6,8 @@ For a benchmark run with a 2-D, unsegmented latent, evaluates on an n x n grid o
   ``fit_lambda``): every demonstration window, ``--noise-draws`` (k, eps) draws each, the same draws at every
   grid point (common random numbers), so the map is smooth and its minimum is where a converged fit lands;
 - with ``--objective sample``: instead of L_fit, the error of the chunks the policy samples under z (the
-  ``fit_objective="sample"`` loss, ``--noise-draws`` noises per window);
+  ``fit_objective="sample"`` loss, ``--noise-draws`` noises per window); with ``--objective decoder``, the
+  trajectory VAE decoder's error on the demonstration's (standardised) behavior trace;
 - with ``--rollouts N``: the scene's success and collision rates with z held at that grid point (the
   protocol's rollout seeds for that scene). ``--scene`` takes test (1-3) and validation (val1, ...) scenes.
 
@@ -38,6 +39,7 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from lerobot_pdp.behavior import make_trace
     from lerobot_pdp.benchmark.data import demo_episode, demo_root
     from lerobot_pdp.benchmark.rollouts import run_rollouts
     from lerobot_pdp.benchmark.settings import scene_seed_offset
@@ -55,8 +57,9 @@ def main() -> None:
                     "mode means, the warm start and the fitted z, +30 %%)")
     ap.add_argument("--z1", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[1] (default: as --z0)")
     ap.add_argument("--noise-draws", type=int, default=32, help="(k, eps) draws per demonstration window")
-    ap.add_argument("--objective", choices=("denoise", "sample"), default="denoise",
-                    help="the fit objective mapped: noise prediction (L_fit) or the sampled chunks' error")
+    ap.add_argument("--objective", choices=("denoise", "sample", "decoder"), default="denoise",
+                    help="what is mapped: L_fit (noise prediction), the sampled chunks' error, or the trajectory "
+                    "VAE decoder's error on the demonstration's behavior trace")
     ap.add_argument("--rollouts", type=int, default=0, help="rollouts per grid point (0: L_fit only)")
     ap.add_argument("--first-windows", type=int, metavar="W",
                     help="L_fit on the demonstration's first W windows only (where does the early part point?)")
@@ -105,9 +108,15 @@ def main() -> None:
     with torch.no_grad():
         obs_mod = den.obs_modulation(consts, windows.obs_cond)
 
+        vae = policy.model.vae
+        trace = make_trace(np.asarray(demo[cfg.trace_key]), cfg.trace_dims, cfg.trace_length, cfg.trace_normalize)
+        target = vae.standardize(torch.as_tensor(trace, dtype=torch.float32)[None])
+
         def objective(z: np.ndarray) -> float:
             g = torch.Generator().manual_seed(0)
             zt = torch.tensor(z, dtype=torch.float32)[None]
+            if args.objective == "decoder":
+                return float((vae.decode(zt) - target).pow(2).mean())
             steps = cfg.num_inference_steps if args.objective == "sample" else None
             return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs_mod, consts,
                                   sample_steps=steps))
@@ -135,7 +144,7 @@ def main() -> None:
     policy.set_latent(None)
 
     part = f", first {len(idx)} windows" if args.first_windows else ""
-    name = "sampled-chunk error" if args.objective == "sample" else "L_fit"
+    name = {"sample": "sampled-chunk error", "decoder": "decoder trace error"}.get(args.objective, "L_fit")
     panels = [(f"{name} (lambda = {cfg.fit_lambda:g}{part})", loss, "viridis")]
     if args.rollouts:
         panels.append((f"scene-{args.scene} success ({args.rollouts} rollouts per z)", success, "RdYlGn"))
