@@ -14,6 +14,7 @@ the pre/post-processors (reported separately as ``pipeline_median_ms``). Policie
 
 ``--device cuda`` times the same calls on a GPU (each call waits for the GPU before the clock stops) and adds
 ``pdp_eager``: PDP with its CUDA-graph replay switched off, i.e. the kernels launched one by one.
+``pdp_cudnn``: PDP (graphed) with PyTorch's (cuDNN) convolutions instead of unfold + matmul.
 
 Weights are freshly initialised: latency does not depend on their values. The small policies are timed in
 interleaved rounds so that load changes on the machine hit them equally. One JSON line per policy on
@@ -139,7 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.device.startswith("cuda"):
         small["pdp_eager"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
         small["pdp_eager"][0].model._cuda_graphs = False
-    for name in ("pdp", "pdp_eager"):
+        small["pdp_cudnn"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
+        small["pdp_cudnn"][0].model.denoiser.unfold_on_gpu = False
+    for name in ("pdp", "pdp_eager", "pdp_cudnn"):
         if name in small:
             pdp = small[name][0]
             pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw

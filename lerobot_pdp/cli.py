@@ -261,6 +261,8 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", action="store_true",
                    help="with --split validation: evaluate every method's candidate samplers and adaptation "
                    "settings (lerobot_pdp/benchmark/validation.py) and write validation.json / validation.md")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="with --validate: processes evaluating the candidates of a stage side by side (default 1)")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--obs", choices=("state", "images"), default="state",
@@ -298,7 +300,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
                            quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
                            episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
-                           figures=not args.no_figures, device=args.device, **camera)
+                           figures=not args.no_figures, device=args.device, jobs=args.jobs, **camera)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

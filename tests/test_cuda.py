@@ -55,6 +55,23 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
     torch.testing.assert_close(out, p.model._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
 
 
+def test_gpu_sampler_convolutions_equal_the_unfolded_ones(synthetic_meta):
+    """The sampler's unfold + matmul convolutions on a GPU give the chunk PyTorch's (cuDNN) convolutions give."""
+    p = small_policy(synthetic_meta, "cuda")
+    p.eval()
+    g = torch.Generator(device="cuda").manual_seed(1)
+    obs = torch.randn(2, p.model.denoiser.obs_cond_dim, device="cuda", generator=g)
+    z = torch.randn(2, p.config.latent_dim, device="cuda", generator=g)
+    noise = torch.randn(2, p.config.horizon, p.action_dim, device="cuda", generator=g)
+    n = p.config.num_inference_steps
+    assert p.model.denoiser.unfold_on_gpu
+    with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # exact arithmetic on both paths
+        unfolded = p.model._sample(obs, z, noise, n)
+        p.model.denoiser.unfold_on_gpu = False
+        conv = p.model._sample(obs, z, noise, n)
+    torch.testing.assert_close(conv, unfolded, atol=1e-5, rtol=1e-5)
+
+
 def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
     """Several select_action calls with one latent per phase (the second call used to mix devices)."""
     p = small_policy(synthetic_meta, "cuda", n_action_steps=2)

@@ -74,3 +74,34 @@ def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_check
     with pytest.raises(RuntimeError, match=r"lerobot-train failed with exit code \d+; see .*train\.log"):
         train_method(method, tmp_path / "no_such_dataset", run_dir, 0, settings, 10)
     assert sorted(p.name for p in run_dir.iterdir()) == ["train.log"]
+
+
+def test_frozen_settings_are_what_the_committed_validation_records_chose():
+    """settings.FROZEN is copied by hand from validation.json: each entry must equal its record's choice (an
+    absent sampler / adaptation = the env's TrainSettings sampler / the defaults), and every frozen
+    adaptation keyword must be one the method's adaptation takes (a typo would fail only at test time)."""
+    import inspect
+    from pathlib import Path
+
+    from lerobot_pdp import PDPPolicy
+    from lerobot_pdp.benchmark import settings
+    from lerobot_pdp.benchmark.baselines import adapt_dp_noise, finetune_bc
+
+    takes = {"fit_latent": PDPPolicy.fit_latent, "noise": adapt_dp_noise, "finetune": finetune_bc}
+    root = Path(__file__).resolve().parents[1]
+    assert set(settings.FROZEN) <= set(settings.VALIDATION_RECORDS)
+    for (env, budget), rel in settings.VALIDATION_RECORDS.items():
+        record = json.loads((root / rel).read_text())
+        assert record["env"] == env and record["split"] == "validation"
+        full, quick = SETTINGS[env]
+        train = quick if budget == "quick" else full
+        frozen = settings.FROZEN.get((env, budget), {})
+        assert set(frozen) <= set(record["methods"]), (env, budget)
+        methods = methods_for(get_suite_env(env))
+        for name, rec in record["methods"].items():
+            f, chosen = frozen.get(name, {}), rec["chosen"]
+            if chosen["sampler"] is not None:
+                assert f.get("sampler", [train.inference_steps, train.timestep_spacing]) == chosen["sampler"], (env, name)
+            assert f.get("adapt", {}) == chosen["adapt"], (env, budget, name)
+            params = inspect.signature(takes[methods[name].adapt]).parameters
+            assert set(f.get("adapt", {})) <= set(params), (env, budget, name, f)

@@ -55,6 +55,14 @@ def test_validate_tiny(tmp_path, monkeypatch):
     stamps = {p: p.stat().st_mtime for p in (tmp_path / "val" / "runs").rglob("validation/eval_*.json")}
     run_benchmark(cfg)
     assert stamps == {p: p.stat().st_mtime for p in stamps}
+    # --jobs 2: each stage's candidates are evaluated in worker processes (seeded rollouts: the same numbers)
+    for p in stamps:
+        p.unlink()
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "jobs": 2}))
+    assert all(p.is_file() for p in stamps)
+    assert json.loads((tmp_path / "val" / "validation.json").read_text()) == val
+    with pytest.raises(ValueError, match="--jobs 2: processes for --validate"):
+        run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "jobs": 2, "validate": False}))
     # a frozen choice (settings.FROZEN) is what the protocol's own evaluation samples and adapts with, unless
     # the command line names a sampler; recorded in results.json
     frozen = {"bc": {"adapt": {"lr": 1e-3}}, "pdp": {"sampler": [4, "trailing"], "adapt": {"steps": 0}}}

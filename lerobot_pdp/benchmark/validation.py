@@ -84,6 +84,35 @@ def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: Benchmar
     return out
 
 
+def _evaluate_in_worker(args: tuple) -> None:
+    """One candidate in a worker process (its result lands in the candidate's cache file)."""
+    import torch
+
+    import lerobot_pdp.envs  # noqa: F401  (a spawned process registers the suite anew)
+
+    *args, threads = args
+    torch.set_num_threads(threads)
+    _evaluate(*args)
+
+
+def _prefetch(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig,
+              candidates: list[tuple[tuple[int, str] | None, dict[str, Any], list[int | str]]]) -> None:
+    """Evaluate a stage's candidates in ``cfg.jobs`` processes side by side; the sequential pass that
+    follows then reads every result from its cache. Nothing to do with one job."""
+    if cfg.jobs <= 1 or len(candidates) <= 1:
+        return
+    import multiprocessing as mp
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = min(cfg.jobs, len(candidates))
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    # spawn: the parent may hold CUDA or MuJoCo state that a forked child must not inherit
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        list(pool.map(_evaluate_in_worker,
+                      [(suite, method, runs, demos, cfg, s, a, sc, threads) for s, a, sc in candidates]))
+
+
 def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig) -> dict[str, Any]:
     """Both stages for one method over its trained validation runs ``{seed: run_dir}``."""
     scenes = list(cfg.scenes)
@@ -105,6 +134,7 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
         current = tuple(frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("sampler")
                         or (cfg.inference_steps, cfg.timestep_spacing))
         samplers = [current, *[c for c in SAMPLER_CANDIDATES if c != current]]
+        _prefetch(suite, method, runs, demos, cfg, [(c, {}, scenes) for c in samplers])
         for sampler in samplers:
             evals = _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes)
             rows.append(row(sampler, {}, evals, scenes))
@@ -113,7 +143,9 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
         best_sampler = samplers[choose(rows, cfg.rollouts * len(scenes) * len(runs))]
     rows = []
     current = frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("adapt", {})  # likewise
-    for adapt in [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]:
+    adapts = [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]
+    _prefetch(suite, method, runs, demos, cfg, [(best_sampler, a, shifted if a else scenes) for a in adapts])
+    for adapt in adapts:
         evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
         rows.append(row(best_sampler, adapt, evals, shifted))
         print(f"[validate] {method.name} adapt {adapt or 'default'}: {rows[-1]['score']:.1%}", flush=True)
