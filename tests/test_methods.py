@@ -79,7 +79,8 @@ def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_check
 def test_frozen_settings_are_what_the_committed_validation_records_chose():
     """settings.FROZEN is copied by hand from validation.json: each entry must equal its record's choice (an
     absent sampler / adaptation = the env's TrainSettings sampler / the defaults), and every frozen
-    adaptation keyword must be one the method's adaptation takes (a typo would fail only at test time)."""
+    adaptation keyword must be one the method's adaptation takes (a typo would otherwise fail only when a
+    benchmark run reaches that adaptation)."""
     import inspect
     from pathlib import Path
 
