@@ -31,13 +31,18 @@ def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
     assert all(isinstance(v, float) for v in info.values()) and torch.isfinite(loss2)
 
 
+def _sampler_inputs(p, batch: int, seed: int):
+    """Random (obs condition, z, initial noise) for ``p``'s sampler on the GPU."""
+    g = torch.Generator(device="cuda").manual_seed(seed)
+    return (torch.randn(batch, p.model.denoiser.obs_cond_dim, device="cuda", generator=g),
+            torch.randn(batch, p.config.latent_dim, device="cuda", generator=g),
+            torch.randn(batch, p.config.horizon, p.action_dim, device="cuda", generator=g))
+
+
 def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta):
     p = small_policy(synthetic_meta, "cuda")
     p.eval()
-    g = torch.Generator(device="cuda").manual_seed(0)
-    obs = torch.randn(3, p.model.denoiser.obs_cond_dim, device="cuda", generator=g)
-    z = torch.randn(3, p.config.latent_dim, device="cuda", generator=g)
-    noise = torch.randn(3, p.config.horizon, p.action_dim, device="cuda", generator=g)
+    obs, z, noise = _sampler_inputs(p, 3, seed=0)
     n = p.config.num_inference_steps
     for _ in range(2):  # capture, then replay
         torch.testing.assert_close(p.generate(obs, z, noise=noise), p.model._sample(obs, z, noise, n), atol=1e-5, rtol=1e-5)
@@ -59,10 +64,7 @@ def test_gpu_sampler_convolutions_equal_the_unfolded_ones(synthetic_meta):
     """The sampler's unfold + matmul convolutions on a GPU give the chunk PyTorch's (cuDNN) convolutions give."""
     p = small_policy(synthetic_meta, "cuda")
     p.eval()
-    g = torch.Generator(device="cuda").manual_seed(1)
-    obs = torch.randn(2, p.model.denoiser.obs_cond_dim, device="cuda", generator=g)
-    z = torch.randn(2, p.config.latent_dim, device="cuda", generator=g)
-    noise = torch.randn(2, p.config.horizon, p.action_dim, device="cuda", generator=g)
+    obs, z, noise = _sampler_inputs(p, 2, seed=1)
     n = p.config.num_inference_steps
     assert p.model.denoiser.unfold_on_gpu
     with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # exact arithmetic on both paths
