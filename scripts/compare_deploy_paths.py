@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from lerobot_pdp.atomic import write_text_atomic
+
 ENV_TYPES = {"reach-around": "pdp_reach_around", "avoiding": "pdp_avoiding", "pick-place": "pdp_pick_place",
              "kitchen-microwave": "pdp_kitchen_microwave"}
 
@@ -54,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="3", help="scene index or validation scene name")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--fps", type=int, default=50)
-    ap.add_argument("--out", type=Path, required=True, help="output folder (replaced)")
+    ap.add_argument("--out", type=Path, required=True, help="output folder (an earlier output of this script is replaced)")
     ap.add_argument("--policy-flag", action="append", default=[],
                     help="a --policy.* override given to both lerobot-rollout and lerobot-eval (repeatable)")
     args = ap.parse_args(argv)
@@ -62,9 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--episodes must be >= 1")
     if not (args.ckpt / "config.json").is_file():
         raise SystemExit(f"{args.ckpt} has no config.json: expected a PDP pretrained_model folder")
-    if args.out.exists():
+    if args.out.exists() and any(args.out.iterdir()):
+        if not (args.out / "record.log").is_file():  # only an earlier run of this script is replaced
+            raise SystemExit(f"--out {args.out} exists and is not an earlier output of this script: choose another")
         shutil.rmtree(args.out)
-    args.out.mkdir(parents=True)
+    args.out.mkdir(parents=True, exist_ok=True)
     out = args.out.resolve()
     env = {**os.environ, "HF_LEROBOT_HOME": str(out / "home"), "HF_HUB_OFFLINE": "1", "DISPLAY": "",
            "WAYLAND_DISPLAY": ""}
@@ -100,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
            "lerobot_rollout": {"success": rollout_rate, "collided": sum(bool(d["collided"]) for d in lines) / len(lines)},
            "lerobot_eval": {"success": eval_rate}, "difference_points": round(100 * (rollout_rate - eval_rate), 1),
            "seconds": {k: round(v, 1) for k, v in seconds.items()}}
-    (out / "deploy_paths.json").write_text(json.dumps(res, indent=1))
+    write_text_atomic(out / "deploy_paths.json", json.dumps(res, indent=1))
     print(json.dumps(res, indent=1))
     return 0
 
