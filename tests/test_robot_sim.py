@@ -10,7 +10,7 @@ from lerobot.robots.utils import make_robot_from_config
 from lerobot.teleoperators.utils import make_teleoperator_from_config
 
 from lerobot_pdp.robots import PDPSimConfig
-from lerobot_pdp.robots.record_hooks import split_environment_state
+from lerobot_pdp.robots.hooks import split_environment_state
 from lerobot_pdp.teleoperators import PDPWaypointsConfig
 
 

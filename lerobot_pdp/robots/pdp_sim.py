@@ -100,7 +100,7 @@ class PDPSim(Robot):
         _LIVE[config.id] = self
         record_hooks.install()  # no-op outside lerobot-record
         if self.in_rollout:
-            rollout_hooks.install(self)
+            rollout_hooks.install()
 
     # ---- LeRobot Robot interface ----
     @property

@@ -21,12 +21,12 @@ import logging
 import sys
 from typing import Any
 
+from .hooks import splitting_features, wrap_once
 from .live import LIVE
 
 logger = logging.getLogger(__name__)
 
 RECORD_MODULE = "lerobot.scripts.lerobot_record"
-_MARK = "_pdp_sim_hook"
 
 
 def install() -> bool:
@@ -37,15 +37,12 @@ def install() -> bool:
         mod = main if main is not None and hasattr(main, "record_loop") and hasattr(main, "RecordConfig") else None
     if mod is None:
         return False
-    loop, agg = getattr(mod, "record_loop", None), getattr(mod, "aggregate_pipeline_dataset_features", None)
-    if loop is None or agg is None:
+    if not (hasattr(mod, "record_loop") and hasattr(mod, "aggregate_pipeline_dataset_features")):
         logger.warning("pdp_sim: this lerobot-record has no record_loop/aggregate_pipeline_dataset_features; "
                        "episodes will end on episode_time_s only and environment_state stays in the state")
         return False
-    if not getattr(loop, _MARK, False):
-        mod.record_loop = _wrap_record_loop(loop)
-    if not getattr(agg, _MARK, False):
-        mod.aggregate_pipeline_dataset_features = _wrap_aggregate(agg)
+    wrap_once(mod, "record_loop", _wrap_record_loop)
+    wrap_once(mod, "aggregate_pipeline_dataset_features", splitting_features(lambda: list(LIVE.values())))
     return True
 
 
@@ -71,30 +68,4 @@ def _wrap_record_loop(original):
         robot.end_phase(events, recording=recording, dataset=dataset, single_task=kwargs.get("single_task"))
         return result
 
-    setattr(record_loop, _MARK, True)
     return record_loop
-
-
-def split_environment_state(features: dict[str, dict], state_names: list[str],
-                            env_state_names: list[str]) -> dict[str, dict]:
-    """``observation.state`` with names ``state + env_state`` -> the two features make-dataset writes."""
-    state = features.get("observation.state")
-    if state is None or list(state.get("names") or []) != state_names + env_state_names or not env_state_names:
-        return features
-    out = {k: v for k, v in features.items() if k != "observation.state"}
-    out["observation.state"] = {**state, "shape": (len(state_names),), "names": list(state_names)}
-    out["observation.environment_state"] = {**state, "shape": (len(env_state_names),),
-                                            "names": list(env_state_names)}
-    return out
-
-
-def _wrap_aggregate(original):
-    @functools.wraps(original)
-    def aggregate_pipeline_dataset_features(*args: Any, **kwargs: Any):
-        features = original(*args, **kwargs)
-        for robot in list(LIVE.values()):
-            features = split_environment_state(features, robot.state_names, robot.env_state_names)
-        return features
-
-    setattr(aggregate_pipeline_dataset_features, _MARK, True)
-    return aggregate_pipeline_dataset_features

@@ -23,16 +23,15 @@ from __future__ import annotations
 import functools
 import logging
 import sys
-import weakref
 from typing import Any
 
-from .record_hooks import split_environment_state
+from .hooks import splitting_features, wrap_once
+from .live import LIVE
 
 logger = logging.getLogger(__name__)
 
 CONTEXT_MODULE = "lerobot.rollout.context"
 EPISODIC_MODULE = "lerobot.rollout.strategies.episodic"
-_MARK = "_pdp_sim_hook"
 
 
 def building_rollout_context(max_depth: int = 12) -> bool:
@@ -51,47 +50,24 @@ def building_rollout_context(max_depth: int = 12) -> bool:
     return False
 
 
-# the pdp_sim robots built by lerobot-rollout in this process (they register themselves: no import of pdp_sim)
-_ROBOTS: weakref.WeakSet = weakref.WeakSet()
-
-
-def install(robot: Any) -> bool:
-    """Register ``robot`` and wrap the context builder's functions once; False when LeRobot's rollout is not
-    loaded."""
-    _ROBOTS.add(robot)
+def install() -> bool:
+    """Wrap the context builder's functions once; False when LeRobot's rollout is not loaded."""
     mod = sys.modules.get(CONTEXT_MODULE)
     if mod is None:
         return False
-    agg, make_engine = getattr(mod, "aggregate_pipeline_dataset_features", None), getattr(mod, "create_inference_engine", None)
-    if agg is None or make_engine is None:
+    if not (hasattr(mod, "aggregate_pipeline_dataset_features") and hasattr(mod, "create_inference_engine")):
         logger.warning("pdp_sim: this lerobot-rollout has no aggregate_pipeline_dataset_features/create_inference_engine; "
                        "environment_state stays in the state and episodes do not reset the policy")
         return False
-    if not getattr(agg, _MARK, False):
-        mod.aggregate_pipeline_dataset_features = _wrap_aggregate(agg)
-    if not getattr(make_engine, _MARK, False):
-        mod.create_inference_engine = _wrap_create_engine(make_engine)
-    episodic = sys.modules.get(EPISODIC_MODULE)
-    keys = getattr(episodic, "init_keyboard_listener", None)
-    if keys is not None and not getattr(keys, _MARK, False):
-        episodic.init_keyboard_listener = _wrap_keyboard(keys)
+    wrap_once(mod, "aggregate_pipeline_dataset_features", splitting_features(_rollout_robots))
+    wrap_once(mod, "create_inference_engine", _wrap_create_engine)
+    wrap_once(sys.modules.get(EPISODIC_MODULE), "init_keyboard_listener", _wrap_keyboard)
     return True
 
 
 def _rollout_robots() -> list:
-    return list(_ROBOTS)
-
-
-def _wrap_aggregate(original):
-    @functools.wraps(original)
-    def aggregate_pipeline_dataset_features(*args: Any, **kwargs: Any):
-        features = original(*args, **kwargs)
-        for robot in _rollout_robots():
-            features = split_environment_state(features, robot.state_keys, robot.env_state_keys)
-        return features
-
-    setattr(aggregate_pipeline_dataset_features, _MARK, True)
-    return aggregate_pipeline_dataset_features
+    """The live pdp_sim robots that ``lerobot-rollout`` built in this process."""
+    return [r for r in list(LIVE.values()) if r.in_rollout]
 
 
 def _wrap_create_engine(original):
@@ -108,7 +84,6 @@ def _wrap_create_engine(original):
             live.attach_rollout(engine, kwargs.get("shutdown_event"))
         return engine
 
-    setattr(create_inference_engine, _MARK, True)
     return create_inference_engine
 
 
@@ -123,7 +98,6 @@ def _wrap_keyboard(original):
             robot.attach_events(events)
         return listener, events
 
-    setattr(init_keyboard_listener, _MARK, True)
     return init_keyboard_listener
 
 
