@@ -32,17 +32,20 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
     if tasks_path.is_file():
         t = pd.read_parquet(tasks_path)
         task_by_index = {int(i): str(task) for task, i in zip(t.index, t["task_index"], strict=True)}
+    import pyarrow.parquet as pq
+
     cols = list(dict.fromkeys(["episode_index", "frame_index", "index", "task_index", *keys, *images]))
+    # only the needed columns and episodes are read: a camera dataset's other columns (image cells) and a
+    # large dataset's other episodes would dominate reading one demonstration
+    rows = [("episode_index", "in", [int(e) for e in episodes])] if episodes is not None else None
     frames = []
     for f in files:
-        df = pd.read_parquet(f)
-        missing = [c for c in cols if c not in df.columns]
+        have = pq.read_schema(f).names
+        missing = [c for c in cols if c not in have]
         if missing:
-            raise KeyError(f"{f}: dataset has no column(s) {missing}; columns are {sorted(df.columns)}")
-        frames.append(df[cols])
+            raise KeyError(f"{f}: dataset has no column(s) {missing}; columns are {sorted(have)}")
+        frames.append(pd.read_parquet(f, columns=cols, filters=rows))
     df = pd.concat(frames, ignore_index=True)
-    if episodes is not None:
-        df = df[df["episode_index"].isin(list(episodes))]
     out: dict[int, dict] = {}
     for ep, g in df.groupby("episode_index", sort=True):
         g = g.sort_values("frame_index")
