@@ -87,6 +87,7 @@ def test_frozen_settings_are_what_the_committed_validation_records_chose():
     from lerobot_pdp import PDPPolicy
     from lerobot_pdp.benchmark import settings
     from lerobot_pdp.benchmark.baselines import adapt_dp_noise, finetune_bc
+    from lerobot_pdp.benchmark.results import validation_summary
 
     takes = {"fit_latent": PDPPolicy.fit_latent, "noise": adapt_dp_noise, "finetune": finetune_bc}
     root = Path(__file__).resolve().parents[1]
@@ -106,3 +107,7 @@ def test_frozen_settings_are_what_the_committed_validation_records_chose():
             assert f.get("adapt", {}) == chosen["adapt"], (env, budget, name)
             params = inspect.signature(takes[methods[name].adapt]).parameters
             assert set(f.get("adapt", {})) <= set(params), (env, budget, name, f)
+        # results.json carries the same record, summarised: which seeds and scenes chose what
+        summary = validation_summary(rel)
+        assert {n: m["chosen"] for n, m in summary.items()} == {n: m["chosen"] for n, m in record["methods"].items()}
+        assert all(min(m["seeds"]) >= 100 and "0" in m["scenes"] for m in summary.values()), (env, budget)

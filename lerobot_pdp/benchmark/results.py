@@ -3,12 +3,25 @@ merged into one, and the markdown table in the paper's layout."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .settings import FROZEN, INIT_STEPS, VALIDATION_RECORDS, BenchmarkConfig, TrainSettings, scene_label
+
+
+def validation_summary(record: str | None) -> dict[str, Any] | None:
+    """What the committed validation record ``record`` (repository-relative) chose, per method, on which
+    seeds, scenes and rollouts; None without a record or outside a source checkout (no ``docs/``)."""
+    path = Path(__file__).resolve().parents[2] / record if record else None
+    if path is None or not path.is_file():
+        return None
+    rec = json.loads(path.read_text())
+    return {name: {"seeds": m["seeds"], "scenes": m["scenes"], "rollouts": rec["rollouts"], "chosen": m["chosen"]}
+            for name, m in rec["methods"].items()}
 
 
 def _agg(values: list[float]) -> dict[str, Any]:
@@ -26,8 +39,10 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
                            "train": {**asdict(settings), "steps": steps}, "device": cfg.device,
                            # what was frozen for this run besides "train", and the validation record it came from
                            "frozen": ({"methods": FROZEN.get((env, budget), {}),
-                                       "validation_record": VALIDATION_RECORDS.get((env, budget))}
-                                      if cfg.obs == "state" else {"methods": {}, "validation_record": None}),
+                                       "validation_record": VALIDATION_RECORDS.get((env, budget)),
+                                       "validation": validation_summary(VALIDATION_RECORDS.get((env, budget)))}
+                                      if cfg.obs == "state" else {"methods": {}, "validation_record": None,
+                                                                  "validation": None}),
                            "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
