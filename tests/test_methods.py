@@ -111,3 +111,23 @@ def test_frozen_settings_are_what_the_committed_validation_records_chose():
         summary = validation_summary(rel)
         assert {n: m["chosen"] for n, m in summary.items()} == {n: m["chosen"] for n, m in record["methods"].items()}
         assert all(min(m["seeds"]) >= 100 and "0" in m["scenes"] for m in summary.values()), (env, budget)
+
+
+def test_benchmark_lr_overrides_every_methods_learning_rate(tmp_path):
+    """``--lr`` (for choosing defaults on validation) reaches every method's lerobot-train call, PDP's encoder
+    too; a non-positive one is refused before anything is trained."""
+    from dataclasses import replace
+
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+    from lerobot_pdp.cli import benchmark_config, build_parser
+
+    cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--out", "o", "--lr", "1e-4"]))
+    assert cfg.lr == 1e-4
+    settings = replace(SETTINGS["reach-around"][0], lr=cfg.lr)
+    for name, method in methods_for(get_suite_env("reach-around")).items():
+        args = train_args(method, tmp_path / "data", 0, settings, 10)
+        assert "--policy.optimizer_lr=0.0001" in args, name
+        assert ("--policy.embedding_lr=0.0001" in args) == (method.policy_type == "pdp"), name
+    with pytest.raises(ValueError, match="lr must be > 0, got 0.0"):
+        run_benchmark(replace(cfg, out=tmp_path / "bench", lr=0.0))
+    assert not (tmp_path / "bench").exists()

@@ -57,6 +57,10 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     settings = quick if cfg.quick else full
     if cfg.episodes_per_mode is not None:
         settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})
+    if cfg.lr is not None:
+        if not cfg.lr > 0:
+            raise ValueError(f"lr must be > 0, got {cfg.lr}")
+        settings = replace(settings, lr=cfg.lr)
     steps = cfg.steps or settings.steps
     user_sampler = cfg.inference_steps is not None or cfg.timestep_spacing is not None  # wins over FROZEN
     if cfg.inference_steps is None:
