@@ -19,28 +19,37 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
 from lerobot_pdp.atomic import write_text_atomic
 from lerobot_pdp.benchmark.data import ensure_dataset
-from lerobot_pdp.benchmark.evaluation import _summary, evaluate_scene0
+from lerobot_pdp.benchmark.evaluation import evaluate_scene0, summarize_rollouts
 from lerobot_pdp.benchmark.settings import SETTINGS, methods_for
 from lerobot_pdp.benchmark.training import TRAIN_THREADS_ENV, load_policy, train_args
 from lerobot_pdp.envs.suite import get_suite_env
 
 
 def _train(args: list[str], out: Path, log: Path) -> tuple[Path, float]:
-    """Run one training into ``out`` (replaced); the checkpoint and the wall time."""
-    shutil.rmtree(out, ignore_errors=True)
+    """Train into a temporary folder beside ``out``, renamed to ``out`` only when a checkpoint was written
+    (a failed or interrupted run leaves its log, never half a run folder); the checkpoint and the wall time."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV}
     print(f"[accelerate-compare] training -> {out} (log {log})", flush=True)
     t0 = time.time()
-    with log.open("w") as f:
-        rc = subprocess.run([*args, f"--output_dir={out}"], stdout=f, stderr=subprocess.STDOUT, env=env).returncode
-    if rc != 0:
-        raise SystemExit(f"training failed with exit code {rc}; see {log}")
+    try:
+        with log.open("w") as f:
+            rc = subprocess.run([*args, f"--output_dir={tmp / 'train'}"], stdout=f, stderr=subprocess.STDOUT,
+                                env=env).returncode
+        if rc != 0:
+            raise SystemExit(f"training failed with exit code {rc}; see {log}")
+        if not (tmp / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").is_file():
+            raise SystemExit(f"training finished without a checkpoint; see {log}")
+        os.replace(tmp / "train", out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return out / "checkpoints" / "last" / "pretrained_model", time.time() - t0
 
 
@@ -56,22 +65,27 @@ def main(argv: list[str] | None = None) -> int:
     suite = get_suite_env(a.env)
     settings = SETTINGS[suite.name][1]
     steps = a.steps or settings.steps
+    dirs = (a.out / "one_process", a.out / "two_processes")
+    taken = [str(d) for d in dirs if d.exists()]
+    if taken:  # before anything runs: the script never replaces a run folder
+        raise SystemExit(f"{', '.join(taken)} exist (an earlier run of this script?): remove them or choose "
+                         "another --out")
     a.out.mkdir(parents=True, exist_ok=True)
-    data = ensure_dataset(suite, a.out, settings, seed=a.seed)
+    data = ensure_dataset(suite, a.out, settings)  # the benchmark's scene-0 dataset, whatever the training seed
     method = methods_for(suite)["pdp"]
     one = train_args(method, data, a.seed, settings, steps)
     half = train_args(method, data, a.seed, replace(settings, batch_size=settings.batch_size // 2), steps)
     accelerate = str(Path(sys.executable).with_name("accelerate"))
     two = [accelerate, "launch", "--multi_gpu", "--num_processes=2", "--num_machines=1", "--mixed_precision=no",
            "--dynamo_backend=no", "--main_process_port=0", *half]
-    runs = {"1 process": (one, a.out / "one_process"), "2 processes": (two, a.out / "two_processes")}
+    runs = {"1 process": (one, dirs[0]), "2 processes": (two, dirs[1])}
     result: dict = {"env": suite.name, "steps": steps, "seed": a.seed, "rollouts": a.rollouts,
                     "batch_per_step": settings.batch_size, "runs": {}}
     for name, (args, out) in runs.items():
         ckpt, seconds = _train(args, out, a.out / f"{out.name}.log")
         policy, pre, post = load_policy(ckpt)
         batch = evaluate_scene0(suite, method, policy, pre, post, a.rollouts, a.seed * 10_000)
-        summary = _summary(batch, suite.n_modes, with_modes=True)
+        summary = summarize_rollouts(batch, suite.n_modes, with_modes=True)
         result["runs"][name] = {"train_seconds": round(seconds, 1), **summary,
                                 "checkpoint": str(ckpt.relative_to(a.out))}
         print(f"[accelerate-compare] {name}: success {summary['success']:.0%}, steer accuracy "

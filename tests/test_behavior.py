@@ -76,6 +76,20 @@ def test_read_episodes_and_traces(synthetic_dataset):
     assert b.global_start[1] == len(eps[0]["action"])
 
 
+def test_read_episodes_reads_only_the_episodes_asked_for(synthetic_dataset):
+    """The episode filter is pushed into the parquet read: the same arrays as a full read, nothing else; an
+    unknown column is refused naming the file and the columns it has."""
+    full = read_episodes(synthetic_dataset, ["observation.state", "action"])
+    some = read_episodes(synthetic_dataset, ["observation.state", "action"], [3, 17])
+    assert sorted(some) == [3, 17] and read_episodes(synthetic_dataset, ["action"], [10**6]) == {}
+    for ep in (3, 17):
+        for key in ("observation.state", "action"):
+            np.testing.assert_array_equal(some[ep][key], full[ep][key])
+        assert (some[ep]["task"], some[ep]["from_index"]) == (full[ep]["task"], full[ep]["from_index"])
+    with pytest.raises(KeyError, match=r"\.parquet: dataset has no column\(s\) \['observation.nope'\]; columns are .*action"):
+        read_episodes(synthetic_dataset, ["observation.nope"], [3])
+
+
 def test_nonfinite_state_names_episode():
     eps = {7: {"observation.state": np.array([[0.0, 0.0], [np.nan, 1.0], [1.0, 1.0]]), "task": ""}}
     with pytest.raises(ValueError, match=r"episode 7: 'observation.state' has non-finite values \(first at frame 1"):

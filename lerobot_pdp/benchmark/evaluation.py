@@ -103,7 +103,9 @@ def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, s
     raise ValueError(f"unknown adaptation {method.adapt!r}")
 
 
-def _summary(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, Any]:
+def summarize_rollouts(batch: RolloutBatch, n_modes: int, with_modes: bool) -> dict[str, Any]:
+    """Success, collision and count of a batch; with ``with_modes`` mode coverage / entropy and, for steered
+    rollouts (label "mode <id>"), the share that landed in the mode they were given."""
     d: dict[str, Any] = {"success": batch.success_rate, "collision": batch.collision_rate,
                          "n": len(batch.results)}
     if with_modes:
@@ -134,14 +136,14 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
         t0 = time.time()
         if scene == 0:
             batch = evaluate_scene0(suite, method, policy, pre, post, cfg.rollouts, seed * 10_000)
-            summary = _summary(batch, suite.n_modes, with_modes=True)
+            summary = summarize_rollouts(batch, suite.n_modes, with_modes=True)
         else:
             demo = demo_episode(demos[scene])
             actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed,
                                 **adapt_kwargs)
             batch = run_rollouts(suite, scene, actor, pre, post, cfg.rollouts,
                                  seed * 10_000 + scene_seed_offset(scene), label=f"scene {scene}")
-            summary = {**_summary(batch, suite.n_modes, with_modes=False), **info}
+            summary = {**summarize_rollouts(batch, suite.n_modes, with_modes=False), **info}
             if method.adapt == "fit_latent":
                 policy.set_latent(None)
         summary["seconds"] = time.time() - t0
