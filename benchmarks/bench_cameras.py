@@ -14,8 +14,12 @@ DDIM steps (``benchmark.baselines.dp_config_kwargs``, the benchmark's matched DP
 from a small generated reach-around dataset (state only); camera frames are random: the time of a step does
 not depend on pixel values or weight values. One JSON line per (policy, cameras, timing), then ratio lines.
 
+``--compile`` adds ``pdp_compiled`` and ``dp_compiled``, each policy with its own ``compile_model`` on
+(PDP: the denoiser through torch.compile; DP: LeRobot's ``torch.compile(unet, mode="reduce-overhead")``),
+compiled during the warm-up calls, and their ratio.
+
     .venv/bin/python benchmarks/bench_cameras.py [--device cpu|cuda] [--threads 2] [--cameras 1 2]
-        [--batch 8] [--calls 20]
+        [--batch 8] [--calls 20] [--compile]
 """
 
 from __future__ import annotations
@@ -66,8 +70,8 @@ def _features(meta, cameras: list[str], size: int):
     return inputs, {k: ft for k, ft in feats.items() if ft.type is FeatureType.ACTION}
 
 
-def _policies(meta, cameras, size, device, steps):
-    """PDP and matched DP with the same cameras, on ``device``."""
+def _policies(meta, cameras, size, device, steps, compiled: bool = False):
+    """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins)."""
     import torch
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.factory import make_policy
@@ -79,10 +83,13 @@ def _policies(meta, cameras, size, device, steps):
     common = {"device": device, "push_to_hub": False, "input_features": inputs, "output_features": outputs}
     sampler = {} if steps is None else {"num_inference_steps": steps}
     torch.manual_seed(0)
-    pdp = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **common), ds_meta=meta)
-    dp = make_policy(DiffusionConfig(**dp_config_kwargs(sampler), **VISION, **common), ds_meta=meta)
-    pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
-    return {"pdp": pdp, "dp_matched": dp}
+    out = {}
+    for sfx, comp in (("", {}), ("_compiled", {"compile_model": True}))[: 2 if compiled else 1]:
+        pdp = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **comp, **common), ds_meta=meta)
+        dp = make_policy(DiffusionConfig(**dp_config_kwargs(sampler), **VISION, **comp, **common), ds_meta=meta)
+        pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
+        out.update({f"pdp{sfx}": pdp, f"dp{sfx or '_matched'}": dp})
+    return out
 
 
 def _training_batch(meta, policy, cameras, size, n, device):
@@ -112,7 +119,7 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
 
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
-    policies = _policies(meta, cameras, size, dev, args.inference_steps)
+    policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
            if k.startswith("observation.") and not k.endswith("_is_pad")}
     batches = {n: _training_batch(meta, p, cameras, size, args.batch, dev) for n, p in policies.items()}
@@ -158,10 +165,13 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
                               "inference_steps": cfg.num_inference_steps,
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
+    pairs = [("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
     for bench in ("select_action_new_chunk", "train_step"):
-        r = res[("pdp", bench)]["median_ms"] / res[("dp_matched", bench)]["median_ms"]
-        print(json.dumps({"bench": f"{bench}_ratio", "cameras": n_cam, "pdp_over_dp": round(r, 3),
-                          "target_1.1_met": bool(r <= 1.1), "device": dev}), flush=True)
+        for a, b, label in pairs:
+            r = res[(a, bench)]["median_ms"] / res[(b, bench)]["median_ms"]
+            print(json.dumps({"bench": f"{bench}_ratio", "cameras": n_cam, "pair": label or "eager",
+                              "pdp_over_dp": round(r, 3), "target_1.1_met": bool(r <= 1.1), "device": dev}),
+                  flush=True)
 
     pdp = policies["pdp"]
     pdp.eval()
@@ -190,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--demo-frames", type=int, default=100, help="frames of the fitted camera demonstration")
     ap.add_argument("--fit-steps", type=int, default=100, help="fit_latent steps (default: PDPConfig's 100)")
     ap.add_argument("--fit-calls", type=int, default=3)
+    ap.add_argument("--compile", action="store_true", help="also time both policies with compile_model on")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")

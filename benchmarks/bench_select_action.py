@@ -15,6 +15,9 @@ the pre/post-processors (reported separately as ``pipeline_median_ms``). Policie
 ``--device cuda`` times the same calls on a GPU (each call waits for the GPU before the clock stops) and adds
 ``pdp_eager``: PDP with its CUDA-graph replay switched off, i.e. the kernels launched one by one.
 ``pdp_cudnn``: PDP (graphed) with PyTorch's (cuDNN) convolutions instead of unfold + matmul.
+``--compile`` adds ``pdp_compiled`` and ``dp_compiled``: each policy with its ``compile_model`` on (PDP: the
+denoiser's step fused by torch.compile, still replayed from PDP's graph on CUDA; DP: LeRobot's own
+``torch.compile(unet, mode="reduce-overhead")``). Compilation happens in the warm-up calls.
 
 Weights are freshly initialised: latency does not depend on their values. The small policies are timed in
 interleaved rounds so that load changes on the machine hit them equally. One JSON line per policy on
@@ -22,7 +25,7 @@ stdout, then a ratio line.
 
     .venv/bin/python benchmarks/bench_select_action.py [--threads 1] [--calls 200] [--default-dp-calls 3]
         [--inference-steps 20]   # the benchmark's sampler (protocol.TrainSettings.inference_steps)
-        [--device cuda]
+        [--device cuda] [--compile]
 """
 
 from __future__ import annotations
@@ -108,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--inference-steps", type=int, default=None,
                     help="DDIM steps of pdp and dp_matched (default: PDPConfig's num_inference_steps)")
     ap.add_argument("--device", default="cpu", help="torch device of every policy (cpu, cuda)")
+    ap.add_argument("--compile", action="store_true",
+                    help="also time pdp_compiled and dp_compiled (compile_model=True; compiles for ~1 min)")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -142,7 +147,10 @@ def main(argv: list[str] | None = None) -> int:
         small["pdp_eager"][0].model._cuda_graphs = False
         small["pdp_cudnn"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
         small["pdp_cudnn"][0].model.denoiser.unfold_on_gpu = False
-    for name in ("pdp", "pdp_eager", "pdp_cudnn"):
+    if args.compile:
+        small["pdp_compiled"] = _build(PDPConfig(trace_dims=[0, 1, 2], compile_model=True, **sampler, **common), meta)
+        small["dp_compiled"] = _build(DiffusionConfig(**dp_config_kwargs(sampler), compile_model=True, **common), meta)
+    for name in ("pdp", "pdp_eager", "pdp_cudnn", "pdp_compiled"):
         if name in small:
             pdp = small[name][0]
             pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
@@ -195,6 +203,10 @@ def main(argv: list[str] | None = None) -> int:
     ratio = {"bench": "select_action_new_chunk_ratio", "reference": "pdp", "device": args.device,
              **{f"{k}_over_pdp": round(v["median_ms"] / base, 2) for k, v in results.items() if k != "pdp"},
              f"pdp_target_{target_ms:g}ms_met": bool(base <= target_ms)}
+    if "pdp_compiled" in results:
+        ratio[f"pdp_compiled_target_{target_ms:g}ms_met"] = bool(results["pdp_compiled"]["median_ms"] <= target_ms)
+        ratio["pdp_compiled_over_dp_compiled"] = round(
+            results["pdp_compiled"]["median_ms"] / results["dp_compiled"]["median_ms"], 2)
     print(json.dumps(ratio), flush=True)
     if tmp is not None:
         tmp.cleanup()

@@ -5,9 +5,13 @@ Each (policy, device) pair is one real ``lerobot-train`` process on the same gen
 batch, lr, backbone, sampler) with ``--policy.device`` set. The rate is measured from the wall-clock
 arrival of LeRobot's own log lines, between the first and the last one, so start-up (imports, the
 behavior bank, CUDA context) is excluded; LeRobot's ``updt_s`` / ``data_s`` averages are reported beside it.
-One JSON line per run on stdout, then a ratio line.
+Also reported: the median of the rates between consecutive log lines (``median_steps_per_s``), which a
+one-off pause (a recompile for the epoch's last, smaller batch) does not move. A policy name ending in
+``_compiled`` (``pdp_compiled``, ``dp_compiled``) trains that method with ``--policy.compile_model=true``
+(and ``--compile-mode``). One JSON line per run on stdout, then a ratio line.
 
     .venv/bin/python benchmarks/bench_train_device.py [--devices cpu cuda] [--steps 600] [--num-workers 4]
+        [--policies pdp pdp_compiled dp dp_compiled] [--compile-mode reduce-overhead]
 """
 
 from __future__ import annotations
@@ -53,7 +57,9 @@ def run_one(args: list[str], out_dir: Path, threads: int, log: Path) -> dict:
         raise RuntimeError(f"lerobot-train failed ({rc}) or logged < 2 steps; see {log}\n{tail}")
     (ta, sa, _, _), (tb, sb, _, _) = points[0], points[-1]
     later = points[1:]  # the first window holds the warm-up
+    gaps = sorted((b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(points, later, strict=False) if b[0] > a[0])
     return {"steps_per_s": round((sb - sa) / (tb - ta), 2), "measured_steps": sb - sa,
+            "median_steps_per_s": round(gaps[len(gaps) // 2], 2),
             "updt_s": round(sum(p[2] for p in later) / len(later), 4),
             "data_s": round(sum(p[3] for p in later) / len(later), 4),
             "wall_s": round(time.perf_counter() - t0, 1)}
@@ -62,7 +68,10 @@ def run_one(args: list[str], out_dir: Path, threads: int, log: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--devices", nargs="+", default=["cpu"], help="torch devices, e.g. cpu cuda")
-    ap.add_argument("--policies", nargs="+", default=["pdp", "dp"], help="benchmark methods to train")
+    ap.add_argument("--policies", nargs="+", default=["pdp", "dp"],
+                    help="benchmark methods to train; NAME_compiled = NAME with compile_model on")
+    ap.add_argument("--compile-mode", default=None, help="--policy.compile_mode of the _compiled runs "
+                    "(default: each policy's own, PDP 'default', LeRobot diffusion 'reduce-overhead')")
     ap.add_argument("--steps", type=int, default=600, help="training steps per run (< 1000: exact log counters)")
     ap.add_argument("--log-freq", type=int, default=50)
     ap.add_argument("--num-workers", type=int, default=4, help="LeRobot loader workers (all runs)")
@@ -94,12 +103,17 @@ def main(argv: list[str] | None = None) -> int:
     rates: dict[tuple[str, str], float] = {}
     for name in args.policies:  # policy by policy: a cut-short run still has each policy's device ratio
         for device in args.devices:
-            cmd = _replace(train_args(methods[name], root, 0, settings, args.steps, device),
-                           log_freq=args.log_freq, num_workers=args.num_workers, save_freq=10**9)
+            base, compiled = name.removesuffix("_compiled"), name.endswith("_compiled")
+            flags = {"policy__compile_model": "true"} if compiled else {}
+            if compiled and args.compile_mode:
+                flags["policy__compile_mode"] = args.compile_mode
+            cmd = _replace(train_args(methods[base], root, 0, settings, args.steps, device),
+                           log_freq=args.log_freq, num_workers=args.num_workers, save_freq=10**9, **flags)
             threads = cpu_threads if device == "cpu" else 1
             r = run_one(cmd, work / f"run_{name}_{device}", threads, logs / f"{name}_{device}.log")
             rates[(name, device)] = r["steps_per_s"]
             print(json.dumps({"bench": "lerobot_train_steps", "policy": name, "device": device,
+                              "compile_mode": (args.compile_mode or "policy default") if compiled else None,
                               "torch_threads": threads, "batch_size": settings.batch_size, **r, **env}), flush=True)
     ratio: dict[str, object] = {"bench": "lerobot_train_steps_ratio"}
     for name in args.policies:
@@ -107,8 +121,13 @@ def main(argv: list[str] | None = None) -> int:
             if device != "cpu" and (name, "cpu") in rates:
                 ratio[f"{name}_{device}_over_cpu"] = round(rates[(name, device)] / rates[(name, "cpu")], 2)
     for device in args.devices:
-        if ("pdp", device) in rates and ("dp", device) in rates:
-            ratio[f"pdp_over_dp_{device}"] = round(rates[("pdp", device)] / rates[("dp", device)], 2)
+        for sfx in ("", "_compiled"):
+            if (f"pdp{sfx}", device) in rates and (f"dp{sfx}", device) in rates:
+                ratio[f"pdp{sfx}_over_dp{sfx}_{device}"] = round(rates[(f"pdp{sfx}", device)]
+                                                               / rates[(f"dp{sfx}", device)], 2)
+        if ("pdp_compiled", device) in rates and ("pdp", "cpu") in rates:
+            ratio[f"pdp_compiled_{device}_over_pdp_cpu"] = round(rates[("pdp_compiled", device)]
+                                                                 / rates[("pdp", "cpu")], 2)
     print(json.dumps(ratio), flush=True)
     tmp.cleanup()
     return 0

@@ -18,6 +18,7 @@ LATENT_CONDITIONING = ("film", "concat", "none")
 LATENT_TYPES = ("continuous", "onehot")
 INFERENCE_LATENTS = ("episode", "prior", "zero")
 TRACE_NORMALIZE = ("none", "start", "endpoints")
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")  # torch.compile
 
 
 @PreTrainedConfig.register_subclass("pdp")
@@ -169,6 +170,15 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     optimizer_grad_clip_norm: float = 10.0
     # Linear warm-up steps of the cosine learning-rate schedule.
     scheduler_warmup_steps: int = 100
+    # torch.compile the denoiser (as LeRobot's diffusion does; lerobot-rollout's --use_torch_compile sets
+    # it): fuses the many small kernels of its blocks (GroupNorm, Mish, FiLM) for the training step and the
+    # sampler. Off by default: the first step and the first chunk compile for tens of seconds, and it needs
+    # Triton on CUDA (a C++ compiler on CPU). Measured in docs/performance.md "On a GPU".
+    compile_model: bool = False
+    # torch.compile mode of the training step ("default", "reduce-overhead", "max-autotune",
+    # "max-autotune-no-cudagraphs"). The sampler is compiled without CUDA graphs in any mode: on CUDA it is
+    # replayed from PDP's own captured graph already.
+    compile_mode: str = "default"
 
     # ---- Latent fitting defaults (policy.fit_latent) ----
     # Gradient steps S on z after the encoder warm start (0 = the warm start alone).
@@ -252,6 +262,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"fit_steps must be >= 0, got {self.fit_steps}")
         if self.fit_objective not in ("denoise", "sample"):
             errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
+        if self.compile_mode not in COMPILE_MODES:
+            errors.append(f"compile_mode must be one of {COMPILE_MODES}, got {self.compile_mode!r}")
         if self.timestep_spacing not in ("even", "leading", "trailing"):
             errors.append(f"timestep_spacing must be 'even', 'leading' or 'trailing', got {self.timestep_spacing!r}")
         if self.num_inference_steps > self.num_train_timesteps:

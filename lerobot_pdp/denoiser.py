@@ -256,7 +256,7 @@ class FiLMUnet1d(nn.Module):
                 "b": torch.cat([lin.bias for lin in lins]),
                 "w_z": torch.cat([lin.weight[:, d + c :] for lin in lins]),  # concat conditioning only
                 # per block: C scale rows then C bias rows (``chunk(2)`` in ``forward``)
-                "sizes": [ch for b in blocks for ch in (b.out_ch, b.out_ch)],
+                "sizes": self.modulation_sizes(),
                 "film": self._stacked_film(blocks) if self.latent_conditioning == "film" else None,
                 "film_cache": None,  # (z, gain, shift) of the last z seen at inference
             }
@@ -310,9 +310,23 @@ class FiLMUnet1d(nn.Module):
         """Everything but the sample that ``forward`` computes, for one chunk denoised at ``steps``.
 
         Returns, per step, the blocks' ``scale, bias`` ([B, C, 1] each, flattened in block order) that
-        :meth:`forward_cached` applies after each block's first convolution. ``cache_latent`` reuses z's
-        FiLM terms while z stays the same; comparing z reads it back to the host, so a captured CUDA graph
-        (no host syncs allowed) computes them every time instead.
+        :meth:`forward_cached` applies after each block's first convolution.
+        """
+        sizes = self.modulation_sizes()
+        return [list(m.unsqueeze(-1).split(sizes, dim=1))
+                for m in self.make_modulation(obs_cond, z, steps, cache_latent)]
+
+    def modulation_sizes(self) -> list[int]:
+        """Rows of each block's ``scale`` and ``bias`` in a modulation row vector, in block order."""
+        return [ch for b in self.blocks() for ch in (b.out_ch, b.out_ch)]
+
+    @torch.no_grad()
+    def make_modulation(self, obs_cond: Tensor, z: Tensor | None, steps: list[int],
+                        cache_latent: bool = True) -> Tensor:
+        """:meth:`make_context` before the split into blocks: [S, B, sum 2C] modulation rows per step.
+
+        ``cache_latent`` reuses z's FiLM terms while z stays the same; comparing z reads it back to the
+        host, so a captured CUDA graph (no host syncs allowed) computes them every time instead.
         """
         consts = self.weight_constants(steps)
         mod = consts["step"][:, None] + self.obs_modulation(consts, obs_cond)  # [S, B, sum 2C]
@@ -325,7 +339,7 @@ class FiLMUnet1d(nn.Module):
                 cached = consts["film_cache"] = (z.clone(), *self.latent_terms(consts, z))
             gain, shift = cached[1], cached[2]
             mod = mod + shift if gain is None else torch.addcmul(shift, gain, mod)
-        return [self.split_modulation(consts, m) for m in mod]
+        return mod
 
     @staticmethod
     def split_modulation(consts: dict[str, Any], mod: Tensor) -> list[Tensor]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -68,6 +69,7 @@ class PDPModel(nn.Module):
                                             cfg.use_clipped_model_output)
         self._graphs = GraphCache()  # captured samplers on CUDA (see generate)
         self._cuda_graphs = True
+        self._compiled_fns: dict[str, Callable] = {}  # torch.compile'd denoiser (config.compile_model)
 
     # ------------------------------------------------------------------ training behaviors
 
@@ -153,7 +155,8 @@ class PDPModel(nn.Module):
         eps = torch.randn_like(actions)
         k = torch.randint(0, self.config.num_train_timesteps, (actions.shape[0],), device=actions.device)
         noisy = self.noise_schedule.add_noise(actions, eps, k)
-        pred = self.denoiser(noisy, k, obs_cond, z_bar)
+        denoiser = self.compiled("train") if self.config.compile_model else self.denoiser
+        pred = denoiser(noisy, k, obs_cond, z_bar)
         is_pad = batch.get("action_is_pad") if self.config.do_mask_loss_for_padding else None
         loss_dp = diffusion_loss(pred, eps, is_pad)
         metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
@@ -253,8 +256,43 @@ class PDPModel(nn.Module):
         return self._sample(obs_cond, z, noise, n)
 
     def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int, cache_latent: bool = True) -> Tensor:
-        context = self.denoiser.make_context(obs_cond, z, self.noise_schedule.timesteps(n), cache_latent)
+        steps = self.noise_schedule.timesteps(n)
+        if self.config.compile_model:
+            mod = self.denoiser.make_modulation(obs_cond, z, steps, cache_latent)
+            return self.compiled("sample")(noise, mod, n, noise.device.type == "cpu" or self.denoiser.unfold_on_gpu)
+        context = self.denoiser.make_context(obs_cond, z, steps, cache_latent)
         return self.noise_schedule.sample(lambda x, i, k: self.denoiser.run_cached(x, context[i]), noise, n)
+
+    def _denoise(self, noise: Tensor, mod: Tensor, n: int, fast_conv: bool) -> Tensor:
+        """The whole sampler given its steps' modulation rows (``make_modulation``); what ``compiled("sample")``
+        compiles: one graph for all steps (a step's rows as input would be a view at another storage offset
+        per step, which the compiled code is specialised on)."""
+        sizes = self.denoiser.modulation_sizes()
+        return self.noise_schedule.sample(
+            lambda x, i, k: self.denoiser.forward_cached(x, list(mod[i].unsqueeze(-1).split(sizes, dim=1)), fast_conv),
+            noise, n)
+
+    def compiled(self, name: str) -> Callable:
+        """The torch.compile'd denoiser, built on first use: ``"train"`` (its forward, in ``compile_mode``)
+        or ``"sample"`` (``_denoise``, the whole sampler). The sampler's compile has no CUDA graphs of its own:
+        on CUDA it is captured into PDP's graph (``_generate_graphed``) around it."""
+        fn = self._compiled_fns.get(name)
+        if fn is None:
+            mode = self.config.compile_mode
+            if name == "train":
+                fn = torch.compile(self.denoiser, mode=mode, fullgraph=True, dynamic=False)
+            elif name == "sample":
+                mode = "max-autotune-no-cudagraphs" if mode.startswith("max-autotune") else "default"
+                fn = torch.compile(self._denoise, mode=mode, fullgraph=True, dynamic=False)
+            else:
+                raise ValueError(f"no compiled denoiser {name!r}; 'train' or 'sample'")
+            self._compiled_fns[name] = fn
+        return fn
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_compiled_fns"] = {}  # compiled code is rebuilt on demand and does not pickle
+        return state
 
     def _generate_graphed(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
         """:meth:`_sample` replayed from a CUDA graph, captured per input shape and sampler steps.

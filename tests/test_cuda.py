@@ -74,6 +74,47 @@ def test_gpu_sampler_convolutions_equal_the_unfolded_ones(synthetic_meta):
     torch.testing.assert_close(conv, unfolded, atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("mode", ["default", "reduce-overhead"])
+def test_compiled_policy_on_the_gpu(synthetic_meta, mode):
+    """compile_model on CUDA: the compiled sampler step inside PDP's captured graph gives the eager chunk and
+    replays without a host sync; the compiled training step gives the eager loss and gradients."""
+    with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # exact arithmetic on both paths
+        _check_compiled_policy(synthetic_meta, mode)
+
+
+def _check_compiled_policy(synthetic_meta, mode: str) -> None:
+    eager = small_policy(synthetic_meta, "cuda")
+    p = small_policy(synthetic_meta, "cuda", compile_model=True, compile_mode=mode)
+    p.load_state_dict(eager.state_dict())
+    for q in (eager, p):
+        q.eval()
+    obs, z, noise = _sampler_inputs(p, 1, seed=2)
+    want = eager.model._sample(obs, z, noise, p.config.num_inference_steps)
+    for _ in range(2):  # capture (compiling in the warm-up), then replay
+        torch.testing.assert_close(p.generate(obs, z, noise=noise), want, atol=1e-4, rtol=1e-4)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        p.generate(obs, z, noise=noise)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    batch = training_batch(synthetic_meta, p)
+    for q in (eager, p):
+        q.train()
+    for step in range(3):  # compile, then (reduce-overhead) record and replay its CUDA graphs
+        losses, grads = [], []
+        for q in (eager, p):
+            q.zero_grad()
+            torch.manual_seed(step)
+            loss, _ = q.model.loss_terms(batch)
+            loss.backward()
+            losses.append(loss.detach().clone())
+            grads.append([x.grad.clone() for x in q.model.denoiser.parameters()])
+        torch.testing.assert_close(losses[1], losses[0], atol=1e-4, rtol=1e-4)
+        for a, b in zip(*grads, strict=True):
+            torch.testing.assert_close(b, a, atol=1e-4, rtol=1e-3)
+    assert set(p.model._compiled_fns) == {"sample", "train"}
+
+
 def test_per_phase_latents_advance_on_the_gpu(synthetic_meta):
     """Several select_action calls with one latent per phase (the second call used to mix devices)."""
     p = small_policy(synthetic_meta, "cuda", n_action_steps=2)
