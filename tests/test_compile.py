@@ -57,3 +57,25 @@ def test_compiled_denoiser_samples_and_trains_like_the_eager_one(synthetic_meta)
     assert twin.model._compiled_fns == {} and twin.config.compile_model
     torch.testing.assert_close(twin.generate(obs, z, noise=noise), eager.generate(obs, z, noise=noise),
                                atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.slow
+def test_lerobot_rollouts_torch_compile_wrapper_acts_like_the_eager_policy(synthetic_meta):
+    """``lerobot-rollout --use_torch_compile=true`` sets ``compile_model`` and wraps ``predict_action_chunk``
+    in torch.compile (LeRobot's own wrapper, used here): the chunks stay those of the eager policy."""
+    from lerobot.rollout.context import _wrap_predict_action_chunk_with_torch_compile
+
+    eager = small_policy(synthetic_meta)
+    p = small_policy(synthetic_meta, compile_model=True)
+    p.load_state_dict(eager.state_dict())
+    assert _wrap_predict_action_chunk_with_torch_compile(p, backend="inductor", mode="default")
+    obs = {"observation.state": torch.zeros(1, 2), "observation.environment_state": torch.zeros(1, 2)}
+    for q in (eager, p):
+        q.eval()
+        q.set_latent(q.behavior_latents()[0].detach())
+        q.reset()
+        q.select_action(dict(obs))  # fills the observation history
+    for seed in range(3):
+        noise = torch.randn(1, p.config.horizon, p.action_dim, generator=torch.Generator().manual_seed(seed))
+        torch.testing.assert_close(p.predict_action_chunk(dict(obs), noise=noise),
+                                   eager.predict_action_chunk(dict(obs), noise=noise), atol=1e-4, rtol=1e-4)

@@ -38,6 +38,26 @@ def test_mean_and_std_over_seeds_in_json_and_table():
     assert "| warm (encoder) @ 0 | 75.0 | 45.0 |" in md and "| random @ 0 | 0.0 | 10.0 |" in md
 
 
+def test_the_device_each_evaluation_ran_on_is_recorded_and_merged():
+    """Cached evaluations are reused on any device: the table says where each method's evaluations ran."""
+    from lerobot_pdp.benchmark.results import merge_results
+
+    cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0, 1])
+    gpu = {**_run([1.0, 1.0, 1.0, 1.0]), "device": "cuda"}
+    cpu = {**_run([1.0, 0.5, 1.0, 1.0]), "device": "cpu"}
+    res = aggregate("reach-around", cfg, {"pdp": {0: cpu, 1: cpu}, "dp": {0: gpu, 1: cpu}}, {},
+                    TrainSettings(steps=10), 10)
+    assert res["methods"]["pdp"]["eval_devices"] == ["cpu"] and res["methods"]["dp"]["eval_devices"] == ["cpu", "cuda"]
+    assert "Evaluated on: pdp cpu, dp cpu/cuda." in results_markdown(res)
+    old = aggregate("reach-around", BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[2]),
+                    {"pdp": {2: _run([1.0, 1.0, 1.0, 1.0])}, "dp": {2: _run([0.0, 0.0, 0.0, 0.0])}}, {},
+                    TrainSettings(steps=10), 10)  # caches from before the device was recorded
+    assert old["methods"]["pdp"]["eval_devices"] == ["unrecorded"]
+    merged = merge_results([("a", res), ("b", old)])
+    assert merged["methods"]["dp"]["eval_devices"] == ["cpu", "cuda", "unrecorded"]
+    assert "Evaluated on: pdp cpu/unrecorded, dp cpu/cuda/unrecorded." in results_markdown(merged)
+
+
 def test_reusing_a_dataset_of_another_size_is_refused(tmp_path):
     """Runs trained on 3 demos/mode must not land in one table with runs on 6: a mismatch names both sizes."""
     suite = get_suite_env("reach-around")

@@ -130,7 +130,7 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
         return cached
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, **sampler,
-                              "adapt": adapt_kwargs, "scenes": {}}
+                              "adapt": adapt_kwargs, "device": cfg.device, "scenes": {}}
     traces: dict[str, Any] = {}
     for scene in cfg.scenes:
         t0 = time.time()
@@ -170,7 +170,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
     sampler = sampler_of(ckpt, cfg)
     cached = cached_evaluation(cache, sampler, ckpt)
     if cached:
-        return {k: v for k, v in cached.items() if k not in sampler}
+        return {k: v for k, v in cached.items() if k not in sampler and k != "device"}
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
@@ -189,7 +189,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
             print(f"[benchmark] init {init} steps {steps}: success {out[key]} per scene {rates}")
     policy.set_latent(None)
     out["per_scene"] = per_scene
-    write_text_atomic(cache, json.dumps({**out, **sampler}, indent=1))
+    write_text_atomic(cache, json.dumps({**out, **sampler, "device": cfg.device}, indent=1))
     return out
 
 
@@ -223,7 +223,7 @@ def evaluate_sweep(suite: SuiteEnv, ckpt: Path, run_dir: Path, cfg: BenchmarkCon
             rollouts.append({"trace": r.trace.tolist(), "success": r.success})
         policy.set_latent(None)
         paths[path] = {"z": zs.tolist(), "rollouts": rollouts}
-    out = {**sampler, "n": n, "seed": seed, "modes": [a, b], "paths": paths,
+    out = {**sampler, "n": n, "seed": seed, "device": cfg.device, "modes": [a, b], "paths": paths,
            "behaviors": {k: v.tolist() for k, v in policy.behavior_table().items()}}
     write_text_atomic(cache, json.dumps(out))
     return out

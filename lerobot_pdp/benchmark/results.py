@@ -64,6 +64,9 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
         if steps_used:
             entry["inference_steps"] = steps_used
             entry["timestep_spacing"] = sorted({r.get("timestep_spacing", "unrecorded") for r in runs.values()})
+        # where each evaluation ran (cached evaluations are reused on any device; caches from before the
+        # key existed say "unrecorded"): CPU and CUDA rollouts share seeds but not bit-identical arithmetic
+        entry["eval_devices"] = sorted({r.get("device", "unrecorded") for r in runs.values()})
         adapt_used = [r["adapt"] for r in runs.values() if r.get("adapt")]
         if adapt_used:
             entry["adapt"] = adapt_used[0] if all(a == adapt_used[0] for a in adapt_used) else adapt_used
@@ -148,6 +151,7 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         if steps_used:
             merged["inference_steps"] = steps_used
             merged["timestep_spacing"] = sorted({s for _, _, e, _ in per_seed for s in e.get("timestep_spacing", [])})
+        merged["eval_devices"] = sorted({d for _, _, e, _ in per_seed for d in e.get("eval_devices", ["unrecorded"])})
         out["methods"][method] = merged
     abl = [res["init_ablation"] for _, res in results if "init_ablation" in res]
     if abl:
@@ -212,6 +216,11 @@ def results_markdown(res: dict[str, Any]) -> str:
                for name, e in res["methods"].items() if e.get("inference_steps")]
     if sampler:
         lines.append(f"DDIM sampler steps (grid): {', '.join(sampler)}.")
+    devices = {name: "/".join(e["eval_devices"]) for name, e in res["methods"].items() if e.get("eval_devices")}
+    if devices:
+        same = len(set(devices.values())) == 1
+        lines.append("Evaluated on: " + (f"{next(iter(devices.values()))} (every method)." if same
+                                         else ", ".join(f"{n} {d}" for n, d in devices.items()) + "."))
     adapted = [f"{name} {e['adapt']}" for name, e in res["methods"].items() if e.get("adapt")]
     if adapted:
         lines.append(f"Adaptation settings besides the defaults: {'; '.join(adapted)}.")

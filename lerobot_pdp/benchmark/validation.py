@@ -124,6 +124,7 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     def row(sampler, adapt, evals, scored):
         return {"tag": candidate_tag(sampler, adapt), "sampler": list(sampler) if sampler else None,
                 "adapt": adapt, "score": _score(evals, scored),
+                "devices": sorted({e.get("device", "unrecorded") for e in evals}),
                 "success": {str(s): [e["scenes"][str(s)]["success"] for e in evals] for s in scenes
                             if all(str(s) in e["scenes"] for e in evals)}}
 
@@ -181,7 +182,8 @@ def validation_markdown(res: dict[str, Any]) -> str:
         for stage in ("sampler", "adapt"):
             for r in rec[stage]:
                 cells = [f"{100 * np.mean(r['success'][s]):.1f}" if s in r["success"] else "" for s in rec["scenes"]]
-                lines.append(f"| {stage} | {r['tag']} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
+                dev = "" if r.get("devices", ["cpu"]) == ["cpu"] else f" ({'/'.join(r['devices'])})"
+                lines.append(f"| {stage} | {r['tag']}{dev} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
         lines += ["", f"Chosen: sampler {rec['chosen']['sampler']}, adaptation {rec['chosen']['adapt'] or 'default'}.",
                   ""]
     return "\n".join(lines)
