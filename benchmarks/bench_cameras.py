@@ -19,7 +19,7 @@ not depend on pixel values or weight values. One JSON line per (policy, cameras,
 compiled during the warm-up calls, and their ratio.
 
     .venv/bin/python benchmarks/bench_cameras.py [--device cpu|cuda] [--threads 2] [--cameras 1 2]
-        [--batch 8] [--calls 20] [--compile]
+        [--batch 8] [--calls 20] [--compile [--pdp-compile-mode reduce-overhead]]
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def _features(meta, cameras: list[str], size: int):
     return inputs, {k: ft for k, ft in feats.items() if ft.type is FeatureType.ACTION}
 
 
-def _policies(meta, cameras, size, device, steps, compiled: bool = False):
+def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None):
     """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins)."""
     import torch
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
@@ -85,7 +85,9 @@ def _policies(meta, cameras, size, device, steps, compiled: bool = False):
     torch.manual_seed(0)
     out = {}
     for sfx, comp in (("", {}), ("_compiled", {"compile_model": True}))[: 2 if compiled else 1]:
-        pdp = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **comp, **common), ds_meta=meta)
+        mode = {"compile_mode": pdp_mode} if comp and pdp_mode else {}
+        pdp = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **comp, **mode, **common),
+                          ds_meta=meta)
         dp = make_policy(DiffusionConfig(**dp_config_kwargs(sampler), **VISION, **comp, **common), ds_meta=meta)
         pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
         out.update({f"pdp{sfx}": pdp, f"dp{sfx or '_matched'}": dp})
@@ -119,7 +121,7 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
 
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
-    policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile)
+    policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
            if k.startswith("observation.") and not k.endswith("_is_pad")}
     batches = {n: _training_batch(meta, p, cameras, size, args.batch, dev) for n, p in policies.items()}
@@ -163,6 +165,7 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
         res[(name, bench)] = {"bench": bench, "policy": name, "cameras": n_cam, **_stats(t),
                               "batch": args.batch if bench == "train_step" else 1,
                               "inference_steps": cfg.num_inference_steps,
+                              "compile_mode": cfg.compile_mode if cfg.compile_model else None,
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
     pairs = [("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
@@ -201,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-steps", type=int, default=100, help="fit_latent steps (default: PDPConfig's 100)")
     ap.add_argument("--fit-calls", type=int, default=3)
     ap.add_argument("--compile", action="store_true", help="also time both policies with compile_model on")
+    ap.add_argument("--pdp-compile-mode", default=None,
+                    help="PDP's compile_mode with --compile (default PDP's 'default'; DP keeps 'reduce-overhead')")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
