@@ -301,11 +301,12 @@ class PDPPolicy(PreTrainedPolicy):
                                            for k in range(int(phase[of_mode].max()) + 1)]).cpu()
         return out
 
-    def discover_modes(self, k: int | None = None, max_k: int = 12, seed: int = 0) -> DiscoveredModes:
+    def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0) -> DiscoveredModes:
         """Cluster the training episodes by their latents: the modes of a dataset without mode labels.
 
         Args:
             k: number of clusters; None chooses it in 2..``max_k`` by silhouette score.
+            max_k: largest k tried; None = half the training episodes (at most ``modes.MAX_K_LIMIT``).
             seed: k-means seed (the result is deterministic for a given policy and seed).
 
         Returns:

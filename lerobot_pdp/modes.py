@@ -8,11 +8,18 @@ clustering the training episodes' latents recovers the modes. scikit-learn does 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import Tensor
+
+logger = logging.getLogger(__name__)
+
+# Default upper bound of k: half the episodes (a mode of one demonstration is not a mode), at most this
+# many candidates (each is a k-means fit: the search's cost).
+MAX_K_LIMIT = 100
 
 
 @dataclass
@@ -37,9 +44,10 @@ def episode_features(z: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> t
     return episodes, np.stack(rows)
 
 
-def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int = 12, seed: int = 0
+def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | None = None, seed: int = 0
                      ) -> tuple[np.ndarray, int, dict[int, float]]:
-    """Cluster ids [E] of the episodes' features; ``k=None`` picks k in 2..max_k by silhouette score.
+    """Cluster ids [E] of the episodes' features; ``k=None`` picks k in 2..max_k by silhouette score
+    (``max_k=None``: half the episodes, at most ``MAX_K_LIMIT``).
 
     Cluster ids are numbered by their first episode (the cluster holding episode row 0 is 0, ...), so the
     result does not depend on k-means' internal order.
@@ -55,7 +63,8 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int = 12
         if n < 3:
             raise ValueError(f"choosing k needs at least 3 training episodes, got {n}; pass k")
         best = None
-        for cand in range(2, min(max_k, n - 1) + 1):
+        top = min(max_k if max_k is not None else min(max(2, n // 2), MAX_K_LIMIT), n - 1)
+        for cand in range(2, top + 1):
             labels = KMeans(cand, n_init=10, random_state=seed).fit_predict(features)
             if len(np.unique(labels)) < 2:
                 continue
@@ -65,14 +74,17 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int = 12
         if best is None:
             raise ValueError("the training latents do not split into clusters (all identical?); pass k=1")
         k, labels = best
+        if k == top < n - 1:  # the search stopped at its bound, which then decided k: say so
+            logger.warning("discover_modes chose k = %d, the largest candidate; there may be more modes "
+                           "(pass a larger max_k)", k)
     else:
         labels = KMeans(k, n_init=10, random_state=seed).fit_predict(features) if k > 1 else np.zeros(n, int)
     order = {old: new for new, old in enumerate(dict.fromkeys(labels.tolist()))}
     return np.array([order[x] for x in labels.tolist()]), k, scores
 
 
-def discover(z: np.ndarray, episode: np.ndarray, phase: np.ndarray, k: int | None = None, max_k: int = 12,
-             seed: int = 0) -> DiscoveredModes:
+def discover(z: np.ndarray, episode: np.ndarray, phase: np.ndarray, k: int | None = None,
+             max_k: int | None = None, seed: int = 0) -> DiscoveredModes:
     """Cluster training episodes by their latents (``z`` [N, d_z] per behavior, with its episode and phase)."""
     episodes, feats = episode_features(z, episode, phase)
     labels, k, scores = cluster_episodes(feats, k, max_k, seed)

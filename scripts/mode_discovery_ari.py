@@ -8,6 +8,7 @@ JSON line per env on stdout; the checkpoint stays in ``--out/<env>/run``.
 
     .venv/bin/python scripts/mode_discovery_ari.py --env reach-around avoiding pick-place kitchen-microwave \
         --out outputs/ari [--steps 1500] [--episodes-per-mode 10] [--device cuda] [--dataset ENV=DIR ...]
+        [--seed 0] [--data-seed 0] [--max-k 12 0]   # 0 = discover_modes' default bound
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 
 
 def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | None, device: str,
-            dataset: Path | None) -> dict:
+            dataset: Path | None, seed: int = 0, data_seed: int = 0, max_k: list[int | None] | None = None) -> dict:
     from dataclasses import replace
 
     from sklearn.metrics import adjusted_rand_score
@@ -35,17 +36,19 @@ def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | Non
     full, quick = SETTINGS[suite.name]
     settings = replace(quick, episodes_per_mode=episodes_per_mode or full.episodes_per_mode)
     steps = steps or quick.steps
-    root = dataset or ensure_dataset(suite, out / env, settings)
+    root = dataset or ensure_dataset(suite, out / env, settings, seed=data_seed)
     t0 = time.time()
-    ckpt = train_method(methods_for(suite)["pdp"], root, out / env / "run", 0, settings, steps, device)
+    ckpt = train_method(methods_for(suite)["pdp"], root, out / env / "run", seed, settings, steps, device)
     train_s = time.time() - t0
     policy = PDPPolicy.from_pretrained(ckpt)
     episodes = read_episodes(root, [], None)
     truth = {ep: item["mode"] if "mode" in item else parse_task_mode(item["task"]) for ep, item in episodes.items()}
     row = {"env": env, "episodes": len(truth), "modes": len(set(truth.values())), "steps": steps,
-           "episodes_per_mode": settings.episodes_per_mode, "device": device, "train_s": round(train_s, 1)}
-    for name, k in (("auto", None), ("k_true", len(set(truth.values())))):
-        found = policy.discover_modes(k=k)
+           "episodes_per_mode": settings.episodes_per_mode, "seed": seed, "data_seed": data_seed,
+           "device": device, "train_s": round(train_s, 1)}
+    cases = [(f"auto_max{m}" if m else "auto", None, m) for m in (max_k or [None])]
+    for name, k, cap in [*cases, ("k_true", len(set(truth.values())), None)]:
+        found = policy.discover_modes(k=k, max_k=cap)
         eps = sorted(found.labels)
         row[f"ari_{name}"] = round(float(adjusted_rand_score([truth[e] for e in eps],
                                                              [found.labels[e] for e in eps])), 4)
@@ -62,11 +65,16 @@ def main(argv: list[str] | None = None) -> int:
                     help="dataset size (default: the env's full benchmark dataset)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dataset", nargs="*", default=[], help="ENV=DIR: use this dataset instead of generating one")
+    ap.add_argument("--seed", type=int, default=0, help="training seed")
+    ap.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset's demonstrations")
+    ap.add_argument("--max-k", type=int, nargs="*", default=None,
+                    help="discover_modes upper bounds to compare (default: its default only)")
     args = ap.parse_args(argv)
     given = dict(item.split("=", 1) for item in args.dataset)
     for env in args.env:
         row = measure(env, args.out, args.steps, args.episodes_per_mode, args.device,
-                      Path(given[env]) if env in given else None)
+                      Path(given[env]) if env in given else None, args.seed, args.data_seed,
+                      [m or None for m in args.max_k] if args.max_k else None)
         print(json.dumps(row), flush=True)
     return 0
 
