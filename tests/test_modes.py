@@ -67,20 +67,20 @@ def test_cluster_choice_errors_are_named():
 
 
 def test_k_is_searched_up_to_half_the_episodes_and_a_binding_bound_is_reported(caplog):
-    """More modes than the old fixed bound of 12 (30 routes, 3 demonstrations each) are found by default;
+    """More modes than the old fixed bound of 12 (16 routes, 3 demonstrations each) are found by default;
     an explicit smaller bound that decides k is reported."""
     rng = np.random.default_rng(0)
-    centres = rng.uniform(-10, 10, (30, 3))
-    feats = np.repeat(centres, 3, axis=0) + rng.normal(0, 0.01, (90, 3))
-    truth = np.repeat(np.arange(30), 3)
+    centres = rng.uniform(-10, 10, (16, 3))
+    feats = np.repeat(centres, 3, axis=0) + rng.normal(0, 0.01, (48, 3))
+    truth = np.repeat(np.arange(16), 3)
     labels, k, scores = cluster_episodes(feats)
-    assert k == 30 and max(scores) == 45 and adjusted_rand_score(truth, labels) == 1.0  # searched to 90 // 2
+    assert k == 16 and max(scores) == 24 and adjusted_rand_score(truth, labels) == 1.0  # searched to 48 // 2
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp.modes"):
         assert cluster_episodes(feats, max_k=2)[1] == 2
     assert "chose k = 2, the largest candidate" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp.modes"):
-        cluster_episodes(feats)  # k = 30 below the default bound (90 // 2): nothing to report
+        cluster_episodes(feats)  # k = 16 below the default bound (48 // 2): nothing to report
     assert "largest candidate" not in caplog.text
 
 
