@@ -109,6 +109,8 @@ def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
         assert merged["init_ablation"][k]["mean"] == pytest.approx(entry["mean"])
         assert merged["init_ablation"][k]["scenes"] == pytest.approx(entry["scenes"])
     assert merged["seeds"] == [0, 1, 2] and merged["merged_from"] == ["b", "a"]
+    for key in ("frozen", "scenes", "device", "split"):  # what was frozen survives the merge
+        assert merged[key] == whole[key], key
     for m in ("pdp", "dp"):
         assert merged["methods"][m]["seeds"] == whole["methods"][m]["seeds"]
         for key in ("scene0", "scene1", "scene2", "scene3"):
@@ -131,6 +133,10 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
         merge_results([("a", a), ("b", other)])
     with pytest.raises(ValueError, match="at least two"):
         merge_results([("a", a)])
+    refrozen = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
+    refrozen["frozen"] = {**refrozen["frozen"], "methods": {"pdp": {"sampler": [5, "leading"]}}}
+    with pytest.raises(ValueError, match="b: frozen is .* but a has"):  # other frozen settings: not one table
+        merge_results([("a", a), ("b", refrozen)])
     # a file from before per-method seeds whose method finished fewer seeds than the table's
     old = _results([1, 2], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
     del old["methods"]["pdp"]["seeds"]

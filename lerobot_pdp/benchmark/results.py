@@ -104,7 +104,7 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         if res.get("split", "test") != first.get("split", "test"):  # files from before splits: test
             raise ValueError(f"{name}: split is {res.get('split', 'test')!r} but {first_name} has "
                              f"{first.get('split', 'test')!r}; validation and test runs are never merged")
-        for key in ("env", "rollouts", "quick", "train"):
+        for key in ("env", "rollouts", "quick", "train", "frozen", "observation"):
             if res.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only runs of the same protocol can be merged")
@@ -124,8 +124,12 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
                                      "merge runs of different seeds only")
                 rows.setdefault(method, []).append((seed, name, entry, i))
     out: dict[str, Any] = {key: first[key] for key in ("env", "rollouts", "quick", "train")}
-    if "split" in first:
-        out["split"] = first["split"]
+    for key in ("split", "frozen", "observation"):  # equal in every file (checked above)
+        if key in first:
+            out[key] = first[key]
+    if all(res.get("scenes") == first.get("scenes") for _, res in results) and "scenes" in first:
+        out["scenes"] = first["scenes"]
+    out["device"] = "/".join(sorted({str(res.get("device", "unrecorded")) for _, res in results}))
     out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
     out["merged_from"] = [name for name, _ in results]
     out["methods"] = {}
