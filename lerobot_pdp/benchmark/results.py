@@ -90,8 +90,8 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """One ``results.json`` from several runs of the same protocol that hold different seeds (e.g. seeds run
     on other machines or days). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
 
-    Refused, naming the files and the key: other env, rollouts, training settings or scenes, and a
-    (method, seed) present twice. Per-seed success lists are concatenated in seed order, mean / std
+    Refused, naming the files and the key: other env, rollouts, training settings, frozen settings,
+    observations or scenes, and a (method, seed) present twice. Per-seed success lists are concatenated in seed order, mean / std
     recomputed; the other per-scene figures are seed-weighted means of the runs' means."""
     if len(results) < 2:
         raise ValueError(f"merging needs at least two results files, got {len(results)}")
