@@ -191,6 +191,8 @@ class FiLMUnet1d(nn.Module):
             Conv1dBlock(down_dims[0], down_dims[0], kernel_size, n_groups),
             nn.Conv1d(down_dims[0], action_dim, 1),
         )
+        # rows of each block's scale and bias in a modulation row vector (fixed by the architecture)
+        self._mod_sizes = [ch for b in self.blocks() for ch in (b.out_ch, b.out_ch)]
 
     def forward(self, sample: Tensor, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
         """sample: [B, T, A]; k: [B] diffusion steps; obs_cond: [B, C]; z: [B, d_z] or None."""
@@ -318,7 +320,7 @@ class FiLMUnet1d(nn.Module):
 
     def modulation_sizes(self) -> list[int]:
         """Rows of each block's ``scale`` and ``bias`` in a modulation row vector, in block order."""
-        return [ch for b in self.blocks() for ch in (b.out_ch, b.out_ch)]
+        return self._mod_sizes
 
     @torch.no_grad()
     def make_modulation(self, obs_cond: Tensor, z: Tensor | None, steps: list[int],

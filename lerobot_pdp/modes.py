@@ -58,12 +58,16 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | No
     n = len(features)
     if k is not None and not 1 <= k <= n:
         raise ValueError(f"k must be between 1 and the number of training episodes ({n}), got {k}")
+    if max_k is not None and max_k < 2:
+        raise ValueError(f"max_k must be at least 2 (the smallest k tried), got {max_k}")
     scores: dict[int, float] = {}
     if k is None:
         if n < 3:
             raise ValueError(f"choosing k needs at least 3 training episodes, got {n}; pass k")
         best = None
-        top = min(max_k if max_k is not None else min(max(2, n // 2), MAX_K_LIMIT), n - 1)
+        if max_k is None:
+            max_k = min(max(2, n // 2), MAX_K_LIMIT)
+        top = min(max_k, n - 1)
         for cand in range(2, top + 1):
             labels = KMeans(cand, n_init=10, random_state=seed).fit_predict(features)
             if len(np.unique(labels)) < 2:

@@ -62,6 +62,8 @@ def test_cluster_choice_errors_are_named():
         cluster_episodes(feats, k=11)
     with pytest.raises(ValueError, match="choosing k needs at least 3 training episodes"):
         cluster_episodes(feats[:2])
+    with pytest.raises(ValueError, match="max_k must be at least 2 .*got 1"):
+        cluster_episodes(feats, max_k=1)
     labels, k, _ = cluster_episodes(feats, k=1)
     assert k == 1 and set(labels.tolist()) == {0}
 
