@@ -108,8 +108,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="timed calls of the default 248 M-parameter DP (~20 s each); 0 = skip it")
     ap.add_argument("--dataset", type=Path, default=None,
                     help="existing reach-around LeRobotDataset (default: generate 2 demos/mode in a temp dir)")
-    ap.add_argument("--inference-steps", type=int, default=None,
-                    help="DDIM steps of pdp and dp_matched (default: PDPConfig's num_inference_steps)")
+    ap.add_argument("--inference-steps", type=int, default=5,
+                    help="DDIM steps of pdp and dp_matched (default 5, the latency target's setting; "
+                         "PDPConfig's default is 20)")
     ap.add_argument("--device", default="cpu", help="torch device of every policy (cpu, cuda)")
     ap.add_argument("--compile", action="store_true",
                     help="also time pdp_compiled and dp_compiled (compile_model=True; compiles for ~1 min)")

@@ -16,6 +16,7 @@ z -> FiLM denoiser -> actions.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 from collections import deque
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812
-from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
+from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 from huggingface_hub.serialization import save_torch_state_dict
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
@@ -44,7 +45,7 @@ from .behavior import (
     make_trace,
     read_episodes,
 )
-from .configuration_pdp import PDPConfig
+from .configuration_pdp import PDPConfig, apply_legacy_defaults
 from .episodes import read_episode_frames
 from .latent_fitting import DemoWindows, FitResult, fit_latent, frame_windows, select_code
 from .model_card import pdp_model_card
@@ -132,6 +133,10 @@ class PDPPolicy(PreTrainedPolicy):
             model.model.resize_behaviors({name: tuple(f.get_slice(name).get_shape())
                                           for name in BEHAVIOR_BUFFERS if name in keys})
         model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        # config.json lies beside the weights (a local folder, or the hub snapshot the config came from)
+        saved = Path(model_file).with_name(CONFIG_NAME)
+        if saved.is_file() and apply_legacy_defaults(model.config, json.loads(saved.read_text())):
+            model.model.set_sampler(model.config.timestep_spacing, model.config.use_clipped_model_output)
         return model
 
     # ------------------------------------------------------------------ LeRobot contract

@@ -64,12 +64,17 @@ class PDPModel(nn.Module):
             tuple(cfg.down_dims), cfg.kernel_size, cfg.n_groups, cfg.diffusion_step_embed_dim,
             tuple(cfg.film_hidden_dims),
         )
-        self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
-                                            cfg.clip_sample_range, cfg.timestep_spacing,
-                                            cfg.use_clipped_model_output)
-        self._graphs = GraphCache()  # captured samplers on CUDA (see generate)
         self._cuda_graphs = True
-        self._compiled_fns: dict[str, Callable] = {}  # torch.compile'd denoiser (config.compile_model)
+        self.set_sampler(cfg.timestep_spacing, cfg.use_clipped_model_output)
+
+    def set_sampler(self, timestep_spacing: str, use_clipped_model_output: bool) -> None:
+        """(Re)build the noise schedule with this DDIM grid and step rule (a legacy checkpoint's, on load)."""
+        cfg = self.config
+        self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
+                                            cfg.clip_sample_range, timestep_spacing, use_clipped_model_output)
+        # captured (CUDA, see generate) and compiled (config.compile_model) samplers hold the step rule
+        self._graphs = GraphCache()
+        self._compiled_fns: dict[str, Callable] = {}
 
     # ------------------------------------------------------------------ training behaviors
 

@@ -9,6 +9,7 @@ JSON line per env on stdout; the checkpoint stays in ``--out/<env>/run``.
     .venv/bin/python scripts/mode_discovery_ari.py --env reach-around avoiding pick-place kitchen-microwave \
         --out outputs/ari [--steps 1500] [--episodes-per-mode 10] [--device cuda] [--dataset ENV=DIR ...]
         [--seed 0] [--data-seed 0] [--max-k 12 0]   # 0 = discover_modes' default bound
+        [--run ENV=RUN_DIR --dataset ENV=DIR]       # a finished benchmark run instead of training
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from pathlib import Path
 
 
 def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | None, device: str,
-            dataset: Path | None, seed: int = 0, data_seed: int = 0, max_k: list[int | None] | None = None) -> dict:
+            dataset: Path | None, seed: int = 0, data_seed: int = 0, max_k: list[int | None] | None = None,
+            run: Path | None = None) -> dict:
     from dataclasses import replace
 
     from sklearn.metrics import adjusted_rand_score
@@ -38,14 +40,19 @@ def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | Non
     steps = steps or quick.steps
     root = dataset or ensure_dataset(suite, out / env, settings, seed=data_seed)
     t0 = time.time()
-    ckpt = train_method(methods_for(suite)["pdp"], root, out / env / "run", seed, settings, steps, device)
-    train_s = time.time() - t0
+    if run is None:
+        ckpt = train_method(methods_for(suite)["pdp"], root, out / env / "run", seed, settings, steps, device)
+    else:  # a finished benchmark run, trained on `root`: its own steps and seed
+        ckpt = run / "pretrained_model"
+        steps = seed = None
+    train_s = time.time() - t0 if run is None else None
     policy = PDPPolicy.from_pretrained(ckpt)
     episodes = read_episodes(root, [], None)
     truth = {ep: item["mode"] if "mode" in item else parse_task_mode(item["task"]) for ep, item in episodes.items()}
     row = {"env": env, "episodes": len(truth), "modes": len(set(truth.values())), "steps": steps,
-           "episodes_per_mode": settings.episodes_per_mode, "seed": seed, "data_seed": data_seed,
-           "device": device, "train_s": round(train_s, 1)}
+           "episodes_per_mode": settings.episodes_per_mode, "seed": seed, "data_seed": data_seed if dataset is None else None,
+           "device": device, "train_s": None if train_s is None else round(train_s, 1),
+           **({"run": run.name} if run else {})}
     cases = [(f"auto_max{m}" if m else "auto", None, m) for m in (max_k or [None])]
     for name, k, cap in [*cases, ("k_true", len(set(truth.values())), None)]:
         found = policy.discover_modes(k=k, max_k=cap)
@@ -65,16 +72,23 @@ def main(argv: list[str] | None = None) -> int:
                     help="dataset size (default: the env's full benchmark dataset)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dataset", nargs="*", default=[], help="ENV=DIR: use this dataset instead of generating one")
+    ap.add_argument("--run", nargs="*", default=[],
+                    help="ENV=RUN_DIR: a finished benchmark run (its pretrained_model) trained on --dataset "
+                         "ENV=DIR, measured without training")
     ap.add_argument("--seed", type=int, default=0, help="training seed")
     ap.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset's demonstrations")
     ap.add_argument("--max-k", type=int, nargs="*", default=None,
                     help="discover_modes upper bounds to compare (default: its default only)")
     args = ap.parse_args(argv)
     given = dict(item.split("=", 1) for item in args.dataset)
+    runs = dict(item.split("=", 1) for item in args.run)
+    if set(runs) - set(given):
+        ap.error(f"--run needs the dataset it was trained on: --dataset {sorted(set(runs) - set(given))[0]}=DIR")
     for env in args.env:
         row = measure(env, args.out, args.steps, args.episodes_per_mode, args.device,
                       Path(given[env]) if env in given else None, args.seed, args.data_seed,
-                      [m or None for m in args.max_k] if args.max_k else None)
+                      [m or None for m in args.max_k] if args.max_k else None,
+                      Path(runs[env]) if env in runs else None)
         print(json.dumps(row), flush=True)
     return 0
 

@@ -194,17 +194,17 @@ def test_pdp_sampler_is_diffusers_ddim_on_diffusers_grids(spacing, clipped):
         assert ours.timesteps(5) == [19, 15, 11, 7, 3]  # starts from pure noise, unlike "leading"'s 16
 
 
-def test_sampler_fields_reach_the_policy_and_old_configs_keep_the_even_grid(synthetic_meta):
-    """A config without the fields (every checkpoint written before them) samples on the even grid with the
-    clipped-noise rule, as it always did; the fields reach the policy's sampler; a bad spacing is refused."""
+def test_sampler_fields_reach_the_policy(synthetic_meta):
+    """The default is LeRobot diffusion's DDIM sampler (diffusers' "leading" grid, no clipped-noise rule); the
+    fields reach the policy's sampler (checkpoints without them: test_policy.py); a bad spacing is refused."""
     from policies import small_policy
 
     from lerobot_pdp import PDPConfig
 
-    assert (PDPConfig.timestep_spacing, PDPConfig.use_clipped_model_output) == ("even", True)
+    assert (PDPConfig.timestep_spacing, PDPConfig.use_clipped_model_output) == ("leading", False)
     sched = small_policy(synthetic_meta).model.noise_schedule
-    assert sched.timesteps(5) == [19, 14, 10, 5, 0] and sched.use_clipped_model_output
-    sched = small_policy(synthetic_meta, timestep_spacing="leading", use_clipped_model_output=False).model.noise_schedule
     assert sched.timesteps(5) == [16, 12, 8, 4, 0] and not sched.use_clipped_model_output
+    sched = small_policy(synthetic_meta, timestep_spacing="even", use_clipped_model_output=True).model.noise_schedule
+    assert sched.timesteps(5) == [19, 14, 10, 5, 0] and sched.use_clipped_model_output
     with pytest.raises(ValueError, match="timestep_spacing"):
         PDPConfig(device="cpu", timestep_spacing="linspace")

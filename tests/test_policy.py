@@ -393,3 +393,37 @@ def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
     res = p.fit_latent({k: torch.tensor(v) for k, v in exp["demo"].items()}, steps=3, seed=0)
     torch.testing.assert_close(res.z_init, torch.tensor(exp["fit_z_init"]), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(res.z, torch.tensor(exp["fit_z"]), atol=1e-5, rtol=1e-5)
+
+
+def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
+    """The DDIM grid and step rule defaults changed ("even" + clipped-output noise -> diffusers' "leading"
+    without it): a checkpoint whose config.json lacks those keys samples as it was made to; one that has them,
+    or a value given on purpose when loading, is kept."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from lerobot_pdp.configuration_pdp import LEGACY_DEFAULTS, PDPConfig
+
+    v1 = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
+    assert not set(LEGACY_DEFAULTS) & set(json.loads((v1 / "config.json").read_text()))
+    p = PDPPolicy.from_pretrained(v1)
+    sched = p.model.noise_schedule
+    assert (p.config.timestep_spacing, p.config.use_clipped_model_output) == ("even", True)
+    assert (sched.timestep_spacing, sched.use_clipped_model_output) == ("even", True)
+
+    new = tmp_path / "new"
+    shutil.copytree(v1, new)
+    cfg = json.loads((new / "config.json").read_text())
+    (new / "config.json").write_text(json.dumps({**cfg, "timestep_spacing": "leading",
+                                                 "use_clipped_model_output": False}))
+    q = PDPPolicy.from_pretrained(new)
+    assert (q.model.noise_schedule.timestep_spacing, q.model.noise_schedule.use_clipped_model_output) == (
+        "leading", False)
+    assert q.model.noise_schedule.timesteps(5) == [16, 12, 8, 4, 0]  # diffusers' grid, LeRobot diffusion's
+
+    given = PDPConfig.from_pretrained(v1)
+    given.timestep_spacing = "trailing"  # as --policy.timestep_spacing=trailing would
+    r = PDPPolicy.from_pretrained(v1, config=given)
+    assert (r.config.timestep_spacing, r.config.use_clipped_model_output) == ("trailing", True)
+    assert r.model.noise_schedule.timestep_spacing == "trailing"

@@ -23,7 +23,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, is_dataclass
+from dataclasses import asdict, fields, is_dataclass
 from typing import Any
 
 import numpy as np
@@ -31,30 +31,19 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
+from ..configuration_pdp import PDPConfig
 from ..latent_fitting import episode_windows
 
 logger = logging.getLogger(__name__)
 
 # LeRobot `diffusion` fields that must equal PDP's so that DP differs from PDP only by the behavior latent.
-# Values are PDP's defaults (PDPConfig); a `pdp_like` mapping overrides any of them.
-DP_MATCHING_DEFAULTS: dict[str, Any] = {
-    "down_dims": (32, 64, 128),
-    "kernel_size": 5,
-    "n_groups": 8,
-    "diffusion_step_embed_dim": 64,
-    "horizon": 16,
-    "n_obs_steps": 2,
-    "n_action_steps": 8,
-    "drop_n_last_frames": 7,
-    "do_mask_loss_for_padding": True,  # PDP's default (LeRobot DP's own default is False)
-    "num_train_timesteps": 20,
-    "num_inference_steps": 5,
-    "beta_schedule": "squaredcos_cap_v2",
-    "clip_sample": True,
-    "clip_sample_range": 1.0,
-    "optimizer_lr": 1e-4,
-    "scheduler_warmup_steps": 100,
-}
+# Values are PDPConfig's defaults, read from the dataclass so that they cannot drift from it (LeRobot DP's own
+# do_mask_loss_for_padding default is False, PDP's True); a `pdp_like` mapping overrides any of them.
+DP_MATCHED_FIELDS = ("down_dims", "kernel_size", "n_groups", "diffusion_step_embed_dim", "horizon", "n_obs_steps",
+                     "n_action_steps", "drop_n_last_frames", "do_mask_loss_for_padding", "num_train_timesteps",
+                     "num_inference_steps", "beta_schedule", "clip_sample", "clip_sample_range", "optimizer_lr",
+                     "scheduler_warmup_steps")
+DP_MATCHING_DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(PDPConfig) if f.name in DP_MATCHED_FIELDS}
 # Fixed for DP whatever PDP uses: deterministic DDIM (noise-space adaptation needs a deterministic map
 # x_K -> actions).
 DP_FIXED: dict[str, Any] = {"noise_scheduler_type": "DDIM"}
