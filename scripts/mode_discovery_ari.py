@@ -60,6 +60,20 @@ def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | Non
         row[f"ari_{name}"] = round(float(adjusted_rand_score([truth[e] for e in eps],
                                                              [found.labels[e] for e in eps])), 4)
         row[f"k_{name}"] = found.k
+    # where each demonstrated mode lies on the latent map: per mode, the range of its episodes' latents
+    # (phases concatenated) along each coordinate, to see which modes neighbour
+    import numpy as np
+    import torch
+
+    from lerobot_pdp.modes import episode_features
+
+    with torch.no_grad():
+        z = policy.behavior_latents().cpu().numpy()
+    eps, feats = episode_features(z, policy.model.behavior_episode.cpu().numpy(), policy.behavior_phase().cpu().numpy())
+    modes = np.array([truth[int(e)] for e in eps])
+    row["latent_range"] = {str(m): [[round(float(lo), 2), round(float(hi), 2)] for lo, hi in
+                                    zip(feats[modes == m].min(0), feats[modes == m].max(0), strict=True)]
+                           for m in sorted(set(modes.tolist()))}
     return row
 
 
