@@ -76,6 +76,17 @@ def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_check
     assert sorted(p.name for p in run_dir.iterdir()) == ["train.log"]
 
 
+def test_ablations_sample_and_fit_with_pdps_frozen_settings():
+    from lerobot_pdp.benchmark.settings import ABLATIONS, frozen_for
+
+    for name in ABLATIONS:
+        assert frozen_for("reach-around", False, name) == {"adapt": {"objective": "sample"}}
+        assert frozen_for("reach-around", True, name) == {"sampler": [10, "trailing"], "adapt": {"lam": 0.0}}
+        assert frozen_for("reach-around", False, name, obs="images") == {}
+    assert frozen_for("reach-around", False, "dp") == {"sampler": [5, "trailing"]}
+    assert frozen_for("kitchen-microwave", False, "pdp_concat") == {}
+
+
 def test_frozen_settings_are_what_the_committed_validation_records_chose():
     """settings.FROZEN is copied by hand from validation.json: each entry must equal its record's choice (an
     absent sampler / adaptation = the env's TrainSettings sampler / the defaults), and every frozen

@@ -159,10 +159,12 @@ VALIDATION_RECORDS: dict[tuple[str, str], str] = {
 
 def frozen_for(env: str, quick: bool, method: str, obs: str = "state") -> dict[str, Any]:
     """The frozen choice of ``method`` on ``env`` at the full or quick budget ({} if none; choices were made
-    on state observations and are not carried over to the camera variant)."""
+    on state observations and are not carried over to the camera variant). An ablation is PDP with one part
+    changed, so it samples and fits with PDP's choice (ablations are not validated on their own)."""
     if obs != "state":
         return {}
-    return FROZEN.get((env, "quick" if quick else "full"), {}).get(method, {})
+    chosen = FROZEN.get((env, "quick" if quick else "full"), {})
+    return chosen.get(method, chosen.get("pdp", {}) if method in ABLATIONS else {})
 
 
 # The camera variant (``benchmark --obs images``). One camera per env, chosen so that the agent, the goal and
