@@ -241,8 +241,10 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
 
 
 def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,
-                noise_samples: int = 1, seed: int | None = 0) -> tuple[Tensor, Tensor]:
-    """Adaptation of a discrete latent: per phase, the one of ``codes`` [C, d_z] with the lowest L_fit.
+                noise_samples: int = 1, seed: int | None = 0, sample_steps: int | None = None
+                ) -> tuple[Tensor, Tensor]:
+    """Adaptation of a discrete latent: per phase, the one of ``codes`` [C, d_z] with the lowest L_fit (with
+    ``sample_steps``, the lowest error of the chunks sampled in that many DDIM steps, as :func:`fit_loss`).
 
     Every code is scored on the same ``batches`` random batches of windows, steps and noise (common random
     numbers, so the comparison is not decided by the draws). Returns the chosen codes [M, d_z] and the mean
@@ -259,6 +261,6 @@ def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches
         obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(codes.device))
         for _ in range(max(1, batches)):
             idx = _stratified_batch(windows.segment, M, batch_size, g)
-            total += _phase_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod)
+            total += _errors(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps)
     mean = total / max(1, batches)
     return codes[mean.argmin(0)], mean

@@ -473,6 +473,7 @@ class PDPPolicy(PreTrainedPolicy):
         else:
             raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
         steps = cfg.fit_steps if steps is None else steps
+        sample_steps = cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None
         was_training = self.training
         self.eval()
         try:
@@ -481,7 +482,7 @@ class PDPPolicy(PreTrainedPolicy):
                 # interpolate between them): the code with the lowest L_fit over `steps` random batches
                 codes, mean = select_code(self.model.denoiser, self.model.noise_schedule, windows,
                                           torch.eye(cfg.latent_dim, device=device), steps, cfg.fit_batch_size,
-                                          cfg.fit_noise_samples, seed)
+                                          cfg.fit_noise_samples, seed, sample_steps)
                 result = FitResult(z=codes.cpu(), z_init=z0.detach().cpu(),
                                    losses=[float(mean.min(0).values.sum())], steps=steps)
             else:
@@ -490,7 +491,7 @@ class PDPPolicy(PreTrainedPolicy):
                     lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
                     batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
                     progress=progress, gradient=cfg.fit_gradient,
-                    sample_steps=cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None,
+                    sample_steps=sample_steps,
                 )
         finally:
             self.train(was_training)

@@ -121,6 +121,12 @@ def test_discrete_latent_adapts_by_choosing_the_best_code_per_phase():
                        for c in range(2)])
     torch.testing.assert_close(alone, mean)
     assert not torch.equal(mean[0], mean[1])  # the codes do modulate this net
+    # with the sampled-chunk objective (fit_objective="sample") the codes are scored by fit_loss's sample error
+    chosen_s, mean_s = select_code(net, sched, w, codes, batches=4, batch_size=8, seed=3, sample_steps=3)
+    alone_s = torch.cat([select_code(net, sched, w, codes[c:c + 1], batches=4, batch_size=8, seed=3,
+                                     sample_steps=3)[1] for c in range(2)])
+    torch.testing.assert_close(alone_s, mean_s)
+    assert not torch.allclose(mean_s, mean) and torch.equal(chosen_s, codes[mean_s.argmin(0)])
 
 
 def test_onehot_policy_fit_returns_one_of_its_codes(synthetic_meta):
