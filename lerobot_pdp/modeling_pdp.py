@@ -479,7 +479,7 @@ class PDPPolicy(PreTrainedPolicy):
         try:
             if cfg.latent_type == "onehot" and steps > 0:
                 # the discrete ablation adapts by choosing one of its M codes per phase (it cannot
-                # interpolate between them): the code with the lowest L_fit over `steps` random batches
+                # interpolate between them): the code that scores best on the fit objective over `steps` batches
                 codes, mean = select_code(self.model.denoiser, self.model.noise_schedule, windows,
                                           torch.eye(cfg.latent_dim, device=device), steps, cfg.fit_batch_size,
                                           cfg.fit_noise_samples, seed, sample_steps)
