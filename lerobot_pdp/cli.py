@@ -246,6 +246,8 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="override the env's training steps")
     p.add_argument("--lr", type=float, default=None,
                    help="override the env's learning rate (every method and network alike)")
+    p.add_argument("--batch-size", type=int, default=None,
+                   help="override the env's training batch size (every method alike)")
     p.add_argument("--episodes-per-mode", type=int, default=None,
                    help="override the env's demonstrations per mode in the scene-0 dataset")
     p.add_argument("--split", choices=("test", "validation"), default="test",
@@ -300,7 +302,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
         camera["image_size"] = args.image_size
     return BenchmarkConfig(env=args.env, out=args.out, seeds=seeds, rollouts=rollouts, methods=methods,
                            quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
-                           lr=args.lr, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
+                           lr=args.lr, batch_size=args.batch_size, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
                            figures=not args.no_figures, device=args.device, jobs=args.jobs, **camera)
 

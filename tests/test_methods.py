@@ -142,3 +142,22 @@ def test_benchmark_lr_overrides_every_methods_learning_rate(tmp_path):
     with pytest.raises(ValueError, match="lr must be > 0, got 0.0"):
         run_benchmark(replace(cfg, out=tmp_path / "bench", lr=0.0))
     assert not (tmp_path / "bench").exists()
+
+
+def test_benchmark_batch_size_overrides_every_methods_batch(tmp_path):
+    """``--batch-size`` (for choosing a budget on validation) reaches every method's lerobot-train call; a
+    batch below 1 is refused before anything is trained."""
+    from dataclasses import replace
+
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+    from lerobot_pdp.cli import benchmark_config, build_parser
+
+    cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--quick", "--out", "o",
+                                                      "--batch-size", "32"]))
+    assert cfg.batch_size == 32
+    settings = replace(SETTINGS["reach-around"][1], batch_size=cfg.batch_size)
+    for name, method in methods_for(get_suite_env("reach-around")).items():
+        assert "--batch_size=32" in train_args(method, tmp_path / "data", 0, settings, 10), name
+    with pytest.raises(ValueError, match="batch_size must be >= 1, got 0"):
+        run_benchmark(replace(cfg, out=tmp_path / "bench", batch_size=0))
+    assert not (tmp_path / "bench").exists()

@@ -61,6 +61,10 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         if not cfg.lr > 0:
             raise ValueError(f"lr must be > 0, got {cfg.lr}")
         settings = replace(settings, lr=cfg.lr)
+    if cfg.batch_size is not None:
+        if cfg.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
+        settings = replace(settings, batch_size=cfg.batch_size)
     steps = cfg.steps or settings.steps
     user_sampler = cfg.inference_steps is not None or cfg.timestep_spacing is not None  # wins over FROZEN
     if cfg.inference_steps is None:

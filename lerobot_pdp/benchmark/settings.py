@@ -244,6 +244,7 @@ class BenchmarkConfig:
     steps: int | None = None  # override the env's training steps (tests)
     episodes_per_mode: int | None = None  # override the env's dataset size (tests)
     lr: float | None = None  # override the env's learning rate, every method alike (choosing defaults)
+    batch_size: int | None = None  # override the env's batch size, every method alike
     figures: bool = True
     # DDIM steps when evaluating PDP and DP (None: the env's TrainSettings.inference_steps). Sampling
     # only: cached evaluations made with other steps are redone on the same checkpoints.
