@@ -383,8 +383,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
 def apply_legacy_defaults(config: PDPConfig, saved: dict) -> list[str]:
     """Give ``config`` (parsed from a checkpoint's ``saved`` config.json) the values of :data:`LEGACY_DEFAULTS`
     for the fields that file lacks, so that a checkpoint written before a default changed samples as it did.
-    A value that differs from today's default was set on purpose (a command-line override) and is kept.
-    Returns the fields changed."""
+    A value that differs from today's default was set on purpose (a command-line override) and is kept; one
+    equal to today's default cannot be told from a missing key and gets the legacy value. Returns the fields
+    changed."""
     changed = []
     for name, old in LEGACY_DEFAULTS.items():
         if name not in saved and getattr(config, name) == PDPConfig.__dataclass_fields__[name].default:
