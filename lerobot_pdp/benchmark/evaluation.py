@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import write_text_atomic
+from ..configuration_pdp import LEGACY_DEFAULTS
 from ..envs.suite import SuiteEnv
 from .data import demo_episode
 from .rollouts import RolloutBatch, run_rollouts
@@ -29,12 +30,13 @@ from .training import load_policy
 
 def checkpoint_sampler(ckpt: Path) -> tuple[int | None, str | None]:
     """The DDIM steps and grid a checkpoint samples with by itself, from one read of its config: PDP's
-    fields ("even" before the grid field existed), "leading" for LeRobot's diffusion (diffusers' default),
-    (None, None) without a sampler."""
+    fields (the legacy grid before the field existed, as PDPPolicy loads it), "leading" for LeRobot's
+    diffusion (diffusers' default), (None, None) without a sampler."""
     saved = json.loads((Path(ckpt) / "config.json").read_text())
     if "num_inference_steps" not in saved:
         return None, None
-    spacing = saved.get("timestep_spacing", "even") if saved.get("type") == "pdp" else "leading"
+    legacy = LEGACY_DEFAULTS["timestep_spacing"]
+    spacing = saved.get("timestep_spacing", legacy) if saved.get("type") == "pdp" else "leading"
     return saved["num_inference_steps"], spacing
 
 
