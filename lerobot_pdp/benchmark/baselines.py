@@ -23,7 +23,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, fields, is_dataclass
+from dataclasses import MISSING, asdict, fields, is_dataclass
 from typing import Any
 
 import numpy as np
@@ -43,7 +43,8 @@ DP_MATCHED_FIELDS = ("down_dims", "kernel_size", "n_groups", "diffusion_step_emb
                      "n_action_steps", "drop_n_last_frames", "do_mask_loss_for_padding", "num_train_timesteps",
                      "num_inference_steps", "beta_schedule", "clip_sample", "clip_sample_range", "optimizer_lr",
                      "scheduler_warmup_steps")
-DP_MATCHING_DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(PDPConfig) if f.name in DP_MATCHED_FIELDS}
+DP_MATCHING_DEFAULTS: dict[str, Any] = {f.name: f.default if f.default is not MISSING else f.default_factory()
+                                        for f in fields(PDPConfig) if f.name in DP_MATCHED_FIELDS}
 # Fixed for DP whatever PDP uses: deterministic DDIM (noise-space adaptation needs a deterministic map
 # x_K -> actions).
 DP_FIXED: dict[str, Any] = {"noise_scheduler_type": "DDIM"}
