@@ -269,6 +269,10 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="with --validate: processes evaluating the candidates of a stage side by side (default 1)")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
+    p.add_argument("--film", choices=("mlp", "affine"), default=None,
+                   help="PDP's FiLM form, z -> (gamma, beta) through the paper's [16, 32] MLP or one linear layer "
+                   "(default: the env's, settings.FILM: affine on pick-place, mlp elsewhere); a training setting, "
+                   "compared on --split validation")
     p.add_argument("--obs", choices=("state", "images"), default="state",
                    help="images: the camera variant - datasets, policies and rollouts observe one camera "
                    "(observation.images.<camera>) besides the state; methods pdp and dp (default state)")
@@ -304,7 +308,8 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
                            quick=args.quick, ablations=args.ablations, scenes=scenes, split=args.split, steps=args.steps,
                            lr=args.lr, batch_size=args.batch_size, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
-                           figures=not args.no_figures, device=args.device, jobs=args.jobs, **camera)
+                           figures=not args.no_figures, device=args.device, jobs=args.jobs, film=args.film,
+                           **camera)
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:

@@ -6,7 +6,7 @@ import draccus
 import pytest
 
 from lerobot_pdp import PDPConfig
-from lerobot_pdp.benchmark.settings import SETTINGS, methods_for
+from lerobot_pdp.benchmark.settings import SETTINGS, film_form, methods_for
 from lerobot_pdp.benchmark.training import train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 
@@ -26,6 +26,25 @@ def test_pick_place_pdp_uses_an_affine_film_and_an_unpenalised_fit_every_other_e
         cfg = _pdp_config(methods_for(get_suite_env(env))["pdp"].overrides)
         assert tuple(cfg.film_hidden_dims) == (16, 32) and cfg.segment_gripper_dim is None
         assert cfg.fit_lambda == PDPConfig.fit_lambda > 0
+
+
+@pytest.mark.parametrize("env", ["avoiding", "pick-place"])
+def test_film_option_trains_pdp_and_its_ablations_with_that_form_only(env):
+    """``benchmark --film``: a FiLM form is a training setting compared on the validation split; it changes
+    PDP and its ablations, never DP or BC, and the env's other PDP overrides stay."""
+    suite = get_suite_env(env)
+    for film, dims in (("affine", ()), ("mlp", (16, 32))):
+        methods = methods_for(suite, film)
+        for name in ("pdp", "pdp_concat"):
+            cfg = _pdp_config(methods[name].overrides)
+            assert tuple(cfg.film_hidden_dims) == dims
+            assert cfg.fit_lambda == (0 if env == "pick-place" else PDPConfig.fit_lambda)
+        for name in ("dp", "bc"):
+            assert methods[name].overrides == methods_for(suite)[name].overrides
+    # the env's own form is the default, and the same arguments as before the option (cached runs stay reusable)
+    assert methods_for(suite, film_form(env)) == methods_for(suite)
+    with pytest.raises(ValueError, match="film must be one of"):
+        methods_for(suite, "mlp2")
 
 
 def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):

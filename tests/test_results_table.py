@@ -137,6 +137,11 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
     refrozen["frozen"] = {**refrozen["frozen"], "methods": {"pdp": {"sampler": [5, "leading"]}}}
     with pytest.raises(ValueError, match="b: frozen is .* but a has"):  # other frozen settings: not one table
         merge_results([("a", a), ("b", refrozen)])
+    affine = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}}, film="affine")
+    assert a["film"] == "mlp" and affine["film"] == "affine"  # the env's form, else --film's
+    with pytest.raises(ValueError, match="b: PDP's FiLM form is 'affine' but a has 'mlp'"):
+        merge_results([("a", a), ("b", affine)])
+    assert merge_results([("a", a), ("b", refrozen | {"frozen": a["frozen"]})])["film"] == "mlp"
     # a file from before per-method seeds whose method finished fewer seeds than the table's
     old = _results([1, 2], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
     del old["methods"]["pdp"]["seeds"]
@@ -182,7 +187,10 @@ def test_quick_changes_only_the_defaults_of_the_benchmark_command(argv, expected
 
     cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--out", "o", *argv]))
     assert (cfg.seeds, cfg.rollouts, cfg.methods) == expected
-    assert cfg.quick == ("--quick" in argv)
+    assert cfg.quick == ("--quick" in argv) and cfg.film is None  # None: the env's FiLM form
+    film = benchmark_config(build_parser().parse_args(["benchmark", "--env", "avoiding", "--out", "o", "--film",
+                                                       "affine", *argv]))
+    assert film.film == "affine" and (film.seeds, film.rollouts, film.methods) == expected
 
 
 def test_rollout_figures_split_main_methods_from_ablations_whatever_was_asked(tmp_path, monkeypatch):

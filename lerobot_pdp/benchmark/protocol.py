@@ -83,7 +83,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     check_device(cfg.device)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    all_methods = methods_for(suite)
+    all_methods = methods_for(suite, cfg.film)
     names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
     unknown = [n for n in names if n not in all_methods]
     if unknown:

@@ -10,7 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from .settings import FROZEN, INIT_STEPS, VALIDATION_RECORDS, BenchmarkConfig, TrainSettings, scene_label
+from .settings import (
+    FROZEN,
+    INIT_STEPS,
+    VALIDATION_RECORDS,
+    BenchmarkConfig,
+    TrainSettings,
+    film_form,
+    scene_label,
+)
 
 
 def validation_summary(record: str | None) -> dict[str, Any] | None:
@@ -36,7 +44,8 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     budget = "quick" if cfg.quick else "full"
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
-                           "train": {**asdict(settings), "steps": steps}, "device": cfg.device,
+                           "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
+                           "device": cfg.device,
                            # what was frozen for this run besides "train", and the validation record it came from
                            "frozen": ({"methods": FROZEN.get((env, budget), {}),
                                        "validation_record": VALIDATION_RECORDS.get((env, budget)),
@@ -108,6 +117,9 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             if res.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only runs of the same protocol can be merged")
+        if None not in (res.get("film"), first.get("film")) and res["film"] != first["film"]:  # older: unrecorded
+            raise ValueError(f"{name}: PDP's FiLM form is {res['film']!r} but {first_name} has {first['film']!r}; "
+                             "only runs of the same protocol can be merged")
     # method -> [(seed, source name, entry)] with each seed's index into the entry's per-seed lists
     rows: dict[str, list[tuple[int, str, dict[str, Any], int]]] = {}
     for name, res in results:
@@ -127,6 +139,9 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     for key in ("split", "frozen", "observation"):  # equal in every file (checked above)
         if key in first:
             out[key] = first[key]
+    films = {res["film"] for _, res in results if res.get("film")}
+    if films:
+        out["film"] = films.pop()
     if all(res.get("scenes") == first.get("scenes") for _, res in results) and "scenes" in first:
         out["scenes"] = first["scenes"]
     out["device"] = "/".join(sorted({str(res.get("device", "unrecorded")) for _, res in results}))
@@ -215,6 +230,8 @@ def results_markdown(res: dict[str, Any]) -> str:
                   f"({o['image_size']}x{o['image_size']}) for every method."]
     lines += ["", f"Training: {t['steps']} steps, batch {t['batch_size']}, lr {t['lr']}, "
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
+    if res.get("film"):
+        lines.append(f"PDP's FiLM form: {res['film']}.")
     sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}"
                + (f" ({'/'.join(e['timestep_spacing'])})" if e.get("timestep_spacing") else "")
                for name, e in res["methods"].items() if e.get("inference_steps")]

@@ -129,8 +129,14 @@ SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
 # between them), and no |z|^2 penalty in the fit, whose loss is flat at the outer edge of the latent map
 # where that route lies (docs/experiments.md, "Affine FiLM" and "Unpenalised fit").
 PDP_OVERRIDES: dict[str, tuple[str, ...]] = {
-    "pick-place": ("--policy.film_hidden_dims=[]", "--policy.fit_lambda=0"),
+    "pick-place": ("--policy.fit_lambda=0",),
 }
+
+# The form of PDP's z -> (gamma, beta) map, a training setting (``benchmark --film`` trains another one, e.g.
+# to compare both on the validation split): "mlp" is the paper's [16, 32] MLP (PDPConfig's default),
+# "affine" one linear layer. FILM names each env's form where it is not the paper's.
+FILM_FORMS: dict[str, tuple[str, ...]] = {"mlp": (), "affine": ("--policy.film_hidden_dims=[]",)}
+FILM: dict[str, str] = {"pick-place": "affine"}
 
 
 # What the validation split chose per method (``benchmark --split validation --validate``, validation.py),
@@ -193,11 +199,20 @@ class Method:
     steerable: bool = True  # conditions scene-0 rollouts on each mode's mean latent
 
 
-def methods_for(suite: SuiteEnv) -> dict[str, Method]:
+def film_form(env: str, film: str | None = None) -> str:
+    """PDP's FiLM form on ``env``: ``film`` if given, else the env's (:data:`FILM`, the paper's MLP by default)."""
+    form = film or FILM.get(env, "mlp")
+    if form not in FILM_FORMS:
+        raise ValueError(f"film must be one of {sorted(FILM_FORMS)}, got {form!r}")
+    return form
+
+
+def methods_for(suite: SuiteEnv, film: str | None = None) -> dict[str, Method]:
     """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it).
 
-    For a camera variant of an env (``suite.camera_kwargs``) only the methods that take images, each with
-    the same :data:`VISION_FLAGS`."""
+    ``film`` trains PDP and its ablations with that FiLM form instead of the env's (:func:`film_form`). For a
+    camera variant of an env (``suite.camera_kwargs``) only the methods that take images, each with the same
+    :data:`VISION_FLAGS`."""
     try:
         from ..configuration_pdp import PDPConfig
         from .baselines import dp_config_matching
@@ -208,7 +223,7 @@ def methods_for(suite: SuiteEnv) -> dict[str, Method]:
     pdp = [f"--policy.trace_dims=[{','.join(map(str, suite.trace_dims))}]"]
     if suite.segment_on_gripper is not None:
         pdp += [f"--policy.segment_gripper_dim={suite.segment_on_gripper}", "--policy.trace_normalize=endpoints"]
-    pdp = (*pdp, *PDP_OVERRIDES.get(suite.name, ()))
+    pdp = (*pdp, *FILM_FORMS[film_form(suite.name, film)], *PDP_OVERRIDES.get(suite.name, ()))
     if suite.camera_kwargs:
         return {"pdp": Method("pdp", "pdp", (*pdp, *VISION_FLAGS)),
                 "dp": Method("dp", "diffusion", (*dp, *VISION_FLAGS), adapt="noise", steerable=False)}
@@ -257,6 +272,9 @@ class BenchmarkConfig:
     # Where every method trains, adapts and acts ("cpu", "cuda", "cuda:1", ...). Not a training setting:
     # a run trained on one device is reused on another.
     device: str = "cpu"
+    # PDP's FiLM form ("mlp" | "affine"; None: the env's, settings.FILM): a training setting, so that forms
+    # can be compared on the validation split
+    film: str | None = None
     # "state" (default) or "images": the camera variant (CAMERAS[env] at IMAGE_SIZE, or camera / image_size)
     obs: str = "state"
     camera: str | None = None
