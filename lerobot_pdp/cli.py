@@ -166,8 +166,8 @@ def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("checkpoint", type=Path, help="a pretrained_model folder (config.json + model.safetensors)")
     p.add_argument("--out", required=True, type=Path, help="output PNG")
     p.add_argument("--k", type=int, default=None,
-                   help="colour by k discovered clusters even where labels exist (default: labels, else k by "
-                   "silhouette score)")
+                   help="colour by k discovered clusters even where labels exist (default: labels, else the "
+                   "clusters policy.discover_modes() finds in the behavior traces)")
     p.set_defaults(func=cmd_latent_map)
 
 

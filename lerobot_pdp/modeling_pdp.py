@@ -44,12 +44,13 @@ from .behavior import (
     gripper_segments,
     make_trace,
     read_episodes,
+    trace_distances,
 )
 from .configuration_pdp import PDPConfig, apply_legacy_defaults
 from .episodes import read_episode_frames
 from .latent_fitting import DemoWindows, FitResult, fit_latent, frame_windows, select_code
 from .model_card import pdp_model_card
-from .modes import DiscoveredModes, discover
+from .modes import SPACES, DiscoveredModes, discover
 from .normalization import FeatureStats
 from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
 from .phases import PhaseTracker
@@ -279,7 +280,7 @@ class PDPPolicy(PreTrainedPolicy):
 
         Mode ids are the training episodes' labels (task strings ``"mode <id>: <name>"``). Without labels
         (e.g. a dataset of language instructions) the modes are discovered by clustering the training
-        latents (:meth:`discover_modes`; ids are then cluster ids, and a warning says so). With
+        episodes (:meth:`discover_modes`; ids are then cluster ids, and a warning says so). With
         gripper-segmented behaviors (several per episode) each mode gets one mean per phase,
         [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
         """
@@ -290,7 +291,7 @@ class PDPPolicy(PreTrainedPolicy):
         if not bool(labeled.any()):
             found = self.discover_modes()
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
-                           "discovered by clustering their latents (policy.discover_modes(); ids are cluster "
+                           "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
                            "ids, see `lerobot-pdp latent-map`)", found.k)
             return found.means
         with torch.no_grad():
@@ -306,28 +307,41 @@ class PDPPolicy(PreTrainedPolicy):
                                            for k in range(int(phase[of_mode].max()) + 1)]).cpu()
         return out
 
-    def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0) -> DiscoveredModes:
-        """Cluster the training episodes by their latents: the modes of a dataset without mode labels.
+    def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0,
+                       space: str = "traces") -> DiscoveredModes:
+        """Cluster the training episodes: the modes of a dataset without mode labels.
 
         Args:
-            k: number of clusters; None chooses it in 2..``max_k`` by silhouette score.
-            max_k: largest k tried; None = half the training episodes (at most ``modes.MAX_K_LIMIT``).
-            seed: k-means seed (the result is deterministic for a given policy and seed).
+            k: number of clusters; None finds it (``"traces"``: HDBSCAN; ``"latents"``: silhouette score
+                over 2..``max_k``).
+            max_k: ``space="latents"`` only: largest k tried; None = half the training episodes (at most
+                ``modes.MAX_K_LIMIT``).
+            seed: k-means seed of ``space="latents"`` (the result is deterministic for a given policy and seed).
+            space: ``"traces"`` clusters the episodes by their behavior traces' soft-DTW divergences (the
+                similarity the latents are trained to reproduce, without the distortion of a low-dimensional
+                map); ``"latents"`` by their latents. See :mod:`lerobot_pdp.modes`.
 
         Returns:
             :class:`~lerobot_pdp.modes.DiscoveredModes`: ``labels`` (training episode index -> cluster id),
-            ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k`` and the
-            silhouette score of each candidate k.
+            ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k``, silhouette scores,
+            and the episodes that joined a cluster as outliers.
         """
+        if space not in SPACES:
+            raise ValueError(f"space must be one of {SPACES}, got {space!r}")
         if len(self.model.behavior_episode) == 0:
             raise ValueError("discover_modes() needs the training behaviors: build the policy with dataset_meta "
                              "or load a checkpoint")
         with torch.no_grad():
             z = self.behavior_latents().cpu().numpy()
-        key = (k, max_k, seed, hash(z.tobytes()))
+        key = (k, max_k, seed, space, hash(z.tobytes()))
         if self._discovered is None or self._discovered[0] != key:
+            distances = None
+            if space == "traces":  # the training run cached them on disk (by content): usually a file read
+                cfg = self.config
+                distances = trace_distances(self.model.behavior_traces.cpu().numpy(), cfg.sdtw_gamma,
+                                            cfg.sdtw_normalize, progress=False)
             self._discovered = (key, discover(z, self.model.behavior_episode.cpu().numpy(),
-                                              self.behavior_phase().cpu().numpy(), k, max_k, seed))
+                                              self.behavior_phase().cpu().numpy(), k, max_k, seed, distances))
         return self._discovered[1]
 
     def behavior_latents(self, ids: Tensor | None = None) -> Tensor:

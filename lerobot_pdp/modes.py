@@ -1,9 +1,16 @@
-"""Modes of the training behaviors when the data has no mode labels: clusters of their latents.
+"""Modes of the training behaviors when the data has no mode labels: clusters of the training episodes.
 
-Most LeRobot datasets carry language instructions, not mode labels. PDP's latent space is aligned with
-trajectory similarity, so demonstrations that took the same route sit together on the latent map:
-clustering the training episodes' latents recovers the modes. scikit-learn does the clustering
-(k-means, several restarts) and the choice of k (the silhouette score, highest wins).
+Most LeRobot datasets carry language instructions, not mode labels. Demonstrations that took the same route
+have behavior traces a small soft-DTW divergence apart, the similarity PDP's latent space is trained to
+reproduce. Two ways to group them, both with scikit-learn:
+
+- ``"traces"`` (default): the episodes' trace divergences themselves. With k unknown, HDBSCAN finds the
+  dense groups and how many there are; with k given, average-linkage agglomerative clustering. The latent
+  map is a low-dimensional embedding of these divergences and cannot keep all of them: on kitchen-microwave
+  two routes 0.08 apart (within a route: < 0.01) sit next to a route spread over the map, so no partition
+  of the 2-D latents recovers the five routes, while the divergences separate them exactly
+  (docs/results.md, "Mode discovery without labels").
+- ``"latents"``: k-means on the episodes' latents, k chosen by the silhouette score (the first version).
 """
 
 from __future__ import annotations
@@ -17,9 +24,16 @@ from torch import Tensor
 
 logger = logging.getLogger(__name__)
 
-# Default upper bound of k: half the episodes (a mode of one demonstration is not a mode), at most this
-# many candidates (each is a k-means fit: the search's cost).
+# Default upper bound of k for the latents' search: half the episodes (a mode of one demonstration is not a
+# mode), at most this many candidates (each is a k-means fit: the search's cost).
 MAX_K_LIMIT = 100
+# HDBSCAN's smallest cluster (and its density neighbourhood, min_samples): three demonstrations. Chosen on the
+# validation data of the four benchmark envs (3 to 10 demonstrations per mode) and the tests' 4-route data:
+# 3 recovers every mode of all five; 2 also does on the benchmark data but splits the tests' jittered routes
+# into 7 groups; 5 merges pick-place's 3-demonstration modes. A route with fewer demonstrations joins its
+# nearest mode (reported as outliers).
+MIN_CLUSTER_SIZE = 3
+SPACES = ("traces", "latents")
 
 
 @dataclass
@@ -29,7 +43,12 @@ class DiscoveredModes:
     labels: dict[int, int]  # training episode index -> cluster id
     means: dict[int, Tensor]  # cluster id -> mean latent, [d_z] (or [n_phases, d_z] for per-phase latents)
     k: int  # number of clusters
-    silhouette: dict[int, float] = field(default_factory=dict)  # candidate k -> silhouette score (k chosen: max)
+    # candidate k -> silhouette score ("latents": every candidate, k chosen = max; "traces": the clustering's
+    # own k, on the trace divergences)
+    silhouette: dict[int, float] = field(default_factory=dict)
+    space: str = "latents"  # what was clustered: "traces" (the behaviors' soft-DTW divergences) or "latents"
+    # episodes HDBSCAN left unassigned (no dense group of >= 2), each given its nearest cluster
+    outliers: list[int] = field(default_factory=list)
 
 
 def episode_features(z: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +61,57 @@ def episode_features(z: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> t
                          "discovery compares whole episodes and needs the same phases in each")
     rows = [z[episode == e][np.argsort(phase[episode == e])].reshape(-1) for e in episodes]
     return episodes, np.stack(rows)
+
+
+def episode_distances(d: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance between whole episodes from their behaviors' soft-DTW divergences ``d`` [N, N]: the square
+    root of the sum over phases (phase k of one episode against phase k of the other; a divergence is a
+    squared distance). Returns (episode indices [E], distances [E, E])."""
+    episodes = np.unique(episode)
+    rows = [np.flatnonzero(episode == e)[np.argsort(phase[episode == e])] for e in episodes]
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError(f"episodes have different numbers of phases ({sorted({len(r) for r in rows})}); mode "
+                         "discovery compares whole episodes and needs the same phases in each")
+    idx = np.stack(rows)  # [E, n_phases]
+    d = np.maximum((d + d.T) / 2, 0.0)  # soft-DTW is symmetric up to rounding
+    total = sum(d[np.ix_(idx[:, k], idx[:, k])] for k in range(idx.shape[1]))
+    out = np.sqrt(total)
+    np.fill_diagonal(out, 0.0)
+    return episodes, out
+
+
+def cluster_distances(dist: np.ndarray, k: int | None = None, min_cluster_size: int = MIN_CLUSTER_SIZE
+                      ) -> tuple[np.ndarray, int, list[int]]:
+    """Cluster ids [E] of episodes a precomputed distance [E, E] apart, k, and the rows HDBSCAN left as noise
+    (each joined to the cluster at the smallest mean distance). ``k=None``: HDBSCAN chooses the clusters;
+    else average-linkage agglomerative clustering into k. Ids are numbered by their first episode."""
+    from sklearn.cluster import HDBSCAN, AgglomerativeClustering
+
+    n = len(dist)
+    if k is not None and not 1 <= k <= n:
+        raise ValueError(f"k must be between 1 and the number of training episodes ({n}), got {k}")
+    if min_cluster_size < 2:
+        raise ValueError(f"min_cluster_size must be at least 2, got {min_cluster_size}")
+    noise: list[int] = []
+    if k is None:
+        if n < 2 * min_cluster_size:
+            raise ValueError(f"finding the modes needs at least {2 * min_cluster_size} training episodes (two "
+                             f"modes of min_cluster_size = {min_cluster_size}), got {n}; pass k")
+        labels = HDBSCAN(min_cluster_size=min_cluster_size, metric="precomputed", copy=True).fit_predict(dist)
+        found = sorted(set(labels.tolist()) - {-1})
+        if not found:  # no dense group at all: one mode
+            labels = np.zeros(n, int)
+        else:
+            noise = np.flatnonzero(labels == -1).tolist()
+            for i in noise:
+                labels[i] = min(found, key=lambda c: dist[i, labels == c].mean())
+        k = len(set(labels.tolist()))
+    elif k == 1:
+        labels = np.zeros(n, int)
+    else:
+        labels = AgglomerativeClustering(n_clusters=k, metric="precomputed", linkage="average").fit_predict(dist)
+    order = {old: new for new, old in enumerate(dict.fromkeys(labels.tolist()))}
+    return np.array([order[x] for x in labels.tolist()]), k, noise
 
 
 def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | None = None, seed: int = 0
@@ -88,13 +158,31 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | No
 
 
 def discover(z: np.ndarray, episode: np.ndarray, phase: np.ndarray, k: int | None = None,
-             max_k: int | None = None, seed: int = 0) -> DiscoveredModes:
-    """Cluster training episodes by their latents (``z`` [N, d_z] per behavior, with its episode and phase)."""
+             max_k: int | None = None, seed: int = 0, distances: np.ndarray | None = None) -> DiscoveredModes:
+    """Cluster training episodes (``z`` [N, d_z] per behavior, with its episode and phase): by the behaviors'
+    soft-DTW ``distances`` [N, N] when given (``max_k`` unused), else by their latents. The means are each
+    cluster's mean latent either way."""
     episodes, feats = episode_features(z, episode, phase)
-    labels, k, scores = cluster_episodes(feats, k, max_k, seed)
+    outliers: list[int] = []
+    if distances is None:
+        labels, k, scores = cluster_episodes(feats, k, max_k, seed)
+    else:
+        if max_k is not None:
+            raise ValueError("max_k bounds the search over k of the latents' clustering; clustering the traces "
+                             "finds k itself (space='latents' to use max_k)")
+        eps, dist = episode_distances(distances, episode, phase)
+        assert (eps == episodes).all()
+        labels, k, noise = cluster_distances(dist, k)
+        outliers = [int(episodes[i]) for i in noise]
+        scores = {}
+        if 1 < k < len(dist):
+            from sklearn.metrics import silhouette_score
+
+            scores[k] = float(silhouette_score(dist, labels, metric="precomputed"))
     n_phases, d = feats.shape[1] // z.shape[1], z.shape[1]
     means = {}
     for c in range(k):
         m = torch.as_tensor(feats[labels == c].mean(0), dtype=torch.float32).view(n_phases, d)
         means[c] = m[0] if n_phases == 1 else m
-    return DiscoveredModes({int(e): int(c) for e, c in zip(episodes, labels, strict=True)}, means, k, scores)
+    return DiscoveredModes({int(e): int(c) for e, c in zip(episodes, labels, strict=True)}, means, k, scores,
+                           "latents" if distances is None else "traces", outliers)

@@ -28,15 +28,64 @@ def embedded(synthetic_meta):
     return p
 
 
-def test_discover_modes_recovers_the_four_routes(embedded):
-    found = embedded.discover_modes()
+@pytest.mark.parametrize("space", ["traces", "latents"])
+def test_discover_modes_recovers_the_four_routes(embedded, space):
+    found = embedded.discover_modes(space=space)
     true = {int(e): int(m) for e, m in zip(embedded.model.behavior_episode, embedded.model.behavior_mode, strict=True)}
     episodes = sorted(true)
     ari = adjusted_rand_score([true[e] for e in episodes], [found.labels[e] for e in episodes])
     assert found.k == 4 and ari >= 0.9, (found.k, ari, found.silhouette)
+    assert found.space == space and found.outliers == []
     assert set(found.means) == set(range(4)) and all(m.shape == (2,) for m in found.means.values())
     assert max(found.silhouette, key=found.silhouette.get) == 4
-    assert embedded.discover_modes(k=3).k == 3
+    assert embedded.discover_modes(k=3, space=space).k == 3
+    if space == "traces":  # each cluster's mean latent is its episodes' mean latent, as with the latents
+        z = embedded.behavior_latents().detach().numpy()
+        ep = embedded.model.behavior_episode.numpy()
+        for c, mean in found.means.items():
+            members = [e for e, lab in found.labels.items() if lab == c]
+            assert np.allclose(mean.numpy(), z[np.isin(ep, members)].mean(0), atol=1e-5)
+
+
+def test_discover_modes_argument_errors_are_named(embedded):
+    with pytest.raises(ValueError, match="space must be one of .*got 'pixels'"):
+        embedded.discover_modes(space="pixels")
+    with pytest.raises(ValueError, match="max_k bounds the search over k of the latents"):
+        embedded.discover_modes(max_k=6)
+    assert embedded.discover_modes(max_k=6, space="latents").k == 4
+
+
+def test_clustering_trace_distances_finds_close_modes_a_latent_map_merges():
+    """Two routes much closer to each other than to the rest, yet far apart relative to their own spread
+    (kitchen's front and low): HDBSCAN on the divergences keeps them apart; an outlier joins its nearest mode
+    and is reported."""
+    from lerobot_pdp.modes import cluster_distances, episode_distances
+
+    rng = np.random.default_rng(0)
+    centres = np.array([[0.0, 0.0], [0.3, 0.0], [5.0, 0.0], [0.0, 6.0], [7.0, 7.0]])
+    pts = np.repeat(centres, 6, axis=0) + rng.normal(0, 0.01, (30, 2))
+    pts = np.vstack([pts, [[12.0, 12.0]]])  # a lone episode, nearest the last route
+    truth = np.r_[np.repeat(np.arange(5), 6), 4]
+    # two phases per episode: divergences (squared distances) of each phase add up
+    half = pts / np.sqrt(2)
+    n = len(pts)
+    d = np.zeros((2 * n, 2 * n))
+    sq = ((half[:, None] - half[None]) ** 2).sum(-1)
+    d[:n, :n] = d[n:, n:] = sq
+    episodes, dist = episode_distances(d, np.r_[np.arange(n), np.arange(n)], np.r_[np.zeros(n), np.ones(n)])
+    assert (episodes == np.arange(n)).all()
+    assert np.allclose(dist, np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(-1)))
+    labels, k, noise = cluster_distances(dist)
+    assert k == 5 and adjusted_rand_score(truth, labels) == 1.0 and noise == [30]
+    labels, k, noise = cluster_distances(dist[:30, :30], k=5)  # k given: agglomerative, nothing left out
+    assert k == 5 and adjusted_rand_score(truth[:30], labels) == 1.0 and noise == []
+    assert labels[0] == 0  # ids numbered by their first episode
+    with pytest.raises(ValueError, match=r"k must be between 1 and the number of training episodes \(31\), got 32"):
+        cluster_distances(dist, k=32)
+    with pytest.raises(ValueError, match="needs at least 6 training episodes"):
+        cluster_distances(dist[:5, :5])
+    with pytest.raises(ValueError, match="different numbers of phases"):
+        episode_distances(np.zeros((3, 3)), np.array([0, 0, 1]), np.array([0, 1, 0]))
 
 
 def test_mode_latents_fall_back_to_discovered_modes_with_a_warning(embedded, caplog):
