@@ -12,9 +12,9 @@ from lerobot_pdp.benchmark import settings, validation
 from lerobot_pdp.benchmark.protocol import run_benchmark
 from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes
 
-pytestmark = pytest.mark.slow
 
 
+@pytest.mark.slow
 def test_validate_tiny(tmp_path, monkeypatch):
     monkeypatch.delitem(settings.FROZEN, ("reach-around", "full"))  # shipped choices: the full budget, not this run
     # a shorter candidate list keeps the test quick; the shipped lists are checked below
@@ -99,3 +99,26 @@ def test_a_setting_changes_only_on_evidence():
     rows[2]["score"] = 0.70
     assert validation.choose(rows, 120) == 1  # ties: the earlier
     assert validation.choose([{"score": 1.0}, {"score": 1.0}], 40) == 0
+
+
+def test_a_training_setting_is_chosen_on_validation_runs_by_the_same_rule():
+    """``choose_training_setting``: every scene (scene 0 too) and seed count; the current setting (first) stays
+    unless beaten by more than one standard error; test runs and unlike runs are refused."""
+    def res(rates, split="validation", rollouts=40, film="mlp"):
+        scenes = {f"scene{'' if i == 0 else '_val'}{i if i else 0}": {"success": [r]} for i, r in enumerate(rates)}
+        return {"env": "avoiding", "split": split, "rollouts": rollouts, "film": film, "train": {"steps": 8000},
+                "methods": {"pdp": {"seeds": [100], **scenes}}}
+
+    mlp = res([1.0, 0.9, 0.95, 0.05, 0.0])  # 58 %
+    close = res([1.0, 0.95, 0.95, 0.1, 0.0], film="affine")  # 60 %: +2 points over 200 rollouts is noise
+    rec = validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": close})
+    assert rec["chosen"] == "mlp" and [round(r["score"], 2) for r in rec["candidates"]] == [0.58, 0.6]
+    assert rec["scenes"] == ["scene0", "scene_val1", "scene_val2", "scene_val3", "scene_val4"]
+    better = res([1.0, 0.95, 0.95, 0.5, 0.4], film="affine")
+    assert validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": better})["chosen"] == "affine"
+    with pytest.raises(ValueError, match="affine: a 'test' run"):
+        validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": res([1.0] * 5, split="test")})
+    with pytest.raises(ValueError, match="compare like with like"):
+        validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": res([1.0] * 5, rollouts=20)})
+    with pytest.raises(ValueError, match="no dp in its results"):
+        validation.choose_training_setting("dp", "film", {"mlp": mlp})

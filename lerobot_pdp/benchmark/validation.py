@@ -172,6 +172,44 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     return out
 
 
+def choose_training_setting(method: str, setting: str, candidates: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Choose a training setting (e.g. PDP's FiLM form) among validation runs that each trained ``method``
+    with one candidate (``candidates``: name -> that run's ``results.json``, the current setting first).
+
+    A candidate's score is the method's mean success over every scene of the split, scene 0 included (a
+    training setting acts there too), and the seeds, each evaluated with the protocol's default sampler and
+    adaptation; :func:`choose`'s rule picks (the default stays unless beaten by more than one standard error).
+    """
+    rows: list[dict[str, Any]] = []
+    first: tuple | None = None
+    for name, res in candidates.items():
+        if res.get("split") != "validation":
+            raise ValueError(f"{name}: a {res.get('split', 'test')!r} run; training settings are chosen on the "
+                             "validation split only")
+        entry = res["methods"].get(method)
+        if entry is None:
+            raise ValueError(f"{name}: no {method} in its results (methods: {sorted(res['methods'])})")
+        keys = sorted(k for k in entry if k.startswith("scene"))
+        this = (res["env"], keys, entry["seeds"], res["rollouts"])
+        if first is None:
+            first = this
+        elif this != first:
+            raise ValueError(f"{name}: env / scenes / seeds / rollouts {this} differ from the first candidate's "
+                             f"{first}; compare like with like")
+        success = {k: entry[k]["success"] for k in keys}
+        score = float(np.mean([v for vals in success.values() for v in vals]))
+        rows.append({"candidate": name, "score": score, "success": success, "film": res.get("film"),
+                     "train": res["train"]})
+    if first is None:
+        raise ValueError("no candidates")
+    env, scenes, seeds, rollouts = first
+    best = choose(rows, rollouts * len(scenes) * len(seeds))
+    return {"env": env, "split": "validation", "method": method, "setting": setting, "seeds": seeds,
+            "scenes": scenes, "rollouts": rollouts, "candidates": rows, "chosen": rows[best]["candidate"],
+            "rule": "the first candidate (current setting) is kept unless the best beats it by more than one "
+                    "binomial standard error"}
+
+
 def validation_markdown(res: dict[str, Any]) -> str:
     """The candidates and choices of ``validation.json`` as tables (success %, mean over seeds)."""
     lines = [f"# Validation: {res['env']} ({res['rollouts']} rollouts per scene)", ""]
