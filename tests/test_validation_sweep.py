@@ -13,7 +13,6 @@ from lerobot_pdp.benchmark.protocol import run_benchmark
 from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes
 
 
-
 @pytest.mark.slow
 def test_validate_tiny(tmp_path, monkeypatch):
     monkeypatch.delitem(settings.FROZEN, ("reach-around", "full"))  # shipped choices: the full budget, not this run
