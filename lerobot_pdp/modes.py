@@ -47,7 +47,7 @@ class DiscoveredModes:
     # own k, on the trace divergences)
     silhouette: dict[int, float] = field(default_factory=dict)
     space: str = "latents"  # what was clustered: "traces" (the behaviors' soft-DTW divergences) or "latents"
-    # episodes HDBSCAN left unassigned (no dense group of >= 2), each given its nearest cluster
+    # episodes HDBSCAN left in no group (none of >= MIN_CLUSTER_SIZE close enough), each given its nearest cluster
     outliers: list[int] = field(default_factory=list)
 
 
@@ -103,8 +103,9 @@ def cluster_distances(dist: np.ndarray, k: int | None = None, min_cluster_size: 
             labels = np.zeros(n, int)
         else:
             noise = np.flatnonzero(labels == -1).tolist()
+            members = labels.copy()  # nearest by the clusters HDBSCAN found, not by earlier assignments
             for i in noise:
-                labels[i] = min(found, key=lambda c: dist[i, labels == c].mean())
+                labels[i] = min(found, key=lambda c: dist[i, members == c].mean())
         k = len(set(labels.tolist()))
     elif k == 1:
         labels = np.zeros(n, int)
