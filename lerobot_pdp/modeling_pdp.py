@@ -336,10 +336,12 @@ class PDPPolicy(PreTrainedPolicy):
         key = (k, max_k, seed, space, hash(z.tobytes()))
         if self._discovered is None or self._discovered[0] != key:
             distances = None
-            if space == "traces":  # the training run cached them on disk (by content): usually a file read
-                cfg = self.config
-                distances = trace_distances(self.model.behavior_traces.cpu().numpy(), cfg.sdtw_gamma,
-                                            cfg.sdtw_normalize, progress=False)
+            if space == "traces":  # delta^X, stored with the bank (one-hot latents store none: computed here)
+                distances = self.model.trace_distance_matrix.detach().cpu().numpy().astype(np.float64)
+                if self.config.latent_type == "onehot" or distances.shape != (len(z), len(z)):
+                    cfg = self.config
+                    distances = trace_distances(self.model.behavior_traces.cpu().numpy(), cfg.sdtw_gamma,
+                                                cfg.sdtw_normalize, progress=False)
             self._discovered = (key, discover(z, self.model.behavior_episode.cpu().numpy(),
                                               self.behavior_phase().cpu().numpy(), k, max_k, seed, distances))
         return self._discovered[1]

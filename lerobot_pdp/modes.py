@@ -51,31 +51,31 @@ class DiscoveredModes:
     outliers: list[int] = field(default_factory=list)
 
 
+def episode_layout(episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(episode indices [E], behavior index of each episode's phases in order [E, n_phases]); every episode
+    must have the same phases, since mode discovery compares whole episodes."""
+    episodes = np.unique(episode)
+    rows = [np.flatnonzero(episode == e)[np.argsort(phase[episode == e])] for e in episodes]
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError(f"episodes have different numbers of phases ({sorted({len(r) for r in rows})}); mode "
+                         "discovery compares whole episodes and needs the same phases in each")
+    return episodes, np.stack(rows)
+
+
 def episode_features(z: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One row per training episode: its behaviors' latents in phase order, concatenated. Returns
     (episode indices [E], features [E, n_phases * d_z])."""
-    episodes = np.unique(episode)
-    counts = {int(e): int((episode == e).sum()) for e in episodes}
-    if len(set(counts.values())) != 1:
-        raise ValueError(f"episodes have different numbers of phases ({sorted(set(counts.values()))}); mode "
-                         "discovery compares whole episodes and needs the same phases in each")
-    rows = [z[episode == e][np.argsort(phase[episode == e])].reshape(-1) for e in episodes]
-    return episodes, np.stack(rows)
+    episodes, idx = episode_layout(episode, phase)
+    return episodes, z[idx].reshape(len(episodes), -1)
 
 
 def episode_distances(d: np.ndarray, episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance between whole episodes from their behaviors' soft-DTW divergences ``d`` [N, N]: the square
     root of the sum over phases (phase k of one episode against phase k of the other; a divergence is a
     squared distance). Returns (episode indices [E], distances [E, E])."""
-    episodes = np.unique(episode)
-    rows = [np.flatnonzero(episode == e)[np.argsort(phase[episode == e])] for e in episodes]
-    if len({len(r) for r in rows}) != 1:
-        raise ValueError(f"episodes have different numbers of phases ({sorted({len(r) for r in rows})}); mode "
-                         "discovery compares whole episodes and needs the same phases in each")
-    idx = np.stack(rows)  # [E, n_phases]
+    episodes, idx = episode_layout(episode, phase)
     d = np.maximum((d + d.T) / 2, 0.0)  # soft-DTW is symmetric up to rounding
-    total = sum(d[np.ix_(idx[:, k], idx[:, k])] for k in range(idx.shape[1]))
-    out = np.sqrt(total)
+    out = np.sqrt(sum(d[np.ix_(idx[:, k], idx[:, k])] for k in range(idx.shape[1])))
     np.fill_diagonal(out, 0.0)
     return episodes, out
 
@@ -171,8 +171,7 @@ def discover(z: np.ndarray, episode: np.ndarray, phase: np.ndarray, k: int | Non
         if max_k is not None:
             raise ValueError("max_k bounds the search over k of the latents' clustering; clustering the traces "
                              "finds k itself (space='latents' to use max_k)")
-        eps, dist = episode_distances(distances, episode, phase)
-        assert (eps == episodes).all()
+        _, dist = episode_distances(distances, episode, phase)  # same episode order as the features
         labels, k, noise = cluster_distances(dist, k)
         outliers = [int(episodes[i]) for i in noise]
         scores = {}
