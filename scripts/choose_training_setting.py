@@ -28,7 +28,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="validation benchmark folders (each with results.json), the current setting first")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
+    bad = [item for item in args.candidate if "=" not in item]
+    if bad:
+        ap.error(f"--candidate takes NAME=DIR, got {bad[0]!r}")
     folders = {k: Path(v) for k, v in (item.split("=", 1) for item in args.candidate)}
+    missing = [f"{d}/results.json" for d in folders.values() if not (d / "results.json").is_file()]
+    if missing:
+        ap.error(f"no results file at {missing[0]}: give finished `benchmark --split validation` folders")
     rec = choose_training_setting(args.method, args.setting,
                                   {k: json.loads((d / "results.json").read_text()) for k, d in folders.items()})
     write_text_atomic(args.out, json.dumps(rec, indent=1))
