@@ -11,7 +11,7 @@ one-off pause (a recompile for the epoch's last, smaller batch) does not move. A
 (and ``--compile-mode``). One JSON line per run on stdout, then a ratio line.
 
     .venv/bin/python benchmarks/bench_train_device.py [--devices cpu cuda] [--steps 600] [--num-workers 4]
-        [--policies pdp pdp_compiled dp dp_compiled] [--compile-mode reduce-overhead]
+        [--policies pdp pdp_compiled@cuda dp dp_compiled] [--compile-mode reduce-overhead]
 """
 
 from __future__ import annotations
@@ -69,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--devices", nargs="+", default=["cpu"], help="torch devices, e.g. cpu cuda")
     ap.add_argument("--policies", nargs="+", default=["pdp", "dp"],
-                    help="benchmark methods to train; NAME_compiled = NAME with compile_model on")
+                    help="benchmark methods to train; NAME_compiled = NAME with compile_model on; NAME@DEVICE "
+                         "trains NAME on that one of --devices only (e.g. pdp_compiled@cuda)")
     ap.add_argument("--compile-mode", default=None, help="--policy.compile_mode of the _compiled runs "
                     "(default: each policy's own, PDP 'default', LeRobot diffusion 'reduce-overhead')")
     ap.add_argument("--steps", type=int, default=600, help="training steps per run (< 1000: exact log counters)")
@@ -101,8 +102,12 @@ def main(argv: list[str] | None = None) -> int:
     env = {"cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
            "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
     rates: dict[tuple[str, str], float] = {}
+    only = {p.partition("@")[0]: p.partition("@")[2] for p in args.policies}
+    args.policies = list(only)
     for name in args.policies:  # policy by policy: a cut-short run still has each policy's device ratio
         for device in args.devices:
+            if only[name] and device != only[name]:
+                continue
             base, compiled = name.removesuffix("_compiled"), name.endswith("_compiled")
             flags = {"policy__compile_model": "true"} if compiled else {}
             if compiled and args.compile_mode:
