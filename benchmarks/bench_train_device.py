@@ -81,6 +81,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", type=Path, default=None, help="existing reach-around dataset (default: generate)")
     ap.add_argument("--logs", type=Path, default=None, help="keep each run's lerobot-train log in this folder")
     args = ap.parse_args(argv)
+    only = {p.partition("@")[0]: p.partition("@")[2] for p in args.policies}
+    stray = [f"{n}@{d}" for n, d in only.items() if d and d not in args.devices]
+    if stray or len(only) != len(args.policies):
+        ap.error(f"--policies {' '.join(args.policies)}: each policy once, and NAME@DEVICE needs DEVICE among "
+                 f"--devices {' '.join(args.devices)}" + (f" ({stray[0]} is not)" if stray else ""))
+    args.policies = list(only)
 
     import torch
 
@@ -102,8 +108,6 @@ def main(argv: list[str] | None = None) -> int:
     env = {"cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
            "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
     rates: dict[tuple[str, str], float] = {}
-    only = {p.partition("@")[0]: p.partition("@")[2] for p in args.policies}
-    args.policies = list(only)
     for name in args.policies:  # policy by policy: a cut-short run still has each policy's device ratio
         for device in args.devices:
             if only[name] and device != only[name]:
