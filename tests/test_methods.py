@@ -180,3 +180,54 @@ def test_benchmark_batch_size_overrides_every_methods_batch(tmp_path):
     with pytest.raises(ValueError, match="batch_size must be >= 1, got 0"):
         run_benchmark(replace(cfg, out=tmp_path / "bench", batch_size=0))
     assert not (tmp_path / "bench").exists()
+
+
+@pytest.mark.slow
+def test_an_interrupted_training_run_resumes_from_its_last_checkpoint(tmp_path):
+    """A benchmark training killed from outside (a machine going away) after a checkpoint goes on from that
+    checkpoint with lerobot-train's own resume when called again with the same arguments; a partial run
+    with other arguments is not resumed. Real lerobot-train processes, killed with SIGKILL."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from lerobot_pdp.benchmark import training
+    from lerobot_pdp.benchmark.settings import TrainSettings
+    from lerobot_pdp.envs.recording import make_dataset
+
+    data = make_dataset("reach-around", tmp_path / "data", scene=0, episodes_per_mode=1, seed=0, progress=False)
+    run_dir, steps, every = tmp_path / "run", 40, 20
+    call = (f"training.train_method(methods_for(get_suite_env('reach-around'))['bc'], Path({str(data)!r}), "
+            f"Path({str(run_dir)!r}), 0, TrainSettings(steps={steps}, batch_size=8), {steps})")
+    code = ("from pathlib import Path\nfrom lerobot_pdp.benchmark import training\n"
+            "from lerobot_pdp.benchmark.settings import TrainSettings, methods_for\n"
+            f"from lerobot_pdp.envs import get_suite_env\ntraining.RESUME_EVERY = {every}\n{call}\n")
+    env = {**os.environ, "LEROBOT_PDP_TRAIN_WORKERS": "0", "HF_HUB_OFFLINE": "1"}
+    proc = subprocess.Popen([sys.executable, "-c", code], start_new_session=True, env=env)
+    partial = run_dir / ".train-partial"
+    step_file = partial / "out" / "checkpoints" / "last" / "training_state" / "training_step.json"
+    deadline = time.time() + 600
+    while proc.poll() is None and not step_file.exists() and time.time() < deadline:
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)  # the trainer and lerobot-train with it
+    proc.wait()
+    assert step_file.exists() and not (run_dir / "pretrained_model").exists()
+    assert json.loads(step_file.read_text())["step"] == every
+
+    settings = TrainSettings(steps=steps, batch_size=8)
+    args = training.train_args(methods_for(get_suite_env("reach-around"))["bc"], data, 0, settings, steps)
+    assert training._resumable(partial, args)[0] == 0  # other arguments (save_freq): never resumed
+    training.RESUME_EVERY, saved = every, training.RESUME_EVERY
+    try:
+        ckpt = training.train_method(methods_for(get_suite_env("reach-around"))["bc"], data, run_dir, 0, settings,
+                                     steps)
+    finally:
+        training.RESUME_EVERY = saved
+    info = json.loads((run_dir / "train_info.json").read_text())
+    assert info["resumed_from_step"] == every and info["steps"] == steps and info["seconds"] > 0
+    assert (ckpt / "model.safetensors").is_file() and not partial.exists()
+    log = (run_dir / "train.log").read_text()
+    assert "Resuming data order" in log and f"Checkpoint policy after step {every}" in log
+    assert f"Checkpoint policy after step {steps}" in log

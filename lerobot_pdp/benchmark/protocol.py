@@ -1,7 +1,8 @@
 """The paper's evaluation protocol in one call: train every method with ``lerobot-train``, evaluate scenes 0-3
 (the test split) or scene 0 and the env's validation scenes (``BenchmarkConfig.split="validation"``).
 
-Every (method, seed) is trained and evaluated once; results are cached under ``out/`` so a rerun resumes.
+Every (method, seed) is trained and evaluated once; results are cached under ``out/`` so a rerun resumes
+(an interrupted training from its last checkpoint).
 The jobs live in their own modules: ``settings`` (budgets, methods), ``data`` (demonstrations),
 ``training`` (``lerobot-train``, checkpoint reuse, loading), ``evaluation`` (scenes 0-3), ``results``
 (aggregation, merging, tables) and ``figures`` (drawn from the cached results).

@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,16 +26,26 @@ TRAIN_NUM_WORKERS = int(os.environ.get("LEROBOT_PDP_TRAIN_WORKERS", "2"))
 _THREADS = os.environ.get("LEROBOT_PDP_TRAIN_THREADS", "1" if TRAIN_NUM_WORKERS > 0 else "")
 TRAIN_THREADS_ENV = {"OMP_NUM_THREADS": _THREADS, "MKL_NUM_THREADS": _THREADS} if _THREADS else {}
 
+# lerobot-train saves a checkpoint this often (and at the end), so that a run cut short (a machine going away,
+# a job's time limit) goes on from its last checkpoint with lerobot-train's own resume (sample-exact in
+# LeRobot 0.6: optimizer, scheduler, RNG and data order) instead of starting over. A PDP or DP checkpoint
+# with its optimizer state is ~20 MB; older ones are deleted as training goes.
+RESUME_EVERY = 1000
 
-def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None:
-    """Run ``lerobot-train`` with its output in ``log``; a progress bar follows its logged step counter."""
+
+def _run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: int = 0,
+                on_checkpoint=None) -> None:
+    """Run ``lerobot-train`` with its output in ``log`` (appended to when resuming from step ``start``); a
+    progress bar follows its logged step counter; ``on_checkpoint(step)`` runs as each checkpoint starts."""
     import re
 
     from tqdm.auto import tqdm
 
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV}
     pattern = re.compile(r"step:(\d+)(K?)")
-    with open(log, "w") as fh, tqdm(total=total_steps, desc=desc, unit="step") as bar:
+    saving = re.compile(r"Checkpoint policy after step (\d+)")
+    # line-buffered: a run killed from outside keeps its log up to the kill
+    with open(log, "a" if start else "w", buffering=1) as fh, tqdm(total=total_steps, initial=start, desc=desc, unit="step") as bar:
         proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -46,6 +55,9 @@ def _run_logged(args: list[str], log: Path, total_steps: int, desc: str) -> None
                 # lerobot-train rounds large counters ("step:2K" at step 1500): never past the total
                 step = min(int(m.group(1)) * (1000 if m.group(2) else 1), total_steps)
                 bar.update(max(0, step - bar.n))
+            m = saving.search(line)
+            if m and on_checkpoint is not None:
+                on_checkpoint(int(m.group(1)))
         rc = proc.wait()
         bar.update(total_steps - bar.n)
     if rc != 0:
@@ -69,7 +81,7 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
         f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", f"--policy.device={device}",
         f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
         f"--steps={steps}", f"--batch_size={settings.batch_size}", f"--seed={seed}",
-        f"--save_freq={steps}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
+        f"--save_freq={min(steps, RESUME_EVERY)}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
         "--wandb.enable=false",
         # the shared budget comes last so that it wins over any per-method default (same lr for everyone)
         *method.overrides, *lr_args, *warmup,
@@ -94,7 +106,11 @@ def pdp_sampler_args(spacing: str) -> list[str]:
 
 def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settings: TrainSettings,
                  steps: int, device: str = "cpu") -> Path:
-    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``."""
+    """Train with LeRobot's own ``lerobot-train``; the checkpoint lands in ``run_dir/pretrained_model``.
+
+    Training runs in ``run_dir/.train-partial`` and is moved into place when it ends. A run interrupted
+    after its first checkpoint resumes from the last one when called again with the same arguments; a
+    partial run with other arguments is discarded."""
     ckpt = run_dir / "pretrained_model"
     args = train_args(method, dataset, seed, settings, steps, device)
     if (ckpt / "model.safetensors").is_file():
@@ -104,23 +120,82 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):  # earlier model
         (run_dir / stale).unlink(missing_ok=True)
     shutil.rmtree(run_dir / "validation", ignore_errors=True)
-    tmp_out = Path(tempfile.mkdtemp(prefix=".train-", dir=run_dir)) / "out"
-    args.append(f"--output_dir={tmp_out}")
+    for old in run_dir.glob(".train-*"):  # temporary folders of runs killed before resuming existed
+        if old.name != _PARTIAL:
+            shutil.rmtree(old, ignore_errors=True)
+    partial = run_dir / _PARTIAL
+    tmp_out = partial / "out"
+    start, seconds_before = _resumable(partial, args)
+    if start == 0:
+        shutil.rmtree(partial, ignore_errors=True)
+        partial.mkdir()
+        write_text_atomic(partial / "progress.json", json.dumps({"args": args, "seconds": {}}))
+        run_args = [*args, f"--output_dir={tmp_out}"]
+    else:  # lerobot-train's own resume: the checkpoint's train_config.json holds every other argument
+        config = tmp_out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        run_args = [args[0], f"--config_path={config}", "--resume=true", f"--output_dir={tmp_out}"]
     log = run_dir / "train.log"
     t0 = time.time()
+
+    def on_checkpoint(step: int) -> None:
+        """Record the training time up to ``step`` and delete checkpoints older than the last complete one
+        (the one ``step`` starts writing now is not complete yet)."""
+        progress = json.loads((partial / "progress.json").read_text())
+        progress["seconds"][str(step)] = seconds_before + time.time() - t0
+        write_text_atomic(partial / "progress.json", json.dumps(progress))
+        last = _last_step(tmp_out)
+        for d in (tmp_out / "checkpoints").glob("[0-9]*"):
+            if last is not None and int(d.name) < last:
+                shutil.rmtree(d, ignore_errors=True)
+
     try:
-        _run_logged(args, log, steps, f"train {method.name} seed {seed}")
+        _run_logged(run_args, log, steps, f"train {method.name} seed {seed}", start, on_checkpoint)
         src = tmp_out / "checkpoints" / "last" / "pretrained_model"
         if not (src / "model.safetensors").is_file():
             raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
+        info = {"seconds": seconds_before + time.time() - t0, "steps": steps, "args": _portable(args, run_dir)}
+        if start:
+            info["resumed_from_step"] = start
         # train_info.json first: a checkpoint must never be found without the arguments it was trained with
         # (that would pass as one copied in by hand and be reused unchecked).
-        write_text_atomic(run_dir / "train_info.json", json.dumps({"seconds": time.time() - t0, "steps": steps,
-                                                                   "args": _portable(args, run_dir)}, indent=1))
+        write_text_atomic(run_dir / "train_info.json", json.dumps(info, indent=1))
         os.replace(src, ckpt)
-    finally:  # a failed run leaves its log, not half a training folder
-        shutil.rmtree(tmp_out.parent, ignore_errors=True)
+        shutil.rmtree(partial, ignore_errors=True)
+    finally:  # a failed run leaves its log and, once it has a checkpoint, what it can resume from
+        if _last_step(tmp_out) is None:
+            shutil.rmtree(partial, ignore_errors=True)
     return ckpt
+
+
+_PARTIAL = ".train-partial"
+
+
+def _last_step(out: Path) -> int | None:
+    """Step of the last complete checkpoint under a lerobot-train output folder (None if there is none):
+    lerobot-train points ``checkpoints/last`` at a checkpoint once it is fully written."""
+    step_file = out / "checkpoints" / "last" / "training_state" / "training_step.json"
+    try:
+        return int(json.loads(step_file.read_text())["step"])
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _resume_key(args: list[str]) -> list[str]:
+    return [a for a in args if a.partition("=")[0] not in ("--num_workers", "--log_freq")]
+
+
+def _resumable(partial: Path, args: list[str]) -> tuple[int, float]:
+    """(step, training seconds up to it) of a partial run that can go on with ``args``; (0, 0) if none."""
+    step = _last_step(partial / "out")
+    try:
+        progress = json.loads((partial / "progress.json").read_text())
+    except (OSError, ValueError):
+        return 0, 0.0
+    # the same command but for loader workers and logging: a resumed run keeps the checkpoint's configuration
+    # (the sampler and device included), so those must not differ
+    if step is None or _resume_key(progress.get("args", [])) != _resume_key(args):
+        return 0, 0.0
+    return step, float(progress["seconds"].get(str(step), 0.0))
 
 
 def _portable(args: list[str], run_dir: Path) -> list[str]:
