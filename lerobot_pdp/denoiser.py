@@ -36,8 +36,10 @@ class SinusoidalPosEmb(nn.Module):
 
     def forward(self, k: Tensor) -> Tensor:
         half = self.dim // 2
-        freqs = torch.exp(torch.arange(half, device=k.device) * -(math.log(10000) / (half - 1)))
-        emb = k.float()[:, None] * freqs[None, :]
+        # float32 for integer steps; a floating k keeps its dtype (a float64 copy of the model stays float64)
+        dtype = k.dtype if k.is_floating_point() else torch.float32
+        freqs = torch.exp(torch.arange(half, device=k.device, dtype=dtype) * -(math.log(10000) / (half - 1)))
+        emb = k.to(dtype)[:, None] * freqs[None, :]
         return torch.cat((emb.sin(), emb.cos()), dim=-1)
 
 
@@ -251,7 +253,7 @@ class FiLMUnet1d(nn.Module):
         blocks = self.blocks()
         lins = [b.cond_encoder[1] for b in blocks]
         with torch.no_grad():
-            k = torch.as_tensor(steps, device=params[0].device)
+            k = torch.as_tensor(steps, device=params[0].device, dtype=params[0].dtype)
             consts = {
                 "step": F.linear(F.mish(self.step_encoder(k)), torch.cat([lin.weight[:, :d] for lin in lins])),
                 "w_obs": torch.cat([lin.weight[:, d : d + c] for lin in lins]),

@@ -60,18 +60,32 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
     torch.testing.assert_close(out, p.model._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
 
 
-def test_gpu_sampler_convolutions_equal_the_unfolded_ones(synthetic_meta):
-    """The sampler's unfold + matmul convolutions on a GPU give the chunk PyTorch's (cuDNN) convolutions give."""
+def test_gpu_sampler_convolutions_match_a_float64_reference(synthetic_meta):
+    """The sampler's unfold + matmul convolutions on a GPU are as exact as PyTorch's (cuDNN) ones: both within
+    2e-5 of the same sampler run in float64. Each float32 path is ~6e-6 off the exact chunk after 20 steps
+    (measured on CPU), so two of them may differ by more than 1e-5 from each other depending on the
+    algorithm cuDNN picks: each is compared with the float64 chunk instead."""
+    import copy
+
     p = small_policy(synthetic_meta, "cuda")
     p.eval()
+    ref = copy.deepcopy(p.model).double()  # before any sampling: no cached graphs or constants to copy
+    ref.denoiser.unfold_on_gpu = False
     obs, z, noise = _sampler_inputs(p, 2, seed=1)
     n = p.config.num_inference_steps
     assert p.model.denoiser.unfold_on_gpu
-    with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # exact arithmetic on both paths
-        unfolded = p.model._sample(obs, z, noise, n)
-        p.model.denoiser.unfold_on_gpu = False
-        conv = p.model._sample(obs, z, noise, n)
-    torch.testing.assert_close(conv, unfolded, atol=1e-5, rtol=1e-5)
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False  # lerobot-train and lerobot-eval turn it on
+    try:
+        with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):  # float32 arithmetic on both paths
+            want = ref._sample(obs.double(), z.double(), noise.double(), n)
+            unfolded = p.model._sample(obs, z, noise, n)
+            p.model.denoiser.unfold_on_gpu = False
+            conv = p.model._sample(obs, z, noise, n)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+    errors = {name: (x.double() - want).abs().max().item() for name, x in (("unfolded", unfolded), ("cudnn", conv))}
+    assert max(errors.values()) <= 2e-5, errors
 
 
 @pytest.mark.parametrize("mode", ["default", "reduce-overhead"])
