@@ -136,7 +136,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     diffusion_step_embed_dim: int = 64
     # Hidden sizes of the per-block MLPs that map z to (gamma, beta) (paper: [16, 32]). () = an affine
     # map, so modulations combine linearly in z (a latent between two modes mixes theirs): the benchmark
-    # uses it for pick-place (benchmark/settings.py PDP_OVERRIDES; why: docs/experiments.md).
+    # uses it for pick-place (benchmark/settings.py FILM; why: docs/experiments.md).
     film_hidden_dims: tuple[int, ...] = (16, 32)
 
     # ---- Diffusion ----
