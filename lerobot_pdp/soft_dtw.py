@@ -288,16 +288,22 @@ if HAVE_NUMBA:
 @contextlib.contextmanager
 def _threads_for(cells: int) -> Iterator[None]:
     """Run small jobs on one numba thread: waking the pool costs ~0.1 ms idle and several ms on a loaded
-    machine, far more than a few thousand DP cells (gradcheck / tiny batches were dominated by it)."""
-    if cells >= _PARALLEL_MIN_CELLS:
-        yield
-        return
+    machine, far more than a few thousand DP cells (gradcheck / tiny batches were dominated by it).
+
+    Torch's thread count is restored afterwards: numba's OpenMP threading layer shares PyTorch's libgomp,
+    and its parallel launch raises the OpenMP thread count torch reads, so a ``lerobot-train`` started with
+    one torch thread trained with two once the trace matrix was computed in its process (two spinning
+    OpenMP threads beside the loader workers: ~10x slower steps on a loaded 2-core machine)."""
+    torch_threads = torch.get_num_threads()
     prev = numba.get_num_threads()
-    numba.set_num_threads(1)
+    if cells < _PARALLEL_MIN_CELLS:
+        numba.set_num_threads(1)
     try:
         yield
     finally:
         numba.set_num_threads(prev)
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
 
 
 def _require_numba() -> None:

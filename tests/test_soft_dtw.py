@@ -369,3 +369,19 @@ def test_cuda_matches_cpu() -> None:
     assert vc.device.type == "cuda"
     torch.testing.assert_close(vc.cpu().double(), v.detach(), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(xc.grad.cpu().double(), x.grad, rtol=1e-3, atol=1e-4)
+
+
+def test_parallel_kernels_leave_torchs_thread_count_alone() -> None:
+    """numba's OpenMP layer shares PyTorch's libgomp: a parallel soft-DTW matrix (computed at the start of
+    ``lerobot-train`` when the trace cache is cold) must not raise torch's thread count for the training
+    that follows (it did: 1 -> 2, ~10x slower steps beside other jobs on 2 cores)."""
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rng = np.random.default_rng(0)
+        traces = [rng.random((100, 2)) for _ in range(40)]  # 780 pairs x 1e4 cells: the parallel path
+        soft_dtw_cdist(traces, 0.1)
+        soft_dtw(torch.tensor(np.stack(traces[:30])), torch.tensor(np.stack(traces[10:])), gamma=0.1)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(prev)
