@@ -237,8 +237,8 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="training seeds (default 0 1 2, with --split validation 100 101 102; the first with --quick)")
     p.add_argument("--rollouts", type=int, default=None, help="rollouts per scene (default 40; 20 with --quick)")
     p.add_argument("--methods", nargs="+", default=None,
-                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond "
-                   "(default pdp dp bc; pdp dp with --quick)")
+                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond; vqbet with "
+                   "--obs images (default pdp dp bc; pdp dp with --quick; pdp dp vqbet with --obs images)")
     p.add_argument("--quick", action="store_true",
                    help="small budget for a first look: one seed, PDP + DP, shorter training, 20 rollouts")
     p.add_argument("--ablations", action="store_true",
@@ -275,7 +275,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    "compared on --split validation")
     p.add_argument("--obs", choices=("state", "images"), default="state",
                    help="images: the camera variant - datasets, policies and rollouts observe one camera "
-                   "(observation.images.<camera>) besides the state; methods pdp and dp (default state)")
+                   "(observation.images.<camera>) besides the state; methods pdp, dp and vqbet (default state)")
     p.add_argument("--camera", default=None,
                    help="camera of --obs images (default: the env's benchmark camera, e.g. oblique on reach-around)")
     p.add_argument("--image-size", type=int, default=None, help="camera image size with --obs images (default 64)")
@@ -297,8 +297,8 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
     else:
         scenes = tuple(int(s) if s.strip().lstrip("-").isdigit() else s.strip() for s in args.scenes)
     rollouts = args.rollouts if args.rollouts is not None else 20 if args.quick else 40
-    methods = (args.methods if args.methods is not None else ["pdp", "dp"] if args.quick or args.obs == "images"
-               else ["pdp", "dp", "bc"])
+    methods = (args.methods if args.methods is not None else ["pdp", "dp", "vqbet"] if args.obs == "images"
+               else ["pdp", "dp"] if args.quick else ["pdp", "dp", "bc"])
     if args.obs == "state" and (args.camera is not None or args.image_size is not None):
         raise SystemExit("--camera / --image-size need --obs images")
     camera = {"obs": args.obs, "camera": args.camera}

@@ -321,3 +321,42 @@ def test_lerobot_train_mlp_bc_and_matched_dp(reach_root, episode, tmp_path):
             assert isinstance(policy, DiffusionPolicy)
             assert type(policy.diffusion.noise_scheduler).__name__ == "DDIMScheduler"
             assert policy.diffusion.num_inference_steps == PDPConfig().num_inference_steps and cfg.down_dims == (32, 64, 128)
+
+
+# ----------------------------------------------------------------------------- VQ-BeT (camera variant)
+
+
+def test_vqbet_demo_windows_and_finetuning_keep_its_codebook(tmp_path):
+    """LeRobot's vqbet on a camera demonstration: its action window (3 tokens x 5 actions after 2 observation
+    frames) is cut like the loader's, and fine-tuning changes its GPT but not its residual codebook."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.vqbet.configuration_vqbet import VQBeTConfig
+
+    from lerobot_pdp.benchmark.data import demo_episode
+
+    root = make_dataset(env="reach-around", out=tmp_path / "cam", scene=0, episodes_per_mode=1, modes=[0],
+                        seed=0, progress=False, camera="oblique", image_size=32)
+    meta = LeRobotDatasetMetadata("local/cam", root=root)
+    torch.manual_seed(0)
+    cfg = VQBeTConfig(device="cpu", push_to_hub=False, n_obs_steps=2, crop_shape=None, pretrained_backbone_weights=None,
+                      use_group_norm=True, n_vqvae_training_steps=1, vqvae_embedding_dim=16, vqvae_enc_hidden_dim=16,
+                      gpt_input_dim=32, gpt_output_dim=32, gpt_hidden_dim=32, gpt_n_layer=1, gpt_n_head=2)
+    policy = make_policy(cfg, ds_meta=meta)
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    demo = demo_episode(root)
+    T = len(demo["action"])
+    batch = demo_batch(policy, pre, demo)
+    assert batch["action"].shape == (T, 2 - 1 + 3 + 5 - 1, 3)  # range(1 - n_obs, tokens + chunk - 1)
+    assert batch["observation.images.oblique"].shape == (T, 2, 3, 32, 32)
+    policy.train()
+    policy.forward(batch)  # the one VQ-VAE step: the codebook is frozen from here on
+    assert bool(policy.vqbet.action_head.vqvae_model.discretized)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    tuned = finetune_bc(policy, pre, demo, steps=3, lr=1e-3, batch_size=8, seed=0)
+    after = tuned.state_dict()
+    codebook = [k for k in after if ".vq_layer." in k and after[k].is_floating_point()]
+    gpt = [k for k in after if ".policy." in k and k.endswith("weight")]
+    assert codebook and gpt
+    assert all(torch.equal(before[k], after[k]) for k in codebook)
+    assert any(not torch.equal(before[k], after[k]) for k in gpt)
+    assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())  # the original untouched

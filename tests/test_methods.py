@@ -83,19 +83,27 @@ def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
     assert train_method(method, data, run_dir, 0, settings, 100) == run_dir / "pretrained_model"
 
 
-def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_checkpoint(tmp_path):
+def test_retraining_a_run_drops_its_evaluations_and_a_failed_run_leaves_no_checkpoint(tmp_path, capsys):
     """A run whose checkpoint is gone is trained again: the eval.json / traces.json / init_ablation.json /
     train_info.json of the earlier model must not be taken for this one's. Here lerobot-train (a real process) fails on a missing
-    dataset: the error names the log, and neither a checkpoint nor its train_info.json is left behind."""
+    dataset: the error names the log, and neither a checkpoint nor its train_info.json is left behind; a
+    partial run of another command found there is discarded with a message."""
     method = methods_for(get_suite_env("reach-around"))["bc"]
     settings = SETTINGS["reach-around"][1]
     run_dir = tmp_path / "runs" / "bc" / "seed0"
     run_dir.mkdir(parents=True)
     for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):
         (run_dir / stale).write_text("{}")
+    # a partial run of another command (steps 20) is thrown away, and the user is told so
+    step_file = run_dir / ".train-partial" / "out" / "checkpoints" / "last" / "training_state" / "training_step.json"
+    step_file.parent.mkdir(parents=True)
+    step_file.write_text(json.dumps({"step": 10}))
+    (run_dir / ".train-partial" / "progress.json").write_text(json.dumps({"args": ["x", "--steps=20"], "seconds": {}}))
     with pytest.raises(RuntimeError, match=r"lerobot-train failed with exit code \d+; see .*train\.log"):
         train_method(method, tmp_path / "no_such_dataset", run_dir, 0, settings, 10)
     assert sorted(p.name for p in run_dir.iterdir()) == ["train.log"]
+    assert "discarding a partial training (checkpoint at step 10) made with other lerobot-train arguments" in \
+        capsys.readouterr().out
 
 
 def test_ablations_sample_and_fit_with_pdps_frozen_settings():

@@ -85,8 +85,9 @@ def test_whole_protocol_tiny(tmp_path):
 
 
 def test_camera_variant_tiny(tmp_path):
-    """benchmark --obs images: camera datasets, PDP and DP with the same vision encoder trained by
-    lerobot-train on them, DP's noise adaptation and PDP's fit on a camera demonstration, camera rollouts."""
+    """benchmark --obs images: camera datasets, PDP, DP and VQ-BeT with the same vision encoder trained by
+    lerobot-train on them, DP's noise adaptation, VQ-BeT's fine-tuning and PDP's fit on a camera
+    demonstration, camera rollouts."""
     out = tmp_path / "cam"
     proc = run_cli([lerobot_cli("lerobot-pdp"), "benchmark", "--env", "reach-around", "--obs", "images",
                     "--image-size", "32", "--out", str(out), "--seeds", "0", "--rollouts", "2", "--steps", "4",
@@ -94,13 +95,16 @@ def test_camera_variant_tiny(tmp_path):
     assert "camera 'oblique' (32x32) for every method" in proc.stdout
     res = json.loads((out / "results.json").read_text())
     assert res["observation"] == {"obs": "images", "camera": "oblique", "image_size": 32}
-    assert set(res["methods"]) == {"pdp", "dp"}
-    for m in ("pdp", "dp"):
+    assert set(res["methods"]) == {"pdp", "dp", "vqbet"}
+    for m in ("pdp", "dp", "vqbet"):
         assert set(_eval_json(out, m)["scenes"]) == {"0", "3"}
         cfg = json.loads((out / "runs" / m / "seed0" / "pretrained_model" / "config.json").read_text())
         assert cfg["input_features"]["observation.images.oblique"]["shape"] == [3, 32, 32]
         assert cfg["pretrained_backbone_weights"] is None and cfg["use_group_norm"] is True
-        assert cfg["use_separate_rgb_encoder_per_camera"] is False and cfg["spatial_softmax_num_keypoints"] == 32
+        assert cfg["spatial_softmax_num_keypoints"] == 32 and cfg["n_obs_steps"] == 2
+        assert cfg.get("use_separate_rgb_encoder_per_camera", False) is False
+    vq = json.loads((out / "runs" / "vqbet" / "seed0" / "pretrained_model" / "config.json").read_text())
+    assert vq["crop_shape"] is None and vq["n_vqvae_training_steps"] == 1  # a fifth of the 4 steps, at least 1
     demo = demo_episode(out / "data" / "reach_around_scene3_demo_oblique32")
     cam = demo["observation.images.oblique"]
     assert cam.shape == (len(demo["action"]), 3, 32, 32) and 0.0 <= cam.min() and cam.max() <= 1.0

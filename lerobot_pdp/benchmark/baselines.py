@@ -7,6 +7,8 @@ Configurations", Table "baseline_compare").
   reproduces the demonstration; rollouts then always start from that x_K (:class:`FixedNoisePolicy`).
 - **BC** = ``mlp_bc`` (:mod:`lerobot_pdp.baselines`), adapted by fine-tuning all its weights on the
   demonstration with a small learning rate (:func:`finetune_bc`).
+- **VQ-BeT** (camera variant only) = LeRobot's own ``vqbet``, adapted like BC by fine-tuning (its residual
+  codebook takes no gradient: its codes stay the ones training learned).
 
 Everything here takes a LeRobot policy plus its *preprocessor* and a raw demonstration, so the demo is
 normalised with exactly the statistics the policy was trained with (the preprocessor's own normaliser
@@ -124,7 +126,8 @@ def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Te
     ``action`` [N, horizon, A], ``action_is_pad`` [N, horizon].
     """
     cfg = policy.config
-    n_obs, horizon = int(cfg.n_obs_steps), int(cfg.horizon)
+    # horizon = the action window's length (VQ-BeT has no horizon field: its tokens x chunk size set it)
+    n_obs, horizon = int(cfg.n_obs_steps), len(cfg.action_delta_indices)
     if list(cfg.observation_delta_indices) != list(range(1 - n_obs, 1)) or list(cfg.action_delta_indices) != list(
         range(1 - n_obs, 1 - n_obs + horizon)
     ):
@@ -331,13 +334,14 @@ class FixedNoisePolicy(nn.Module):
 
 def finetune_bc(policy, preprocessor, episode: dict[str, np.ndarray], steps: int = 100, lr: float = 1e-5,
                 batch_size: int = 32, seed: int = 0):
-    """A deep copy of ``policy`` with ALL weights fine-tuned on one demonstration (paper: BC adapts by
+    """A deep copy of ``policy`` with all its trainable weights fine-tuned on one demonstration (paper: BC adapts by
     "fine-tune policy weights with small learning rate"); the original is untouched.
 
     Adam at ``lr`` on the policy's own training loss (``policy.forward``) over random minibatches of the
     demo's windows (:func:`demo_batch`), gradient norm clipped like in training. Works for any LeRobot
-    policy with the standard batch layout (it is meant for ``mlp_bc``). Any randomness inside ``forward``
-    is seeded by ``seed`` without disturbing the global RNG. Returns the copy in eval mode, queues reset.
+    policy with the standard batch layout (``mlp_bc``; ``vqbet`` on the camera variant). Any randomness
+    inside ``forward`` is seeded by ``seed`` without disturbing the global RNG. Returns the copy in eval
+    mode, queues reset.
     """
     tuned = copy.deepcopy(policy)
     batch = demo_batch(tuned, preprocessor, episode)

@@ -88,7 +88,9 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
     unknown = [n for n in names if n not in all_methods]
     if unknown:
-        why = " (with --obs images: mlp_bc and the ablations take state only)" if suite.camera_kwargs else ""
+        why = (" (with --obs images: mlp_bc and the ablations take state only)" if suite.camera_kwargs
+               else " (vqbet needs --obs images: LeRobot's vqbet takes exactly one camera)" if "vqbet" in unknown
+               else "")
         raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(all_methods)}{why}")
     dataset = ensure_dataset(suite, out, settings)
     demos = {s: ensure_demo(suite, out, s)[0] for s in cfg.scenes if s != 0}

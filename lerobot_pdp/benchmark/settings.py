@@ -184,8 +184,16 @@ IMAGE_SIZE = 64
 VISION_FLAGS = ("--policy.vision_backbone=resnet18", "--policy.pretrained_backbone_weights=null",
                 "--policy.use_group_norm=true", "--policy.spatial_softmax_num_keypoints=32",
                 "--policy.use_separate_rgb_encoder_per_camera=false")
+# LeRobot's VQ-BeT, the third camera method (``vqbet`` takes exactly one camera and no environment state):
+# the same vision encoder as PDP and DP (its 84x84 crop off: the images are IMAGE_SIZE) and the same two
+# observation frames (its default is 5: 2.5x the ResNet passes per step), LeRobot's own action tokens (3
+# tokens of 5 actions, 5 executed per query) and GPT. Its residual VQ-VAE trains on the actions for the first
+# VQBET_VQVAE_SHARE of the steps (``train_args``): LeRobot's default of 20000 exceeds the whole CPU budget.
+VQBET_FLAGS = (*(f for f in VISION_FLAGS if not f.startswith("--policy.use_separate_rgb_encoder")),  # one camera
+               "--policy.crop_shape=null", "--policy.n_obs_steps=2")
+VQBET_VQVAE_SHARE = 0.2
 # Methods that take camera observations (mlp_bc is state-only).
-IMAGE_METHODS = ("pdp", "dp")
+IMAGE_METHODS = ("pdp", "dp", "vqbet")
 
 
 @dataclass(frozen=True)
@@ -225,8 +233,11 @@ def methods_for(suite: SuiteEnv, film: str | None = None) -> dict[str, Method]:
         pdp += [f"--policy.segment_gripper_dim={suite.segment_on_gripper}", "--policy.trace_normalize=endpoints"]
     pdp = (*pdp, *FILM_FORMS[film_form(suite.name, film)])
     if suite.camera_kwargs:
+        # VQ-BeT adapts like BC, by fine-tuning its weights (LeRobot's vqbet has no goal input for the
+        # paper's way-point goals); its discrete codes are sampled, not steered
         return {"pdp": Method("pdp", "pdp", (*pdp, *VISION_FLAGS)),
-                "dp": Method("dp", "diffusion", (*dp, *VISION_FLAGS), adapt="noise", steerable=False)}
+                "dp": Method("dp", "diffusion", (*dp, *VISION_FLAGS), adapt="noise", steerable=False),
+                "vqbet": Method("vqbet", "vqbet", VQBET_FLAGS, adapt="finetune", steerable=False)}
     return {
         "pdp": Method("pdp", "pdp", pdp),
         "dp": Method("dp", "diffusion", dp, adapt="noise", steerable=False),

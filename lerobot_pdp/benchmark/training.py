@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from ..atomic import write_text_atomic
-from .settings import Method, TrainSettings
+from .settings import VQBET_VQVAE_SHARE, Method, TrainSettings
 
 # lerobot-train spends ~3/4 of a step loading the batch (LeRobotDataset.__getitem__ per sample). Two
 # loader workers with one torch thread in the trainer overlap loading and the update on 2 cores:
@@ -74,8 +74,10 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
         lr_args.append(f"--policy.embedding_lr={settings.lr}")
     warmup = (
         [f"--policy.scheduler_warmup_steps={min(settings.warmup_steps, steps // 10)}"]
-        if method.policy_type in ("pdp", "diffusion") else []
+        if method.policy_type in ("pdp", "diffusion", "vqbet") else []
     )
+    if method.policy_type == "vqbet":  # its VQ-VAE phase is part of the same step budget
+        warmup.append(f"--policy.n_vqvae_training_steps={max(1, round(steps * VQBET_VQVAE_SHARE))}")
     args = [
         str(exe) if exe.exists() else "lerobot-train",
         f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", f"--policy.device={device}",
@@ -127,6 +129,10 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     tmp_out = partial / "out"
     start, seconds_before = _resumable(partial, args)
     if start == 0:
+        left = _last_step(tmp_out)
+        if left is not None:  # a partial run of another command: say what is thrown away
+            print(f"[benchmark] {run_dir}: discarding a partial training (checkpoint at step {left}) made with "
+                  "other lerobot-train arguments; training from the start")
         shutil.rmtree(partial, ignore_errors=True)
         partial.mkdir()
         write_text_atomic(partial / "progress.json", json.dumps({"args": args, "seconds": {}}))
