@@ -112,7 +112,7 @@ def test_ablations_sample_and_fit_with_pdps_frozen_settings():
     for name in ABLATIONS:
         assert frozen_for("reach-around", False, name) == {"adapt": {"objective": "sample"}}
         assert frozen_for("reach-around", True, name) == {"sampler": [10, "trailing"], "adapt": {"lam": 0.0}}
-        assert frozen_for("reach-around", False, name, obs="images") == {}
+        assert frozen_for("reach-around", False, name, obs="images") == {}  # not carried over to cameras
     assert frozen_for("reach-around", False, "dp") == {"sampler": [5, "trailing"]}
     assert frozen_for("kitchen-microwave", False, "pdp_concat") == {}
 
@@ -137,10 +137,13 @@ def test_frozen_settings_are_what_the_committed_validation_records_chose():
         record = json.loads((root / rel).read_text())
         assert record["env"] == env and record["split"] == "validation"
         full, quick = SETTINGS[env]
-        train = quick if budget == "quick" else full
+        train = quick if budget.startswith("quick") else full
         frozen = settings.FROZEN.get((env, budget), {})
         assert set(frozen) <= set(record["methods"]), (env, budget)
-        methods = methods_for(get_suite_env(env))
+        suite = get_suite_env(env)
+        if budget.endswith("+images"):  # the camera variant's methods (vqbet among them)
+            suite = suite.with_camera(settings.CAMERAS[env], settings.IMAGE_SIZE)
+        methods = methods_for(suite)
         for name, rec in record["methods"].items():
             f, chosen = frozen.get(name, {}), rec["chosen"]
             if chosen["sampler"] is not None:
@@ -242,3 +245,15 @@ def test_an_interrupted_training_run_resumes_from_its_last_checkpoint(tmp_path):
     log = (run_dir / "train.log").read_text()
     assert "Resuming data order" in log and f"Checkpoint policy after step {every}" in log
     assert f"Checkpoint policy after step {steps}" in log
+
+
+def test_the_camera_variant_has_its_own_frozen_choices(monkeypatch):
+    """A choice validated on the camera variant applies there only, and the state variant's not to it."""
+    from lerobot_pdp.benchmark import settings
+
+    assert settings.budget_key(True, "images") == "quick+images" and settings.budget_key(False) == "full"
+    monkeypatch.setitem(settings.FROZEN, ("reach-around", "quick+images"), {"vqbet": {"adapt": {"lr": 1e-3}}})
+    assert settings.frozen_for("reach-around", True, "vqbet", obs="images") == {"adapt": {"lr": 1e-3}}
+    assert settings.frozen_for("reach-around", True, "pdp", obs="images") == {}
+    assert settings.frozen_for("reach-around", True, "vqbet") == {}
+    assert settings.frozen_for("reach-around", True, "pdp")["sampler"] == [10, "trailing"]

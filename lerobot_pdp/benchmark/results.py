@@ -16,6 +16,7 @@ from .settings import (
     VALIDATION_RECORDS,
     BenchmarkConfig,
     TrainSettings,
+    budget_key,
     film_form,
     scene_label,
 )
@@ -41,17 +42,15 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
               settings: TrainSettings, steps: int) -> dict[str, Any]:
     """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
     mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated."""
-    budget = "quick" if cfg.quick else "full"
+    budget = budget_key(cfg.quick, cfg.obs)
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
                            "device": cfg.device,
                            # what was frozen for this run besides "train", and the validation record it came from
-                           "frozen": ({"methods": FROZEN.get((env, budget), {}),
-                                       "validation_record": VALIDATION_RECORDS.get((env, budget)),
-                                       "validation": validation_summary(VALIDATION_RECORDS.get((env, budget)))}
-                                      if cfg.obs == "state" else {"methods": {}, "validation_record": None,
-                                                                  "validation": None}),
+                           "frozen": {"methods": FROZEN.get((env, budget), {}),
+                                      "validation_record": VALIDATION_RECORDS.get((env, budget)),
+                                      "validation": validation_summary(VALIDATION_RECORDS.get((env, budget)))},
                            "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}

@@ -134,7 +134,8 @@ FILM: dict[str, str] = {"pick-place": "affine"}
 
 
 # What the validation split chose per method (``benchmark --split validation --validate``, validation.py),
-# frozen here before a test run, per (env, "full" | "quick") budget: {"sampler": [DDIM steps, grid],
+# frozen here before a test run, per (env, budget) (:func:`budget_key`: "full" | "quick", "+images" for the
+# camera variant, whose choices are made on its own validation runs): {"sampler": [DDIM steps, grid],
 # "adapt": keyword arguments of ``evaluation.adapt`` (steps, lr; PDP lam / objective, DP per_chunk)}, the
 # shape of validation.json's "chosen". A missing entry means the env's TrainSettings sampler and each
 # method's default adaptation. VALIDATION_RECORDS names the committed validation.json of each budget; both
@@ -163,13 +164,17 @@ VALIDATION_RECORDS: dict[tuple[str, str], str] = {
 }
 
 
+def budget_key(quick: bool, obs: str = "state") -> str:
+    """The budget part of a FROZEN / VALIDATION_RECORDS key: "full" or "quick", with "+images" for the camera
+    variant (choices made on state observations are not carried over to it, nor back)."""
+    return ("quick" if quick else "full") + ("" if obs == "state" else f"+{obs}")
+
+
 def frozen_for(env: str, quick: bool, method: str, obs: str = "state") -> dict[str, Any]:
-    """The frozen choice of ``method`` on ``env`` at the full or quick budget ({} if none; choices were made
-    on state observations and are not carried over to the camera variant). An ablation is PDP with one part
-    changed, so it samples and fits with PDP's choice (ablations are not validated on their own)."""
-    if obs != "state":
-        return {}
-    chosen = FROZEN.get((env, "quick" if quick else "full"), {})
+    """The frozen choice of ``method`` on ``env`` at the full or quick budget, state or camera variant ({} if
+    none). An ablation is PDP with one part changed, so it samples and fits with PDP's choice (ablations are
+    not validated on their own)."""
+    chosen = FROZEN.get((env, budget_key(quick, obs)), {})
     return chosen.get(method, chosen.get("pdp", {}) if method in ABLATIONS else {})
 
 
