@@ -4,6 +4,7 @@ and the LeRobot env configs' image features (``--env.camera``)."""
 from __future__ import annotations
 
 import json
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -157,8 +158,11 @@ def test_make_dataset_camera_writes_video_lerobot_reads(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     out = tmp_path / "cam"
+    policy = os.sched_getscheduler(0)
     assert cli_main(["make-dataset", "--env", "reach-around", "--modes", "0", "--episodes-per-mode", "1",
                      "--camera", "top", "--image-size", str(SIZE), "--out", str(out), "--no-progress"]) == 0
+    # LeRobot's AV1 encoder raises its thread to real-time priority where it may (root): undone
+    assert os.sched_getscheduler(0) == policy
     info = json.loads((out / "meta" / "info.json").read_text())
     feat = info["features"]["observation.images.top"]
     assert feat["dtype"] == "video" and tuple(feat["shape"]) == (SIZE, SIZE, 3)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -142,6 +143,23 @@ def _dataset_features(env: gym.Env) -> dict[str, dict]:
                 "names": ["height", "width", "channels"],
             }
     return features
+
+
+@contextlib.contextmanager
+def keep_cpu_scheduling() -> Iterator[None]:
+    """Undo what LeRobot's AV1 video encoder (SVT-AV1) does to the calling thread when it may, i.e. as root:
+    it raises the thread to real-time ``SCHED_FIFO`` priority 99 and leaves it there, so every process
+    started afterwards (the benchmark's ``lerobot-train``) would inherit it and starve the machine's other
+    work. Restores the thread's scheduling policy on exit (Linux; elsewhere a no-op)."""
+    if not hasattr(os, "sched_getscheduler"):
+        yield
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if os.sched_getscheduler(0) != policy or os.sched_getparam(0) != param:
+            os.sched_setscheduler(0, policy, param)
 
 
 @contextlib.contextmanager
@@ -313,8 +331,10 @@ def make_dataset(
                     for cam in cameras:
                         frame[f"observation.images.{cam}"] = o["pixels"][cam]
                     ds.add_frame(frame)
-                ds.save_episode()
-            ds.finalize()
+                with keep_cpu_scheduling():  # video encoding: the next episode's rollouts run at normal priority
+                    ds.save_episode()
+            with keep_cpu_scheduling():
+                ds.finalize()
             meta = {
                 "env": suite.name,
                 "scene": _scene_meta(scene),
