@@ -329,7 +329,9 @@ def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
         "merge-results",
         help="one results table from benchmark runs of different seeds",
         description="Merge the results.json of benchmark runs that used the same env and settings but different "
-        "seeds (or methods), e.g. seeds run on several machines. Writes OUT/results.json and OUT/results.md.",
+        "seeds (or methods), e.g. seeds run on several machines. Writes OUT/results.json and OUT/results.md; "
+        "validation runs (--split validation --validate, one method per folder) also get one merged "
+        "OUT/validation.json / validation.md.",
     )
     p.add_argument("results", type=Path, nargs="+", help="benchmark output folders or their results.json files")
     p.add_argument("--out", required=True, type=Path, help="folder for the merged results.json / results.md")
@@ -355,9 +357,20 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
         except json.JSONDecodeError as e:
             raise ValueError(f"{f} is not JSON ({e})") from e
     res = merge_results(loaded)
+    # validation runs, one per method: their validation.json records are merged too
+    records = [f.with_name("validation.json") for f in files]
+    merged_validation = None
+    if res.get("split") == "validation" and all(r.is_file() for r in records):
+        from lerobot_pdp.benchmark.validation import merge_validation_records, validation_markdown
+
+        merged_validation = merge_validation_records([(str(r), json.loads(r.read_text())) for r in records])
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(target, json.dumps(res, indent=1))
     write_text_atomic(args.out / "results.md", results_markdown(res))
+    if merged_validation is not None:
+        write_text_atomic(args.out / "validation.json", json.dumps(merged_validation, indent=1))
+        write_text_atomic(args.out / "validation.md", validation_markdown(merged_validation))
+        print(f"validation record: {args.out / 'validation.json'} ({', '.join(merged_validation['methods'])})")
     print(results_markdown(res))
     print(f"results: {target} and {args.out / 'results.md'}")
     return 0

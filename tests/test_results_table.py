@@ -235,3 +235,33 @@ def test_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys, device
         pytest.skip("this machine has CUDA")
     assert main(["benchmark", "--env", "reach-around", "--out", str(tmp_path / "b"), "--device", device]) == 2
     assert message in capsys.readouterr().err and not (tmp_path / "b").exists()
+
+
+def test_merge_results_merges_validation_records_of_one_method_per_folder(tmp_path, capsys):
+    """Validation runs made one method per folder merge into one results.json and one validation.json (what
+    settings.VALIDATION_RECORDS names); a method validated twice is refused."""
+    from lerobot_pdp.cli import main
+
+    scenes = (0, "val1", "val2", "val3", "val4")
+    for method, rates in (("pdp", [1.0, 1.0, 0.9, 0.0, 0.0]), ("dp", [1.0, 0.5, 0.5, 0.0, 0.0])):
+        d = tmp_path / method
+        d.mkdir()
+        cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[100], split="validation", scenes=scenes)
+        run = {"scenes": {str(sc): {"success": r, "collision": 0.0} for sc, r in zip(scenes, rates, strict=True)}}
+        res = aggregate("reach-around", cfg, {method: {100: run}}, {}, TrainSettings(steps=10), 10)
+        (d / "results.json").write_text(json.dumps(res))
+        rec = {"env": "reach-around", "split": "validation", "rollouts": 40, "sampler_candidates": [[20, "leading"]],
+               "adapt_candidates": {"noise": [{}]},
+               "methods": {method: {"seeds": [100], "scenes": list(map(str, scenes)), "sampler": [], "adapt": [],
+                                    "chosen": {"sampler": [20, "leading"], "adapt": {}}}}}
+        (d / "validation.json").write_text(json.dumps(rec))
+    assert main(["merge-results", str(tmp_path / "pdp"), str(tmp_path / "dp"), "--out", str(tmp_path / "all")]) == 0
+    merged = json.loads((tmp_path / "all" / "validation.json").read_text())
+    assert list(merged["methods"]) == ["pdp", "dp"] and merged["env"] == "reach-around"
+    assert "## dp (seeds 100)" in (tmp_path / "all" / "validation.md").read_text()
+    assert set(json.loads((tmp_path / "all" / "results.json").read_text())["methods"]) == {"pdp", "dp"}
+    capsys.readouterr()
+    other = json.loads((tmp_path / "dp" / "validation.json").read_text())
+    (tmp_path / "dp" / "validation.json").write_text(json.dumps({**other, "rollouts": 20}))
+    assert main(["merge-results", str(tmp_path / "pdp"), str(tmp_path / "dp"), "--out", str(tmp_path / "x")]) == 2
+    assert "rollouts is 20" in capsys.readouterr().err and not (tmp_path / "x").exists()

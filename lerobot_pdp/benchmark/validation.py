@@ -210,6 +210,26 @@ def choose_training_setting(method: str, setting: str, candidates: dict[str, dic
                     "binomial standard error"}
 
 
+def merge_validation_records(records: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """One ``validation.json`` from validation runs of the same protocol that validated different methods
+    (one output folder per method). Refused, naming the file and the key: another env, split, rollout count or
+    candidate list, and a method present twice."""
+    if not records:
+        raise ValueError("no validation records to merge")
+    first_name, first = records[0]
+    merged = {**first, "methods": dict(first["methods"])}
+    for name, rec in records[1:]:
+        for key in ("env", "split", "rollouts", "sampler_candidates", "adapt_candidates"):
+            if rec.get(key) != first.get(key):
+                raise ValueError(f"{name}: {key} is {rec.get(key)!r} but {first_name} has {first.get(key)!r}; "
+                                 "only validation runs of the same protocol can be merged")
+        twice = sorted(set(rec["methods"]) & set(merged["methods"]))
+        if twice:
+            raise ValueError(f"{name}: method(s) {twice} already validated in another input")
+        merged["methods"].update(rec["methods"])
+    return merged
+
+
 def validation_markdown(res: dict[str, Any]) -> str:
     """The candidates and choices of ``validation.json`` as tables (success %, mean over seeds)."""
     lines = [f"# Validation: {res['env']} ({res['rollouts']} rollouts per scene)", ""]
