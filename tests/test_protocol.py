@@ -82,6 +82,20 @@ def test_whole_protocol_tiny(tmp_path):
                                      "timestep_spacing": "trailing"}))
     assert _eval_json(out, "pdp")["timestep_spacing"] == "trailing"
     assert json.loads((out / "results.json").read_text())["methods"]["pdp"]["timestep_spacing"] == ["trailing"]
+    # an evaluation cut short after two scenes goes on from the third: the finished scenes are kept as they are
+    bc_dir = out / "runs" / "bc" / "seed0"
+    full = _eval_json(out, "bc")
+    cut = {**full, "scenes": {k: full["scenes"][k] for k in ("0", "1")}}
+    (bc_dir / "eval.json").write_text(json.dumps(cut))
+    traces = json.loads((bc_dir / "traces.json").read_text())
+    (bc_dir / "traces.json").write_text(json.dumps({k: traces[k] for k in ("0", "1")}))
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["bc"], "figures": False}))
+    resumed = _eval_json(out, "bc")
+    assert list(resumed["scenes"]) == ["0", "1", "2", "3"]
+    assert all(resumed["scenes"][k] == full["scenes"][k] for k in ("0", "1"))  # not re-run
+    assert [resumed["scenes"][k]["success"] for k in ("2", "3")] == [full["scenes"][k]["success"] for k in ("2", "3")]
+    assert resumed["scenes"]["2"]["seconds"] != full["scenes"]["2"]["seconds"]  # re-run, same seeded outcome
+    assert list(json.loads((bc_dir / "traces.json").read_text())) == ["0", "1", "2", "3"]
 
 
 def test_camera_variant_tiny(tmp_path):

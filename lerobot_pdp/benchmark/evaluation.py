@@ -123,8 +123,11 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
                     cache: Path | None = None) -> dict[str, Any]:
     """All scenes for one trained (method, seed); cached in ``cache`` (default ``run_dir/eval.json``).
 
-    ``adapt_kwargs``: adaptation settings besides the method's defaults (see :func:`adapt`)."""
+    The cache is written after every scene, so an evaluation cut short goes on from the next scene when
+    called again (each scene's rollouts and adaptation are seeded on their own: the same numbers as one
+    uninterrupted run). ``adapt_kwargs``: adaptation settings besides the method's defaults (see :func:`adapt`)."""
     cache = cache or run_dir / "eval.json"
+    traces_file = cache.with_name(cache.name.replace("eval", "traces", 1))
     adapt_kwargs = dict(adapt_kwargs or {})
     sampler = sampler_of(ckpt, cfg)
     cached = cached_evaluation(cache, sampler, ckpt, adapt_kwargs)
@@ -134,7 +137,15 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, **sampler,
                               "adapt": adapt_kwargs, "device": cfg.device, "scenes": {}}
     traces: dict[str, Any] = {}
+    if cached and cached.get("rollouts") == cfg.rollouts and traces_file.is_file():  # scenes already done
+        old_traces = json.loads(traces_file.read_text())
+        keep = [str(s) for s in cfg.scenes if str(s) in cached["scenes"] and str(s) in old_traces]
+        result["scenes"] = {k: cached["scenes"][k] for k in keep}
+        traces = {k: old_traces[k] for k in keep}
+    cache.parent.mkdir(parents=True, exist_ok=True)
     for scene in cfg.scenes:
+        if str(scene) in result["scenes"]:
+            continue
         t0 = time.time()
         if scene == 0:
             batch = evaluate_scene0(suite, method, policy, pre, post, cfg.rollouts, seed * 10_000)
@@ -154,10 +165,14 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
                               for r in batch.results]
         print(f"[benchmark] {method.name} seed {seed} scene {scene}: success {summary['success']:.0%}"
               f" collision {summary['collision']:.0%}")
+        # traces first: a cache never names a scene whose traces are missing
+        write_text_atomic(traces_file, json.dumps(traces))
+        write_text_atomic(cache, json.dumps(result, indent=1))
     if method.policy_type == "pdp":
         result["latents"] = {k: v.tolist() for k, v in policy.behavior_table().items()}
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(cache.with_name(cache.name.replace("eval", "traces", 1)), json.dumps(traces))
+    result["scenes"] = {str(s): result["scenes"][str(s)] for s in cfg.scenes}  # the split's order
+    traces = {str(s): traces[str(s)] for s in cfg.scenes}
+    write_text_atomic(traces_file, json.dumps(traces))
     write_text_atomic(cache, json.dumps(result, indent=1))
     return result
 
