@@ -136,7 +136,7 @@ def test_split_flag_sets_scenes_and_seeds():
     picked = benchmark_config(_args("--split", "validation", "--scenes", "0", "val3", "--seeds", "101"))
     assert picked.scenes == (0, "val3") and picked.seeds == [101]
     cam = benchmark_config(_args("--split", "validation", "--obs", "images"))
-    assert cam.obs == "images" and cam.split == "validation" and cam.methods == ["pdp", "dp"]
+    assert cam.obs == "images" and cam.split == "validation" and cam.methods == ["pdp", "dp", "vqbet"]
     with pytest.raises(ValueError, match="ships no validation scenes"):
         split_scenes("no-such-env", "validation")
 
