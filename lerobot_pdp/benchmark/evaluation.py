@@ -137,7 +137,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, **sampler,
                               "adapt": adapt_kwargs, "device": cfg.device, "scenes": {}}
     traces: dict[str, Any] = {}
-    if cached and cached.get("rollouts") == cfg.rollouts and traces_file.is_file():  # scenes already done
+    # scenes already done (on this device: the file records one device for all of its scenes)
+    if cached and cached.get("rollouts") == cfg.rollouts and cached.get("device") == cfg.device and traces_file.is_file():
         old_traces = json.loads(traces_file.read_text())
         keep = [str(s) for s in cfg.scenes if str(s) in cached["scenes"] and str(s) in old_traces]
         result["scenes"] = {k: cached["scenes"][k] for k in keep}
