@@ -19,7 +19,10 @@ not depend on pixel values or weight values. One JSON line per (policy, cameras,
 compiled during the warm-up calls, and their ratio.
 
     .venv/bin/python benchmarks/bench_cameras.py [--device cpu|cuda] [--threads 2] [--cameras 1 2]
-        [--batch 8] [--calls 20] [--compile [--pdp-compile-mode reduce-overhead]]
+        [--batch 8] [--calls 20] [--compile [--pdp-compile-mode reduce-overhead]] [--vqbet]
+
+``--vqbet`` adds LeRobot's ``vqbet`` with one camera (what ``benchmark --obs images`` trains as the third
+camera method), past its VQ-VAE phase; no ratio line (it is a baseline's cost, not ours against a peer).
 """
 
 from __future__ import annotations
@@ -68,6 +71,23 @@ def _features(meta, cameras: list[str], size: int):
     inputs = {k: ft for k, ft in feats.items() if ft.type is not FeatureType.ACTION}
     inputs.update({c: PolicyFeature(type=FeatureType.VISUAL, shape=(3, size, size)) for c in cameras})
     return inputs, {k: ft for k, ft in feats.items() if ft.type is FeatureType.ACTION}
+
+
+def _vqbet(meta, cameras, size, device):
+    """LeRobot's VQ-BeT as the camera benchmark trains it (settings.VQBET_FLAGS: the same vision settings, two
+    observation frames), past its VQ-VAE phase so that a training step is a GPT step."""
+    import torch
+    from lerobot.policies.factory import make_policy
+    from lerobot.policies.vqbet.configuration_vqbet import VQBeTConfig
+
+    inputs, outputs = _features(meta, cameras, size)
+    vision = {k: v for k, v in VISION.items() if k != "use_separate_rgb_encoder_per_camera"}
+    policy = make_policy(VQBeTConfig(device=device, push_to_hub=False, input_features=inputs, output_features=outputs,
+                                     n_obs_steps=2, n_vqvae_training_steps=1, **vision), ds_meta=meta)
+    policy.train()
+    with torch.no_grad():
+        policy.forward(_training_batch(meta, policy, cameras, size, 2, device))  # the one VQ-VAE step
+    return policy
 
 
 def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None):
@@ -122,6 +142,8 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
     policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode)
+    if args.vqbet and n_cam == 1:  # LeRobot's vqbet takes exactly one camera
+        policies["vqbet"] = _vqbet(meta, cameras, size, dev)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
            if k.startswith("observation.") and not k.endswith("_is_pad")}
     batches = {n: _training_batch(meta, p, cameras, size, args.batch, dev) for n, p in policies.items()}
@@ -164,8 +186,8 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
         cfg = policies[name].config
         res[(name, bench)] = {"bench": bench, "policy": name, "cameras": n_cam, **_stats(t),
                               "batch": args.batch if bench == "train_step" else 1,
-                              "inference_steps": cfg.num_inference_steps,
-                              "compile_mode": cfg.compile_mode if cfg.compile_model else None,
+                              "inference_steps": getattr(cfg, "num_inference_steps", None),
+                              "compile_mode": cfg.compile_mode if getattr(cfg, "compile_model", False) else None,
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
     pairs = [("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
@@ -204,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-steps", type=int, default=100, help="fit_latent steps (default: PDPConfig's 100)")
     ap.add_argument("--fit-calls", type=int, default=3)
     ap.add_argument("--compile", action="store_true", help="also time both policies with compile_model on")
+    ap.add_argument("--vqbet", action="store_true",
+                    help="also time LeRobot's vqbet as the camera benchmark trains it (one camera only)")
     ap.add_argument("--pdp-compile-mode", default=None,
                     help="PDP's compile_mode with --compile (default PDP's 'default'; DP keeps 'reduce-overhead')")
     args = ap.parse_args(argv)
