@@ -364,6 +364,9 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
         from lerobot_pdp.benchmark.validation import merge_validation_records, validation_markdown
 
         merged_validation = merge_validation_records([(str(r), json.loads(r.read_text())) for r in records])
+    elif res.get("split") == "validation" and any(r.is_file() for r in records):
+        missing = [str(r) for r in records if not r.is_file()]
+        print(f"validation records not merged: no {', '.join(missing)} (runs without --validate)")
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(target, json.dumps(res, indent=1))
     write_text_atomic(args.out / "results.md", results_markdown(res))

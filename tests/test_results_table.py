@@ -265,3 +265,7 @@ def test_merge_results_merges_validation_records_of_one_method_per_folder(tmp_pa
     (tmp_path / "dp" / "validation.json").write_text(json.dumps({**other, "rollouts": 20}))
     assert main(["merge-results", str(tmp_path / "pdp"), str(tmp_path / "dp"), "--out", str(tmp_path / "x")]) == 2
     assert "rollouts is 20" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    (tmp_path / "dp" / "validation.json").unlink()  # a run without --validate: said, not merged
+    assert main(["merge-results", str(tmp_path / "pdp"), str(tmp_path / "dp"), "--out", str(tmp_path / "y")]) == 0
+    assert "validation records not merged: no" in capsys.readouterr().out
+    assert not (tmp_path / "y" / "validation.json").exists() and (tmp_path / "y" / "results.json").is_file()

@@ -199,8 +199,6 @@ VISION_FLAGS = ("--policy.vision_backbone=resnet18", "--policy.pretrained_backbo
 VQBET_FLAGS = (*(f for f in VISION_FLAGS if not f.startswith("--policy.use_separate_rgb_encoder")),  # one camera
                "--policy.crop_shape=null", "--policy.n_obs_steps=2")
 VQBET_VQVAE_SHARE = 0.2
-# Methods that take camera observations (mlp_bc is state-only).
-IMAGE_METHODS = ("pdp", "dp", "vqbet")
 
 
 @dataclass(frozen=True)

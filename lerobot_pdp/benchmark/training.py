@@ -72,12 +72,12 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
     lr_args = [f"--policy.optimizer_lr={settings.lr}"]
     if method.policy_type == "pdp":
         lr_args.append(f"--policy.embedding_lr={settings.lr}")
-    warmup = (
+    schedule = (
         [f"--policy.scheduler_warmup_steps={min(settings.warmup_steps, steps // 10)}"]
         if method.policy_type in ("pdp", "diffusion", "vqbet") else []
     )
     if method.policy_type == "vqbet":  # its VQ-VAE phase is part of the same step budget
-        warmup.append(f"--policy.n_vqvae_training_steps={max(1, round(steps * VQBET_VQVAE_SHARE))}")
+        schedule.append(f"--policy.n_vqvae_training_steps={max(1, round(steps * VQBET_VQVAE_SHARE))}")
     args = [
         str(exe) if exe.exists() else "lerobot-train",
         f"--policy.type={method.policy_type}", "--policy.push_to_hub=false", f"--policy.device={device}",
@@ -86,7 +86,7 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
         f"--save_freq={min(steps, RESUME_EVERY)}", f"--log_freq={max(steps // 20, 1)}", f"--num_workers={TRAIN_NUM_WORKERS}",
         "--wandb.enable=false",
         # the shared budget comes last so that it wins over any per-method default (same lr for everyone)
-        *method.overrides, *lr_args, *warmup,
+        *method.overrides, *lr_args, *schedule,
     ]
     if settings.drop_n_last_frames is not None:
         args.append(f"--policy.drop_n_last_frames={settings.drop_n_last_frames}")
