@@ -257,3 +257,12 @@ def test_the_camera_variant_has_its_own_frozen_choices(monkeypatch):
     assert settings.frozen_for("reach-around", True, "pdp", obs="images") == {}
     assert settings.frozen_for("reach-around", True, "vqbet") == {}
     assert settings.frozen_for("reach-around", True, "pdp")["sampler"] == [10, "trailing"]
+
+
+def test_vqbet_outside_the_camera_variant_is_refused_with_the_reason(tmp_path):
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+    from lerobot_pdp.benchmark.settings import BenchmarkConfig
+
+    with pytest.raises(ValueError, match=r"unknown method\(s\) \['vqbet'\].*vqbet needs --obs images"):
+        run_benchmark(BenchmarkConfig(env="reach-around", out=tmp_path / "b", methods=["vqbet"], seeds=[0]))
+    assert not list((tmp_path / "b").glob("data/*"))  # refused before any dataset is made
