@@ -79,6 +79,13 @@ def enabled() -> bool:
     return os.environ.get(ENV_VAR, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
+def active() -> bool:
+    """Whether readers made now (in this process or a child with the same environment) use column views."""
+    import lerobot
+
+    return enabled() and affected(lerobot.__version__)
+
+
 def install() -> bool:
     """Wrap ``DatasetReader.__init__`` so that every new reader answers delta queries column by column.
 
@@ -88,7 +95,7 @@ def install() -> bool:
     import lerobot
     from lerobot.datasets.dataset_reader import DatasetReader
 
-    if not enabled() or not affected(lerobot.__version__):
+    if not active():
         return False
     if getattr(DatasetReader.__init__, "_pdp_column_views", False):
         return True

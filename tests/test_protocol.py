@@ -37,6 +37,7 @@ def test_whole_protocol_tiny(tmp_path):
     info = json.loads((out / "runs" / "pdp" / "seed0" / "train_info.json").read_text())
     assert info["args"][0] == "lerobot-train" and not any(a.partition("=")[2].startswith("/") for a in info["args"])
     assert "--dataset.root=../../../data/reach_around_scene0" in info["args"]
+    assert info["column_views"] is True  # the pinned LeRobot 0.6.1 trains with single-column loading
     sweep = json.loads((out / "runs" / "pdp" / "seed0" / "sweep.json").read_text())
     assert set(sweep["paths"]) == {"linear", "elliptical"} and len(sweep["paths"]["linear"]["rollouts"]) == 7
     assert [_eval_json(out, m)["inference_steps"] for m in ("pdp", "dp", "bc")] == [4, 4, None]

@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+from .. import column_views
 from ..atomic import write_text_atomic
 from .settings import VQBET_VQVAE_SHARE, Method, TrainSettings
 
@@ -159,7 +160,8 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         src = tmp_out / "checkpoints" / "last" / "pretrained_model"
         if not (src / "model.safetensors").is_file():
             raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
-        info = {"seconds": seconds_before + time.time() - t0, "steps": steps, "args": _portable(args, run_dir)}
+        info = {"seconds": seconds_before + time.time() - t0, "steps": steps, "args": _portable(args, run_dir),
+                "column_views": column_views.active()}  # LeRobot's loader sped up: the seconds depend on it
         if start:
             info["resumed_from_step"] = start
         # train_info.json first: a checkpoint must never be found without the arguments it was trained with
