@@ -15,10 +15,10 @@ from .. import column_views
 from ..atomic import write_text_atomic
 from .settings import VQBET_VQVAE_SHARE, Method, TrainSettings
 
-# lerobot-train spends ~3/4 of a step loading the batch (LeRobotDataset.__getitem__ per sample). Two
-# loader workers with one torch thread in the trainer overlap loading and the update on 2 cores:
-# 0.10 s/step instead of 0.18 s/step (num_workers=0, 2 threads); workers with 2 trainer threads
-# oversubscribe the cores and are slower than no workers at all (measured on reach-around, PDP, B = 64).
+# Two loader workers with one torch thread in the trainer overlap loading and the update on 2 cores.
+# Measured when LeRobot's whole-row loading took ~3/4 of a step (before column_views; reach-around, PDP,
+# B = 64): 0.10 s/step instead of 0.18 s/step (num_workers=0, 2 threads); workers with 2 trainer threads
+# oversubscribed the cores and were slower than no workers at all.
 TRAIN_NUM_WORKERS = int(os.environ.get("LEROBOT_PDP_TRAIN_WORKERS", "2"))
 
 
