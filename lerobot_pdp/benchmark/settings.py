@@ -157,12 +157,18 @@ FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {
     # the MLP FiLM was kept against the affine one (docs/results/avoiding/validation_film.json)
     ("avoiding", "full"): {"pdp": {"adapt": {"steps": 0}},
                            "bc": {"adapt": {"steps": 300, "lr": 1e-3}}},
+    # seed 100, 40 rollouts, scene 0 + val1-4 (docs/results/pick-place/validation.md): PDP kept its defaults
+    # (and the affine FiLM and 16000 steps: validation_film.json, validation_steps.json); DP one noise per
+    # executed chunk (the only candidate above 0 % on a validation scene); BC 300 fine-tuning steps at 1e-4
+    ("pick-place", "full"): {"dp": {"adapt": {"per_chunk": True}},
+                             "bc": {"adapt": {"steps": 300, "lr": 1e-4}}},
 }
 VALIDATION_RECORDS: dict[tuple[str, str], str] = {
     ("reach-around", "quick"): "docs/results/reach-around/validation_quick.json",
     ("reach-around", "full"): "docs/results/reach-around/validation.json",
     ("kitchen-microwave", "full"): "docs/results/kitchen-microwave/validation.json",
     ("avoiding", "full"): "docs/results/avoiding/validation.json",
+    ("pick-place", "full"): "docs/results/pick-place/validation.json",
 }
 
 
