@@ -3,17 +3,18 @@
 LeRobot <= 0.6.1 answers every ``delta_timestamps`` query (``DatasetReader._query_hf_dataset``) through
 ``hf_dataset[key][indices]``. LeRobot always sets a custom transform on its HF dataset, and since
 ``datasets`` 4.4 a custom format makes that lookup fetch and convert *every* column of the rows (and copy the
-dataset's ``Features`` each time) to return one of them. On our datasets that is ~85 % of a training
-step's loading time. Upstream answers the queries through cached ``select_columns`` views since
+dataset's ``Features`` each time) to return one of them. On our datasets that is ~85 % of the time to load
+a training item. Upstream answers the queries through cached ``select_columns`` views since
 huggingface/lerobot#4314, merged after 0.6.1; this module backports that idea for the LeRobot versions that
 lack it, so ``lerobot-train`` (any policy: PDP and the baselines load data the same way) reads only the
 columns it asked for. The items are identical (``tests/test_column_views.py``); the speed-up is measured in
 ``benchmarks/bench_loader.py``. ``LEROBOT_PDP_COLUMN_VIEWS=0`` turns it off.
 
-Why a patch and not our own dataset class: ``lerobot-train`` builds LeRobot's dataset itself, and its
-loader workers are spawned processes that unpickle the dataset without importing this plugin, so the
-fix travels with each reader instance (a picklable callable in its ``__dict__``), installed by a wrapper
-around ``DatasetReader.__init__`` when ``lerobot_pdp`` is imported.
+Why a patch and not our own dataset class: ``lerobot-train`` builds LeRobot's dataset itself. Why on the
+instance and not the class: its loader workers are spawned processes that unpickle the dataset, where a
+class patched in the parent is the unpatched original; so the fix travels with each reader (a picklable
+callable in its ``__dict__``; unpickling it imports this module), set by a wrapper around
+``DatasetReader.__init__`` when ``lerobot_pdp`` is imported.
 """
 
 from __future__ import annotations
