@@ -162,6 +162,10 @@ FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {
     # executed chunk (the only candidate above 0 % on a validation scene); BC 300 fine-tuning steps at 1e-4
     ("pick-place", "full"): {"dp": {"adapt": {"per_chunk": True}},
                              "bc": {"adapt": {"steps": 300, "lr": 1e-4}}},
+    # camera variant, seed 100, 20 rollouts, scene 0 + val1-4 (docs/results/reach-around/validation_camera_quick.md):
+    # VQ-BeT fine-tunes 300 steps at lr 1e-4 (its default, 100 at 1e-5, moved nothing: 0 %). PDP and DP with the
+    # camera were not validated (their camera rows ran with the defaults before this split existed).
+    ("reach-around", "quick+images"): {"vqbet": {"adapt": {"steps": 300, "lr": 1e-4}}},
 }
 VALIDATION_RECORDS: dict[tuple[str, str], str] = {
     ("reach-around", "quick"): "docs/results/reach-around/validation_quick.json",
@@ -169,6 +173,7 @@ VALIDATION_RECORDS: dict[tuple[str, str], str] = {
     ("kitchen-microwave", "full"): "docs/results/kitchen-microwave/validation.json",
     ("avoiding", "full"): "docs/results/avoiding/validation.json",
     ("pick-place", "full"): "docs/results/pick-place/validation.json",
+    ("reach-around", "quick+images"): "docs/results/reach-around/validation_camera_quick.json",
 }
 
 
