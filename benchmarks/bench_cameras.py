@@ -28,9 +28,11 @@ camera method), past its VQ-VAE phase; no ratio line (it is a baseline's cost, n
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
+import sys
 import tempfile
 import time
 import warnings
@@ -82,11 +84,14 @@ def _vqbet(meta, cameras, size, device):
 
     inputs, outputs = _features(meta, cameras, size)
     vision = {k: v for k, v in VISION.items() if k != "use_separate_rgb_encoder_per_camera"}
-    policy = make_policy(VQBeTConfig(device=device, push_to_hub=False, input_features=inputs, output_features=outputs,
-                                     n_obs_steps=2, n_vqvae_training_steps=1, **vision), ds_meta=meta)
-    policy.train()
-    with torch.no_grad():
-        policy.forward(_training_batch(meta, policy, cameras, size, 2, device))  # the one VQ-VAE step
+    # LeRobot's VQ-BeT prints progress to stdout: keep stdout JSON lines only
+    with contextlib.redirect_stdout(sys.stderr):
+        policy = make_policy(VQBeTConfig(device=device, push_to_hub=False, input_features=inputs,
+                                         output_features=outputs, n_obs_steps=2, n_vqvae_training_steps=1, **vision),
+                             ds_meta=meta)
+        policy.train()
+        with torch.no_grad():
+            policy.forward(_training_batch(meta, policy, cameras, size, 2, device))  # the one VQ-VAE step
     return policy
 
 
