@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{os.environ.get(column_views.ENV_VAR)}): nothing to compare", file=sys.stderr)
         return 1
     roots = list(args.dataset)
+    missing = [str(r) for r in roots if not (r / "meta" / "info.json").is_file()]
+    if missing:
+        p.error(f"not a LeRobotDataset folder (no meta/info.json): {', '.join(missing)}")
     for name in [] if args.dataset else args.envs:
         suite = get_suite_env(name)
         roots.append(ensure_dataset(suite, args.data / suite.scene_key, SETTINGS[suite.name][0]))
