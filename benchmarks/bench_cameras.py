@@ -23,6 +23,14 @@ compiled during the warm-up calls, and their ratio.
 
 ``--vqbet`` adds LeRobot's ``vqbet`` with one camera (what ``benchmark --obs images`` trains as the third
 camera method), past its VQ-VAE phase; no ratio line (it is a baseline's cost, not ours against a peer).
+
+``--blocks`` adds ``pdp_blocks``: PDP's weights with the fused training modulation off (each block's
+conditioning and z-MLP run as its own small modules, as before the fusion), and PDP over it.
+
+``--count-ops`` counts instead of timing: the aten operators one training step's forward and backward
+dispatch (each non-view operator is at least one kernel launch on a GPU, where a small model's step is
+launch-bound), and the parameter tensors (one optimizer update each unless fused), for PDP and matched DP;
+``--cameras 0`` is the state-only policy. The counts do not depend on the machine's load or the batch size.
 """
 
 from __future__ import annotations
@@ -95,8 +103,10 @@ def _vqbet(meta, cameras, size, device):
     return policy
 
 
-def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None):
-    """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins)."""
+def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None,
+              blocks: bool = False):
+    """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins; with ``blocks``,
+    ``pdp_blocks``: PDP's weights with the fused training modulation off)."""
     import torch
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.factory import make_policy
@@ -116,6 +126,12 @@ def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mo
         dp = make_policy(DiffusionConfig(**dp_config_kwargs(sampler), **VISION, **comp, **common), ds_meta=meta)
         pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
         out.update({f"pdp{sfx}": pdp, f"dp{sfx or '_matched'}": dp})
+    if blocks:
+        twin = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **common), ds_meta=meta)
+        twin.load_state_dict(out["pdp"].state_dict())
+        twin.model.denoiser.fused_modulation = False
+        twin.set_latent(twin.behavior_latents()[0].detach())
+        out["pdp_blocks"] = twin
     return out
 
 
@@ -146,7 +162,8 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
 
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
-    policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode)
+    policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode,
+                         args.blocks)
     if args.vqbet and n_cam == 1:  # LeRobot's vqbet takes exactly one camera
         policies["vqbet"] = _vqbet(meta, cameras, size, dev)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
@@ -195,13 +212,15 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
                               "compile_mode": cfg.compile_mode if getattr(cfg, "compile_model", False) else None,
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
-    pairs = [("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
+    pairs = ([("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
+             + ([("pdp", "pdp_blocks", "fused_over_blocks")] if args.blocks else []))
     for bench in ("select_action_new_chunk", "train_step"):
         for a, b, label in pairs:
-            r = res[(a, bench)]["median_ms"] / res[(b, bench)]["median_ms"]
-            print(json.dumps({"bench": f"{bench}_ratio", "cameras": n_cam, "pair": label or "eager",
-                              "pdp_over_dp": round(r, 3), "target_1.1_met": bool(r <= 1.1), "device": dev}),
-                  flush=True)
+            r = round(res[(a, bench)]["median_ms"] / res[(b, bench)]["median_ms"], 3)
+            ratio = ({"fused_over_blocks": r} if b == "pdp_blocks"
+                     else {"pdp_over_dp": r, "target_1.1_met": bool(r <= 1.1)})
+            print(json.dumps({"bench": f"{bench}_ratio", "cameras": n_cam, "pair": label or "eager", **ratio,
+                              "device": dev}), flush=True)
 
     pdp = policies["pdp"]
     pdp.eval()
@@ -214,6 +233,45 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
     fit = [_timed(dev, lambda: pdp.fit_latent(demo, steps=args.fit_steps)) for _ in range(args.fit_calls + 1)][1:]
     print(json.dumps({"bench": "fit_latent_camera_demo", "policy": "pdp", "cameras": n_cam, **_stats(fit),
                       "demo_frames": T, "fit_steps": args.fit_steps, **env}), flush=True)
+
+
+def _count_ops(args, meta, n_cam: int, env: dict) -> None:
+    """Aten operators of one training step's forward and backward, per policy; prints their JSON lines."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):  # sees every operator below autograd, backward's included
+        def __init__(self):
+            super().__init__()
+            self.ops: dict[str, int] = {}
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if not func.is_view:
+                self.ops[func.__name__] = self.ops.get(func.__name__, 0) + 1
+            return func(*args, **(kwargs or {}))
+
+    cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
+    policies = _policies(meta, cameras, args.image_size, args.device, args.inference_steps, blocks=args.blocks)
+    res = {}
+    for name, policy in policies.items():
+        policy.train()
+        batch = _training_batch(meta, policy, cameras, args.image_size, args.batch, args.device)
+        policy.forward(batch)[0].backward()  # warm-up: lazily built buffers are not counted
+        policy.zero_grad(set_to_none=True)
+        with Count() as forward:
+            loss, _ = policy.forward(batch)
+        with Count() as backward:
+            loss.backward()
+        top = sorted(forward.ops.items(), key=lambda kv: -kv[1])[: args.top_ops]
+        res[name] = {"bench": "train_step_ops", "policy": name, "cameras": n_cam,
+                     "forward_ops": sum(forward.ops.values()), "backward_ops": sum(backward.ops.values()),
+                     "param_tensors": sum(1 for q in policy.parameters() if q.requires_grad),
+                     "params": sum(q.numel() for q in policy.parameters()), "top_forward_ops": dict(top), **env}
+        res[name]["ops"] = res[name]["forward_ops"] + res[name]["backward_ops"]
+        print(json.dumps(res[name]), flush=True)
+    ratios = {"pdp_over_dp": round(res["pdp"]["ops"] / res["dp_matched"]["ops"], 3)}
+    if "pdp_blocks" in res:
+        ratios["pdp_blocks_over_dp"] = round(res["pdp_blocks"]["ops"] / res["dp_matched"]["ops"], 3)
+    print(json.dumps({"bench": "train_step_ops_ratio", "cameras": n_cam, **ratios}), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -235,6 +293,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="also time LeRobot's vqbet as the camera benchmark trains it (one camera only)")
     ap.add_argument("--pdp-compile-mode", default=None,
                     help="PDP's compile_mode with --compile (default PDP's 'default'; DP keeps 'reduce-overhead')")
+    ap.add_argument("--count-ops", action="store_true",
+                    help="count a training step's aten operators and parameter tensors instead of timing")
+    ap.add_argument("--blocks", action="store_true",
+                    help="also PDP with its fused training modulation off (pdp_blocks: each block's modules)")
+    ap.add_argument("--top-ops", type=int, default=8, help="with --count-ops: the most frequent forward operators listed")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -254,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
            "torch": torch.__version__, "device": dev, "image_size": args.image_size,
            "gpu": torch.cuda.get_device_name() if dev.startswith("cuda") else None}
     for n_cam in args.cameras:
-        _run(args, meta, n_cam, env)
+        (_count_ops if args.count_ops else _run)(args, meta, n_cam, env)
     tmp.cleanup()
     return 0
 

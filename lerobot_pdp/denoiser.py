@@ -123,10 +123,14 @@ class ConditionalResidualBlock1d(nn.Module):
         h = self.conv2(h)
         return h + self.residual(x)
 
-    def forward_cached(self, x: Tensor, scale: Tensor, bias: Tensor, fast_conv: bool = True) -> Tensor:
-        """``forward`` with the whole modulation after conv1 precomputed: ``scale * h + bias``."""
+    def forward_cached(self, x: Tensor, scale: Tensor, bias: Tensor, fast_conv: bool = True,
+                       conv_residual: bool = False) -> Tensor:
+        """``forward`` with the whole modulation after conv1 precomputed: ``scale * h + bias``.
+        ``conv_residual`` keeps the 1x1 residual a convolution (training: one kernel, not a copy and a matmul)."""
         conv1, conv2 = (self.conv1.fast, self.conv2.fast) if fast_conv else (self.conv1, self.conv2)
         h = conv2(torch.addcmul(bias, scale, conv1(x)))
+        if conv_residual:
+            return h + self.residual(x)
         if isinstance(self.residual, nn.Conv1d):  # 1x1 conv = a matmul over channels
             w = self.residual.weight[..., 0]
             if x.shape[0] == 1:  # batch-1 inference: one small bmm is the cheapest call
@@ -195,9 +199,56 @@ class FiLMUnet1d(nn.Module):
         )
         # rows of each block's scale and bias in a modulation row vector (fixed by the architecture)
         self._mod_sizes = [ch for b in self.blocks() for ch in (b.out_ch, b.out_ch)]
+        # Training runs the whole conditioning of all blocks as a few large ops (``modulation``) instead of
+        # ~10 small ones per block: on a GPU a small model's step is bound by kernel launches. Off, the
+        # blocks' own modules run one by one (``forward_blocks``, the reference it is tested against).
+        self.fused_modulation = True
+        # z's FiLM output rows are, per block, [d_gamma (C), beta (C)], aligned with its [scale, bias] rows:
+        # gain = 1 + d_gamma on both, shift = beta on the bias rows only
+        gain_index, bias_rows, row = [], [], 0
+        for ch in self._mod_sizes[::2]:
+            gain_index += [*range(row, row + ch), *range(row, row + ch)]
+            bias_rows += [0.0] * ch + [1.0] * ch
+            row += 2 * ch
+        self.register_buffer("_film_gain_index", torch.tensor(gain_index), persistent=False)
+        self.register_buffer("_film_bias_rows", torch.tensor(bias_rows), persistent=False)
 
     def forward(self, sample: Tensor, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
         """sample: [B, T, A]; k: [B] diffusion steps; obs_cond: [B, C]; z: [B, d_z] or None."""
+        if not self.fused_modulation:
+            return self.forward_blocks(sample, k, obs_cond, z)
+        mod = self.modulation(k, obs_cond, z)
+        return self.forward_cached(sample, list(mod.unsqueeze(-1).split(self._mod_sizes, dim=1)), fast_conv=False,
+                                   conv_residual=True)
+
+    def modulation(self, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
+        """Every block's ``scale, bias`` rows [B, sum 2C], z's FiLM folded in, differentiable (training).
+
+        ``Linear(Mish(cond))`` of all blocks is one matmul with their weights stacked; the z-MLPs of all
+        blocks are one MLP (first layer stacked, later layers block-diagonal); and per block
+        ``gamma * (scale * h + bias) + beta = (gamma scale) h + (gamma bias + beta)``.
+        """
+        blocks = self.blocks()
+        lins = [b.cond_encoder[1] for b in blocks]
+        act = F.mish(torch.cat([self.step_encoder(k), obs_cond], dim=-1))
+        if self.latent_conditioning == "concat":
+            act = torch.cat([act, z], dim=-1)  # raw z: no nonlinearity before its first linear map
+        mod = F.linear(act, torch.cat([lin.weight for lin in lins]), torch.cat([lin.bias for lin in lins]))
+        if self.latent_conditioning != "film":
+            return mod
+        layers = [[m for m in b.latent_film.mlp if isinstance(m, nn.Linear)] for b in blocks]
+        h = z
+        for j in range(len(layers[0])):
+            weights = [ls[j].weight for ls in layers]  # layer 0 reads the shared z, later ones their block's slice
+            h = F.linear(h, torch.cat(weights) if j == 0 else torch.block_diag(*weights),
+                         torch.cat([ls[j].bias for ls in layers]))
+            if j < len(layers[0]) - 1:
+                h = F.mish(h)
+        gain = 1.0 + h.index_select(1, self._film_gain_index)
+        return torch.addcmul(h * self._film_bias_rows, gain, mod)
+
+    def forward_blocks(self, sample: Tensor, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
+        """``forward`` through each block's own modules, one after the other."""
         x = sample.transpose(1, 2)
         cond = torch.cat([self.step_encoder(k), obs_cond], dim=-1)
         film_z = z if self.latent_conditioning == "film" else None
@@ -350,27 +401,28 @@ class FiLMUnet1d(nn.Module):
         """[B, sum 2C] modulation rows -> per block ``scale, bias`` views [B, C, 1]."""
         return list(mod.unsqueeze(-1).split(consts["sizes"], dim=1))
 
-    def forward_cached(self, sample: Tensor, context: list[Tensor], fast_conv: bool = True) -> Tensor:
+    def forward_cached(self, sample: Tensor, context: list[Tensor], fast_conv: bool = True,
+                       conv_residual: bool = False) -> Tensor:
         """``forward`` given the blocks' precomputed ``scale, bias`` (one step's entry of :meth:`make_context`).
 
         ``fast_conv`` runs convolutions as unfold + matmul (batch-1 inference); with autograd (latent
-        fitting) PyTorch's own convolution is faster.
+        fitting) PyTorch's own convolution is faster. ``conv_residual``: see the block's ``forward_cached``.
         """
         x = sample.transpose(1, 2)
         it = iter(context)
         ctx = zip(it, it, strict=True)  # (scale, bias) per block
         skips = []
         for res1, res2, downsample in self.down:
-            x = res1.forward_cached(x, *next(ctx), fast_conv)
-            x = res2.forward_cached(x, *next(ctx), fast_conv)
+            x = res1.forward_cached(x, *next(ctx), fast_conv, conv_residual)
+            x = res2.forward_cached(x, *next(ctx), fast_conv, conv_residual)
             skips.append(x)
             x = conv1d_unfolded(x, downsample) if fast_conv and isinstance(downsample, nn.Conv1d) else downsample(x)
         for res in self.mid:
-            x = res.forward_cached(x, *next(ctx), fast_conv)
+            x = res.forward_cached(x, *next(ctx), fast_conv, conv_residual)
         for res1, res2, upsample in self.up:
             x = torch.cat((x, skips.pop()), dim=1)
-            x = res1.forward_cached(x, *next(ctx), fast_conv)
-            x = res2.forward_cached(x, *next(ctx), fast_conv)
+            x = res1.forward_cached(x, *next(ctx), fast_conv, conv_residual)
+            x = res2.forward_cached(x, *next(ctx), fast_conv, conv_residual)
             x = upsample(x)
         if not fast_conv:
             return self.final[1](self.final[0](x)).transpose(1, 2)

@@ -90,6 +90,33 @@ def test_cached_inference_path_equals_forward(mode, film_hidden_dims):
                                atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize(("mode", "film_hidden_dims"),
+                         [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("none", (16, 32))])
+def test_fused_training_forward_equals_the_blocks_one_by_one(mode, film_hidden_dims):
+    """Training's fused modulation (all blocks' conditioning and z-MLPs as a few stacked ops) gives the
+    output and the gradients of every weight and of z that each block's own modules give."""
+    net = _net(mode, film_hidden_dims)
+    for m in net.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
+    g = torch.Generator().manual_seed(3)
+    x, c = torch.randn(5, 16, 3, generator=g), torch.randn(5, 10, generator=g)
+    k = torch.randint(0, 20, (5,), generator=g)
+    outs, grads = [], []
+    for fused in (True, False):
+        net.fused_modulation = fused
+        z = torch.randn(5, 2, generator=torch.Generator().manual_seed(4), requires_grad=True)
+        net.zero_grad()
+        out = net(x, k, c, z)
+        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
+        outs.append(out.detach())
+        grads.append({"z": z.grad, **{n: q.grad for n, q in net.named_parameters() if q.grad is not None}})
+    torch.testing.assert_close(outs[0], outs[1], atol=1e-5, rtol=1e-5)
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) == 1 + sum(1 for _ in net.parameters())
+    for name in grads[0]:
+        torch.testing.assert_close(grads[0][name], grads[1][name], atol=1e-5, rtol=1e-4, msg=name)
+
+
 def test_inference_caches_follow_weight_updates_and_pickle():
     net = _net("film").eval()
     x, c, z = torch.randn(1, 16, 3), torch.randn(1, 10), torch.randn(1, 2)
