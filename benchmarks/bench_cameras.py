@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import os
 import platform
@@ -127,11 +128,8 @@ def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mo
         pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
         out.update({f"pdp{sfx}": pdp, f"dp{sfx or '_matched'}": dp})
     if blocks:
-        twin = make_policy(PDPConfig(trace_dims=[0, 1, 2], **sampler, **VISION, **common), ds_meta=meta)
-        twin.load_state_dict(out["pdp"].state_dict())
-        twin.model.denoiser.fused_modulation = False
-        twin.set_latent(twin.behavior_latents()[0].detach())
-        out["pdp_blocks"] = twin
+        out["pdp_blocks"] = copy.deepcopy(out["pdp"])
+        out["pdp_blocks"].model.denoiser.fused_modulation = False
     return out
 
 

@@ -236,14 +236,11 @@ class FiLMUnet1d(nn.Module):
         mod = F.linear(act, torch.cat([lin.weight for lin in lins]), torch.cat([lin.bias for lin in lins]))
         if self.latent_conditioning != "film":
             return mod
-        layers = [[m for m in b.latent_film.mlp if isinstance(m, nn.Linear)] for b in blocks]
+        *hidden, (w, b) = self._film_layers(blocks)
         h = z
-        for j in range(len(layers[0])):
-            weights = [ls[j].weight for ls in layers]  # layer 0 reads the shared z, later ones their block's slice
-            h = F.linear(h, torch.cat(weights) if j == 0 else torch.block_diag(*weights),
-                         torch.cat([ls[j].bias for ls in layers]))
-            if j < len(layers[0]) - 1:
-                h = F.mish(h)
+        for wh, bh in hidden:
+            h = F.mish(F.linear(h, wh, bh))
+        h = F.linear(h, w, b)  # per block [d_gamma, beta]
         gain = 1.0 + h.index_select(1, self._film_gain_index)
         return torch.addcmul(h * self._film_bias_rows, gain, mod)
 
@@ -319,29 +316,24 @@ class FiLMUnet1d(nn.Module):
         return consts
 
     @staticmethod
-    def _stacked_film(blocks: list[ConditionalResidualBlock1d]) -> dict[str, Any]:
-        """All blocks' z-MLPs as one MLP whose last layer emits (gain, shift) on the modulation rows.
-
-        gamma * (scale * h + bias) + beta = (gamma scale) h + (gamma bias + beta): per block, gain =
-        [gamma, gamma] and shift = [0, beta] on its [scale, bias] rows.
-        """
+    def _film_layers(blocks: list[ConditionalResidualBlock1d]) -> list[tuple[Tensor, Tensor]]:
+        """All blocks' z-MLPs as one MLP, ``(weight, bias)`` per layer: layer 0 reads the shared z (weights
+        stacked), later layers their block's slice (block-diagonal). Its output rows are, per block,
+        ``[d_gamma, beta]``, aligned with the block's ``[scale, bias]`` modulation rows."""
         layers = [[m for m in b.latent_film.mlp if isinstance(m, nn.Linear)] for b in blocks]
-        n = len(layers[0])
+        out = []
+        for j in range(len(layers[0])):
+            ws = [ls[j].weight for ls in layers]
+            out.append((torch.cat(ws) if j == 0 else torch.block_diag(*ws), torch.cat([ls[j].bias for ls in layers])))
+        return out
 
-        def stack(mats: list[Tensor], j: int) -> Tensor:  # layer 0 reads the shared z, later ones their block's slice
-            return torch.cat(mats) if j == 0 else torch.block_diag(*mats)
-
-        hidden = [(stack([ls[j].weight for ls in layers], j), torch.cat([ls[j].bias for ls in layers]))
-                  for j in range(n - 1)]
-        gain_w, gain_b, shift_w, shift_b = [], [], [], []
-        for b, ls in zip(blocks, layers, strict=True):
-            w, bias, ch = ls[-1].weight, ls[-1].bias, b.out_ch
-            gain_w.append(torch.cat([w[:ch], w[:ch]]))
-            gain_b.append(1.0 + torch.cat([bias[:ch], bias[:ch]]))
-            shift_w.append(torch.cat([torch.zeros_like(w[ch:]), w[ch:]]))
-            shift_b.append(torch.cat([torch.zeros_like(bias[ch:]), bias[ch:]]))
-        return {"hidden": hidden, "gain": (stack(gain_w, n - 1), torch.cat(gain_b)),
-                "shift": (stack(shift_w, n - 1), torch.cat(shift_b))}
+    def _stacked_film(self, blocks: list[ConditionalResidualBlock1d]) -> dict[str, Any]:
+        """:meth:`_film_layers` with its last layer split into (gain, shift) on the modulation rows, so that
+        inference applies z with two matmuls: gamma * (scale * h + bias) + beta = (gamma scale) h +
+        (gamma bias + beta), i.e. per block gain = [gamma, gamma] and shift = [0, beta]."""
+        *hidden, (w, b) = self._film_layers(blocks)
+        idx, rows = self._film_gain_index, self._film_bias_rows
+        return {"hidden": hidden, "gain": (w[idx], 1.0 + b[idx]), "shift": (w * rows[:, None], b * rows)}
 
     def latent_terms(self, consts: dict[str, Any], z: Tensor) -> tuple[Tensor | None, Tensor | None]:
         """z's contribution to the modulation rows: ``mod -> gain * mod + shift`` (differentiable in z)."""
