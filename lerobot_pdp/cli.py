@@ -237,7 +237,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="training seeds (default 0 1 2, with --split validation 100 101 102; the first with --quick)")
     p.add_argument("--rollouts", type=int, default=None, help="rollouts per scene (default 40; 20 with --quick)")
     p.add_argument("--methods", nargs="+", default=None,
-                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_uncond; vqbet with "
+                   help="pdp dp bc and/or ablations pdp_unaligned pdp_onehot pdp_concat pdp_input pdp_uncond; vqbet with "
                    "--obs images (default pdp dp bc; pdp dp with --quick; pdp dp vqbet with --obs images)")
     p.add_argument("--quick", action="store_true",
                    help="small budget for a first look: one seed, PDP + DP, shorter training, 20 rollouts")

@@ -14,7 +14,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_pdp.chunk_config import ActionChunkConfigMixin
 
-LATENT_CONDITIONING = ("film", "concat", "none")
+LATENT_CONDITIONING = ("film", "concat", "input", "none")
 LATENT_TYPES = ("continuous", "onehot")
 INFERENCE_LATENTS = ("episode", "prior", "zero")
 TRACE_NORMALIZE = ("none", "start", "endpoints")
@@ -124,7 +124,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
 
     # ---- Denoiser: 1-D conditional U-Net with FiLM ----
     # "film": gamma(z) * h + beta(z) in every residual block (the paper); "concat": z appended to the
-    # global condition (ablation); "none": unconditioned diffusion policy (ablation).
+    # global condition, so it reaches every block through the condition's FiLM (ablation); "input": z appended
+    # to the denoiser's input channels (the paper's shallow concatenation ablation); "none": unconditioned
+    # diffusion policy (ablation).
     latent_conditioning: str = "film"
     # Channels of the U-Net's levels (as LeRobot's diffusion policy; a small backbone trains on a CPU).
     down_dims: tuple[int, ...] = (32, 64, 128)

@@ -7,10 +7,12 @@ embedding). PDP adds a second, *behavior* modulation in every residual block (pa
     h <- gamma_l(z) * h + beta_l(z)
 
 with a small MLP per block (hidden sizes ``film_hidden_dims``). gamma starts at 1 and beta at 0, so an
-untrained z-branch is the identity and z has to earn its influence. Two ablations share the network:
+untrained z-branch is the identity and z has to earn its influence. Three ablations share the network:
 ``concat`` appends the raw z to the global condition (after the condition encoder's Mish, which acts on
-the step embedding and observations only: the first map z meets is linear, as in the paper's ablation),
-``none`` ignores z.
+the step embedding and observations only: the first map z meets is linear), so z still reaches every
+block through the condition's FiLM Linear (an affine FiLM by z in all but name); ``input`` appends z to the
+denoiser's *input*, as extra channels of the noisy chunk at every time step (the paper's shallow
+concatenation ablation: z meets only the first convolution); ``none`` ignores z.
 
 Also here: the noise schedule (K training steps) and the deterministic DDIM sampler used at inference.
 """
@@ -148,8 +150,8 @@ class FiLMUnet1d(nn.Module):
     Args:
         action_dim: dimension of one action.
         obs_cond_dim: flattened observation-history dimension (the global condition c).
-        latent_dim: d_z; used by ``film`` and ``concat`` conditioning.
-        latent_conditioning: ``"film"`` | ``"concat"`` | ``"none"``.
+        latent_dim: d_z; used by ``film``, ``concat`` and ``input`` conditioning.
+        latent_conditioning: ``"film"`` | ``"concat"`` | ``"input"`` | ``"none"``.
     """
 
     def __init__(self, action_dim: int, obs_cond_dim: int, latent_dim: int, latent_conditioning: str = "film",
@@ -171,7 +173,9 @@ class FiLMUnet1d(nn.Module):
         def block(i: int, o: int) -> ConditionalResidualBlock1d:
             return ConditionalResidualBlock1d(i, o, cond_dim, kernel_size, n_groups, film_dim, film_hidden_dims)
 
-        dims = [action_dim, *down_dims]
+        # ``input``: z as d_z extra input channels, constant over the chunk (see _with_input_latent)
+        self.input_latent_dim = latent_dim if latent_conditioning == "input" else 0
+        dims = [action_dim + self.input_latent_dim, *down_dims]
         self.down = nn.ModuleList()
         for idx, (i, o) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
             last = idx == len(down_dims) - 1
@@ -197,8 +201,13 @@ class FiLMUnet1d(nn.Module):
             Conv1dBlock(down_dims[0], down_dims[0], kernel_size, n_groups),
             nn.Conv1d(down_dims[0], action_dim, 1),
         )
-        # rows of each block's scale and bias in a modulation row vector (fixed by the architecture)
+        # rows of each block's scale and bias in a modulation row vector (fixed by the architecture); with
+        # ``input`` conditioning the vector ends with z itself, so every cached path (sampler, CUDA graph,
+        # latent fitting) carries z to the input the way it carries the blocks' modulation
+        self._block_rows = sum(2 * b.out_ch for b in self.blocks())
         self._mod_sizes = [ch for b in self.blocks() for ch in (b.out_ch, b.out_ch)]
+        if self.input_latent_dim:
+            self._mod_sizes.append(self.input_latent_dim)
         # Training runs the whole conditioning of all blocks as a few large ops (``modulation``) instead of
         # ~10 small ones per block: on a GPU a small model's step is bound by kernel launches. Off, the
         # blocks' own modules run one by one (``forward_blocks``, the reference it is tested against).
@@ -234,6 +243,8 @@ class FiLMUnet1d(nn.Module):
         if self.latent_conditioning == "concat":
             act = torch.cat([act, z], dim=-1)  # raw z: no nonlinearity before its first linear map
         mod = F.linear(act, torch.cat([lin.weight for lin in lins]), torch.cat([lin.bias for lin in lins]))
+        if self.latent_conditioning == "input":
+            return torch.cat([mod, z], dim=-1)
         if self.latent_conditioning != "film":
             return mod
         *hidden, (w, b) = self._film_layers(blocks)
@@ -247,6 +258,8 @@ class FiLMUnet1d(nn.Module):
     def forward_blocks(self, sample: Tensor, k: Tensor, obs_cond: Tensor, z: Tensor | None) -> Tensor:
         """``forward`` through each block's own modules, one after the other."""
         x = sample.transpose(1, 2)
+        if self.input_latent_dim:
+            x = self._with_input_latent(x, z[:, :, None])
         cond = torch.cat([self.step_encoder(k), obs_cond], dim=-1)
         film_z = z if self.latent_conditioning == "film" else None
         cat_z = z if self.latent_conditioning == "concat" else None
@@ -263,6 +276,11 @@ class FiLMUnet1d(nn.Module):
             x = res2(res1(x, cond, film_z, cat_z), cond, film_z, cat_z)
             x = upsample(x)
         return self.final(x).transpose(1, 2)
+
+    @staticmethod
+    def _with_input_latent(x: Tensor, z: Tensor) -> Tensor:
+        """[B, A, T] chunk with z [B, d_z, 1] appended as d_z channels, the same at every time step."""
+        return torch.cat([x, z.expand(-1, -1, x.shape[-1])], dim=1)
 
     def blocks(self) -> list[ConditionalResidualBlock1d]:
         """Residual blocks in the order ``forward`` runs them."""
@@ -302,11 +320,18 @@ class FiLMUnet1d(nn.Module):
         lins = [b.cond_encoder[1] for b in blocks]
         with torch.no_grad():
             k = torch.as_tensor(steps, device=params[0].device, dtype=params[0].dtype)
+            # ``input``: the rows after the blocks' are z itself (w_z = [0; I]), zero in every other term
+            pad = (0, 0, 0, self.input_latent_dim)
+            w_z = torch.cat([lin.weight[:, d + c :] for lin in lins])  # concat conditioning only
+            if self.input_latent_dim:
+                w_z = torch.cat([w_z.new_zeros(self._block_rows, self.input_latent_dim),
+                                 torch.eye(self.input_latent_dim, device=w_z.device, dtype=w_z.dtype)])
             consts = {
-                "step": F.linear(F.mish(self.step_encoder(k)), torch.cat([lin.weight[:, :d] for lin in lins])),
-                "w_obs": torch.cat([lin.weight[:, d : d + c] for lin in lins]),
-                "b": torch.cat([lin.bias for lin in lins]),
-                "w_z": torch.cat([lin.weight[:, d + c :] for lin in lins]),  # concat conditioning only
+                "step": F.pad(F.linear(F.mish(self.step_encoder(k)), torch.cat([lin.weight[:, :d] for lin in lins])),
+                              pad[2:]),
+                "w_obs": F.pad(torch.cat([lin.weight[:, d : d + c] for lin in lins]), pad),
+                "b": F.pad(torch.cat([lin.bias for lin in lins]), pad[2:]),
+                "w_z": w_z,
                 # per block: C scale rows then C bias rows (``chunk(2)`` in ``forward``)
                 "sizes": self.modulation_sizes(),
                 "film": self._stacked_film(blocks) if self.latent_conditioning == "film" else None,
@@ -337,7 +362,7 @@ class FiLMUnet1d(nn.Module):
 
     def latent_terms(self, consts: dict[str, Any], z: Tensor) -> tuple[Tensor | None, Tensor | None]:
         """z's contribution to the modulation rows: ``mod -> gain * mod + shift`` (differentiable in z)."""
-        if self.latent_conditioning == "concat":
+        if self.latent_conditioning in ("concat", "input"):
             return None, F.linear(z, consts["w_z"])  # raw z: no nonlinearity before its first linear map
         if self.latent_conditioning != "film":
             return None, None
@@ -401,6 +426,8 @@ class FiLMUnet1d(nn.Module):
         fitting) PyTorch's own convolution is faster. ``conv_residual``: see the block's ``forward_cached``.
         """
         x = sample.transpose(1, 2)
+        if self.input_latent_dim:  # the last entry is z [B, d_z, 1] (see _mod_sizes)
+            x, context = self._with_input_latent(x, context[-1]), context[:-1]
         it = iter(context)
         ctx = zip(it, it, strict=True)  # (scale, bias) per block
         skips = []

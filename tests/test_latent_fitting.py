@@ -67,7 +67,7 @@ def _two_phase_setup(mode: str):
     return net, NoiseSchedule(20), episode_windows(norm, 2, 16, "observation.state", None, [(0, 12), (12, T)]), T
 
 
-@pytest.mark.parametrize("mode", ["film", "concat", "none"])
+@pytest.mark.parametrize("mode", ["film", "concat", "input", "none"])
 def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
     """fit_loss runs the denoiser from cached step/observation modulations; the maths must be forward's."""
     net, sched, w, T = _two_phase_setup(mode)
@@ -141,7 +141,7 @@ def test_onehot_policy_fit_returns_one_of_its_codes(synthetic_meta):
     assert torch.equal(p.active_latent[0], res.z) and len(res.losses) == 1
 
 
-@pytest.mark.parametrize("mode", ["film", "concat"])
+@pytest.mark.parametrize("mode", ["film", "concat", "input"])
 def test_sample_objective_is_the_error_of_the_policy_sampler(mode):
     """fit_objective="sample": the fitted quantity is the error of the chunk the network samples with the
     shared sampler (NoiseSchedule.sample over the plain forward), per phase, plus lambda|z|^2, and its

@@ -133,12 +133,12 @@ def _eval_json(out, method):
 
 
 def test_ablations_tiny(tmp_path):
-    """`--ablations`: the four ablated PDP variants train and evaluate next to PDP, plus the warm-vs-random
+    """`--ablations`: the five ablated PDP variants train and evaluate next to PDP, plus the warm-vs-random
     initialisation table."""
     cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "bench", seeds=[0], rollouts=1, methods=["pdp"],
                           ablations=True, steps=20, episodes_per_mode=1, figures=False, inference_steps=4)
     res = run_benchmark(cfg)
-    assert set(res["methods"]) == {"pdp", "pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_uncond"}
+    assert set(res["methods"]) == {"pdp", "pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_input", "pdp_uncond"}
     for entry in res["methods"].values():
         assert all(len(entry[f"scene{s}"]["success"]) == 1 for s in range(4))
     assert set(res["init_ablation"]) == {f"{i}@{n}" for i in ("encoder", "random") for n in (0, 10, 100)}

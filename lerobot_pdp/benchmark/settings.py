@@ -262,11 +262,12 @@ def methods_for(suite: SuiteEnv, film: str | None = None) -> dict[str, Method]:
         "pdp_unaligned": Method("pdp_unaligned", "pdp", pdp + ("--policy.beta_geo=0",)),
         "pdp_onehot": Method("pdp_onehot", "pdp", pdp + ("--policy.latent_type=onehot",)),
         "pdp_concat": Method("pdp_concat", "pdp", pdp + ("--policy.latent_conditioning=concat",)),
+        "pdp_input": Method("pdp_input", "pdp", pdp + ("--policy.latent_conditioning=input",)),
         "pdp_uncond": Method("pdp_uncond", "pdp", pdp + ("--policy.latent_conditioning=none",), steerable=False),
     }
 
 
-ABLATIONS = ("pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_uncond")
+ABLATIONS = ("pdp_unaligned", "pdp_onehot", "pdp_concat", "pdp_input", "pdp_uncond")
 
 
 INIT_STEPS = (0, 10, 100)
