@@ -321,16 +321,16 @@ class FiLMUnet1d(nn.Module):
         with torch.no_grad():
             k = torch.as_tensor(steps, device=params[0].device, dtype=params[0].dtype)
             # ``input``: the rows after the blocks' are z itself (w_z = [0; I]), zero in every other term
-            pad = (0, 0, 0, self.input_latent_dim)
+            extra = self.input_latent_dim
             w_z = torch.cat([lin.weight[:, d + c :] for lin in lins])  # concat conditioning only
-            if self.input_latent_dim:
-                w_z = torch.cat([w_z.new_zeros(self._block_rows, self.input_latent_dim),
-                                 torch.eye(self.input_latent_dim, device=w_z.device, dtype=w_z.dtype)])
+            if extra:
+                w_z = torch.cat([w_z.new_zeros(self._block_rows, extra),
+                                 torch.eye(extra, device=w_z.device, dtype=w_z.dtype)])
+            step = F.linear(F.mish(self.step_encoder(k)), torch.cat([lin.weight[:, :d] for lin in lins]))
             consts = {
-                "step": F.pad(F.linear(F.mish(self.step_encoder(k)), torch.cat([lin.weight[:, :d] for lin in lins])),
-                              pad[2:]),
-                "w_obs": F.pad(torch.cat([lin.weight[:, d : d + c] for lin in lins]), pad),
-                "b": F.pad(torch.cat([lin.bias for lin in lins]), pad[2:]),
+                "step": F.pad(step, (0, extra)),  # [S, rows]
+                "w_obs": F.pad(torch.cat([lin.weight[:, d : d + c] for lin in lins]), (0, 0, 0, extra)),  # [rows, c]
+                "b": F.pad(torch.cat([lin.bias for lin in lins]), (0, extra)),
                 "w_z": w_z,
                 # per block: C scale rows then C bias rows (``chunk(2)`` in ``forward``)
                 "sizes": self.modulation_sizes(),
