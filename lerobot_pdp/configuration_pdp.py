@@ -210,6 +210,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # forward evaluations on the same noise, no backward) or "auto" (finite differences for d_z <= 3,
     # ~30 % faster per step on CPU at d_z = 2; same success, docs/performance.md).
     fit_gradient: str = "auto"
+    # After a fit, L_fit at the fitted latent is compared with the training demonstrations' own denoising
+    # error (tracked while training); fit_latent warns when the ratio reaches this. On the validation scenes
+    # of the four envs a ratio <= 1.8 went with 50-100 % success and >= 2.5 with 0-35 % (docs/experiments.md).
+    fit_warn_ratio: float = 2.0
 
     # ---- Inference-time steering (also settable from lerobot-eval: --policy.steer_latent=[..]) ----
     # A fixed latent for every rollout.
@@ -269,6 +273,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"trace_length must be >= 2, got {self.trace_length}")
         if self.fit_steps < 0:
             errors.append(f"fit_steps must be >= 0, got {self.fit_steps}")
+        if not self.fit_warn_ratio > 0:
+            errors.append(f"fit_warn_ratio must be > 0, got {self.fit_warn_ratio}")
         if self.fit_objective not in ("denoise", "sample"):
             errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
         if self.compile_mode not in COMPILE_MODES:

@@ -68,6 +68,10 @@ class FitResult:
     z_init: Tensor  # starting point
     losses: list[float] = field(default_factory=list)  # L_fit per step (first entry: at z_init)
     steps: int = 0
+    # L_fit (without lambda|z|^2, mean over phases) on every window at the fitted z, and its ratio to the
+    # training demonstrations' error at their own latents (None for a policy without that reference)
+    fit_error: float | None = None
+    error_ratio: float | None = None
 
 
 def _stratified_batch(segment: Tensor, n_segments: int, batch_size: int, g: torch.Generator) -> Tensor:
@@ -238,6 +242,20 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
             z_sum += z.detach()
     z_final = z_sum / (steps - tail_start) if steps > 0 else z.detach()
     return FitResult(z=z_final.cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)
+
+
+def demonstration_error(denoiser, schedule, windows: DemoWindows, z: Tensor, chunks: int = 512, seed: int = 0) -> float:
+    """L_fit without lambda|z|^2 on every window of the demonstration at ``z`` [M, d_z], as a mean over phases:
+    the noise-prediction error that ``train_loss_dp`` measures for the training demonstrations at their own
+    latents, so the two compare. Each window gets ``ceil(chunks / windows)`` noise draws."""
+    g = torch.Generator().manual_seed(seed)
+    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    n = len(windows.segment)
+    with torch.no_grad():
+        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
+        per_phase = _phase_losses(denoiser, schedule, windows, z[None].float(), torch.arange(n), -(-chunks // n), g,
+                                  consts, obs_mod)[0]
+    return float(per_phase.mean())
 
 
 def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,

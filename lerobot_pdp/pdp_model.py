@@ -52,6 +52,10 @@ class PDPModel(nn.Module):
         self.register_buffer("behavior_mode", torch.zeros(0, dtype=torch.long))
         self.register_buffer("trace_distance_matrix", torch.zeros(0, 0))
         self.register_buffer("geo_kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
+        # Running mean of L_DP over the last ~100 training steps: the denoising error of the training
+        # demonstrations at their own latents, what a fitted demonstration's L_fit is compared with
+        # (FitResult.error_ratio). NaN until trained (and in checkpoints saved before it existed).
+        self.register_buffer("train_loss_dp", torch.tensor(float("nan")))
         if behaviors is not None:
             self.set_behaviors(behaviors)
 
@@ -164,6 +168,10 @@ class PDPModel(nn.Module):
         pred = denoiser(noisy, k, obs_cond, z_bar)
         is_pad = batch.get("action_is_pad") if self.config.do_mask_loss_for_padding else None
         loss_dp = diffusion_loss(pred, eps, is_pad)
+        if self.training:
+            with torch.no_grad():  # on the device, no host sync
+                seen = self.train_loss_dp
+                self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, 0.99 * seen + 0.01 * loss_dp))
         metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
         loss = loss_dp
         if self.config.latent_type == "continuous" and self.training:

@@ -124,8 +124,8 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
     res = p.fit_latent({k: torch.as_tensor(v) for k, v in ep.items() if k != "task"}, steps=5)
     assert len(res.losses) == 5 and res.z.shape == (2,)
     torch.testing.assert_close(res.z_init, z)
-    for k, v in p.state_dict().items():
-        assert torch.equal(v, before[k]), f"fit_latent changed {k}"
+    for k, v in p.state_dict().items():  # (an untrained policy's train_loss_dp is NaN)
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0, equal_nan=True, msg=f"fit_latent changed {k}")
     assert torch.equal(p.active_latent[0], res.z)
     seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, 40)])
     assert seg.z.shape == (2, 2) and p.active_latent.shape == (2, 2)
@@ -393,6 +393,38 @@ def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
     res = p.fit_latent({k: torch.tensor(v) for k, v in exp["demo"].items()}, steps=3, seed=0)
     torch.testing.assert_close(res.z_init, torch.tensor(exp["fit_z_init"]), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(res.z, torch.tensor(exp["fit_z"]), atol=1e-5, rtol=1e-5)
+    # it predates the tracked training error: the fit is scored, but there is nothing to compare it with
+    assert torch.isnan(p.model.train_loss_dp) and res.fit_error > 0 and res.error_ratio is None
+
+
+def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, caplog):
+    """Training tracks L_DP's running mean on the device (``train_loss_dp``, saved with the checkpoint);
+    fit_latent scores the demonstration at the fitted latent against it and warns from ``fit_warn_ratio``."""
+    p = small_policy(synthetic_meta)
+    assert torch.isnan(p.model.train_loss_dp)
+    p.train()
+    batch = training_batch(synthetic_meta, p)
+    first = p.model.loss_terms(batch)[1]["loss_dp"].item()
+    assert p.model.train_loss_dp.item() == pytest.approx(first)  # the first step starts the mean
+    second = p.model.loss_terms(batch)[1]["loss_dp"].item()
+    assert p.model.train_loss_dp.item() == pytest.approx(0.99 * first + 0.01 * second)
+    p.eval()
+    p.model.loss_terms(batch)  # evaluation passes leave it alone
+    assert p.model.train_loss_dp.item() == pytest.approx(0.99 * first + 0.01 * second)
+    p.save_pretrained(tmp_path / "ckpt")
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt")
+    assert torch.equal(q.model.train_loss_dp, p.model.train_loss_dp)
+
+    ep = (synthetic_meta.root, 2)
+    q.model.train_loss_dp.fill_(1e6)  # far above any demonstration's error: no warning
+    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+        res = q.fit_latent(ep, steps=2)
+    assert res.error_ratio == pytest.approx(res.fit_error / 1e6) and not caplog.records
+    q.model.train_loss_dp.fill_(res.fit_error / 3)
+    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+        res = q.fit_latent(ep, steps=2)
+    assert res.error_ratio == pytest.approx(3.0, rel=1e-4)
+    assert any("3.0x worse" in r.getMessage() for r in caplog.records)
 
 
 def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):

@@ -20,7 +20,7 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
     """The scene-0 training dataset (generated once, then reused)."""
     from ..envs.recording import make_dataset
 
-    root = out / "data" / f"{suite.scene_key}_scene0{_camera_tag(suite)}"
+    root = scene0_root(suite, out)
     info = root / "meta" / "info.json"
     if not info.is_file():
         print(f"[benchmark] generating {suite.name} scene-0 dataset ({settings.episodes_per_mode}/mode) -> {root}")
@@ -34,6 +34,11 @@ def ensure_dataset(suite: SuiteEnv, out: Path, settings: TrainSettings, seed: in
                          f"({settings.episodes_per_mode} per mode x {suite.n_modes} modes); use another --out "
                          f"or delete {out / 'data'} and {out / 'runs'}")
     return root
+
+
+def scene0_root(suite: SuiteEnv, out: Path) -> Path:
+    """Where a benchmark output folder ``out`` keeps the scene-0 training dataset."""
+    return out / "data" / f"{suite.scene_key}_scene0{_camera_tag(suite)}"
 
 
 def _camera_tag(suite: SuiteEnv) -> str:

@@ -96,7 +96,8 @@ def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, s
     if method.adapt == "fit_latent":
         # segments="auto": a gripper-segmented policy fits one z per phase (paper Eq. 12)
         res = policy.fit_latent(demo, init=init, seed=seed, **kwargs)
-        return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None}
+        return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None,
+                        "fit_error": res.fit_error, "fit_error_ratio": res.error_ratio}
     if method.adapt == "noise":
         noise = adapt_dp_noise(policy, pre, demo, seed=seed, **kwargs)
         return FixedNoisePolicy(policy, noise), {}
