@@ -34,6 +34,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--fit-only", action="store_true", help="fit_latent figures only (no training throughput)")
     args = ap.parse_args()
 
     import torch
@@ -55,22 +56,27 @@ def main() -> None:
     demo = {k: v for k, v in eps[ep_idx].items() if k in ("observation.state", "observation.environment_state", "action")}
     T = len(demo["action"])
     pdp.fit_latent(demo, steps=2)  # warm-up
-    # the default gradient ("auto" = finite differences at d_z = 2) and autograd, interleaved rep by rep
-    # so that host drift hits both alike
+    # the default gradient ("auto" = finite differences at d_z = 2), the same without the fit-quality report
+    # (fit_report_chunks=0) and autograd, interleaved rep by rep so that host drift hits all alike
+    variants = {"auto": ("auto", pdp.config.fit_report_chunks), "auto_no_report": ("auto", 0),
+                "autograd": ("autograd", pdp.config.fit_report_chunks)}
     for steps in (10, 100):
-        ts: dict[str, list[float]] = {"auto": [], "autograd": []}
+        ts: dict[str, list[float]] = {name: [] for name in variants}
         for _ in range(args.reps if steps == 10 else 3):
-            for grad in ts:
-                pdp.config.fit_gradient = grad
-                ts[grad] += _timed(lambda s=steps: pdp.fit_latent(demo, steps=s), 1)
-        pdp.config.fit_gradient = "auto"
-        for grad, t in ts.items():
-            print(json.dumps({"bench": "fit_latent", "gradient": grad, "steps": steps, "demo_frames": T,
+            for name, (grad, report) in variants.items():
+                pdp.config.fit_gradient, pdp.config.fit_report_chunks = grad, report
+                ts[name] += _timed(lambda s=steps: pdp.fit_latent(demo, steps=s), 1)
+        pdp.config.fit_gradient, pdp.config.fit_report_chunks = variants["auto"]
+        for name, t in ts.items():
+            print(json.dumps({"bench": "fit_latent", "variant": name, "steps": steps, "demo_frames": T,
                               "batch": pdp.config.fit_batch_size, "median_ms": 1000 * statistics.median(t),
                               "min_ms": 1000 * min(t), "threads": args.threads}))
         print(json.dumps({"bench": "fit_latent_ratio", "steps": steps,
                           "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
+                          "report_share": 1 - statistics.median(ts["auto_no_report"]) / statistics.median(ts["auto"]),
                           "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100}))
+    if args.fit_only:
+        return
 
     # training throughput: forward + backward + Adam step on the same preprocessed B=64 batches
     from lerobot.configs.policies import PreTrainedConfig

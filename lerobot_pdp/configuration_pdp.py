@@ -214,6 +214,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # error (tracked while training); fit_latent warns when the ratio reaches this. On the validation scenes
     # of the four envs a ratio <= 1.8 went with 50-100 % success and >= 2.5 with 0-35 % (docs/experiments.md).
     fit_warn_ratio: float = 2.0
+    # Demonstration chunks that score the fitted latent for that report (one no-grad batch: ~65 ms for 512 on
+    # the 2-core CPU, ~5 % of the default 100-step fit, relative noise ~8 %; docs/performance.md). 0 skips the
+    # report (FitResult.fit_error / error_ratio stay None) and its warning, e.g. for the fastest short fits.
+    fit_report_chunks: int = 512
 
     # ---- Inference-time steering (also settable from lerobot-eval: --policy.steer_latent=[..]) ----
     # A fixed latent for every rollout.
@@ -275,6 +279,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"fit_steps must be >= 0, got {self.fit_steps}")
         if not self.fit_warn_ratio > 0:
             errors.append(f"fit_warn_ratio must be > 0, got {self.fit_warn_ratio}")
+        if self.fit_report_chunks < 0:
+            errors.append(f"fit_report_chunks must be >= 0 (0: no fit report), got {self.fit_report_chunks}")
         if self.fit_objective not in ("denoise", "sample"):
             errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
         if self.compile_mode not in COMPILE_MODES:

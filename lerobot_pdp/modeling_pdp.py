@@ -530,9 +530,12 @@ class PDPPolicy(PreTrainedPolicy):
         """Fill ``result.fit_error`` / ``error_ratio`` and warn when the fitted latent reproduces the
         demonstration much worse than the policy reproduces its training demonstrations: on the validation
         scenes that is where steering failed (``config.fit_warn_ratio``)."""
+        if self.config.fit_report_chunks == 0:
+            return
         device = self.model.geo_kappa.device
         result.fit_error = demonstration_error(self.model.denoiser, self.model.noise_schedule, windows,
-                                               result.z.to(device), seed=seed if seed is not None else 0)
+                                               result.z.to(device), self.config.fit_report_chunks,
+                                               seed=seed if seed is not None else 0)
         reference = float(self.model.train_loss_dp)
         if not math.isfinite(reference) or reference <= 0:
             return  # a checkpoint saved before the reference was tracked

@@ -425,6 +425,11 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
         res = q.fit_latent(ep, steps=2)
     assert res.error_ratio == pytest.approx(3.0, rel=1e-4)
     assert any("3.0x worse" in r.getMessage() for r in caplog.records)
+    q.config.fit_report_chunks = 0  # no report, no warning
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+        res = q.fit_latent(ep, steps=2)
+    assert res.fit_error is None and res.error_ratio is None and not caplog.records
 
 
 def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
