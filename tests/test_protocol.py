@@ -149,6 +149,10 @@ def test_ablations_tiny(tmp_path):
     assert "| pdp_onehot |" in md and "| warm (encoder) |" in md
     config = tmp_path / "bench" / "runs" / "pdp_onehot" / "seed0" / "pretrained_model" / "config.json"
     assert json.loads(config.read_text())["latent_type"] == "onehot"
+    # lerobot-train tracked the training error into the checkpoint: every fit is judged against it
+    for name in ("pdp", "pdp_input"):
+        scenes = _eval_json(tmp_path / "bench", name)["scenes"]
+        assert all(scenes[s]["fit_error_ratio"] > 0 and scenes[s]["fit_error"] > 0 for s in ("1", "2", "3"))
     # cached with the sampler it was made with (4 DDIM steps here, to keep the test short), so a rerun reuses it
     init_json = tmp_path / "bench" / "runs" / "pdp" / "seed0" / "init_ablation.json"
     assert json.loads(init_json.read_text())["inference_steps"] == 4
