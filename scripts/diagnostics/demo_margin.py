@@ -34,6 +34,8 @@ def _shift(text: str) -> list[float]:
 
 
 def main() -> None:
+    from run_args import add_run_args, eval_record
+
     import lerobot_pdp.envs.recording as recording
     from lerobot_pdp.benchmark.data import demo_episode
     from lerobot_pdp.benchmark.rollouts import run_rollouts
@@ -43,10 +45,7 @@ def main() -> None:
     from lerobot_pdp.envs.suite import get_suite_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
-    ap.add_argument("--env", required=True)
-    ap.add_argument("--scene", type=lambda v: int(v) if v.isdigit() else v, required=True,
-                    help="a shifted scene that ships way-points: 1, 2, 3 or a validation scene (val1, ...)")
+    add_run_args(ap)  # a scene that ships way-points
     ap.add_argument("--shift", type=_shift, action="append", required=True, help="dx,dy,dz added to every way-point")
     ap.add_argument("--rollouts", type=int, default=20)
     ap.add_argument("--no-fit", action="store_true", help="only record the demonstrations and report their clearance")
@@ -58,9 +57,6 @@ def main() -> None:
     if load_scene(args.scene, suite.scene_key).waypoints is None:
         ap.error(f"{args.env} scene {args.scene} ships no way-points: its demonstration is a training mode's")
     base = json.loads(shipped_scene_path(suite.scene_key, args.scene).read_text())
-    meta_file = args.run / "eval.json"
-    if not args.no_fit and not meta_file.is_file():
-        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its seed is read from there)")
 
     # the expert's final info (with the episode's minimum clearance) is not written into the dataset
     infos: list[dict] = []
@@ -73,9 +69,9 @@ def main() -> None:
 
     recording._rollout = recorded
     if not args.no_fit:
+        seed = eval_record(ap, args.run, "its seed is read from there")["seed"]
         policy, pre, post = load_run(args.run)
         policy.eval()
-        seed = json.loads(meta_file.read_text())["seed"]
     with tempfile.TemporaryDirectory() as tmp:
         for i, shift in enumerate(args.shift):
             scene = copy.deepcopy(base)

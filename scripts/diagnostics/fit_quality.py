@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -24,39 +23,32 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def main() -> None:
+    from run_args import add_run_args, eval_record
+
     from lerobot_pdp.benchmark.data import demo_episode, demo_root, scene0_root
     from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
     from lerobot_pdp.episodes import read_episodes
-    from lerobot_pdp.latent_fitting import fit_loss
+    from lerobot_pdp.latent_fitting import demonstration_error
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
-    ap.add_argument("--env", required=True)
+    add_run_args(ap, scene=False)
     ap.add_argument("--train-episodes", type=int, default=10, help="training episodes scored at their own latents")
     ap.add_argument("--noise-draws", type=int, default=16, help="(k, eps) draws per window")
     args = ap.parse_args()
     if args.train_episodes < 1 or args.noise_draws < 1:
         ap.error(f"--train-episodes and --noise-draws must be >= 1, got {args.train_episodes}, {args.noise_draws}")
-    meta_file = args.run / "eval.json"
-    if not meta_file.is_file():
-        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its fitted latents are read from there)")
-    meta = json.loads(meta_file.read_text())
+    meta = eval_record(ap, args.run, "its fitted latents are read from there")
     suite = get_suite_env(args.env)
     out = args.run.parents[2]
     policy, _, _ = load_run(args.run)
     policy.eval()
-    den, sched = policy.model.denoiser, policy.model.noise_schedule
-    consts = den.weight_constants(list(range(sched.num_train_timesteps)))
 
     def score(episode: dict, z: torch.Tensor) -> float:
+        """What fit_latent reports as FitResult.fit_error, with --noise-draws draws per window."""
         windows = policy.demo_windows(episode)
-        z = z.reshape(windows.n_segments, -1)
-        with torch.no_grad():
-            obs_mod = den.obs_modulation(consts, windows.obs_cond)
-            loss = fit_loss(den, sched, windows, z, torch.arange(len(windows.segment)), args.noise_draws, 0.0,
-                            torch.Generator().manual_seed(0), obs_mod, consts)
-        return float(loss) / windows.n_segments  # per phase, as one unsegmented latent scores
+        return demonstration_error(policy.model.denoiser, policy.model.noise_schedule, windows,
+                                   z.reshape(windows.n_segments, -1), chunks=args.noise_draws * len(windows.segment))
 
     train_root = scene0_root(suite, out)
     keys = ["observation.state", "observation.environment_state", "action"]

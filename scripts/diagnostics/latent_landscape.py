@@ -38,9 +38,9 @@ def main() -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from run_args import add_run_args, eval_record, scene_demo
 
     from lerobot_pdp.behavior import make_trace
-    from lerobot_pdp.benchmark.data import demo_episode, demo_root
     from lerobot_pdp.benchmark.rollouts import run_rollouts
     from lerobot_pdp.benchmark.settings import scene_seed_offset
     from lerobot_pdp.benchmark.training import load_run
@@ -48,10 +48,7 @@ def main() -> None:
     from lerobot_pdp.latent_fitting import fit_loss
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
-    ap.add_argument("--env", required=True)
-    ap.add_argument("--scene", type=lambda v: int(v) if v.isdigit() else v, required=True,
-                    help="a shifted scene: 1, 2, 3 or a validation scene (val1, ...)")
+    add_run_args(ap)
     ap.add_argument("-n", type=int, default=11, help="grid points per latent axis")
     ap.add_argument("--z0", type=float, nargs=2, metavar=("LO", "HI"), help="range of z[0] (default: around the "
                     "mode means, the warm start and the fitted z, +30 %%)")
@@ -75,15 +72,9 @@ def main() -> None:
     if cfg.latent_dim != 2 or cfg.segment_gripper_dim is not None:
         ap.error(f"needs a 2-D unsegmented latent; {args.run} has latent_dim={cfg.latent_dim}, "
                  f"segment_gripper_dim={cfg.segment_gripper_dim}")
-    meta_file = args.run / "eval.json"
-    if not meta_file.is_file():
-        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its fitted latent is read from there)")
-    meta = json.loads(meta_file.read_text())
+    meta = eval_record(ap, args.run, "its fitted latent is read from there")
     suite = get_suite_env(args.env)
-    root = demo_root(suite, args.run.parents[2], args.scene)
-    if not root.is_dir():
-        ap.error(f"no scene-{args.scene} demonstration at {root}")
-    demo = demo_episode(root)
+    demo = scene_demo(ap, suite, args.run, args.scene)
 
     policy.eval()
     means = np.stack([m.numpy() for m in policy.mode_latents().values()])

@@ -47,9 +47,9 @@ def main() -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from run_args import add_run_args, eval_record, scene_demo
 
     from lerobot_pdp.behavior import make_trace
-    from lerobot_pdp.benchmark.data import demo_episode, demo_root
     from lerobot_pdp.benchmark.rollouts import run_rollouts
     from lerobot_pdp.benchmark.settings import scene_seed_offset
     from lerobot_pdp.benchmark.training import load_run
@@ -58,10 +58,7 @@ def main() -> None:
     from lerobot_pdp.soft_dtw import dtw
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a benchmark run directory <out>/runs/pdp/seed<k> (pretrained_model/, eval.json)")
-    ap.add_argument("--env", required=True)
-    ap.add_argument("--scene", type=lambda v: int(v) if v.isdigit() else v, required=True,
-                    help="a shifted scene: 1, 2, 3 or a validation scene (val1, ...)")
+    add_run_args(ap)
     ap.add_argument("--z", type=_latent, action="append", default=[], help="an extra candidate latent, e.g. 0.35,0.45")
     ap.add_argument("--rollouts", type=int, default=10, help="rollouts per candidate (0: L_fit only)")
     ap.add_argument("--noise-draws", type=int, default=32, help="(k, eps) draws per demonstration window for L_fit")
@@ -78,15 +75,9 @@ def main() -> None:
     for z in args.z:
         if len(z) != cfg.latent_dim:
             ap.error(f"--z {z}: {args.run} has latent_dim={cfg.latent_dim}")
-    meta_file = args.run / "eval.json"
-    if not meta_file.is_file():
-        ap.error(f"{args.run} has no eval.json: run the benchmark on it first (its fitted latent is read from there)")
-    meta = json.loads(meta_file.read_text())
+    meta = eval_record(ap, args.run, "its fitted latent is read from there")
     suite = get_suite_env(args.env)
-    root = demo_root(suite, args.run.parents[2], args.scene)
-    if not root.is_dir():
-        ap.error(f"no scene-{args.scene} demonstration at {root}")
-    demo = demo_episode(root)
+    demo = scene_demo(ap, suite, args.run, args.scene)
     policy.eval()
 
     candidates = {"fitted": np.asarray(meta["scenes"][str(args.scene)]["z"], dtype=np.float32),
