@@ -171,7 +171,7 @@ class PDPModel(nn.Module):
         if self.training:
             with torch.no_grad():  # on the device, no host sync
                 seen = self.train_loss_dp
-                self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, 0.99 * seen + 0.01 * loss_dp))
+                self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, torch.lerp(seen, loss_dp, 0.01)))
         metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
         loss = loss_dp
         if self.config.latent_type == "continuous" and self.training:
