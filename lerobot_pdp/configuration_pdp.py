@@ -212,12 +212,13 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_gradient: str = "auto"
     # After a fit, L_fit at the fitted latent is compared with the training demonstrations' own denoising
     # error (tracked while training); fit_latent warns when the ratio reaches this. On the validation scenes
-    # of the four envs a ratio <= 1.8 went with 50-100 % success and >= 2.5 with 0-35 % (docs/experiments.md).
+    # of the four envs a ratio below 2 went with 50-100 % success and above 2 with 0-35 % (docs/experiments.md).
     fit_warn_ratio: float = 2.0
-    # Demonstration chunks that score the fitted latent for that report (one no-grad batch: ~65 ms for 512 on
-    # the 2-core CPU, ~5 % of the default 100-step fit, relative noise ~8 %; docs/performance.md). 0 skips the
-    # report (FitResult.fit_error / error_ratio stay None) and its warning, e.g. for the fastest short fits.
-    fit_report_chunks: int = 512
+    # Demonstration chunks that score the fitted latent for that report, at least one per window (one no-grad
+    # batch, steps stratified: ~33 ms on the 2-core CPU, ~3.5 % of the default 100-step fit, relative spread
+    # ~4 % on the validation scenes; docs/performance.md). 0 skips the report (FitResult.fit_error /
+    # error_ratio stay None) and its warning, e.g. for the fastest short fits.
+    fit_report_chunks: int = 256
 
     # ---- Inference-time steering (also settable from lerobot-eval: --policy.steer_latent=[..]) ----
     # A fixed latent for every rollout.

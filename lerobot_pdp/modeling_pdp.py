@@ -545,7 +545,7 @@ class PDPPolicy(PreTrainedPolicy):
                 "fit_latent: the fitted latent reproduces this demonstration %.1fx worse than the policy reproduces "
                 "its training demonstrations (L_fit %.4f against %.4f; warning from fit_warn_ratio=%g). Steering "
                 "to a route this far from the training behaviors often fails: on the benchmark's validation scenes "
-                "fits at >= 2.5x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
+                "fits above 2x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
                 "training seed. Try it before relying on it; demonstrations of this route in the training data are "
                 "what helps (docs/experiments.md, \"Does the fit tell when steering will fail?\").",
                 result.error_ratio, result.fit_error, reference, self.config.fit_warn_ratio)

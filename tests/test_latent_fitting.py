@@ -8,6 +8,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
 from lerobot_pdp.latent_fitting import (
+    _spread_steps,
+    demonstration_error,
     episode_windows,
     fit_latent,
     fit_loss,
@@ -107,6 +109,44 @@ def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
         assert float((got - want).norm() / want.norm()) < 0.02, (got, want)
     with pytest.raises(ValueError, match="gradient must be one of"):
         fit_latent(net, sched, w, torch.zeros(2, 2), steps=1, lr=0.05, lam=0.0, batch_size=4, gradient="exact")
+
+
+def test_spread_steps_cover_every_stratum_once_and_spread_each_window():
+    """The fit report's diffusion steps: n draws over n equal strata of [0, T), one each; each window's draws
+    in distinct coarse strata (round-major layout, as ``idx.repeat(draws)``)."""
+    g = torch.Generator().manual_seed(0)
+    for windows, draws, T in ((7, 3, 105), (50, 2, 100), (3, 5, 1500), (130, 1, 100)):
+        k = _spread_steps(windows, draws, T, g)
+        n = windows * draws
+        assert k.shape == (n,) and k.dtype == torch.long and 0 <= int(k.min()) and int(k.max()) < T
+        if n <= T:  # T / n is a whole number here: stratum s is [s T/n, (s+1) T/n)
+            assert sorted((k * n // T).tolist()) == list(range(n))
+        rounds = (k * draws // T).view(draws, windows)  # row j: every window's j-th draw
+        assert torch.equal(rounds, torch.arange(draws)[:, None].expand(draws, windows))
+
+
+def test_demonstration_error_spread_steps_keep_the_mean_with_less_noise():
+    """Stratified steps estimate the same L_fit as uniform ones (many draws agree) and, once the denoiser has
+    learned the demonstration (its error then depends mostly on the step), vary much less over seeds."""
+    net, sched, w, T = _two_phase_setup("film")
+    z = torch.zeros(2, 2)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(150):
+        idx = torch.randint(0, T, (32,), generator=g)
+        eps = torch.randn(w.actions[idx].shape, generator=g)
+        k = torch.randint(0, 20, (32,), generator=g)
+        pred = net(sched.add_noise(w.actions[idx], eps, k), k, w.obs_cond[idx], z[w.segment[idx]])
+        opt.zero_grad()
+        (pred - eps).pow(2).mean().backward()
+        opt.step()
+    net.eval()
+    spread = demonstration_error(net, sched, w, z, chunks=T * 200, seed=1)
+    uniform = demonstration_error(net, sched, w, z, chunks=T * 200, seed=1, spread_steps=False)
+    assert spread == pytest.approx(uniform, rel=0.03)
+    small = [np.std([demonstration_error(net, sched, w, z, chunks=T * 2, seed=s, spread_steps=f) for s in range(30)])
+             for f in (True, False)]
+    assert small[0] < 0.7 * small[1], small
 
 
 def test_discrete_latent_adapts_by_choosing_the_best_code_per_phase():
