@@ -39,6 +39,8 @@ def test_dataset_loads_with_lerobot_and_carries_mode_tasks(reach_dataset):
     meta = read_dataset_meta(reach_dataset)
     assert meta["env"] == "reach-around" and meta["scene"] == 0 and meta["episode_modes"] == [
         m for m in range(8) for _ in range(2)]
+    # each accepted episode's closest approach to an obstacle: positive, the expert's margin
+    assert len(meta["episode_min_clearance"]) == 16 and all(0 < c < 0.3 for c in meta["episode_min_clearance"])
     # each episode's task string matches what the classifier says about its states
     for ep in range(ds.num_episodes):
         lo = int(ds.meta.episodes["dataset_from_index"][ep])
@@ -107,6 +109,8 @@ def test_other_suite_envs_record_through_the_suite_interface(name, tmp_path):
     out = make_dataset(name, tmp_path / name, modes=[0], episodes_per_mode=1, progress=False)
     meta = read_dataset_meta(out)
     assert meta["env"] == name and meta["episode_modes"] == [0]
+    # kitchen's scene 0 has no barrier (an infinite clearance, stored as null); pick-place's obstacles are passed
+    assert meta["episode_min_clearance"] == [None] if name == "kitchen-microwave" else meta["episode_min_clearance"][0] > 0
 
 
 def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):

@@ -228,6 +228,9 @@ def make_dataset(
 ) -> Path:
     """Generate expert demonstrations for ``env`` in ``scene`` and write them as a LeRobotDataset at ``out``.
 
+    Beside LeRobot's metadata, ``meta/pdp_suite.json`` records how (env, scene, seed, modes or way-points)
+    and, per episode, its mode and its closest approach to an obstacle (metres; null without obstacles).
+
     Args:
         env: suite env name (``reach-around``), scene key, gym id or ``pdp_*`` env type.
         out: dataset directory; must not exist.
@@ -275,6 +278,7 @@ def make_dataset(
     gym_env = gym.make(suite.gym_id, scene=scene_obj, disable_env_checker=True, **camera_kwargs)
     rejected = 0
     labels: list[int | str] = []
+    clearances: list[float | None] = []  # each accepted episode's closest approach to an obstacle
     features = _dataset_features(gym_env)
     cameras = [k.removeprefix("observation.images.") for k in features if k.startswith("observation.images.")]
     try:
@@ -321,6 +325,9 @@ def make_dataset(
                     )
                 task = suite.task_string(label if mode is None else mode)
                 labels.append(label if mode is None else mode)
+                clearance = info.get("min_clearance")  # inf in a scene without obstacles: JSON has no inf
+                clearances.append(round(float(clearance), 5) if clearance is not None and np.isfinite(clearance)
+                                  else None)
                 for o, a in zip(observations[:-1], actions, strict=True):
                     frame = {
                         "observation.state": np.asarray(o["agent_pos"], dtype=np.float32),
@@ -343,6 +350,7 @@ def make_dataset(
                 "modes": mode_list if wps is None else None,
                 "waypoints": None if wps is None else wps.tolist(),
                 "episode_modes": [lab if lab == NOVEL else int(lab) for lab in labels],
+                "episode_min_clearance": clearances,
                 "rejected_attempts": rejected,
             }
             if cameras:  # absent from state-only datasets, whose record stays as it was

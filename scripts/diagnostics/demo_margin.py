@@ -58,16 +58,6 @@ def main() -> None:
         ap.error(f"{args.env} scene {args.scene} ships no way-points: its demonstration is a training mode's")
     base = json.loads(shipped_scene_path(suite.scene_key, args.scene).read_text())
 
-    # the expert's final info (with the episode's minimum clearance) is not written into the dataset
-    infos: list[dict] = []
-    record = recording._rollout
-
-    def recorded(*a, **kw):
-        out = record(*a, **kw)
-        infos.append(out[2])
-        return out
-
-    recording._rollout = recorded
     if not args.no_fit:
         seed = eval_record(ap, args.run, "its seed is read from there")["seed"]
         policy, pre, post = load_run(args.run)
@@ -79,15 +69,15 @@ def main() -> None:
             scene_file = Path(tmp) / f"scene_{i}.json"
             scene_file.write_text(json.dumps(scene))
             root = Path(tmp) / f"demo_{i}"
-            infos.clear()
             try:  # the benchmark's recording seed for this scene (data.ensure_demo)
                 recording.make_dataset(suite.name, root, scene=str(scene_file), episodes_per_mode=1,
                                        seed=1000 * scene_seed_offset(args.scene), progress=False, waypoints="scene")
             except recording.DemoGenerationError as e:
                 print(json.dumps({"shift": shift, "error": str(e)}), flush=True)
                 continue
+            clearance = recording.read_dataset_meta(root)["episode_min_clearance"][0]  # None: no barrier
             row = {"shift": shift, "waypoints": scene["waypoints"],
-                   "demo_min_clearance": round(float(infos[-1]["min_clearance"]), 4)}
+                   "demo_min_clearance": None if clearance is None else round(clearance, 4)}
             if not args.no_fit:
                 res = policy.fit_latent(demo_episode(root), init="encoder", seed=seed)
                 batch = run_rollouts(suite, args.scene, policy, pre, post, args.rollouts,
