@@ -261,8 +261,9 @@ class PDPPolicy(PreTrainedPolicy):
             self.set_latent(means[cfg.steer_mode])
         elif cfg.steer_dataset_root is not None:
             res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
-            logger.info("fitted latent to %s episode %d: %s", cfg.steer_dataset_root, cfg.steer_episode_index,
-                        res.z.tolist())
+            logger.info("fitted latent to %s episode %d: %s (error ratio %s; from %g at risk)", cfg.steer_dataset_root,
+                        cfg.steer_episode_index, res.z.tolist(),
+                        "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
     # ------------------------------------------------------------------ steering API
 

@@ -263,14 +263,16 @@ def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, mon
     assert bool(seen[0].any()) == masked  # the demo's last windows run past its end
 
 
-def test_fit_latent_works_under_inference_mode(synthetic_meta):
-    """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there."""
+def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
+    """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there,
+    and the log names the fit's error ratio (a fresh policy has no training reference yet: n/a)."""
     p = small_policy(synthetic_meta)
     p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
     p.config.fit_steps = 3
-    with torch.inference_mode():
+    with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.modeling_pdp"):
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
+    assert any("error ratio n/a; from 2 at risk" in r.getMessage() for r in caplog.records)
 
 
 def _gripper_actions(p):
