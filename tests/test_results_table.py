@@ -134,9 +134,28 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
     with pytest.raises(ValueError, match="at least two"):
         merge_results([("a", a)])
     refrozen = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
-    refrozen["frozen"] = {**refrozen["frozen"], "methods": {"pdp": {"sampler": [5, "leading"]}}}
-    with pytest.raises(ValueError, match="b: frozen is .* but a has"):  # other frozen settings: not one table
+    refrozen["frozen"] = {**refrozen["frozen"], "methods": {**refrozen["frozen"]["methods"],
+                                                            "pdp": {"sampler": [5, "leading"]}}}
+    with pytest.raises(ValueError, match="b: frozen is .* for pdp but a has"):  # other frozen settings: not one table
         merge_results([("a", a), ("b", refrozen)])
+    # a run frozen before another method was validated merges with that method's later runs: each method's
+    # own settings agree, and the merged record holds both
+    early = _results([0], {"vqbet": {0: [0.0, 1.0, 0.0, 0.0]}})
+    early["frozen"] = {"methods": {"vqbet": {"adapt": {"steps": 300}}}, "validation_record": "v.json"}
+    later = _results([0], {"pdp": {0: [1.0, 1.0, 1.0, 1.0]}})
+    later["frozen"] = {"methods": {"vqbet": {"adapt": {"steps": 300}}, "pdp": {"sampler": [5, "trailing"]}},
+                       "validation_record": "v.json"}
+    both = merge_results([("early", early), ("later", later)])
+    assert both["frozen"] == later["frozen"] and sorted(both["methods"]) == ["pdp", "vqbet"]
+    changed = later | {"frozen": {**later["frozen"], "methods": {"vqbet": {"adapt": {"steps": 30}}}}}
+    with pytest.raises(ValueError, match="later: frozen is .* for vqbet but early has"):
+        merge_results([("early", early), ("later", changed)])
+    with pytest.raises(ValueError, match="later: frozen validation_record is 'w.json' but early has 'v.json'"):
+        merge_results([("early", early), ("later", later | {"frozen": {**later["frozen"], "validation_record": "w.json"}})])
+    unfrozen = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})  # pdp ran without a frozen setting
+    unfrozen["frozen"] = {"validation_record": "v.json"}
+    with pytest.raises(ValueError, match="frozen is .* for pdp but"):
+        merge_results([("later", later), ("unfrozen", unfrozen)])
     affine = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}}, film="affine")
     assert a["film"] == "mlp" and affine["film"] == "affine"  # the env's form, else --film's
     with pytest.raises(ValueError, match="b: PDP's FiLM form is 'affine' but a has 'mlp'"):

@@ -94,6 +94,45 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
 _SEED_MEANS = ("collision", "coverage", "entropy", "steer_accuracy")
 
 
+_PER_METHOD_FROZEN = ("methods", "validation")  # frozen-record parts keyed by method
+
+
+def _merged_frozen(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any] | None:
+    """The frozen record of merged runs: what each method ran with must be one setting in every file.
+
+    A method's settings are compared wherever they are recorded, or where the method ran without a record;
+    a file that neither ran a method nor records it says nothing about it (a run frozen before another
+    method was validated still merges with that method's later runs). The other parts (which validation
+    record) must be equal. Per-method parts are joined."""
+    first_name, first = results[0]
+    if all(res.get("frozen") == first.get("frozen") for _, res in results):
+        return first.get("frozen")
+    records = [(name, res.get("frozen") or {}, res) for name, res in results]
+    for name, fr, _ in records[1:]:
+        for key in {*fr, *records[0][1]} - set(_PER_METHOD_FROZEN):
+            if fr.get(key) != records[0][1].get(key):
+                raise ValueError(f"{name}: frozen {key} is {fr.get(key)!r} but {first_name} has "
+                                 f"{records[0][1].get(key)!r}; only runs of the same protocol can be merged")
+    out: dict[str, Any] = {k: v for k, v in records[0][1].items() if k not in _PER_METHOD_FROZEN}
+    methods = sorted({m for _, fr, res in records for m in [*res["methods"], *(m for part in _PER_METHOD_FROZEN
+                                                                                 for m in fr.get(part) or {})]})
+    for method in methods:
+        seen: list[tuple[str, tuple]] = []
+        for name, fr, res in records:
+            setting = tuple((fr.get(part) or {}).get(method) for part in _PER_METHOD_FROZEN)
+            if method in res["methods"] or any(v is not None for v in setting):
+                seen.append((name, setting))
+        for name, setting in seen[1:]:
+            if setting != seen[0][1]:
+                raise ValueError(f"{name}: frozen is {dict(zip(_PER_METHOD_FROZEN, setting))!r} for {method} but "
+                                 f"{seen[0][0]} has {dict(zip(_PER_METHOD_FROZEN, seen[0][1]))!r}; only runs "
+                                 "of the same protocol can be merged")
+        for part, value in zip(_PER_METHOD_FROZEN, seen[0][1]):
+            if value is not None:
+                out.setdefault(part, {})[method] = value
+    return out
+
+
 def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """One ``results.json`` from several runs of the same protocol that hold different seeds (e.g. seeds run
     on other machines or days). ``results`` is ``[(name, results_dict), ...]``; names go into errors.
@@ -112,13 +151,14 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         if res.get("split", "test") != first.get("split", "test"):  # files from before splits: test
             raise ValueError(f"{name}: split is {res.get('split', 'test')!r} but {first_name} has "
                              f"{first.get('split', 'test')!r}; validation and test runs are never merged")
-        for key in ("env", "rollouts", "quick", "train", "frozen", "observation"):
+        for key in ("env", "rollouts", "quick", "train", "observation"):
             if res.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only runs of the same protocol can be merged")
         if None not in (res.get("film"), first.get("film")) and res["film"] != first["film"]:  # older: unrecorded
             raise ValueError(f"{name}: PDP's FiLM form is {res['film']!r} but {first_name} has {first['film']!r}; "
                              "only runs of the same protocol can be merged")
+    frozen = _merged_frozen(results)
     # method -> [(seed, source name, entry)] with each seed's index into the entry's per-seed lists
     rows: dict[str, list[tuple[int, str, dict[str, Any], int]]] = {}
     for name, res in results:
@@ -135,9 +175,11 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
                                      "merge runs of different seeds only")
                 rows.setdefault(method, []).append((seed, name, entry, i))
     out: dict[str, Any] = {key: first[key] for key in ("env", "rollouts", "quick", "train")}
-    for key in ("split", "frozen", "observation"):  # equal in every file (checked above)
+    for key in ("split", "observation"):  # equal in every file (checked above)
         if key in first:
             out[key] = first[key]
+    if frozen is not None:
+        out["frozen"] = frozen
     films = {res["film"] for _, res in results if res.get("film")}
     if films:
         out["film"] = films.pop()
