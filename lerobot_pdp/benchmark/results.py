@@ -124,10 +124,10 @@ def _merged_frozen(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any] 
                 seen.append((name, setting))
         for name, setting in seen[1:]:
             if setting != seen[0][1]:
-                raise ValueError(f"{name}: frozen is {dict(zip(_PER_METHOD_FROZEN, setting))!r} for {method} but "
-                                 f"{seen[0][0]} has {dict(zip(_PER_METHOD_FROZEN, seen[0][1]))!r}; only runs "
-                                 "of the same protocol can be merged")
-        for part, value in zip(_PER_METHOD_FROZEN, seen[0][1]):
+                mine, theirs = (dict(zip(_PER_METHOD_FROZEN, v, strict=True)) for v in (setting, seen[0][1]))
+                raise ValueError(f"{name}: frozen is {mine!r} for {method} but {seen[0][0]} has {theirs!r}; only "
+                                 "runs of the same protocol can be merged")
+        for part, value in zip(_PER_METHOD_FROZEN, seen[0][1], strict=True):
             if value is not None:
                 out.setdefault(part, {})[method] = value
     return out
