@@ -200,6 +200,15 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # steps) or "sample" (the error of the chunks the policy samples under z with its own DDIM sampler,
     # num_inference_steps forward passes per fitting step instead of one).
     fit_objective: str = "denoise"
+    # After z, also fit the sampler's starting noise: "chunks" optimises one initial DDIM noise per executed
+    # chunk of the demonstration (z fixed, through the policy's own sampler, as DP's per-chunk noise
+    # adaptation) and the rollout plays them in order, one per new chunk; the adapted policy then replays
+    # the demonstration deterministically. "none": z alone (the paper's adaptation). On the validation runs
+    # it opened zero-mode scenes no latent reached (docs/experiments.md, "z plus one sampler noise per chunk").
+    fit_noise: str = "none"
+    # Adam steps and step size of that noise fit (DP's noise adaptation defaults).
+    fit_noise_steps: int = 100
+    fit_noise_lr: float = 0.05
     # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). Fitting is
     # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost; 16 fitted as
     # well as 32 and 64 on reach-around (docs/experiments.md).
@@ -282,6 +291,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"fit_warn_ratio must be > 0, got {self.fit_warn_ratio}")
         if self.fit_report_chunks < 0:
             errors.append(f"fit_report_chunks must be >= 0 (0: no fit report), got {self.fit_report_chunks}")
+        if self.fit_noise not in ("none", "chunks"):
+            errors.append(f"fit_noise must be 'none' or 'chunks', got {self.fit_noise!r}")
+        if self.fit_noise_steps < 1 or not self.fit_noise_lr > 0:
+            errors.append(f"fit_noise_steps must be >= 1 and fit_noise_lr > 0, got {self.fit_noise_steps}, "
+                          f"{self.fit_noise_lr}")
         if self.fit_objective not in ("denoise", "sample"):
             errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
         if self.compile_mode not in COMPILE_MODES:

@@ -72,6 +72,8 @@ class FitResult:
     # training demonstrations' error at their own latents (None for a policy without that reference)
     fit_error: float | None = None
     error_ratio: float | None = None
+    # with fit_noise="chunks": one initial sampler noise per executed chunk, [C, horizon, A], played in order
+    noise: Tensor | None = None
 
 
 def _stratified_batch(segment: Tensor, n_segments: int, batch_size: int, g: torch.Generator) -> Tensor:
@@ -272,6 +274,42 @@ def demonstration_error(denoiser, schedule, windows: DemoWindows, z: Tensor, chu
         per_phase = _phase_losses(denoiser, schedule, windows, z[None].float(), torch.arange(n), -(-chunks // n), g,
                                   consts, obs_mod, spread_steps)[0]
     return float(per_phase.mean())
+
+
+def fit_chunk_noise(denoiser, schedule, windows: DemoWindows, z: Tensor, chunk_frames: int, sample_steps: int,
+                    steps: int = 100, lr: float = 0.05, batch_size: int = 32, seed: int = 0) -> Tensor:
+    """One initial sampler noise per executed chunk of the demonstration, z [M, d_z] fixed: noise x_j is
+    optimised (Adam) so that the ``sample_steps``-step DDIM chain from it, under z and each window's
+    observations, reproduces the chunks of the windows at frames ``j * chunk_frames ...`` (masked MSE, as
+    :func:`_phase_sample_losses`), every weight frozen. Returns [C, horizon, A], detached, on z's device.
+
+    The same adaptation as DP's noise per chunk (``benchmark.baselines.adapt_dp_noise``), on top of PDP's z."""
+    device = z.device
+    n = len(windows.segment)
+    chunk_of = (torch.arange(n) // chunk_frames).to(device)
+    g = torch.Generator().manual_seed(int(seed))
+    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    actions, is_pad, seg_all = windows.actions.to(device), windows.is_pad.to(device), windows.segment.to(device)
+    x = torch.randn(int(chunk_of.max()) + 1, *actions.shape[1:], generator=g).to(device).requires_grad_(True)
+    with torch.no_grad():
+        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(device))
+        gain, shift = denoiser.latent_terms(consts, z.float())
+    opt = torch.optim.Adam([x], lr=lr)
+    with torch.inference_mode(False), torch.enable_grad():
+        for _ in range(int(steps)):
+            idx = torch.randperm(n, generator=g)[:batch_size].to(device)
+            seg, base, chunk = seg_all[idx], obs_mod[idx], x[chunk_of[idx]]
+            for k, k_prev in schedule.steps(sample_steps):
+                mod = consts["step"][k] + base
+                if shift is not None:
+                    mod = mod + shift[seg] if gain is None else torch.addcmul(shift[seg], gain[seg], mod)
+                eps = denoiser.forward_cached(chunk, denoiser.split_modulation(consts, mod), fast_conv=False)
+                chunk = schedule.ddim_step(eps, k, k_prev, chunk)
+            mask = (~is_pad[idx]).unsqueeze(-1).to(chunk.dtype)
+            loss = ((chunk - actions[idx]).pow(2) * mask).sum() / (mask.sum() * chunk.shape[-1]).clamp_min(1)
+            (x.grad,) = torch.autograd.grad(loss, x)  # w.r.t. the noise alone: no weight gets a .grad
+            opt.step()
+    return x.detach()
 
 
 def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,

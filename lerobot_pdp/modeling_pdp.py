@@ -53,6 +53,7 @@ from .latent_fitting import (
     DemoWindows,
     FitResult,
     demonstration_error,
+    fit_chunk_noise,
     fit_latent,
     frame_windows,
     select_code,
@@ -109,6 +110,9 @@ class PDPPolicy(PreTrainedPolicy):
 
         # The active latent(s): [M, d_z]; M > 1 = one per phase, advanced on gripper events.
         self.register_buffer("active_latent", torch.zeros(0, cfg.latent_dim), persistent=False)
+        # Sampler noises fitted with fit_noise="chunks": [C, horizon, A], one per new chunk of an episode, in order
+        self.register_buffer("active_noise", torch.zeros(0, cfg.horizon, self.action_dim), persistent=False)
+        self._noise_chunk = 0  # chunks generated since reset: which of them comes next
         self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
         self._steering_initialised = False
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
@@ -164,6 +168,7 @@ class PDPPolicy(PreTrainedPolicy):
         self._queues = {k: deque(maxlen=self.config.n_obs_steps) for k in self.config.condition_features}
         self._queues[ACTION] = deque(maxlen=self.config.n_action_steps)
         self.phases.reset()
+        self._noise_chunk = 0
         self._episode_latent: Tensor | None = None
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
@@ -198,6 +203,10 @@ class PDPPolicy(PreTrainedPolicy):
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
+        if noise is None and len(self.active_noise):  # fitted noises: the next one, the last one repeating
+            noise = self.active_noise[min(self._noise_chunk, len(self.active_noise) - 1)]
+            noise = noise.to(obs_cond.device).expand(obs_cond.shape[0], -1, -1)
+            self._noise_chunk += 1
         chunk = self.generate(obs_cond, z, noise=noise)
         start = self.config.n_obs_steps - 1
         return chunk[:, start : start + self.config.n_action_steps]
@@ -270,6 +279,8 @@ class PDPPolicy(PreTrainedPolicy):
     def set_latent(self, z: Tensor | Sequence[float] | np.ndarray | None) -> None:
         """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default."""
         self._steering_initialised = True
+        self.active_noise = self.active_noise[:0]  # noises fitted under another latent no longer apply
+        self._noise_chunk = 0
         if z is None:
             self.active_latent = torch.zeros(0, self.config.latent_dim, device=self.model.geo_kappa.device)
             return
@@ -430,7 +441,8 @@ class PDPPolicy(PreTrainedPolicy):
     def fit_latent(self, episode: Episode, steps: int | None = None, init: str | Tensor = "encoder",
                    lr: float | None = None, lam: float | None = None,
                    segments: list[tuple[int, int]] | str | None = "auto", seed: int | None = 0,
-                   activate: bool = True, progress: bool = False, objective: str | None = None) -> FitResult:
+                   activate: bool = True, progress: bool = False, objective: str | None = None,
+                   noise: str | None = None) -> FitResult:
         """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments).
 
         Args:
@@ -445,7 +457,10 @@ class PDPPolicy(PreTrainedPolicy):
                 ``config.segment_gripper_dim``): one z per phase, used in order during the rollout.
                 ``"auto"`` (default): as the policy was trained, i.e. ``"gripper"`` when
                 ``config.segment_gripper_dim`` is set, else None.
-            activate: make the result the active latent.
+            activate: make the result the active latent (and its noises, with ``noise="chunks"``, the
+                sampler's starting noises of the next episodes, one per new chunk; ``set_latent`` drops them).
+            noise: "chunks" or "none" (default ``config.fit_noise``, which documents both): also fit one
+                initial sampler noise per executed chunk, z fixed (``FitResult.noise``).
 
         Returns:
             :class:`FitResult` with ``z`` ([d_z] or [M, d_z]), the initial z and the loss history.
@@ -453,7 +468,8 @@ class PDPPolicy(PreTrainedPolicy):
         # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. when
         # lerobot-eval's first select_action triggers fitting from --policy.steer_dataset_root.
         with torch.inference_mode(False), torch.enable_grad():
-            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress, objective)
+            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
+                                    noise)
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
         """The (normalised) training-style windows of one demonstration, each tagged with its phase.
@@ -476,10 +492,13 @@ class PDPPolicy(PreTrainedPolicy):
             self.model.obs_encoder.train(was_training)
         return frame_windows(feats, norm[ACTION], cfg.n_obs_steps, cfg.horizon, demo.segments)
 
-    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress, objective) -> FitResult:
+    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
+                    noise) -> FitResult:
         cfg = self.config
         if objective not in (None, "denoise", "sample"):
             raise ValueError(f"objective must be 'denoise' or 'sample', got {objective!r}")
+        if noise not in (None, "none", "chunks"):
+            raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
         demo = self._demonstration(episode, segments, need_action=True)  # validated and split once
         segs = demo.segments
         windows = self._demo_windows(demo)
@@ -519,12 +538,19 @@ class PDPPolicy(PreTrainedPolicy):
                     sample_steps=sample_steps,
                 )
             self._judge_fit(result, windows, seed)
+            if (noise or cfg.fit_noise) == "chunks":
+                result.noise = fit_chunk_noise(
+                    self.model.denoiser, self.model.noise_schedule, windows, result.z.to(device),
+                    cfg.n_action_steps, cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr,
+                    seed=seed if seed is not None else 0)
         finally:
             self.train(was_training)
         if not demo.per_phase:
             result.z, result.z_init = result.z[0], result.z_init[0]
         if activate:
             self.set_latent(result.z)
+            if result.noise is not None:
+                self.active_noise = result.noise.to(self.active_noise.device)
         return result
 
     def _judge_fit(self, result: FitResult, windows: DemoWindows, seed: int | None) -> None:

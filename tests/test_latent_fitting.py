@@ -1,5 +1,7 @@
 """Demonstration windows match LeRobotDataset's training windows; fitting touches only z."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +13,7 @@ from lerobot_pdp.latent_fitting import (
     _spread_steps,
     demonstration_error,
     episode_windows,
+    fit_chunk_noise,
     fit_latent,
     fit_loss,
     fit_loss_and_grad_fd,
@@ -111,6 +114,26 @@ def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
         fit_latent(net, sched, w, torch.zeros(2, 2), steps=1, lr=0.05, lam=0.0, batch_size=4, gradient="exact")
 
 
+def _learned_setup():
+    """:func:`_two_phase_setup` after 150 denoising steps on its demonstration at z = 0 (an untrained
+    denoiser's chunks are its random outputs clipped, which neither the step nor the noise changes much)."""
+    net, sched, w, T = _two_phase_setup("film")
+    z = torch.zeros(2, 2)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(150):
+        idx = torch.randint(0, T, (32,), generator=g)
+        eps = torch.randn(w.actions[idx].shape, generator=g)
+        k = torch.randint(0, 20, (32,), generator=g)
+        pred = net(sched.add_noise(w.actions[idx], eps, k), k, w.obs_cond[idx], z[w.segment[idx]])
+        opt.zero_grad()
+        (pred - eps).pow(2).mean().backward()
+        opt.step()
+    net.eval()
+    net.zero_grad(set_to_none=True)
+    return net, sched, w, T, z
+
+
 def test_spread_steps_cover_every_stratum_once_and_spread_each_window():
     """The fit report's diffusion steps: n draws over n equal strata of [0, T), one each; each window's draws
     in distinct coarse strata (round-major layout, as ``idx.repeat(draws)``)."""
@@ -128,25 +151,36 @@ def test_spread_steps_cover_every_stratum_once_and_spread_each_window():
 def test_demonstration_error_spread_steps_keep_the_mean_with_less_noise():
     """Stratified steps estimate the same L_fit as uniform ones (many draws agree) and, once the denoiser has
     learned the demonstration (its error then depends mostly on the step), vary much less over seeds."""
-    net, sched, w, T = _two_phase_setup("film")
-    z = torch.zeros(2, 2)
-    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
-    g = torch.Generator().manual_seed(0)
-    for _ in range(150):
-        idx = torch.randint(0, T, (32,), generator=g)
-        eps = torch.randn(w.actions[idx].shape, generator=g)
-        k = torch.randint(0, 20, (32,), generator=g)
-        pred = net(sched.add_noise(w.actions[idx], eps, k), k, w.obs_cond[idx], z[w.segment[idx]])
-        opt.zero_grad()
-        (pred - eps).pow(2).mean().backward()
-        opt.step()
-    net.eval()
+    net, sched, w, T, z = _learned_setup()
     spread = demonstration_error(net, sched, w, z, chunks=T * 200, seed=1)
     uniform = demonstration_error(net, sched, w, z, chunks=T * 200, seed=1, spread_steps=False)
     assert spread == pytest.approx(uniform, rel=0.03)
     small = [np.std([demonstration_error(net, sched, w, z, chunks=T * 2, seed=s, spread_steps=f) for s in range(30)])
              for f in (True, False)]
     assert small[0] < 0.7 * small[1], small
+
+
+def test_chunk_noises_make_the_sampler_reproduce_the_demonstration():
+    """fit_chunk_noise: the DDIM chains from the fitted noises (under each phase's z) come closer to the
+    demonstration's chunks than from the noises it started at; no weight is touched."""
+    net, sched, w, T, z = _learned_setup()
+    z = z + torch.tensor([[0.3, -0.2], [-0.1, 0.4]])  # one latent per phase, off the one it learned at
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+
+    def error(noise: torch.Tensor) -> float:
+        x = noise[torch.arange(T) // 4]
+        with torch.no_grad():
+            for k, k_prev in sched.steps(5):
+                x = sched.ddim_step(net(x, torch.full((T,), k), w.obs_cond, z[w.segment]), k, k_prev, x)
+        mask = (~w.is_pad).unsqueeze(-1).float()
+        return float(((x - w.actions).pow(2) * mask).sum() / (mask.sum() * 2))
+
+    start = fit_chunk_noise(net, sched, w, z, 4, 5, steps=0, seed=3)
+    fitted = fit_chunk_noise(net, sched, w, z, 4, 5, steps=100, lr=0.05, seed=3)
+    assert start.shape == fitted.shape == (math.ceil(T / 4), 16, 2)
+    assert error(fitted) < 0.7 * error(start), (error(fitted), error(start))
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    assert all(q.grad is None for q in net.parameters())
 
 
 def test_discrete_latent_adapts_by_choosing_the_best_code_per_phase():

@@ -399,6 +399,36 @@ def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
     assert torch.isnan(p.model.train_loss_dp) and res.fit_error > 0 and res.error_ratio is None
 
 
+def test_fit_noise_chunks_are_the_sampler_noises_of_the_next_chunks(synthetic_meta):
+    """fit_latent(noise="chunks") also fits one sampler noise per executed chunk; the next chunks of every
+    episode start from them in order (the last one repeating), reset restarts them, set_latent drops them."""
+    p = small_policy(synthetic_meta)
+    p.eval()
+    pre, _ = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
+    ep = read_episodes(synthetic_meta.root, ["observation.state", "observation.environment_state", "action"], [2])[2]
+    res = p.fit_latent((synthetic_meta.root, 2), steps=2, noise="chunks")
+    n_chunks = math.ceil(len(ep["action"]) / p.config.n_action_steps)
+    assert res.noise.shape == (n_chunks, p.config.horizon, 2) and torch.equal(p.active_noise, res.noise)
+    obs = pre({"observation.state": torch.tensor([[0.0, -1.0], [0.2, -0.8]]),
+               "observation.environment_state": torch.tensor([[0.0, 1.0], [0.0, 1.0]])})
+    obs = {k: v[:, None].repeat(1, p.config.n_obs_steps, 1) for k, v in obs.items() if k.startswith("observation.")}
+    p.reset()
+    played = [p.predict_action_chunk(obs) for _ in range(n_chunks + 1)]
+    for j, chunk in enumerate(played):  # chunk j from noise j (the last one again after the sequence)
+        given = res.noise[min(j, n_chunks - 1)].expand(2, -1, -1)
+        torch.testing.assert_close(chunk, p.predict_action_chunk(obs, noise=given))
+    assert not torch.allclose(played[0], played[1])
+    p.reset()
+    torch.testing.assert_close(p.predict_action_chunk(obs), played[0])
+    p.set_latent(res.z)  # another steering drops noises fitted under the old latent
+    assert len(p.active_noise) == 0
+    p.config.fit_noise = "chunks"  # the config's default applies to every fit, e.g. lerobot-eval's start-up fit
+    assert p.fit_latent((synthetic_meta.root, 2), steps=1).noise is not None
+    assert p.fit_latent((synthetic_meta.root, 2), steps=1, noise="none").noise is None and len(p.active_noise) == 0
+    with pytest.raises(ValueError, match="noise must be 'none' or 'chunks', got 'all'"):
+        p.fit_latent((synthetic_meta.root, 2), steps=1, noise="all")
+
+
 def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, caplog):
     """Training tracks L_DP's running mean on the device (``train_loss_dp``, saved with the checkpoint);
     fit_latent scores the demonstration at the fitted latent against it and warns from ``fit_warn_ratio``."""
