@@ -574,7 +574,9 @@ class PDPPolicy(PreTrainedPolicy):
                 "to a route this far from the training behaviors often fails: on the benchmark's validation scenes "
                 "fits above 2x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
                 "training seed. Try it before relying on it; demonstrations of this route in the training data are "
-                "what helps (docs/experiments.md, \"Does the fit tell when steering will fail?\").",
+                "what helps, and fit_latent(noise='chunks') (also fitting the sampler's noise per chunk) reached "
+                "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
+                "fail?\", \"z plus one sampler noise per chunk\").",
                 result.error_ratio, result.fit_error, reference, self.config.fit_warn_ratio)
 
     # ------------------------------------------------------------------ episode input
