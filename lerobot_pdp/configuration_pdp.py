@@ -204,7 +204,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # chunk of the demonstration (z fixed, through the policy's own sampler, as DP's per-chunk noise
     # adaptation) and the rollout plays them in order, one per new chunk; the adapted policy then replays
     # the demonstration deterministically. "none": z alone (the paper's adaptation). On the validation runs
-    # it opened zero-mode scenes no latent reached (docs/experiments.md, "z plus one sampler noise per chunk").
+    # it opened zero-mode scenes where the fitted latent failed (docs/experiments.md, "z plus one sampler noise per chunk").
     fit_noise: str = "none"
     # Adam steps and step size of that noise fit (DP's noise adaptation defaults).
     fit_noise_steps: int = 100
