@@ -185,6 +185,20 @@ def test_fit_latent_on_the_gpu(synthetic_meta):
     assert p.select_action(obs).is_cuda
 
 
+def test_fit_noise_chunks_on_the_gpu(synthetic_meta):
+    """fit_latent(noise="chunks") on CUDA: the noises are fitted and kept on the device, and the graphed
+    sampler starts the next chunks from them as the eager CPU path does."""
+    p = small_policy(synthetic_meta, "cuda")
+    p.eval()
+    res = p.fit_latent((synthetic_meta.root, 3), steps=2, noise="chunks")
+    assert res.noise.is_cuda and p.active_noise.is_cuda and torch.isfinite(res.noise).all()
+    obs = {OBS_STATE: torch.zeros(1, p.config.n_obs_steps, 2, device="cuda"),
+           OBS_ENV_STATE: torch.zeros(1, p.config.n_obs_steps, 2, device="cuda")}
+    p.reset()
+    first = p.predict_action_chunk(obs)
+    torch.testing.assert_close(first, p.predict_action_chunk(obs, noise=res.noise[:1]), atol=1e-4, rtol=1e-4)
+
+
 @pytest.mark.slow
 def test_lerobot_train_and_eval_on_cuda_with_phase_latents(tmp_path):
     """Pick-place (one latent per reach / carry phase): the benchmark's lerobot-train command on CUDA, then
