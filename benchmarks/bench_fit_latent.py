@@ -75,6 +75,15 @@ def main() -> None:
                           "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
                           "report_share": 1 - statistics.median(ts["auto_no_report"]) / statistics.median(ts["auto"]),
                           "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100}))
+    # the optional noise-per-chunk adaptation (fit_latent(noise="chunks")): the default fit plus one noise per
+    # executed chunk fitted through the sampler (fit_noise_steps chains of 32 windows), next to the fit alone
+    ts = {"z": [], "z_and_noise": []}
+    for _ in range(3):
+        ts["z"] += _timed(lambda: pdp.fit_latent(demo), 1)
+        ts["z_and_noise"] += _timed(lambda: pdp.fit_latent(demo, noise="chunks"), 1)
+    print(json.dumps({"bench": "fit_latent_noise_chunks", "demo_frames": T, "ddim_steps": pdp.config.num_inference_steps,
+                      "z_ms": 1000 * statistics.median(ts["z"]), "z_and_noise_ms": 1000 * statistics.median(ts["z_and_noise"]),
+                      "ratio": statistics.median(ts["z_and_noise"]) / statistics.median(ts["z"]), "threads": args.threads}))
     if args.fit_only:
         return
 
