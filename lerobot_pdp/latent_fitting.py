@@ -133,6 +133,19 @@ def _phase_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Ten
     return seg_sum / seg_cnt.clamp_min(1)
 
 
+def _ddim_chain(denoiser, schedule, consts: dict, x: Tensor, base: Tensor, gain: Tensor | None,
+                shift: Tensor | None, rows: Tensor, sample_steps: int) -> Tensor:
+    """The policy's DDIM sampler from ``x`` [n, H, A], differentiable: ``base`` [n, R] is each chunk's
+    z-independent modulation (observations), ``rows`` [n] picks each chunk's row of ``latent_terms``."""
+    for k, k_prev in schedule.steps(sample_steps):
+        mod = consts["step"][k] + base
+        if shift is not None:
+            mod = mod + shift[rows] if gain is None else torch.addcmul(shift[rows], gain[rows], mod)
+        eps = denoiser.forward_cached(x, denoiser.split_modulation(consts, mod), fast_conv=False)
+        x = schedule.ddim_step(eps, k, k_prev, x)
+    return x
+
+
 def _phase_sample_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor, noise_samples: int,
                          g: torch.Generator, consts: dict, obs_mod: Tensor, sample_steps: int) -> Tensor:
     """Per-phase mean error of the *sampled* chunk: each window's chunk denoised from fresh noise in
@@ -147,13 +160,8 @@ def _phase_sample_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, i
     seg = windows.segment[idx].to(device)
     gain, shift = denoiser.latent_terms(consts, zs.reshape(P * M, -1))
     rows = (torch.arange(P, device=device)[:, None] * M + seg[None]).reshape(-1)
-    base = obs_mod[idx.to(device)].repeat(P, 1)
-    for k, k_prev in schedule.steps(sample_steps):
-        mod = consts["step"][k] + base
-        if shift is not None:
-            mod = mod + shift[rows] if gain is None else torch.addcmul(shift[rows], gain[rows], mod)
-        eps = denoiser.forward_cached(x, denoiser.split_modulation(consts, mod), fast_conv=False)
-        x = schedule.ddim_step(eps, k, k_prev, x)
+    x = _ddim_chain(denoiser, schedule, consts, x, obs_mod[idx.to(device)].repeat(P, 1), gain, shift, rows,
+                    sample_steps)
     err = (x - actions.repeat(P, 1, 1)).pow(2).view(P, n, *actions.shape[1:])
     mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)
     per_window = (err * mask).sum((2, 3)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)
@@ -298,13 +306,8 @@ def fit_chunk_noise(denoiser, schedule, windows: DemoWindows, z: Tensor, chunk_f
     with torch.inference_mode(False), torch.enable_grad():
         for _ in range(int(steps)):
             idx = torch.randperm(n, generator=g)[:batch_size].to(device)
-            seg, base, chunk = seg_all[idx], obs_mod[idx], x[chunk_of[idx]]
-            for k, k_prev in schedule.steps(sample_steps):
-                mod = consts["step"][k] + base
-                if shift is not None:
-                    mod = mod + shift[seg] if gain is None else torch.addcmul(shift[seg], gain[seg], mod)
-                eps = denoiser.forward_cached(chunk, denoiser.split_modulation(consts, mod), fast_conv=False)
-                chunk = schedule.ddim_step(eps, k, k_prev, chunk)
+            chunk = _ddim_chain(denoiser, schedule, consts, x[chunk_of[idx]], obs_mod[idx], gain, shift,
+                                seg_all[idx], sample_steps)
             mask = (~is_pad[idx]).unsqueeze(-1).to(chunk.dtype)
             loss = ((chunk - actions[idx]).pow(2) * mask).sum() / (mask.sum() * chunk.shape[-1]).clamp_min(1)
             (x.grad,) = torch.autograd.grad(loss, x)  # w.r.t. the noise alone: no weight gets a .grad
