@@ -267,6 +267,9 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    "settings (lerobot_pdp/benchmark/validation.py) and write validation.json / validation.md")
     p.add_argument("--jobs", type=int, default=1,
                    help="with --validate: processes evaluating the candidates of a stage side by side (default 1)")
+    p.add_argument("--reuse-validation", type=Path, default=None,
+                   help="with --validate: an earlier validation.json of this env whose candidates are not evaluated "
+                   "again, once the retrained runs reproduce its rollouts exactly (only new candidates run)")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--film", choices=("mlp", "affine"), default=None,
@@ -309,6 +312,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
                            lr=args.lr, batch_size=args.batch_size, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
                            figures=not args.no_figures, device=args.device, jobs=args.jobs, film=args.film,
+                           reuse_validation=args.reuse_validation,
                            **camera)
 
 

@@ -61,6 +61,23 @@ def test_validate_tiny(tmp_path, monkeypatch):
     run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "jobs": 2}))
     assert all(p.is_file() for p in stamps)
     assert json.loads((tmp_path / "val" / "validation.json").read_text()) == val
+    # a changed candidate list: --reuse-validation evaluates only the new candidate, every other row of the
+    # earlier record stands once the runs' own evaluations reproduce it
+    before = tmp_path / "validation_before.json"
+    before.write_text(json.dumps(val))
+    monkeypatch.setitem(validation.ADAPT_CANDIDATES, "fit_latent", ({}, {"steps": 1}))
+    again = run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "reuse_validation": before}))
+    val2 = json.loads((tmp_path / "val" / "validation.json").read_text())
+    assert val2["reused_from"] == str(before) and again["validation"]["dp"] == val["methods"]["dp"]["chosen"]
+    pdp = val2["methods"]["pdp"]
+    assert [r.get("reused", False) for r in pdp["adapt"]] == [True, False]
+    assert all(r["reused"] for r in pdp["sampler"] + val2["methods"]["bc"]["adapt"])
+    assert pdp["adapt"][1]["adapt"] == {"steps": 1} and pdp["reuse_check"]["compared"]
+    new_tag = validation.candidate_tag(tuple(pdp["chosen"]["sampler"]), {"steps": 1})
+    assert (tmp_path / "val" / "runs" / "pdp" / "seed100" / "validation" / f"eval_{new_tag}.json").is_file()
+    assert "† reused from" in (tmp_path / "val" / "validation.md").read_text()
+    with pytest.raises(ValueError, match="--reuse-validation reuses"):
+        run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "validate": False, "reuse_validation": before}))
     with pytest.raises(ValueError, match="--jobs 2: processes for --validate"):
         run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "jobs": 2, "validate": False}))
     # a frozen choice (settings.FROZEN) is what the protocol's own evaluation samples and adapts with, unless
@@ -87,6 +104,31 @@ def test_every_method_gets_as_many_candidates():
     assert sizes == {6} and all(v[0] == {} for v in validation.ADAPT_CANDIDATES.values())
     assert len(set(validation.SAMPLER_CANDIDATES)) == len(validation.SAMPLER_CANDIDATES)
     assert validation.candidate_tag((20, "leading"), {"steps": 300, "lr": 0.2}) == "s20-leading_lr0.2_steps300"
+
+
+def _run(tmp_path, seed, success):
+    run = tmp_path / f"seed{seed}"
+    run.mkdir(parents=True)
+    (run / "eval.json").write_text(json.dumps({"inference_steps": 20, "timestep_spacing": "leading", "adapt": {},
+                                               "scenes": {s: {"success": v} for s, v in success.items()}}))
+    return run
+
+
+def test_reused_rows_need_the_same_checkpoint(tmp_path):
+    """``--reuse-validation``: an earlier record's rows stand for retrained runs only if each run's own
+    evaluation reproduces that record exactly; another checkpoint, seed list or scene list is refused."""
+    row = {"tag": "s20-leading", "success": {"0": [1.0, 0.9], "val1": [0.5, 0.25]}}
+    rec = {"seeds": [100, 101], "scenes": ["0", "val1"], "sampler": [row], "adapt": [{**row, "success": {"val1": [0.5, 0.25]}}]}
+    runs = {100: _run(tmp_path, 100, {"0": 1.0, "val1": 0.5}), 101: _run(tmp_path, 101, {"0": 0.9, "val1": 0.25})}
+    check = validation.check_reuse("pdp", runs, rec, "old.json", [0, "val1"])
+    assert check["source"] == "old.json" and len(check["compared"]) == 6  # 2 seeds x (2 sampler + 1 adapt scenes)
+    other = {**runs, 101: _run(tmp_path / "b", 101, {"0": 0.9, "val1": 0.3})}
+    with pytest.raises(ValueError, match=r"seed 101 scene val1 \(s20-leading\) succeeds 0.300.*0.250: not the same"):
+        validation.check_reuse("pdp", other, rec, "old.json", [0, "val1"])
+    with pytest.raises(ValueError, match="validated on seeds"):
+        validation.check_reuse("pdp", {100: runs[100]}, rec, "old.json", [0, "val1"])
+    with pytest.raises(ValueError, match="no candidate of pdp matches"):
+        validation.check_reuse("pdp", runs, {**rec, "sampler": [], "adapt": []}, "old.json", [0, "val1"])
 
 
 def test_a_setting_changes_only_on_evidence():

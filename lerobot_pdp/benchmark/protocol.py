@@ -44,6 +44,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     check_split(cfg.split, tuple(cfg.scenes), list(cfg.seeds))
     if cfg.validate and cfg.split != "validation":
         raise ValueError("--validate chooses settings on the validation split only: add --split validation")
+    if cfg.reuse_validation and not cfg.validate:
+        raise ValueError("--reuse-validation reuses the candidates of an earlier --validate run: add --validate")
     if cfg.jobs < 1 or (cfg.jobs > 1 and not cfg.validate):
         raise ValueError(f"--jobs {cfg.jobs}: processes for --validate's candidates, a number >= 1 with --validate")
     if cfg.obs not in ("state", "images"):

@@ -16,6 +16,10 @@ unless the best candidate beats it by more than one binomial standard error of t
 rollouts behind it: a setting changes on evidence, not on one rollout. ``validate`` writes
 ``out/validation.json`` (every candidate's per-scene, per-seed success and each method's choice), which
 ``settings.FROZEN`` then freezes for the test run, by hand so that the change is reviewed.
+
+When a candidate list changes, ``reuse`` (``--reuse-validation``) evaluates only the new candidates: the rows
+of an earlier ``validation.json`` stand for a retrained run once its own evaluation reproduces the earlier
+record's rollouts exactly (same checkpoint, same seeded rollouts), else the run is refused.
 """
 
 from __future__ import annotations
@@ -38,9 +42,11 @@ SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
 # Per adaptation, six candidates each (the default first): steps x step size around each default
 # (PDP fit 100 x 0.05 with |z|^2 weight 1e-3, DP noise 100 x 0.05, BC fine-tuning 100 x 1e-5); PDP also tries
 # fitting the chunks it samples instead of its noise predictions (what DP's noise adaptation scores), DP one
-# noise per executed chunk instead of one for the whole rollout.
+# noise per executed chunk instead of one for the whole rollout, and PDP that same noise per chunk on top of
+# its fitted z (``fit_latent(noise="chunks")``). The last took the place of PDP's 10-step fit, which no
+# validation run had chosen (nor its 300-step one), so that every method keeps six candidates.
 ADAPT_CANDIDATES: dict[str, tuple[dict[str, Any], ...]] = {
-    "fit_latent": ({}, {"steps": 0}, {"steps": 10}, {"steps": 300}, {"lam": 0.0}, {"objective": "sample"}),
+    "fit_latent": ({}, {"steps": 0}, {"noise": "chunks"}, {"steps": 300}, {"lam": 0.0}, {"objective": "sample"}),
     "noise": ({}, {"steps": 30}, {"steps": 300}, {"lr": 0.01}, {"lr": 0.2}, {"per_chunk": True}),
     "finetune": ({}, {"lr": 1e-4}, {"lr": 1e-3}, {"steps": 300, "lr": 1e-4}, {"steps": 300, "lr": 1e-3},
                  {"steps": 30, "lr": 1e-3}),
@@ -64,6 +70,40 @@ def choose(rows: list[dict[str, Any]], rollouts: int) -> int:
     p = rows[0]["score"]
     se = float(np.sqrt(max(p * (1 - p), 1e-12) / max(rollouts, 1)))
     return best if rows[best]["score"] - p > se else 0
+
+
+def check_reuse(name: str, runs: dict[int, Path], previous: dict[str, Any], source: str,
+                scenes: list[int | str]) -> dict[str, Any]:
+    """May the rows of ``previous`` (an earlier validation record of method ``name``, from file ``source``)
+    stand for the runs ``{seed: run_dir}``? Only if their checkpoints are the ones it validated: each run's
+    own evaluation (``eval.json``, made by the protocol from the retrained checkpoint) must give exactly the
+    success the earlier record holds for that candidate on every scene both evaluated. Returns what was
+    compared; raises, naming the seed, scene and both values, where it differs."""
+    seeds, want = sorted(runs), [str(s) for s in scenes]
+    if previous["seeds"] != seeds or previous["scenes"] != want:
+        raise ValueError(f"{source}: {name} was validated on seeds {previous['seeds']}, scenes {previous['scenes']}; "
+                         f"this run has seeds {seeds}, scenes {want}: rows are reused for the same ones only")
+    rows = previous["sampler"] + previous["adapt"]
+    compared: list[dict[str, Any]] = []
+    for i, seed in enumerate(seeds):
+        own_file = runs[seed] / "eval.json"
+        own = json.loads(own_file.read_text())
+        sampler = (own["inference_steps"], own["timestep_spacing"]) if own.get("inference_steps") else None
+        tag = candidate_tag(sampler, own.get("adapt", {}))
+        for row in (r for r in rows if r["tag"] == tag):
+            for scene, rates in row["success"].items():
+                if scene not in own["scenes"]:
+                    continue
+                now = own["scenes"][scene]["success"]
+                if rates[i] != now:
+                    raise ValueError(f"{own_file}: {name} seed {seed} scene {scene} ({tag}) succeeds {now:.3f}, the "
+                                     f"run {source} validated {rates[i]:.3f}: not the same checkpoint; validate "
+                                     "without --reuse-validation")
+                compared.append({"seed": seed, "candidate": tag, "scene": scene, "success": now})
+    if not compared:
+        raise ValueError(f"{source}: no candidate of {name} matches its runs' own evaluations; nothing shows the "
+                         "checkpoints are the ones it validated")
+    return {"source": source, "compared": compared}
 
 
 def _evaluate(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig,
@@ -113,13 +153,24 @@ def _prefetch(suite, method: Method, runs: dict[int, Path], demos, cfg: Benchmar
                       [(suite, method, runs, demos, cfg, s, a, sc, threads) for s, a, sc in candidates]))
 
 
-def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig) -> dict[str, Any]:
-    """Both stages for one method over its trained validation runs ``{seed: run_dir}``."""
+def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: BenchmarkConfig,
+                    previous: dict[str, Any] | None = None, source: str = "") -> dict[str, Any]:
+    """Both stages for one method over its trained validation runs ``{seed: run_dir}``. ``previous``: the
+    method's record in an earlier validation.json (file ``source``) whose candidates are reused, not
+    evaluated again, once :func:`check_reuse` has shown the checkpoints are the same."""
     scenes = list(cfg.scenes)
     shifted = [s for s in scenes if s != 0]
     has_sampler = method.policy_type in ("pdp", "diffusion")
     record: dict[str, Any] = {"seeds": sorted(runs), "scenes": [str(s) for s in scenes], "sampler": [],
                               "adapt": []}
+    old_rows: dict[tuple[str, str], dict[str, Any]] = {}
+    if previous is not None:
+        record["reuse_check"] = check_reuse(method.name, runs, previous, source, scenes)
+        old_rows = {(stage, r["tag"]): r for stage in ("sampler", "adapt") for r in previous[stage]}
+
+    def reused(stage, sampler, adapt):
+        r = old_rows.get((stage, candidate_tag(sampler, adapt)))
+        return {**r, "reused": True} if r else None
 
     def row(sampler, adapt, evals, scored):
         return {"tag": candidate_tag(sampler, adapt), "sampler": list(sampler) if sampler else None,
@@ -135,39 +186,76 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
         current = tuple(frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("sampler")
                         or (cfg.inference_steps, cfg.timestep_spacing))
         samplers = [current, *[c for c in SAMPLER_CANDIDATES if c != current]]
-        _prefetch(suite, method, runs, demos, cfg, [(c, {}, scenes) for c in samplers])
+        _prefetch(suite, method, runs, demos, cfg,
+                  [(c, {}, scenes) for c in samplers if not reused("sampler", c, {})])
         for sampler in samplers:
-            evals = _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes)
-            rows.append(row(sampler, {}, evals, scenes))
-            print(f"[validate] {method.name} sampler {sampler}: {rows[-1]['score']:.1%}", flush=True)
+            old = reused("sampler", sampler, {})
+            rows.append(old or row(sampler, {}, _evaluate(suite, method, runs, demos, cfg, sampler, {}, scenes),
+                                   scenes))
+            print(f"[validate] {method.name} sampler {sampler}: {rows[-1]['score']:.1%}"
+                  + (" (reused)" if old else ""), flush=True)
         record["sampler"] = rows
         best_sampler = samplers[choose(rows, cfg.rollouts * len(scenes) * len(runs))]
     rows = []
     current = frozen_for(suite.name, cfg.quick, method.name, cfg.obs).get("adapt", {})  # likewise
     adapts = [current, *[a for a in ADAPT_CANDIDATES[method.adapt] if a != current]]
-    _prefetch(suite, method, runs, demos, cfg, [(best_sampler, a, shifted if a else scenes) for a in adapts])
+    _prefetch(suite, method, runs, demos, cfg,
+              [(best_sampler, a, shifted if a else scenes) for a in adapts if not reused("adapt", best_sampler, a)])
     for adapt in adapts:
-        evals = _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt, shifted if adapt else scenes)
-        rows.append(row(best_sampler, adapt, evals, shifted))
-        print(f"[validate] {method.name} adapt {adapt or 'default'}: {rows[-1]['score']:.1%}", flush=True)
+        old = reused("adapt", best_sampler, adapt)
+        rows.append(old or row(best_sampler, adapt, _evaluate(suite, method, runs, demos, cfg, best_sampler, adapt,
+                                                              shifted if adapt else scenes), shifted))
+        print(f"[validate] {method.name} adapt {adapt or 'default'}: {rows[-1]['score']:.1%}"
+              + (" (reused)" if old else ""), flush=True)
     record["adapt"] = rows
     best = choose(rows, cfg.rollouts * len(shifted) * len(runs))
     record["chosen"] = {"sampler": list(best_sampler) if best_sampler else None, "adapt": rows[best]["adapt"]}
     return record
 
 
+def _same_candidates(method: Method, previous: dict[str, Any]) -> bool:
+    """Were ``method``'s candidates in the earlier record ``previous`` the ones listed now?"""
+    same_adapt = previous.get("adapt_candidates", {}).get(method.adapt) == list(ADAPT_CANDIDATES[method.adapt])
+    has_sampler = method.policy_type in ("pdp", "diffusion")
+    return same_adapt and (not has_sampler or previous.get("sampler_candidates") == [list(c) for c in SAMPLER_CANDIDATES])
+
+
 def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict[str, dict[int, Path]],
              demos) -> dict[str, Any]:
-    """Both stages for every method; writes and returns ``cfg.out/validation.json``."""
+    """Both stages for every method; writes and returns ``cfg.out/validation.json``.
+
+    With ``cfg.reuse_validation`` (an earlier validation.json of the same env and rollouts), each method run
+    here reuses that record's rows (:func:`check_reuse`) and evaluates only the candidates it lacks; the
+    methods of that record not run here are carried over as they are if their candidate lists are unchanged
+    (else left out, with a note)."""
     if cfg.split != "validation":
         raise ValueError("settings are chosen on the validation split only (--split validation)")
     expected = set(map(str, split_scenes(suite.name, "validation")))
     if set(map(str, cfg.scenes)) != expected:
         raise ValueError(f"validation uses all of {sorted(expected)}, got {sorted(map(str, cfg.scenes))}")
-    out = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
-           "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
-           "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()},
-           "methods": {name: validate_method(suite, methods[name], runs[name], demos, cfg) for name in runs}}
+    previous: dict[str, Any] = {"methods": {}}
+    source = str(cfg.reuse_validation) if cfg.reuse_validation else ""
+    if cfg.reuse_validation:
+        previous = json.loads(Path(cfg.reuse_validation).read_text())
+        for key, want in (("env", suite.name), ("split", "validation"), ("rollouts", cfg.rollouts)):
+            if previous.get(key) != want:
+                raise ValueError(f"{source}: {key} is {previous.get(key)!r}, this run's is {want!r}; only a record of "
+                                 "the same env, split and rollouts can be reused")
+    out: dict[str, Any] = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
+                           "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
+                           "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()}, "methods": {}}
+    if source:
+        out["reused_from"] = source
+    for name in runs:
+        out["methods"][name] = validate_method(suite, methods[name], runs[name], demos, cfg,
+                                               previous["methods"].get(name), source)
+    for name, rec in previous["methods"].items():
+        if name in runs:
+            continue
+        if name in methods and _same_candidates(methods[name], previous):
+            out["methods"][name] = rec
+        else:
+            print(f"[validate] {name} of {source} left out: its candidate list has changed since", flush=True)
     write_text_atomic(Path(cfg.out) / "validation.json", json.dumps(out, indent=1))
     return out
 
@@ -241,7 +329,12 @@ def validation_markdown(res: dict[str, Any]) -> str:
             for r in rec[stage]:
                 cells = [f"{100 * np.mean(r['success'][s]):.1f}" if s in r["success"] else "" for s in rec["scenes"]]
                 dev = "" if r.get("devices", ["cpu"]) == ["cpu"] else f" ({'/'.join(r['devices'])})"
-                lines.append(f"| {stage} | {r['tag']}{dev} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
+                mark = " †" if r.get("reused") else ""
+                lines.append(f"| {stage} | {r['tag']}{dev}{mark} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
         lines += ["", f"Chosen: sampler {rec['chosen']['sampler']}, adaptation {rec['chosen']['adapt'] or 'default'}.",
                   ""]
+        if "reuse_check" in rec:
+            n = len(rec["reuse_check"]["compared"])
+            lines += [f"† reused from {rec['reuse_check']['source']}: the retrained checkpoint reproduced that record's "
+                      f"success exactly on the {n} (seed, candidate, scene) evaluations both hold.", ""]
     return "\n".join(lines)
