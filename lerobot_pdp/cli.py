@@ -269,7 +269,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="with --validate: processes evaluating the candidates of a stage side by side (default 1)")
     p.add_argument("--reuse-validation", type=Path, default=None,
                    help="with --validate: an earlier validation.json of this env whose candidates are not evaluated "
-                   "again, once the retrained runs reproduce its rollouts exactly (only new candidates run)")
+                   "again where the retrained runs reproduce its rollouts exactly (then only new candidates run)")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--film", choices=("mlp", "affine"), default=None,

@@ -111,7 +111,7 @@ def test_ablations_sample_and_fit_with_pdps_frozen_settings():
 
     for name in ABLATIONS:
         assert frozen_for("reach-around", False, name) == {"adapt": {"objective": "sample"}}
-        assert frozen_for("reach-around", True, name) == {"sampler": [10, "trailing"], "adapt": {"lam": 0.0}}
+        assert frozen_for("reach-around", True, name) == {"sampler": [10, "trailing"], "adapt": {"noise": "chunks"}}
         assert frozen_for("reach-around", False, name, obs="images") == {}  # not carried over to cameras
     assert frozen_for("reach-around", False, "dp") == {"sampler": [5, "trailing"]}
     assert frozen_for("kitchen-microwave", False, "pdp_concat") == {"adapt": {"noise": "chunks"}}

@@ -76,6 +76,15 @@ def test_validate_tiny(tmp_path, monkeypatch):
     new_tag = validation.candidate_tag(tuple(pdp["chosen"]["sampler"]), {"steps": 1})
     assert (tmp_path / "val" / "runs" / "pdp" / "seed100" / "validation" / f"eval_{new_tag}.json").is_file()
     assert "† reused from" in (tmp_path / "val" / "validation.md").read_text()
+    # a record of another checkpoint: nothing of it is reused, every candidate is evaluated (here from the
+    # cache files), and the record says why
+    other = json.loads(before.read_text())
+    other["methods"]["bc"]["adapt"][0]["success"]["val1"] = [0.123]
+    before.write_text(json.dumps(other))
+    run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "methods": ["bc"], "reuse_validation": before}))
+    bc = json.loads((tmp_path / "val" / "validation.json").read_text())["methods"]["bc"]
+    assert "not the same checkpoint" in bc["reuse_refused"] and not any(r.get("reused") for r in bc["adapt"])
+    assert bc["chosen"] == val["methods"]["bc"]["chosen"]
     with pytest.raises(ValueError, match="--reuse-validation reuses"):
         run_benchmark(BenchmarkConfig(**{**cfg.__dict__, "validate": False, "reuse_validation": before}))
     with pytest.raises(ValueError, match="--jobs 2: processes for --validate"):
@@ -123,7 +132,7 @@ def test_reused_rows_need_the_same_checkpoint(tmp_path):
     check = validation.check_reuse("pdp", runs, rec, "old.json", [0, "val1"])
     assert check["source"] == "old.json" and len(check["compared"]) == 6  # 2 seeds x (2 sampler + 1 adapt scenes)
     other = {**runs, 101: _run(tmp_path / "b", 101, {"0": 0.9, "val1": 0.3})}
-    with pytest.raises(ValueError, match=r"seed 101 scene val1 \(s20-leading\) succeeds 0.300.*0.250: not the same"):
+    with pytest.raises(ValueError, match=r"seed 101 scene val1 \(s20-leading\) succeeds 0.300.*0.250: not the same checkpoint"):
         validation.check_reuse("pdp", other, rec, "old.json", [0, "val1"])
     with pytest.raises(ValueError, match="validated on seeds"):
         validation.check_reuse("pdp", {100: runs[100]}, rec, "old.json", [0, "val1"])

@@ -19,7 +19,7 @@ rollouts behind it: a setting changes on evidence, not on one rollout. ``validat
 
 When a candidate list changes, ``reuse`` (``--reuse-validation``) evaluates only the new candidates: the rows
 of an earlier ``validation.json`` stand for a retrained run once its own evaluation reproduces the earlier
-record's rollouts exactly (same checkpoint, same seeded rollouts), else the run is refused.
+record's rollouts exactly (same checkpoint, same seeded rollouts), else every candidate is evaluated anew.
 """
 
 from __future__ import annotations
@@ -97,8 +97,7 @@ def check_reuse(name: str, runs: dict[int, Path], previous: dict[str, Any], sour
                 now = own["scenes"][scene]["success"]
                 if rates[i] != now:
                     raise ValueError(f"{own_file}: {name} seed {seed} scene {scene} ({tag}) succeeds {now:.3f}, the "
-                                     f"run {source} validated {rates[i]:.3f}: not the same checkpoint; validate "
-                                     "without --reuse-validation")
+                                     f"run {source} validated {rates[i]:.3f}: not the same checkpoint")
                 compared.append({"seed": seed, "candidate": tag, "scene": scene, "success": now})
     if not compared:
         raise ValueError(f"{source}: no candidate of {name} matches its runs' own evaluations; nothing shows the "
@@ -165,8 +164,12 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
                               "adapt": []}
     old_rows: dict[tuple[str, str], dict[str, Any]] = {}
     if previous is not None:
-        record["reuse_check"] = check_reuse(method.name, runs, previous, source, scenes)
-        old_rows = {(stage, r["tag"]): r for stage in ("sampler", "adapt") for r in previous[stage]}
+        try:
+            record["reuse_check"] = check_reuse(method.name, runs, previous, source, scenes)
+            old_rows = {(stage, r["tag"]): r for stage in ("sampler", "adapt") for r in previous[stage]}
+        except ValueError as e:  # another checkpoint: its rows say nothing about this one, so every candidate runs
+            record["reuse_refused"] = str(e)
+            print(f"[validate] {method.name}: nothing reused, every candidate is evaluated ({e})", flush=True)
 
     def reused(stage, sampler, adapt):
         r = old_rows.get((stage, candidate_tag(sampler, adapt)))
@@ -225,7 +228,8 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     """Both stages for every method; writes and returns ``cfg.out/validation.json``.
 
     With ``cfg.reuse_validation`` (an earlier validation.json of the same env and rollouts), each method run
-    here reuses that record's rows (:func:`check_reuse`) and evaluates only the candidates it lacks; the
+    here reuses that record's rows if :func:`check_reuse` passes (else evaluates them all anew, recording
+    why under ``reuse_refused``) and evaluates only the candidates it lacks; the
     methods of that record not run here are carried over as they are if their candidate lists are unchanged
     (else left out, with a note)."""
     if cfg.split != "validation":
@@ -333,6 +337,8 @@ def validation_markdown(res: dict[str, Any]) -> str:
                 lines.append(f"| {stage} | {r['tag']}{dev}{mark} | " + " | ".join(cells) + f" | {100 * r['score']:.1f} |")
         lines += ["", f"Chosen: sampler {rec['chosen']['sampler']}, adaptation {rec['chosen']['adapt'] or 'default'}.",
                   ""]
+        if "reuse_refused" in rec:
+            lines += [f"Nothing reused: {rec['reuse_refused']}.", ""]
         if "reuse_check" in rec:
             n = len(rec["reuse_check"]["compared"])
             lines += [f"† reused from {rec['reuse_check']['source']}: the retrained checkpoint reproduced that record's "
