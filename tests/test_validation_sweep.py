@@ -140,6 +140,28 @@ def test_reused_rows_need_the_same_checkpoint(tmp_path):
         validation.check_reuse("pdp", runs, {**rec, "sampler": [], "adapt": []}, "old.json", [0, "val1"])
 
 
+def test_a_wrong_reuse_record_is_refused_before_training(tmp_path):
+    """``--reuse-validation`` names a file that is missing, not JSON, not a validation record, or of another env /
+    rollout count: refused by name when the run starts, before any dataset or training."""
+    good = {"env": "reach-around", "split": "validation", "rollouts": 40, "methods": {}}
+    bad = {"missing.json": None, "notjson.json": "{", "list.json": "[]",
+           "other_env.json": json.dumps({**good, "env": "avoiding"}),
+           "other_rollouts.json": json.dumps({**good, "rollouts": 20})}
+    why = {"missing.json": "no such file", "notjson.json": "is not JSON", "list.json": "not a validation record",
+           "other_env.json": "env is 'avoiding', this run's is 'reach-around'",
+           "other_rollouts.json": "rollouts is 20, this run's is 40"}
+    for name, text in bad.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+        cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "out", seeds=[100], split="validation", validate=True,
+                              scenes=split_scenes("reach-around", "validation"), reuse_validation=tmp_path / name)
+        with pytest.raises(ValueError, match=f"--reuse-validation {tmp_path / name}.*{why[name]}"):
+            run_benchmark(cfg)
+    assert not (tmp_path / "out").exists()  # refused before anything was written
+    (tmp_path / "good.json").write_text(json.dumps(good))
+    assert validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40) == good
+
+
 def test_a_setting_changes_only_on_evidence():
     """The default (row 0) stays unless the best candidate beats it by more than one standard error."""
     rows = [{"score": 0.60}, {"score": 0.62}, {"score": 0.55}]

@@ -46,6 +46,10 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         raise ValueError("--validate chooses settings on the validation split only: add --split validation")
     if cfg.reuse_validation and not cfg.validate:
         raise ValueError("--reuse-validation reuses the candidates of an earlier --validate run: add --validate")
+    if cfg.reuse_validation:  # a wrong file is refused now, not after hours of training
+        from .validation import load_reuse_record
+
+        load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts)
     if cfg.jobs < 1 or (cfg.jobs > 1 and not cfg.validate):
         raise ValueError(f"--jobs {cfg.jobs}: processes for --validate's candidates, a number >= 1 with --validate")
     if cfg.obs not in ("state", "images"):

@@ -216,6 +216,25 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     return record
 
 
+def load_reuse_record(path: Path | str, env: str, rollouts: int) -> dict[str, Any]:
+    """The earlier validation record ``--reuse-validation`` names, checked before anything trains: it must be
+    a validation.json of ``env`` with ``rollouts`` rollouts per scene (else a ValueError naming the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"--reuse-validation {path}: no such file (give an earlier validation.json)")
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--reuse-validation {path} is not JSON ({e})") from e
+    if not isinstance(record, dict) or not isinstance(record.get("methods"), dict):
+        raise ValueError(f"--reuse-validation {path} is not a validation record (no 'methods')")
+    for key, want in (("env", env), ("split", "validation"), ("rollouts", rollouts)):
+        if record.get(key) != want:
+            raise ValueError(f"--reuse-validation {path}: {key} is {record.get(key)!r}, this run's is {want!r}; only a "
+                             "record of the same env, split and rollouts can be reused")
+    return record
+
+
 def _same_candidates(method: Method, previous: dict[str, Any]) -> bool:
     """Were ``method``'s candidates in the earlier record ``previous`` the ones listed now?"""
     same_adapt = previous.get("adapt_candidates", {}).get(method.adapt) == list(ADAPT_CANDIDATES[method.adapt])
@@ -237,14 +256,9 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     expected = set(map(str, split_scenes(suite.name, "validation")))
     if set(map(str, cfg.scenes)) != expected:
         raise ValueError(f"validation uses all of {sorted(expected)}, got {sorted(map(str, cfg.scenes))}")
-    previous: dict[str, Any] = {"methods": {}}
     source = str(cfg.reuse_validation) if cfg.reuse_validation else ""
-    if cfg.reuse_validation:
-        previous = json.loads(Path(cfg.reuse_validation).read_text())
-        for key, want in (("env", suite.name), ("split", "validation"), ("rollouts", cfg.rollouts)):
-            if previous.get(key) != want:
-                raise ValueError(f"{source}: {key} is {previous.get(key)!r}, this run's is {want!r}; only a record of "
-                                 "the same env, split and rollouts can be reused")
+    previous = (load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts) if cfg.reuse_validation
+                else {"methods": {}})
     out: dict[str, Any] = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
                            "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
                            "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()}, "methods": {}}
