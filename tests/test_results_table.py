@@ -15,6 +15,23 @@ def _run(rates: list[float]) -> dict:
     return {"scenes": {str(s): {"success": r, "collision": 0.0} for s, r in enumerate(rates)}}
 
 
+def test_the_frozen_record_is_the_one_taken_when_the_run_started(monkeypatch):
+    """results.json's ``frozen`` is what the run started with (run_benchmark takes it first): a validation record
+    or FROZEN entry replaced while a long run goes on does not relabel its numbers."""
+    from lerobot_pdp.benchmark import results, settings
+    from lerobot_pdp.benchmark.results import frozen_record
+
+    cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0])
+    start = frozen_record("reach-around", cfg)
+    assert start["methods"] == settings.FROZEN[("reach-around", "full")]
+    assert start["validation"]["pdp"]["chosen"]["adapt"] == start["methods"]["pdp"]["adapt"]
+    monkeypatch.setitem(results.FROZEN, ("reach-around", "full"), {"pdp": {"adapt": {"steps": 7}}})
+    res = aggregate("reach-around", cfg, {"pdp": {0: _run([1.0] * 4)}}, {}, TrainSettings(steps=10), 10, start)
+    assert res["frozen"] == start
+    now = aggregate("reach-around", cfg, {"pdp": {0: _run([1.0] * 4)}}, {}, TrainSettings(steps=10), 10)["frozen"]
+    assert now["methods"] == {"pdp": {"adapt": {"steps": 7}}}  # without it: read when aggregating
+
+
 def test_mean_and_std_over_seeds_in_json_and_table():
     cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0, 1])
     per_run = {"pdp": {0: _run([1.0, 0.9, 1.0, 0.8]), 1: _run([1.0, 0.7, 1.0, 1.0])},

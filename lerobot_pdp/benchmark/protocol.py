@@ -20,7 +20,7 @@ from ..atomic import write_text_atomic
 from ..envs.suite import get_suite_env
 from .data import ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
-from .results import aggregate, results_markdown
+from .results import aggregate, frozen_record, results_markdown
 from .settings import (
     ABLATIONS,
     CAMERAS,
@@ -88,6 +88,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         raise ValueError(f"inference_steps must be in 1..{k} (the diffusion steps K every method trains with), "
                          f"got {cfg.inference_steps}")
     check_device(cfg.device)
+    frozen = frozen_record(suite.name, cfg)  # what this run samples and adapts with, whatever changes meanwhile
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     all_methods = methods_for(suite, cfg.film)
@@ -123,7 +124,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
                                                                  adapt_kwargs=chosen.get("adapt"))
             if cfg.ablations and name == "pdp":
                 init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, mcfg, seed, run_dir)
-    res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps)
+    res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps, frozen)
     if cfg.validate:
         from .validation import validate, validation_markdown
 

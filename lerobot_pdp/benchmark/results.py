@@ -38,19 +38,25 @@ def _agg(values: list[float]) -> dict[str, Any]:
     return {"values": v, "mean": float(np.mean(v)) if v else None, "std": float(np.std(v)) if v else None}
 
 
-def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
-              settings: TrainSettings, steps: int) -> dict[str, Any]:
-    """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
-    mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated."""
+def frozen_record(env: str, cfg: BenchmarkConfig) -> dict[str, Any]:
+    """What is frozen for a run of ``cfg`` besides "train" (``settings.FROZEN``) and a summary of the validation
+    record it came from. Taken when the run starts: the record may be replaced while a long run goes on."""
     budget = budget_key(cfg.quick, cfg.obs)
+    record = VALIDATION_RECORDS.get((env, budget))
+    return {"methods": FROZEN.get((env, budget), {}), "validation_record": record,
+            "validation": validation_summary(record)}
+
+
+def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
+              settings: TrainSettings, steps: int, frozen: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
+    mean, std (+ collision, modes); ``split`` and ``scenes`` say which split was evaluated. ``frozen``: the
+    run's :func:`frozen_record` as taken at its start (default: taken now)."""
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
                            "device": cfg.device,
-                           # what was frozen for this run besides "train", and the validation record it came from
-                           "frozen": {"methods": FROZEN.get((env, budget), {}),
-                                      "validation_record": VALIDATION_RECORDS.get((env, budget)),
-                                      "validation": validation_summary(VALIDATION_RECORDS.get((env, budget)))},
+                           "frozen": frozen if frozen is not None else frozen_record(env, cfg),
                            "methods": {}}
     if cfg.obs != "state":
         out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
