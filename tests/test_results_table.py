@@ -305,3 +305,34 @@ def test_merge_results_merges_validation_records_of_one_method_per_folder(tmp_pa
     assert main(["merge-results", str(tmp_path / "pdp"), str(tmp_path / "dp"), "--out", str(tmp_path / "y")]) == 0
     assert "validation records not merged: no" in capsys.readouterr().out
     assert not (tmp_path / "y" / "validation.json").exists() and (tmp_path / "y" / "results.json").is_file()
+
+
+def test_merging_validation_records_compares_only_the_candidate_lists_their_methods_used():
+    """A PDP record validated after PDP's list changed merges with a DP record made before (DP's own list is
+    the same in both); two records whose PDP-like methods used different fit lists are refused by name."""
+    from lerobot_pdp.benchmark.validation import merge_validation_records
+
+    def record(methods, fit, noise=({},)):
+        rows = {"seeds": [100], "scenes": ["0", "val1"], "sampler": [], "adapt": [],
+                "chosen": {"sampler": [20, "leading"], "adapt": {}}}
+        return {"env": "reach-around", "split": "validation", "rollouts": 40, "sampler_candidates": [[20, "leading"]],
+                "adapt_candidates": {"fit_latent": list(fit), "noise": list(noise), "finetune": [{}]},
+                "methods": {m: rows for m in methods}}
+
+    new_pdp = record(["pdp"], [{}, {"noise": "chunks"}], noise=[{}, {"per_chunk": True}])
+    old_dp_bc = record(["dp", "bc"], [{}, {"steps": 10}], noise=[{}, {"per_chunk": True}])
+    merged = merge_validation_records([("new/validation.json", new_pdp), ("old/validation.json", old_dp_bc)])
+    assert list(merged["methods"]) == ["pdp", "dp", "bc"]
+    assert merged["adapt_candidates"]["fit_latent"] == [{}, {"noise": "chunks"}]  # the list PDP was validated with
+    # DP's list differs between the two records, and only the DP record holds a method that used it
+    merged = merge_validation_records([("new/validation.json", record(["pdp"], [{}], noise=[{"x": 1}])),
+                                       ("old/validation.json", old_dp_bc)])
+    assert merged["adapt_candidates"]["noise"] == [{}, {"per_chunk": True}]
+    with pytest.raises(ValueError, match=r"old/validation.json: adapt_candidates\['fit_latent'\] \(validated for "
+                                         r"pdp_concat\)"):
+        merge_validation_records([("new/validation.json", new_pdp), ("old/validation.json",
+                                                                      record(["pdp_concat"], [{}, {"steps": 10}]))])
+    with pytest.raises(ValueError, match="'act' is not a benchmark method of reach-around"):
+        merge_validation_records([("new/validation.json", record(["act"], [{}]))])
+    with pytest.raises(ValueError, match="already validated in another input"):
+        merge_validation_records([("a/validation.json", new_pdp), ("b/validation.json", new_pdp)])

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..atomic import write_text_atomic
 from .evaluation import cached_evaluation, evaluate_method, sampler_of
-from .settings import BenchmarkConfig, Method, frozen_for, split_scenes
+from .settings import CAMERAS, IMAGE_SIZE, BenchmarkConfig, Method, frozen_for, methods_for, split_scenes
 
 # (DDIM steps, grid). At K = 20 steps the grids coincide, so 20 appears once.
 SAMPLER_CANDIDATES: tuple[tuple[int, str], ...] = (
@@ -316,23 +316,59 @@ def choose_training_setting(method: str, setting: str, candidates: dict[str, dic
                     "binomial standard error"}
 
 
+def _candidate_lists(env: str) -> dict[str, Method]:
+    """Every method a validation record of ``env`` may hold (state and camera variants), for the candidate
+    lists it was validated with: its adaptation's list, and the sampler list if it samples by diffusion."""
+    import lerobot_pdp.envs  # noqa: F401  (registers the suite envs)
+
+    from ..envs.suite import get_suite_env
+
+    suite = get_suite_env(env)
+    known = dict(methods_for(suite))
+    if suite.name in CAMERAS:
+        known = {**methods_for(suite.with_camera(CAMERAS[suite.name], IMAGE_SIZE)), **known}
+    return known
+
+
 def merge_validation_records(records: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """One ``validation.json`` from validation runs of the same protocol that validated different methods
-    (one output folder per method). Refused, naming the file and the key: another env, split, rollout count or
-    candidate list, and a method present twice."""
+    (one output folder per method). Refused, naming the file and the key: another env, split or rollout count,
+    a method present twice, and a candidate list that differs between two records holding methods validated
+    with it (e.g. DP's noise candidates in two records that both hold DP-like methods). Lists only the other
+    methods use may differ: the merged record keeps each list from the records whose methods used it."""
     if not records:
         raise ValueError("no validation records to merge")
     first_name, first = records[0]
-    merged = {**first, "methods": dict(first["methods"])}
     for name, rec in records[1:]:
-        for key in ("env", "split", "rollouts", "sampler_candidates", "adapt_candidates"):
+        for key in ("env", "split", "rollouts"):
             if rec.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {rec.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only validation runs of the same protocol can be merged")
-        twice = sorted(set(rec["methods"]) & set(merged["methods"]))
-        if twice:
-            raise ValueError(f"{name}: method(s) {twice} already validated in another input")
-        merged["methods"].update(rec["methods"])
+    known = _candidate_lists(first["env"])
+    merged = {**first, "adapt_candidates": dict(first.get("adapt_candidates", {})), "methods": {}}
+    used: dict[tuple[str, str], tuple[str, Any]] = {}  # (key, adaptation) -> (record, list) of a method's record
+    for name, rec in records:
+        for method_name, method_rec in rec["methods"].items():
+            if method_name in merged["methods"]:
+                raise ValueError(f"{name}: method(s) {[method_name]} already validated in another input")
+            method = known.get(method_name)
+            if method is None:
+                raise ValueError(f"{name}: {method_name!r} is not a benchmark method of {first['env']} "
+                                 f"(known: {sorted(known)})")
+            lists = [("adapt_candidates", method.adapt, rec.get("adapt_candidates", {}).get(method.adapt))]
+            if method.policy_type in ("pdp", "diffusion"):
+                lists.append(("sampler_candidates", "", rec.get("sampler_candidates")))
+            for key, kind, value in lists:
+                label = f"{key}[{kind!r}]" if kind else key
+                seen = used.setdefault((key, kind), (name, value))
+                if seen[1] != value:
+                    raise ValueError(f"{name}: {label} (validated for {method_name}) is {value!r} but {seen[0]} "
+                                     f"has {seen[1]!r}; only methods validated with the same candidates can be merged")
+                if kind:
+                    merged["adapt_candidates"][kind] = value
+                else:
+                    merged["sampler_candidates"] = value
+            merged["methods"][method_name] = method_rec
     return merged
 
 
