@@ -316,9 +316,10 @@ def choose_training_setting(method: str, setting: str, candidates: dict[str, dic
                     "binomial standard error"}
 
 
-def _candidate_lists(env: str) -> dict[str, Method]:
-    """Every method a validation record of ``env`` may hold (state and camera variants), for the candidate
-    lists it was validated with: its adaptation's list, and the sampler list if it samples by diffusion."""
+def _record_methods(env: str) -> dict[str, Method]:
+    """Every method a validation record of ``env`` may hold (state and camera variants): its adaptation and
+    policy type name the candidate lists it was validated with (its adaptation's; the sampler list if it
+    samples by diffusion)."""
     import lerobot_pdp.envs  # noqa: F401  (registers the suite envs)
 
     from ..envs.suite import get_suite_env
@@ -344,7 +345,7 @@ def merge_validation_records(records: list[tuple[str, dict[str, Any]]]) -> dict[
             if rec.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {rec.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only validation runs of the same protocol can be merged")
-    known = _candidate_lists(first["env"])
+    known = _record_methods(first["env"])
     merged = {**first, "adapt_candidates": dict(first.get("adapt_candidates", {})), "methods": {}}
     used: dict[tuple[str, str], tuple[str, Any]] = {}  # (key, adaptation) -> (record, list) of a method's record
     for name, rec in records:
