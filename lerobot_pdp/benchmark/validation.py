@@ -351,7 +351,7 @@ def merge_validation_records(records: list[tuple[str, dict[str, Any]]]) -> dict[
     for name, rec in records:
         for method_name, method_rec in rec["methods"].items():
             if method_name in merged["methods"]:
-                raise ValueError(f"{name}: method(s) {[method_name]} already validated in another input")
+                raise ValueError(f"{name}: {method_name!r} already validated in another input")
             method = known.get(method_name)
             if method is None:
                 raise ValueError(f"{name}: {method_name!r} is not a benchmark method of {first['env']} "
