@@ -309,7 +309,8 @@ def test_merge_results_merges_validation_records_of_one_method_per_folder(tmp_pa
 
 def test_merging_validation_records_compares_only_the_candidate_lists_their_methods_used():
     """A PDP record validated after PDP's list changed merges with a DP record made before (DP's own list is
-    the same in both); two records whose PDP-like methods used different fit lists are refused by name."""
+    the same in both); two records whose PDP-like methods used different fit lists, or that observed different
+    things (a camera record beside a state one), are refused by name."""
     from lerobot_pdp.benchmark.validation import merge_validation_records
 
     def record(methods, fit, noise=({},)):
@@ -336,3 +337,10 @@ def test_merging_validation_records_compares_only_the_candidate_lists_their_meth
         merge_validation_records([("new/validation.json", record(["act"], [{}]))])
     with pytest.raises(ValueError, match="already validated in another input"):
         merge_validation_records([("a/validation.json", new_pdp), ("b/validation.json", new_pdp)])
+    camera = {**old_dp_bc, "observation": {"obs": "images", "camera": "oblique", "image_size": 64}}
+    with pytest.raises(ValueError, match=r"camera/validation.json: observation is \{'obs': 'images'.* but "
+                                         r"new/validation.json has None"):  # a camera record beside a state one
+        merge_validation_records([("new/validation.json", new_pdp), ("camera/validation.json", camera)])
+    merged = merge_validation_records([("camera/validation.json", camera),
+                                       ("pdp/validation.json", {**new_pdp, "observation": camera["observation"]})])
+    assert merged["observation"] == camera["observation"]

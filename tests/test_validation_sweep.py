@@ -142,14 +142,16 @@ def test_reused_rows_need_the_same_checkpoint(tmp_path):
 
 def test_a_wrong_reuse_record_is_refused_before_training(tmp_path):
     """``--reuse-validation`` names a file that is missing, not JSON, not a validation record, or of another env /
-    rollout count: refused by name when the run starts, before any dataset or training."""
+    rollout count / observation variant: refused by name when the run starts, before any dataset or training."""
     good = {"env": "reach-around", "split": "validation", "rollouts": 40, "methods": {}}
     bad = {"missing.json": None, "notjson.json": "{", "list.json": "[]",
            "other_env.json": json.dumps({**good, "env": "avoiding"}),
-           "other_rollouts.json": json.dumps({**good, "rollouts": 20})}
+           "other_rollouts.json": json.dumps({**good, "rollouts": 20}),
+           "camera.json": json.dumps({**good, "observation": {"obs": "images", "camera": "oblique", "image_size": 64}})}
     why = {"missing.json": "no such file", "notjson.json": "is not JSON", "list.json": "not a validation record",
            "other_env.json": "env is 'avoiding', this run's is 'reach-around'",
-           "other_rollouts.json": "rollouts is 20, this run's is 40"}
+           "other_rollouts.json": "rollouts is 20, this run's is 40",
+           "camera.json": "observation is {'obs': 'images'.*this run's is None"}
     for name, text in bad.items():
         if text is not None:
             (tmp_path / name).write_text(text)
@@ -160,6 +162,10 @@ def test_a_wrong_reuse_record_is_refused_before_training(tmp_path):
     assert not (tmp_path / "out").exists()  # refused before anything was written
     (tmp_path / "good.json").write_text(json.dumps(good))
     assert validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40) == good
+    camera = json.loads((tmp_path / "camera.json").read_text())  # a camera run reuses a camera record only
+    assert validation.load_reuse_record(tmp_path / "camera.json", "reach-around", 40, camera["observation"]) == camera
+    with pytest.raises(ValueError, match="observation is None, this run's is {'obs': 'images'"):
+        validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40, camera["observation"])
 
 
 def test_a_setting_changes_only_on_evidence():

@@ -46,10 +46,6 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         raise ValueError("--validate chooses settings on the validation split only: add --split validation")
     if cfg.reuse_validation and not cfg.validate:
         raise ValueError("--reuse-validation reuses the candidates of an earlier --validate run: add --validate")
-    if cfg.reuse_validation:  # a wrong file is refused now, not after hours of training
-        from .validation import load_reuse_record
-
-        load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts)
     if cfg.jobs < 1 or (cfg.jobs > 1 and not cfg.validate):
         raise ValueError(f"--jobs {cfg.jobs}: processes for --validate's candidates, a number >= 1 with --validate")
     if cfg.obs not in ("state", "images"):
@@ -61,6 +57,10 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         suite = suite.with_camera(camera, cfg.image_size)
         cfg = replace(cfg, camera=camera)
         os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder would log its configuration per episode
+    if cfg.reuse_validation:  # a wrong file is refused now, not after hours of training
+        from .validation import load_reuse_record
+
+        load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts, cfg.observation())
     settings = quick if cfg.quick else full
     if cfg.episodes_per_mode is not None:
         settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})

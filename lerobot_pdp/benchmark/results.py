@@ -58,8 +58,8 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
                            "device": cfg.device,
                            "frozen": frozen if frozen is not None else frozen_record(env, cfg),
                            "methods": {}}
-    if cfg.obs != "state":
-        out["observation"] = {"obs": cfg.obs, "camera": cfg.camera, "image_size": cfg.image_size}
+    if cfg.observation() is not None:
+        out["observation"] = cfg.observation()
     for name, runs in per_run.items():
         entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
         for scene in cfg.scenes:

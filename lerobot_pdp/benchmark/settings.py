@@ -325,3 +325,10 @@ class BenchmarkConfig:
     # With validate: an earlier validation.json whose candidate rows stand for this run's checkpoints where
     # they are checked identical, so that only candidates it lacks are evaluated (validation.check_reuse)
     reuse_validation: Path | None = None
+
+    def observation(self) -> dict[str, Any] | None:
+        """What the policies observe, as results.json and validation.json record it (``observation``): None for
+        the state variant, which files made before the camera variant are too. ``camera`` must be resolved."""
+        if self.obs == "state":
+            return None
+        return {"obs": self.obs, "camera": self.camera, "image_size": self.image_size}

@@ -216,9 +216,11 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     return record
 
 
-def load_reuse_record(path: Path | str, env: str, rollouts: int) -> dict[str, Any]:
+def load_reuse_record(path: Path | str, env: str, rollouts: int,
+                      observation: dict[str, Any] | None = None) -> dict[str, Any]:
     """The earlier validation record ``--reuse-validation`` names, checked before anything trains: it must be
-    a validation.json of ``env`` with ``rollouts`` rollouts per scene (else a ValueError naming the file)."""
+    a validation.json of ``env`` with ``rollouts`` rollouts per scene and this run's ``observation``
+    (:meth:`BenchmarkConfig.observation`; None: state), else a ValueError naming the file."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"--reuse-validation {path}: no such file (give an earlier validation.json)")
@@ -228,10 +230,10 @@ def load_reuse_record(path: Path | str, env: str, rollouts: int) -> dict[str, An
         raise ValueError(f"--reuse-validation {path} is not JSON ({e})") from e
     if not isinstance(record, dict) or not isinstance(record.get("methods"), dict):
         raise ValueError(f"--reuse-validation {path} is not a validation record (no 'methods')")
-    for key, want in (("env", env), ("split", "validation"), ("rollouts", rollouts)):
+    for key, want in (("env", env), ("split", "validation"), ("rollouts", rollouts), ("observation", observation)):
         if record.get(key) != want:
             raise ValueError(f"--reuse-validation {path}: {key} is {record.get(key)!r}, this run's is {want!r}; only a "
-                             "record of the same env, split and rollouts can be reused")
+                             "record of the same env, split, rollouts and observations can be reused")
     return record
 
 
@@ -262,6 +264,8 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     out: dict[str, Any] = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
                            "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
                            "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()}, "methods": {}}
+    if cfg.observation() is not None:  # as in results.json: absent means the state variant
+        out["observation"] = cfg.observation()
     if source:
         out["reused_from"] = source
     for name in runs:
@@ -333,15 +337,16 @@ def _record_methods(env: str) -> dict[str, Method]:
 
 def merge_validation_records(records: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """One ``validation.json`` from validation runs of the same protocol that validated different methods
-    (one output folder per method). Refused, naming the file and the key: another env, split or rollout count,
-    a method present twice, and a candidate list that differs between two records holding methods validated
-    with it (e.g. DP's noise candidates in two records that both hold DP-like methods). Lists only the other
-    methods use may differ: the merged record keeps each list from the records whose methods used it."""
+    (one output folder per method). Refused, naming the file and the key: another env, split, rollout count or
+    observation variant (state / camera), a method present twice, and a candidate list that differs between
+    two records holding methods validated with it (e.g. DP's noise candidates in two records that both hold
+    DP-like methods). Lists only the other methods use may differ: the merged record keeps each list from the
+    records whose methods used it."""
     if not records:
         raise ValueError("no validation records to merge")
     first_name, first = records[0]
     for name, rec in records[1:]:
-        for key in ("env", "split", "rollouts"):
+        for key in ("env", "split", "rollouts", "observation"):
             if rec.get(key) != first.get(key):
                 raise ValueError(f"{name}: {key} is {rec.get(key)!r} but {first_name} has {first.get(key)!r}; "
                                  "only validation runs of the same protocol can be merged")
