@@ -5,6 +5,7 @@ method, and the choice is the best mean success (ties: the default, listed first
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 
@@ -166,6 +167,32 @@ def test_a_wrong_reuse_record_is_refused_before_training(tmp_path):
     assert validation.load_reuse_record(tmp_path / "camera.json", "reach-around", 40, camera["observation"]) == camera
     with pytest.raises(ValueError, match="observation is None, this run's is {'obs': 'images'"):
         validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40, camera["observation"])
+
+
+def test_a_camera_validation_reuses_a_camera_record_and_records_what_it_observed(tmp_path):
+    """``validate`` of the camera variant reads a camera record (its methods not run here are carried over) and
+    writes ``observation`` into the new record; a state record is refused there by name."""
+    from lerobot_pdp.benchmark.settings import CAMERAS, IMAGE_SIZE, methods_for
+    from lerobot_pdp.envs import get_suite_env
+
+    suite = get_suite_env("reach-around").with_camera(CAMERAS["reach-around"], IMAGE_SIZE)
+    cfg = BenchmarkConfig(env="reach-around", out=tmp_path / "val", seeds=[100], rollouts=20, split="validation",
+                          validate=True, scenes=split_scenes("reach-around", "validation"), obs="images",
+                          camera=CAMERAS["reach-around"])
+    dp = {"seeds": [100], "scenes": ["0"], "sampler": [], "adapt": [], "chosen": {"sampler": None, "adapt": {}}}
+    record = {"env": "reach-around", "split": "validation", "rollouts": 20, "observation": cfg.observation(),
+              "sampler_candidates": [list(c) for c in validation.SAMPLER_CANDIDATES],
+              "adapt_candidates": {k: list(v) for k, v in validation.ADAPT_CANDIDATES.items()}, "methods": {"dp": dp}}
+    (tmp_path / "camera.json").write_text(json.dumps(record))
+    (tmp_path / "state.json").write_text(json.dumps({k: v for k, v in record.items() if k != "observation"}))
+    (tmp_path / "val").mkdir()
+    out = validation.validate(replace(cfg, reuse_validation=tmp_path / "camera.json"), suite, methods_for(suite), {},
+                              [])
+    assert out["observation"] == {"obs": "images", "camera": "oblique", "image_size": IMAGE_SIZE}
+    assert out["methods"] == {"dp": dp}
+    assert json.loads((tmp_path / "val" / "validation.json").read_text()) == out
+    with pytest.raises(ValueError, match=f"--reuse-validation {tmp_path / 'state.json'}: observation is None"):
+        validation.validate(replace(cfg, reuse_validation=tmp_path / "state.json"), suite, methods_for(suite), {}, [])
 
 
 def test_a_setting_changes_only_on_evidence():

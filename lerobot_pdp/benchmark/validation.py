@@ -259,8 +259,8 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     if set(map(str, cfg.scenes)) != expected:
         raise ValueError(f"validation uses all of {sorted(expected)}, got {sorted(map(str, cfg.scenes))}")
     source = str(cfg.reuse_validation) if cfg.reuse_validation else ""
-    previous = (load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts) if cfg.reuse_validation
-                else {"methods": {}})
+    previous = (load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts, cfg.observation())
+                if cfg.reuse_validation else {"methods": {}})
     out: dict[str, Any] = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
                            "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
                            "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()}, "methods": {}}
