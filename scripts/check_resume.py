@@ -72,6 +72,9 @@ def main() -> None:
         step_file = resumed / ".train-partial" / "out" / "checkpoints" / "last" / "training_state" / "training_step.json"
         while proc.poll() is None and not step_file.exists():
             time.sleep(0.02)
+        if proc.poll() is not None:
+            raise RuntimeError(f"{method}: the training to be killed ended (code {proc.returncode}) before its first "
+                               f"checkpoint ({step_file})")
         os.killpg(proc.pid, signal.SIGKILL)  # the trainer and its lerobot-train process
         proc.wait()
         subprocess.run([sys.executable, "-c", _train_code(method, data, resumed, args.steps, every)], env=env,
