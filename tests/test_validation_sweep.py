@@ -162,11 +162,13 @@ def test_a_wrong_reuse_record_is_refused_before_training(tmp_path):
             run_benchmark(cfg)
     assert not (tmp_path / "out").exists()  # refused before anything was written
     (tmp_path / "good.json").write_text(json.dumps(good))
-    assert validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40) == good
+    assert validation.load_reuse_record(replace(cfg, reuse_validation=tmp_path / "good.json"), "reach-around") == good
     camera = json.loads((tmp_path / "camera.json").read_text())  # a camera run reuses a camera record only
-    assert validation.load_reuse_record(tmp_path / "camera.json", "reach-around", 40, camera["observation"]) == camera
+    camera_cfg = replace(cfg, obs="images", camera="oblique", image_size=64)
+    assert validation.load_reuse_record(replace(camera_cfg, reuse_validation=tmp_path / "camera.json"),
+                                        "reach-around") == camera
     with pytest.raises(ValueError, match="observation is None, this run's is {'obs': 'images'"):
-        validation.load_reuse_record(tmp_path / "good.json", "reach-around", 40, camera["observation"])
+        validation.load_reuse_record(replace(camera_cfg, reuse_validation=tmp_path / "good.json"), "reach-around")
 
 
 def test_a_camera_validation_reuses_a_camera_record_and_records_what_it_observed(tmp_path):

@@ -60,7 +60,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     if cfg.reuse_validation:  # a wrong file is refused now, not after hours of training
         from .validation import load_reuse_record
 
-        load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts, cfg.observation())
+        load_reuse_record(cfg, suite.name)
     settings = quick if cfg.quick else full
     if cfg.episodes_per_mode is not None:
         settings = TrainSettings(**{**asdict(settings), "episodes_per_mode": cfg.episodes_per_mode})

@@ -58,8 +58,9 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
                            "device": cfg.device,
                            "frozen": frozen if frozen is not None else frozen_record(env, cfg),
                            "methods": {}}
-    if cfg.observation() is not None:
-        out["observation"] = cfg.observation()
+    observation = cfg.observation()
+    if observation is not None:
+        out["observation"] = observation
     for name, runs in per_run.items():
         entry: dict[str, Any] = {"seeds": [s for s in cfg.seeds if s in runs]}
         for scene in cfg.scenes:

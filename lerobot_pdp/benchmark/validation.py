@@ -216,12 +216,12 @@ def validate_method(suite, method: Method, runs: dict[int, Path], demos, cfg: Be
     return record
 
 
-def load_reuse_record(path: Path | str, env: str, rollouts: int,
-                      observation: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The earlier validation record ``--reuse-validation`` names, checked before anything trains: it must be
-    a validation.json of ``env`` with ``rollouts`` rollouts per scene and this run's ``observation``
-    (:meth:`BenchmarkConfig.observation`; None: state), else a ValueError naming the file."""
-    path = Path(path)
+def load_reuse_record(cfg: BenchmarkConfig, env: str) -> dict[str, Any]:
+    """The earlier validation record ``cfg.reuse_validation`` names, checked before anything trains: it must be
+    a validation.json of ``env`` (the suite's name) with this run's rollouts per scene and observations
+    (:meth:`BenchmarkConfig.observation`, camera resolved), else a ValueError naming the file. Taking the whole
+    config keeps the run's start-up check and :func:`validate` from comparing different fields."""
+    path = Path(cfg.reuse_validation)
     if not path.is_file():
         raise ValueError(f"--reuse-validation {path}: no such file (give an earlier validation.json)")
     try:
@@ -230,7 +230,8 @@ def load_reuse_record(path: Path | str, env: str, rollouts: int,
         raise ValueError(f"--reuse-validation {path} is not JSON ({e})") from e
     if not isinstance(record, dict) or not isinstance(record.get("methods"), dict):
         raise ValueError(f"--reuse-validation {path} is not a validation record (no 'methods')")
-    for key, want in (("env", env), ("split", "validation"), ("rollouts", rollouts), ("observation", observation)):
+    for key, want in (("env", env), ("split", "validation"), ("rollouts", cfg.rollouts),
+                      ("observation", cfg.observation())):
         if record.get(key) != want:
             raise ValueError(f"--reuse-validation {path}: {key} is {record.get(key)!r}, this run's is {want!r}; only a "
                              "record of the same env, split, rollouts and observations can be reused")
@@ -259,13 +260,13 @@ def validate(cfg: BenchmarkConfig, suite, methods: dict[str, Method], runs: dict
     if set(map(str, cfg.scenes)) != expected:
         raise ValueError(f"validation uses all of {sorted(expected)}, got {sorted(map(str, cfg.scenes))}")
     source = str(cfg.reuse_validation) if cfg.reuse_validation else ""
-    previous = (load_reuse_record(cfg.reuse_validation, suite.name, cfg.rollouts, cfg.observation())
-                if cfg.reuse_validation else {"methods": {}})
+    previous = load_reuse_record(cfg, suite.name) if cfg.reuse_validation else {"methods": {}}
     out: dict[str, Any] = {"env": suite.name, "split": "validation", "rollouts": cfg.rollouts,
                            "sampler_candidates": [list(c) for c in SAMPLER_CANDIDATES],
                            "adapt_candidates": {k: list(v) for k, v in ADAPT_CANDIDATES.items()}, "methods": {}}
-    if cfg.observation() is not None:  # as in results.json: absent means the state variant
-        out["observation"] = cfg.observation()
+    observation = cfg.observation()
+    if observation is not None:  # as in results.json: absent means the state variant
+        out["observation"] = observation
     if source:
         out["reused_from"] = source
     for name in runs:
