@@ -27,6 +27,9 @@ camera method), past its VQ-VAE phase; no ratio line (it is a baseline's cost, n
 ``--blocks`` adds ``pdp_blocks``: PDP's weights with the fused training modulation off (each block's
 conditioning and z-MLP run as its own small modules, as before the fusion), and PDP over it.
 
+``--eager-pdp`` adds ``pdp_eager``: PDP's weights with its CUDA-graph training step off
+(``train_cuda_graphs=False``: forward and backward launched kernel by kernel), and PDP over it.
+
 ``--count-ops`` counts instead of timing: the aten operators one training step's forward and backward
 dispatch (each non-view operator is at least one kernel launch on a GPU, where a small model's step is
 launch-bound), and the parameter tensors (one optimizer update each unless fused), for PDP and matched DP;
@@ -105,7 +108,7 @@ def _vqbet(meta, cameras, size, device):
 
 
 def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None,
-              blocks: bool = False):
+              blocks: bool = False, eager_pdp: bool = False):
     """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins; with ``blocks``,
     ``pdp_blocks``: PDP's weights with the fused training modulation off)."""
     import torch
@@ -130,6 +133,10 @@ def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mo
     if blocks:
         out["pdp_blocks"] = copy.deepcopy(out["pdp"])
         out["pdp_blocks"].model.denoiser.fused_modulation = False
+    if eager_pdp:
+        out["pdp_eager"] = copy.deepcopy(out["pdp"])
+        out["pdp_eager"].config.train_cuda_graphs = False
+        assert out["pdp_eager"].model.config is out["pdp_eager"].config
     return out
 
 
@@ -161,7 +168,7 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
     policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode,
-                         args.blocks)
+                         args.blocks, args.eager_pdp)
     if args.vqbet and n_cam == 1:  # LeRobot's vqbet takes exactly one camera
         policies["vqbet"] = _vqbet(meta, cameras, size, dev)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
@@ -211,7 +218,8 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
     pairs = ([("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
-             + ([("pdp", "pdp_blocks", "fused_over_blocks")] if args.blocks else []))
+             + ([("pdp", "pdp_blocks", "fused_over_blocks")] if args.blocks else [])
+             + ([("pdp_eager", "dp_matched", "pdp_eager")] if args.eager_pdp else []))
     for bench in ("select_action_new_chunk", "train_step"):
         for a, b, label in pairs:
             r = round(res[(a, bench)]["median_ms"] / res[(b, bench)]["median_ms"], 3)
@@ -295,6 +303,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="count a training step's aten operators and parameter tensors instead of timing")
     ap.add_argument("--blocks", action="store_true",
                     help="also PDP with its fused training modulation off (pdp_blocks: each block's modules)")
+    ap.add_argument("--eager-pdp", action="store_true",
+                    help="also PDP with its CUDA-graph training step off (pdp_eager: train_cuda_graphs=False)")
     ap.add_argument("--top-ops", type=int, default=8, help="with --count-ops: the most frequent forward operators listed")
     args = ap.parse_args(argv)
 

@@ -8,10 +8,13 @@ behavior bank, CUDA context) is excluded; LeRobot's ``updt_s`` / ``data_s`` aver
 Also reported: the median of the rates between consecutive log lines (``median_steps_per_s``), which a
 one-off pause (a recompile for the epoch's last, smaller batch) does not move. A policy name ending in
 ``_compiled`` (``pdp_compiled``, ``dp_compiled``) trains that method with ``--policy.compile_model=true``
-(and ``--compile-mode``). One JSON line per run on stdout, then a ratio line.
+(and ``--compile-mode``); ``pdp_eager`` trains PDP with its CUDA-graph training step off
+(``--policy.train_cuda_graphs=false``). Each run is repeated per ``--batch-sizes`` (samples/s = steps/s x
+batch). One JSON line per run on stdout, then a ratio line per batch size.
 
     .venv/bin/python benchmarks/bench_train_device.py [--devices cpu cuda] [--steps 600] [--num-workers 4]
-        [--policies pdp pdp_compiled@cuda dp dp_compiled] [--compile-mode reduce-overhead]
+        [--policies pdp pdp_eager@cuda pdp_compiled@cuda dp dp_compiled] [--compile-mode reduce-overhead]
+        [--batch-sizes 64 256]
 """
 
 from __future__ import annotations
@@ -74,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compile-mode", default=None, help="--policy.compile_mode of the _compiled runs "
                     "(default: each policy's own, PDP 'default', LeRobot diffusion 'reduce-overhead')")
     ap.add_argument("--steps", type=int, default=600, help="training steps per run (< 1000: exact log counters)")
+    ap.add_argument("--batch-sizes", type=int, nargs="+", default=None,
+                    help="lerobot-train batch sizes, each a run (default: the benchmark's training batch)")
     ap.add_argument("--log-freq", type=int, default=50)
     ap.add_argument("--num-workers", type=int, default=4, help="LeRobot loader workers (all runs)")
     ap.add_argument("--cpu-threads", type=int, default=None,
@@ -91,7 +96,6 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from lerobot_pdp.benchmark.settings import TrainSettings, methods_for
-    from lerobot_pdp.benchmark.training import train_args
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
 
@@ -105,26 +109,42 @@ def main(argv: list[str] | None = None) -> int:
     cpu_threads = args.cpu_threads or max(1, cpus - args.num_workers)
     methods = methods_for(get_suite_env("reach-around"))
     settings = TrainSettings(steps=args.steps)
+    batch_sizes = args.batch_sizes or [settings.batch_size]
     env = {"cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
            "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
+    for bs in batch_sizes:
+        _run_batch_size(args, only, methods, root, settings, bs, cpu_threads, work, logs, env)
+    tmp.cleanup()
+    return 0
+
+
+def _run_batch_size(args, only, methods, root, settings, bs, cpu_threads, work, logs, env) -> None:
+    """Every (policy, device) run at batch size ``bs``: one JSON line each, then their ratio line."""
+    from lerobot_pdp.benchmark.training import train_args
+
     rates: dict[tuple[str, str], float] = {}
     for name in args.policies:  # policy by policy: a cut-short run still has each policy's device ratio
         for device in args.devices:
             if only[name] and device != only[name]:
                 continue
-            base, compiled = name.removesuffix("_compiled"), name.endswith("_compiled")
+            base, compiled, eager = name.removesuffix("_compiled").removesuffix("_eager"), \
+                name.endswith("_compiled"), name.endswith("_eager")
             flags = {"policy__compile_model": "true"} if compiled else {}
             if compiled and args.compile_mode:
                 flags["policy__compile_mode"] = args.compile_mode
+            if eager:
+                flags["policy__train_cuda_graphs"] = "false"
             cmd = _replace(train_args(methods[base], root, 0, settings, args.steps, device),
-                           log_freq=args.log_freq, num_workers=args.num_workers, save_freq=10**9, **flags)
+                           log_freq=args.log_freq, num_workers=args.num_workers, save_freq=10**9, batch_size=bs,
+                           **flags)
             threads = cpu_threads if device == "cpu" else 1
-            r = run_one(cmd, work / f"run_{name}_{device}", threads, logs / f"{name}_{device}.log")
+            r = run_one(cmd, work / f"run_{name}_{device}_b{bs}", threads, logs / f"{name}_{device}_b{bs}.log")
             rates[(name, device)] = r["steps_per_s"]
             print(json.dumps({"bench": "lerobot_train_steps", "policy": name, "device": device,
                               "compile_mode": (args.compile_mode or "policy default") if compiled else None,
-                              "torch_threads": threads, "batch_size": settings.batch_size, **r, **env}), flush=True)
-    ratio: dict[str, object] = {"bench": "lerobot_train_steps_ratio"}
+                              "torch_threads": threads, "batch_size": bs,
+                              "samples_per_s": round(r["steps_per_s"] * bs, 1), **r, **env}), flush=True)
+    ratio: dict[str, object] = {"bench": "lerobot_train_steps_ratio", "batch_size": bs}
     for name in args.policies:
         for device in args.devices:
             if device != "cpu" and (name, "cpu") in rates:
@@ -134,12 +154,12 @@ def main(argv: list[str] | None = None) -> int:
             if (f"pdp{sfx}", device) in rates and (f"dp{sfx}", device) in rates:
                 ratio[f"pdp{sfx}_over_dp{sfx}_{device}"] = round(rates[(f"pdp{sfx}", device)]
                                                                / rates[(f"dp{sfx}", device)], 2)
-        if ("pdp_compiled", device) in rates and ("pdp", "cpu") in rates:
-            ratio[f"pdp_compiled_{device}_over_pdp_cpu"] = round(rates[("pdp_compiled", device)]
-                                                                 / rates[("pdp", "cpu")], 2)
+        for variant in ("pdp_compiled", "pdp_eager"):
+            if (variant, device) in rates and ("pdp", "cpu") in rates:
+                ratio[f"{variant}_{device}_over_pdp_cpu"] = round(rates[(variant, device)] / rates[("pdp", "cpu")], 2)
+        if ("pdp", device) in rates and ("pdp_eager", device) in rates:
+            ratio[f"pdp_over_pdp_eager_{device}"] = round(rates[("pdp", device)] / rates[("pdp_eager", device)], 2)
     print(json.dumps(ratio), flush=True)
-    tmp.cleanup()
-    return 0
 
 
 if __name__ == "__main__":

@@ -188,6 +188,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # "max-autotune-no-cudagraphs"). The sampler is compiled without CUDA graphs in any mode: on CUDA it is
     # replayed from PDP's own captured graph already.
     compile_mode: str = "default"
+    # On CUDA, replay the training step's forward and backward from two captured CUDA graphs (one pair per
+    # batch shape) instead of launching its ~5000 small kernels one by one: at these model sizes a step is
+    # bound by kernel launches, not arithmetic. Off, or automatically eager, under compile_model, automatic
+    # mixed precision, several processes, or a random image crop (its offsets are drawn on the host).
+    train_cuda_graphs: bool = True
 
     # ---- Latent fitting defaults (policy.fit_latent) ----
     # Gradient steps S on z after the encoder warm start (0 = the warm start alone).

@@ -1,10 +1,14 @@
-"""Replay of a captured CUDA graph: the fast inference path of a policy on a GPU.
+"""Replay of captured CUDA graphs: the fast paths of a policy on a GPU.
 
-At batch size 1 a new action chunk is a few hundred small kernels (one U-Net pass per sampler step);
-launched one by one from Python the GPU waits for the host most of the time. Captured once into a CUDA
-graph they launch as one unit. Written here because PyTorch's ``make_graphed_callables`` is for training
-(it captures a backward pass too) and ``torch.compile(mode="reduce-overhead")`` needs a compiler toolchain
-and a long warm-up at run time.
+At these model sizes a new action chunk (a few hundred small kernels at batch size 1) and a training step
+(~5000 kernels for forward and backward) are bound by launching kernels one by one from Python: the GPU
+waits for the host most of the time. Captured once into a CUDA graph they launch as one unit.
+
+Inference uses its own small capture (:class:`CapturedCall`): PyTorch's ``make_graphed_callables`` captures
+a backward pass too, and ``torch.compile(mode="reduce-overhead")`` needs a compiler toolchain and a long
+warm-up at run time. Training (:class:`TrainGraphs`) uses ``make_graphed_callables``, which is made for it:
+forward and backward become two graphs behind one autograd function, so LeRobot's own loop (backward,
+gradient clipping, optimizer step) runs unchanged around them.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from collections.abc import Callable, Hashable
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 
 class CapturedCall:
@@ -73,3 +77,73 @@ class GraphCache:
 
     def __getstate__(self) -> dict:
         return {"size": self.size, "_calls": OrderedDict()}
+
+
+class _LossModule(nn.Module):
+    """``fn(batch) -> outputs`` with the batch's tensors as positional inputs, as ``make_graphed_callables``
+    wants them; ``model`` is a submodule so that its parameters are the graphs' weights."""
+
+    def __init__(self, model: nn.Module, fn: Callable[[dict[str, Tensor]], Any], keys: tuple[str, ...]):
+        super().__init__()
+        self.model = model
+        self._fn = fn
+        self.keys = keys
+
+    def forward(self, *tensors: Tensor) -> Any:
+        return self._fn(dict(zip(self.keys, tensors, strict=True)))
+
+
+class TrainGraphs:
+    """A training loss ``fn(batch)`` of ``model`` with its forward and backward replayed from CUDA graphs.
+
+    One pair of graphs per batch signature (keys, shapes, dtypes; an epoch's last, smaller batch gets its own)
+    and per storage of the model's parameters and buffers (``.to()``, new behaviors: captured anew); the
+    last ``size`` are kept. ``fn`` must be free of host synchronisation and draw its randomness from the
+    CUDA generator (graph-safe: each replay draws new numbers, the same ones an eager call would from that
+    generator state). Outputs are the graphs' static tensors: read them before the next call.
+    """
+
+    def __init__(self, size: int = 2, warmup: int = 3):
+        self.size = size
+        self.warmup = warmup
+        self._steps: OrderedDict[Hashable, nn.Module] = OrderedDict()
+
+    def __call__(self, model: nn.Module, fn: Callable[[dict[str, Tensor]], Any], batch: dict[str, Tensor]) -> Any:
+        keys = tuple(sorted(batch))
+        tensors = tuple(batch[k] for k in keys)
+        key = (keys, tuple((tuple(t.shape), t.dtype) for t in tensors),
+               tuple((t.data_ptr(), t.requires_grad) for t in (*model.parameters(), *model.buffers())))
+        step = self._steps.get(key)
+        if step is None:
+            step = self._capture(model, fn, keys, tensors)
+            self._steps[key] = step
+            while len(self._steps) > self.size:
+                self._steps.popitem(last=False)
+        else:
+            self._steps.move_to_end(key)
+        return step(*tensors)
+
+    def _capture(self, model: nn.Module, fn: Callable, keys: tuple[str, ...], tensors: tuple[Tensor, ...]) -> nn.Module:
+        # The warm-up passes run the loss for real: put back what they changed (running statistics, the
+        # generator), so that a graphed training draws the same numbers as an eager one from the same seed.
+        device = tensors[0].device
+        saved = [(b, b.detach().clone()) for b in model.buffers()]
+        rng = torch.cuda.get_rng_state(device)
+        module = _LossModule(model, fn, keys).train(model.training)
+        inputs = tuple(t.detach().clone() for t in tensors)  # the graphs' static inputs
+        graphed = torch.cuda.make_graphed_callables(module, inputs, num_warmup_iters=self.warmup,
+                                                    allow_unused_input=True)
+        torch.cuda.set_rng_state(rng, device)
+        with torch.no_grad():
+            for b, value in saved:
+                b.copy_(value)
+        return graphed
+
+    def clear(self) -> None:
+        self._steps.clear()
+
+    def __deepcopy__(self, memo: dict) -> TrainGraphs:
+        return TrainGraphs(self.size, self.warmup)
+
+    def __getstate__(self) -> dict:
+        return {"size": self.size, "warmup": self.warmup, "_steps": OrderedDict()}

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
 from .configuration_pdp import PDPConfig
-from .cuda_graphs import GraphCache
+from .cuda_graphs import GraphCache, TrainGraphs
 from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
 from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
 from .observation_encoder import ObservationEncoder
@@ -69,6 +69,7 @@ class PDPModel(nn.Module):
             tuple(cfg.film_hidden_dims),
         )
         self._cuda_graphs = True
+        self._train_graphs: TrainGraphs | None = TrainGraphs()  # None: capture failed once, train eagerly
         self.set_sampler(cfg.timestep_spacing, cfg.use_clipped_model_output)
 
     def set_sampler(self, timestep_spacing: str, use_clipped_model_output: bool) -> None:
@@ -156,9 +157,41 @@ class PDPModel(nn.Module):
 
     def loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi) on a training batch, and its logged terms as 0-d
-        tensors, without a single host synchronisation (see ``PDPPolicy.forward``)."""
+        tensors, without a single host synchronisation (see ``PDPPolicy.forward``).
+
+        On CUDA in training the forward and backward are replayed from captured graphs
+        (``config.train_cuda_graphs``); the returned tensors are then the graphs' outputs, valid until the
+        next training step."""
         self.check_batch(batch)
-        z_bar, behavior = self.batch_latents(batch)
+        if self._graph_training(batch):
+            inputs = self._loss_inputs(batch)
+            self.behavior_ids(inputs["episode_index"], None)  # the unknown-episode check, outside the graph
+            try:
+                return self._train_graphs(self, self._graphed_loss_terms, inputs)
+            except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
+                logger.warning("CUDA graph capture of the training step failed (%r); training eagerly", e)
+                self._train_graphs = None
+        return self._loss_terms(batch)
+
+    def _graph_training(self, batch: dict[str, Tensor]) -> bool:
+        """Whether this training step may run from captured CUDA graphs (see ``config.train_cuda_graphs``)."""
+        cfg = self.config
+        actions = batch[ACTION]
+        return (cfg.train_cuda_graphs and self._train_graphs is not None and actions.is_cuda and self.training
+                and torch.is_grad_enabled() and not cfg.compile_model and not torch.is_autocast_enabled("cuda")
+                and world()[1] == 1 and not (cfg.image_features and cfg.crop_shape and cfg.crop_is_random))
+
+    def _loss_inputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The tensors ``_loss_terms`` reads (a LeRobot batch also holds strings, timestamps, ...)."""
+        keys = [*self.config.condition_features, ACTION, "episode_index", "index", "action_is_pad"]
+        return {k: batch[k] for k in keys if k in batch}
+
+    def _graphed_loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        return self._loss_terms(batch, check_episodes=False)
+
+    def _loss_terms(self, batch: dict[str, Tensor], check_episodes: bool = True) -> tuple[Tensor, dict[str, Tensor]]:
+        """``loss_terms`` run eagerly (and what the training graphs capture)."""
+        z_bar, behavior = self.batch_latents(batch, check_episodes)
         obs_cond = self.obs_cond(batch)
         actions = batch[ACTION]
         eps = torch.randn_like(actions)
@@ -182,7 +215,10 @@ class PDPModel(nn.Module):
 
     def embedding_loss(self, device) -> tuple[Tensor, dict]:
         n = len(self.behavior_traces)
-        idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
+        if torch.device(device).type == "cuda":  # randperm of a small n is drawn on the host: not graph-safe
+            idx = torch.rand(n, device=device).argsort()[: self.config.embed_batch_size]
+        else:
+            idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
         return self.vae.loss(
             self.behavior_traces[idx], self.trace_distance_matrix[idx][:, idx], self.geo_kappa,
             self.config.beta_kl, self.config.beta_geo,
@@ -201,8 +237,9 @@ class PDPModel(nn.Module):
         if "episode_index" not in batch:
             raise KeyError("batch has no 'episode_index': PDP conditions each window on its episode's latent")
 
-    def behavior_ids(self, episode_index: Tensor, global_index: Tensor | None) -> Tensor:
-        """Behavior (episode, or gripper phase of an episode) of each training sample."""
+    def behavior_ids(self, episode_index: Tensor, global_index: Tensor | None, check: bool = True) -> Tensor:
+        """Behavior (episode, or gripper phase of an episode) of each training sample; ``check``: refuse an
+        episode that is not among the training behaviors."""
         if len(self.behavior_episode) == 0:
             raise RuntimeError(
                 "PDP has no behavior traces: build it with dataset_meta (lerobot-train does) or load a checkpoint"
@@ -210,13 +247,13 @@ class PDPModel(nn.Module):
         ep = episode_index.view(-1, 1).to(self.behavior_episode.device)
         match = ep == self.behavior_episode.view(1, -1)
         known = match.any(1).all()
-        if known.device.type == "cpu":
+        if check and known.device.type == "cpu":
             if not bool(known):
                 missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
                 raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
                                f"({self.behavior_episode.unique().numel()} episodes, "
                                f"{len(self.behavior_episode)} behaviors)")
-        else:  # checked on the device: reading the flag back would stall the GPU every training step
+        elif check:  # checked on the device: reading the flag back would stall the GPU every training step
             torch._assert_async(known, "a training batch holds episodes that are not among the policy's "
                                        "training episodes (run one step on CPU to see which)")
         if global_index is not None:
@@ -235,8 +272,8 @@ class PDPModel(nn.Module):
         traces = self.behavior_traces if ids is None else self.behavior_traces[ids]
         return self.vae.encode(traces)[0]
 
-    def batch_latents(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        ids = self.behavior_ids(batch["episode_index"], batch.get("index"))
+    def batch_latents(self, batch: dict[str, Tensor], check_episodes: bool = True) -> tuple[Tensor, Tensor]:
+        ids = self.behavior_ids(batch["episode_index"], batch.get("index"), check_episodes)
         with torch.no_grad():  # stop-gradient: L_DP must not shape the latent geometry
             if ids.device.type != "cpu":  # unique() has a data-dependent size: the host would wait for it
                 return self.behavior_latents(ids).to(batch[ACTION].device), ids

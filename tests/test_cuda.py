@@ -31,6 +31,50 @@ def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
     assert all(isinstance(v, float) for v in info.values()) and torch.isfinite(loss2)
 
 
+def test_graphed_training_step_matches_eager_and_replays_without_host_syncs(synthetic_meta):
+    """train_cuda_graphs (the default on CUDA): forward and backward replayed from captured graphs give the
+    eager loss, logged terms and gradients from the same generator state, step after step with the weights
+    updated in between; a replay never waits for the GPU; another batch size gets its own graphs."""
+    graphed = small_policy(synthetic_meta, "cuda")
+    eager = small_policy(synthetic_meta, "cuda", train_cuda_graphs=False)
+    eager.load_state_dict(graphed.state_dict())
+    batch = training_batch(synthetic_meta, graphed, n=8)
+    small = training_batch(synthetic_meta, graphed, n=5, seed=1)  # an epoch's last, smaller batch
+    opts = {}
+    for q in (graphed, eager):
+        q.train()
+        opts[q] = torch.optim.AdamW(q.get_optim_params(), lr=1e-3)
+    for step, b in enumerate((batch, batch, small, batch)):
+        out = []
+        for q in (graphed, eager):
+            torch.manual_seed(step)
+            loss, info = q.forward(b)
+            loss.backward()
+            out.append((loss.detach().clone(), info, [x.grad.clone() for x in q.parameters() if x.grad is not None]))
+            opts[q].step()
+            opts[q].zero_grad(set_to_none=True)
+        (lg, ig, gg), (le, ie, ge) = out
+        # same kernels on the same inputs and generator state: equal up to reduction order (1e-5)
+        torch.testing.assert_close(lg, le, atol=1e-5, rtol=1e-5)
+        assert ig.keys() == ie.keys() and all(abs(ig[k] - ie[k]) <= 1e-5 * (1 + abs(ie[k])) for k in ie)
+        assert len(gg) == len(ge) > 0
+        for a, e in zip(gg, ge, strict=True):
+            torch.testing.assert_close(a, e, atol=1e-5, rtol=1e-4)
+    assert len(graphed.model._train_graphs._steps) == 2  # batch sizes 8 and 5
+    assert torch.isfinite(graphed.model.train_loss_dp)
+    torch.testing.assert_close(graphed.model.train_loss_dp, eager.model.train_loss_dp, atol=1e-5, rtol=1e-5)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        loss, _ = graphed.model.loss_terms(batch)
+        loss.backward()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    graphed.eval()  # evaluation: eager, not a training graph
+    with torch.no_grad():
+        graphed.model.loss_terms(batch)
+    assert len(graphed.model._train_graphs._steps) == 2
+
+
 def _sampler_inputs(p, batch: int, seed: int):
     """Random (obs condition, z, initial noise) for ``p``'s sampler on the GPU."""
     g = torch.Generator(device="cuda").manual_seed(seed)
@@ -61,8 +105,8 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
 
 
 def test_gpu_sampler_convolutions_match_a_float64_reference(synthetic_meta):
-    """The sampler's unfold + matmul convolutions on a GPU are as exact as PyTorch's (cuDNN) ones: both within
-    2e-5 of the same sampler run in float64. A float32 path is ~1e-5 off the exact chunk after 20 steps
+    """The sampler's unfold + matmul convolutions on a GPU are as exact as PyTorch's (cuDNN) ones, compared
+    with the same sampler run in float64. A float32 path is ~1e-5 off the exact chunk after 20 steps
     (measured on CPU with these seeded weights: 8.5e-6; more where an x0 sits at the clip bound, see the CPU
     test), so two of them may differ by more than 1e-5 from each other depending on the algorithm cuDNN
     picks: each is compared with the float64 chunk instead."""
@@ -87,7 +131,12 @@ def test_gpu_sampler_convolutions_match_a_float64_reference(synthetic_meta):
     finally:
         torch.backends.cuda.matmul.allow_tf32 = tf32
     errors = {name: (x.double() - want).abs().max().item() for name, x in (("unfolded", unfolded), ("cudnn", conv))}
-    assert max(errors.values()) <= 2e-5, errors
+    # The claim is about ours: at least as exact as PyTorch's own convolutions. cuDNN's float32 algorithms
+    # differ by GPU and version (on an H200: 3.3e-5 from float64, the unfolded path 5.8e-6), so it bounds
+    # ours only where it rounds more than 20 float32 sampler steps must (2e-5). A wrong unfolding (padding,
+    # kernel order) is off by O(0.1); 1e-3 on cuDNN's path only guards the reference itself.
+    assert errors["unfolded"] <= max(2e-5, errors["cudnn"]), errors
+    assert errors["cudnn"] <= 1e-3, errors
 
 
 @pytest.mark.parametrize("mode", ["default", "reduce-overhead"])
@@ -99,7 +148,7 @@ def test_compiled_policy_on_the_gpu(synthetic_meta, mode):
 
 
 def _check_compiled_policy(synthetic_meta, mode: str) -> None:
-    eager = small_policy(synthetic_meta, "cuda")
+    eager = small_policy(synthetic_meta, "cuda", train_cuda_graphs=False)
     p = small_policy(synthetic_meta, "cuda", compile_model=True, compile_mode=mode)
     p.load_state_dict(eager.state_dict())
     for q in (eager, p):
