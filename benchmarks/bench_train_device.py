@@ -40,8 +40,10 @@ def _replace(args: list[str], **flags: object) -> list[str]:
 
 
 def run_one(args: list[str], out_dir: Path, threads: int, log: Path) -> dict:
+    from lerobot_pdp import column_views
+
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", "OMP_NUM_THREADS": str(threads),
-           "MKL_NUM_THREADS": str(threads)}
+           "MKL_NUM_THREADS": str(threads), **column_views.child_env()}  # as the benchmark's trainings
     points: list[tuple[float, int, float, float]] = []
     t0 = time.perf_counter()
     with open(log, "w") as fh:

@@ -8,13 +8,17 @@ a training item. Upstream answers the queries through cached ``select_columns`` 
 huggingface/lerobot#4314, merged after 0.6.1; this module backports that idea for the LeRobot versions that
 lack it, so ``lerobot-train`` (any policy: PDP and the baselines load data the same way) reads only the
 columns it asked for. The items are identical (``tests/test_column_views.py``); the speed-up is measured in
-``benchmarks/bench_loader.py``. ``LEROBOT_PDP_COLUMN_VIEWS=0`` turns it off.
+``benchmarks/bench_loader.py``.
+
+It changes a LeRobot class, so it is never switched on by importing the policy: call :func:`install` (in
+Python), or start a process with ``LEROBOT_PDP_COLUMN_VIEWS=1`` and the plugin's import installs it (that is
+how the benchmark's ``lerobot-train`` processes get it). ``LEROBOT_PDP_COLUMN_VIEWS=0`` vetoes both.
 
 Why a patch and not our own dataset class: ``lerobot-train`` builds LeRobot's dataset itself. Why on the
 instance and not the class: its loader workers are spawned processes that unpickle the dataset, where a
 class patched in the parent is the unpatched original; so the fix travels with each reader (a picklable
 callable in its ``__dict__``; unpickling it imports this module), set by a wrapper around
-``DatasetReader.__init__`` when ``lerobot_pdp`` is imported.
+``DatasetReader.__init__`` that :func:`install` puts in place.
 """
 
 from __future__ import annotations
@@ -77,11 +81,22 @@ def affected(lerobot_version: str) -> bool:
 
 
 def enabled() -> bool:
-    return os.environ.get(ENV_VAR, "1").strip().lower() not in ("0", "false", "no", "off")
+    """False when ``LEROBOT_PDP_COLUMN_VIEWS`` vetoes the column views (``0``, ``false``, ``no``, ``off``)."""
+    return os.environ.get(ENV_VAR, "").strip().lower() not in ("0", "false", "no", "off")
+
+
+def requested() -> bool:
+    """Whether this process asks for the column views at the plugin's import (``LEROBOT_PDP_COLUMN_VIEWS=1``)."""
+    return os.environ.get(ENV_VAR, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def child_env() -> dict[str, str]:
+    """Environment entries with which a child ``lerobot-train`` installs the column views (unless vetoed here)."""
+    return {ENV_VAR: "1"} if enabled() else {}
 
 
 def active() -> bool:
-    """Whether readers made now (in this process or a child with the same environment) use column views."""
+    """Whether readers made in a child started with :func:`child_env` use column views."""
     import lerobot
 
     return enabled() and affected(lerobot.__version__)
@@ -90,6 +105,7 @@ def active() -> bool:
 def install() -> bool:
     """Wrap ``DatasetReader.__init__`` so that every new reader answers delta queries column by column.
 
+    The explicit switch (the plugin's import never calls it unless ``LEROBOT_PDP_COLUMN_VIEWS=1``).
     Idempotent; does nothing (returns False) on a LeRobot release that has the upstream fix, or when
     ``LEROBOT_PDP_COLUMN_VIEWS=0``.
     """

@@ -24,6 +24,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from lerobot_pdp import column_views
 from lerobot_pdp.atomic import write_text_atomic
 from lerobot_pdp.benchmark.data import ensure_dataset
 from lerobot_pdp.benchmark.evaluation import evaluate_scene0, summarize_rollouts
@@ -36,7 +37,7 @@ def _train(args: list[str], out: Path, log: Path) -> tuple[Path, float]:
     """Train into a temporary folder beside ``out``, renamed to ``out`` only when a checkpoint was written
     (a failed or interrupted run leaves its log, never half a run folder); the checkpoint and the wall time."""
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV, **column_views.child_env()}
     print(f"[accelerate-compare] training -> {out} (log {log})", flush=True)
     t0 = time.time()
     try:

@@ -32,7 +32,10 @@ def lerobot_cli(name: str) -> str:
 
 def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run a console script as a real subprocess; on failure show its output tail."""
-    full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **(env or {})}
+    from lerobot_pdp import column_views
+
+    # the benchmark's trainings read datasets through column views (a child asks for them by its environment)
+    full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **column_views.child_env(), **(env or {})}
     proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=full_env)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")

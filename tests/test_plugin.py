@@ -1,5 +1,7 @@
-"""LeRobot discovers PDP from a regular (non-editable) install, by distribution name."""
+"""The policy plugin imports the policy only; LeRobot discovers it (and the lab's own plugins: simulators,
+sim robot, teleoperator, baselines) by distribution name, also from a regular (non-editable) install."""
 
+import json
 import os
 import subprocess
 import sys
@@ -23,6 +25,56 @@ pol_cls = get_policy_class("pdp")
 env_cls = EnvConfig.get_choice_class("pdp_reach_around")
 print(lerobot_pdp.__file__, cfg_cls.__name__, pol_cls.__name__, env_cls.__name__)
 """
+
+# What importing the policy plugin loads: none of the lab, and no change to LeRobot's dataset reader.
+LEAN = """
+import json, sys
+import lerobot_policy_pdp
+from lerobot.datasets.dataset_reader import DatasetReader
+lab = sorted(m for m in sys.modules if m.split(".")[0] in ("mujoco", "gymnasium_robotics", "matplotlib")
+             or m.startswith(("lerobot_pdp.envs", "lerobot_pdp.robots", "lerobot_pdp.teleoperators",
+                              "lerobot_pdp.baselines", "lerobot_pdp.benchmark")))
+print(json.dumps({"lab": lab, "patched": bool(getattr(DatasetReader.__init__, "_pdp_column_views", False))}))
+"""
+
+# LeRobot's own discovery registers the lab from its distributions.
+DISCOVERY = """
+import json, sys
+from lerobot.utils.import_utils import register_third_party_plugins
+register_third_party_plugins()
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.envs.configs import EnvConfig
+from lerobot.robots.config import RobotConfig
+from lerobot.teleoperators.config import TeleoperatorConfig
+print(json.dumps([PreTrainedConfig.get_choice_class("pdp").__name__, PreTrainedConfig.get_choice_class("mlp_bc").__name__,
+                  EnvConfig.get_choice_class("pdp_reach_around").__name__, RobotConfig.get_choice_class("pdp_sim").__name__,
+                  TeleoperatorConfig.get_choice_class("pdp_waypoints").__name__]))
+"""
+
+
+def _python(code: str, **env: str) -> subprocess.CompletedProcess:
+    full = {k: v for k, v in os.environ.items() if k != "LEROBOT_PDP_COLUMN_VIEWS"} | env
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=full, timeout=300)
+
+
+def test_the_policy_plugin_imports_the_policy_and_nothing_else():
+    out = _python(LEAN)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout.splitlines()[-1]) == {"lab": [], "patched": False}
+    asked = _python(LEAN, LEROBOT_PDP_COLUMN_VIEWS="1")  # the benchmark's trainings ask for the column views
+    assert asked.returncode == 0, asked.stderr[-3000:]
+    import lerobot
+
+    from lerobot_pdp import column_views
+
+    assert json.loads(asked.stdout.splitlines()[-1])["patched"] is column_views.affected(lerobot.__version__)
+
+
+def test_lerobot_discovers_the_lab_plugins_by_distribution_name():
+    out = _python(DISCOVERY)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout.splitlines()[-1]) == ["PDPConfig", "MLPBCConfig", "PDPReachAroundEnvConfig",
+                                                       "PDPSimConfig", "PDPWaypointsConfig"]
 
 
 @pytest.mark.slow

@@ -42,7 +42,7 @@ def _run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: 
 
     from tqdm.auto import tqdm
 
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV, **column_views.child_env()}
     pattern = re.compile(r"step:(\d+)(K?)")
     saving = re.compile(r"Checkpoint policy after step (\d+)")
     # line-buffered: a run killed from outside keeps its log up to the kill
