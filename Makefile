@@ -40,7 +40,7 @@ results: $(STAMP)
 	done
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check lerobot_pdp lerobot_policy_pdp tests benchmarks examples scripts
+	$(VENV)/bin/ruff check lerobot_pdp lerobot_policy_pdp plugins tests benchmarks examples scripts
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do HF_HUB_OFFLINE=1 $(PY) $$b; done

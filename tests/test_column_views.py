@@ -8,8 +8,9 @@ import pickle
 import pytest
 import torch
 
-import lerobot_pdp  # noqa: F401  (installs the column views)
 from lerobot_pdp import column_views
+
+column_views.install()  # the explicit switch (importing the policy never patches LeRobot)
 
 
 def _dataset(root, delta_timestamps, episodes=None):
