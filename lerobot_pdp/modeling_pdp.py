@@ -20,9 +20,9 @@ import json
 import logging
 import math
 import os
+import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,41 +42,29 @@ from .behavior import (
     BehaviorTraces,
     build_behavior_traces,
     check_finite,
-    gripper_segments,
     make_trace,
     read_episodes,
     trace_distances,
 )
 from .configuration_pdp import PDPConfig, apply_legacy_defaults
-from .episodes import read_episode_frames
+from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
 from .latent_fitting import (
     DemoWindows,
     FitResult,
     demonstration_error,
     fit_chunk_noise,
     fit_latent,
-    frame_windows,
     select_code,
 )
 from .model_card import pdp_model_card
 from .modes import SPACES, DiscoveredModes, discover
 from .normalization import FeatureStats
 from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
-from .phases import PhaseTracker
-from .steering import SteerFile, check_recording
+from .steering import SteerFile
+from .steering_state import Steering
 
 logger = logging.getLogger(__name__)
 
-Episode = dict[str, Any] | tuple[Any, int]
-
-
-@dataclass
-class Demonstration:
-    """One demonstration as the steering API uses it, validated and split once."""
-
-    arrays: dict[str, np.ndarray]  # unnormalised float64 [T, dim] per feature key
-    segments: list[tuple[int, int]]  # frame ranges that get one latent each
-    per_phase: bool  # segments were asked for: latents are [M, d_z], else [d_z]
 
 
 class PDPPolicy(PreTrainedPolicy):
@@ -108,17 +96,40 @@ class PDPPolicy(PreTrainedPolicy):
         self.register_state_dict_post_hook(_flatten_model_keys)
         self.register_load_state_dict_pre_hook(_nest_model_keys)
 
-        # The active latent(s): [M, d_z]; M > 1 = one per phase, advanced on gripper events.
-        self.register_buffer("active_latent", torch.zeros(0, cfg.latent_dim), persistent=False)
-        # Sampler noises fitted with fit_noise="chunks": [C, horizon, A], one per new chunk of an episode, in order
-        self.register_buffer("active_noise", torch.zeros(0, cfg.horizon, self.action_dim), persistent=False)
-        self._noise_chunk = 0  # chunks generated since reset: which of them comes next
-        self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
-        self._steering_initialised = False
+        # What the next chunk is conditioned on (active latent per phase, chunk noises, phases): see
+        # steering_state.py. The config's steering fields are applied when a checkpoint is loaded.
+        self.steering = Steering(cfg.latent_dim)
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
         self._steer_file = SteerFile(config.steer_file) if config.steer_file else None
         self._queues: dict[str, deque] = {}
         self.reset()
+
+    @classmethod
+    def from_pretrained(cls, *args, **kwargs) -> PDPPolicy:
+        """LeRobot's loader, then the config's steering (``steer_latent`` / ``steer_mode`` /
+        ``steer_dataset_root``): a fit to a demonstration runs here, before any control loop starts."""
+        policy = super().from_pretrained(*args, **kwargs)
+        policy.apply_config_steering()
+        return policy
+
+    # The steering state, as the first release exposed it.
+    @property
+    def active_latent(self) -> Tensor:
+        """The active latent(s) [M, d_z] (empty: the default latent); M > 1 = one per phase."""
+        return self.steering.latent
+
+    @property
+    def active_noise(self) -> Tensor:
+        """Sampler noises fitted with ``noise="chunks"`` [C, horizon, A], one per new chunk, in order."""
+        return self.steering.noises.noise
+
+    @property
+    def phases(self):
+        return self.steering.phases
+
+    @phases.setter
+    def phases(self, tracker) -> None:
+        self.steering.phases = tracker
 
     # ------------------------------------------------------------------ training data (whole episodes)
 
@@ -167,9 +178,7 @@ class PDPPolicy(PreTrainedPolicy):
         """Clear the observation/action queues and restart the latent-phase sequence (call on env.reset())."""
         self._queues = {k: deque(maxlen=self.config.n_obs_steps) for k in self.config.condition_features}
         self._queues[ACTION] = deque(maxlen=self.config.n_action_steps)
-        self.phases.reset()
-        self._noise_chunk = 0
-        self._episode_latent: Tensor | None = None
+        self.steering.reset()
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         """One joint training step: ``L = L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi)``.
@@ -203,10 +212,8 @@ class PDPPolicy(PreTrainedPolicy):
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
-        if noise is None and len(self.active_noise):  # fitted noises: the next one, the last one repeating
-            noise = self.active_noise[min(self._noise_chunk, len(self.active_noise) - 1)]
-            noise = noise.to(obs_cond.device).expand(obs_cond.shape[0], -1, -1)
-            self._noise_chunk += 1
+        if noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
+            noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
         chunk = self.generate(obs_cond, z, noise=noise)
         start = self.config.n_obs_steps - 1
         return chunk[:, start : start + self.config.n_action_steps]
@@ -227,25 +234,15 @@ class PDPPolicy(PreTrainedPolicy):
         """With one latent per phase, move each env to its next latent when its gripper command flips
         (see :class:`~lerobot_pdp.phases.PhaseTracker`); the next chunk is then generated under it."""
         cfg = self.config
-        if len(self.active_latent) <= 1 or cfg.segment_gripper_dim is None:
+        if not self.steering.per_phase or cfg.segment_gripper_dim is None:
             return
         raw = self.stats.unnormalize(ACTION, action)[:, cfg.segment_gripper_dim]
-        if self.phases.update(raw > cfg.segment_gripper_threshold, len(self.active_latent), cfg.phase_switch_steps):
+        if self.steering.observe(raw > cfg.segment_gripper_threshold, cfg.phase_switch_steps):
             self._queues[ACTION].clear()  # the envs that did not switch just replan early
 
     def current_latent(self, batch_size: int = 1, device: torch.device | str | None = None) -> Tensor:
         """The latent the next chunk is conditioned on, [batch_size, d_z] (each env's own phase latent)."""
-        if not self._steering_initialised:
-            self._init_steering_from_config()
-        device = device or self.model.geo_kappa.device
-        if len(self.active_latent):
-            if len(self.active_latent) == 1:
-                return self.active_latent[0].to(device).expand(batch_size, -1)
-            phase = self.phases.phases(batch_size, self.active_latent.device)
-            return self.active_latent[phase.clamp(max=len(self.active_latent) - 1)].to(device)
-        if self._episode_latent is None or self._episode_latent.shape[0] != batch_size:
-            self._episode_latent = self._default_latent(batch_size).to(device)
-        return self._episode_latent
+        return self.steering.latent_for(batch_size, device or self.model.geo_kappa.device, self._default_latent)
 
     def _default_latent(self, batch_size: int) -> Tensor:
         d = self.config.latent_dim
@@ -257,9 +254,9 @@ class PDPPolicy(PreTrainedPolicy):
             ids = torch.randint(0, len(self.model.behavior_traces), (batch_size,), device=self.model.behavior_traces.device)
             return self.behavior_latents(ids).cpu()
 
-    def _init_steering_from_config(self) -> None:
-        """Apply the config's steering fields (how ``lerobot-eval`` steers a PDP checkpoint)."""
-        self._steering_initialised = True
+    def apply_config_steering(self) -> None:
+        """Apply the config's steering fields (how ``lerobot-eval`` / ``lerobot-rollout`` steer a checkpoint);
+        :meth:`from_pretrained` calls it. A fit to ``steer_dataset_root`` runs now, not in the control loop."""
         cfg = self.config
         if cfg.steer_latent is not None:
             self.set_latent(torch.tensor(cfg.steer_latent, dtype=torch.float32))
@@ -269,31 +266,18 @@ class PDPPolicy(PreTrainedPolicy):
                 raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
             self.set_latent(means[cfg.steer_mode])
         elif cfg.steer_dataset_root is not None:
+            t0 = time.perf_counter()
             res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
-            logger.info("fitted latent to %s episode %d: %s (error ratio %s; from %g at risk)", cfg.steer_dataset_root,
-                        cfg.steer_episode_index, res.z.tolist(),
+            logger.info("fitted latent to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)",
+                        cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
                         "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
     # ------------------------------------------------------------------ steering API
 
     def set_latent(self, z: Tensor | Sequence[float] | np.ndarray | None) -> None:
-        """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default."""
-        self._steering_initialised = True
-        self.active_noise = self.active_noise[:0]  # noises fitted under another latent no longer apply
-        self._noise_chunk = 0
-        if z is None:
-            self.active_latent = torch.zeros(0, self.config.latent_dim, device=self.model.geo_kappa.device)
-            return
-        z = torch.as_tensor(np.asarray(z, dtype=np.float32) if not isinstance(z, Tensor) else z).float()
-        if z.dim() == 1:
-            z = z[None]
-        if z.dim() != 2 or z.shape[1] != self.config.latent_dim:
-            raise ValueError(f"latent must have shape [{self.config.latent_dim}] or [M, {self.config.latent_dim}], "
-                             f"got {tuple(z.shape)}")
-        if not torch.isfinite(z).all():
-            raise ValueError(f"latent has non-finite values: {z.tolist()}")
-        self.active_latent = z.detach().to(self.model.geo_kappa.device)
-        self.phases.reset()
+        """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default.
+        Noises fitted under another latent no longer apply."""
+        self.steering.activate(z)
 
     def mode_latents(self) -> dict[int, Tensor]:
         """Per-mode mean latent (mean of its training behaviors' encoder means).
@@ -480,17 +464,10 @@ class PDPPolicy(PreTrainedPolicy):
         return self._demo_windows(self._demonstration(episode, segments, need_action=True))
 
     def _demo_windows(self, demo: Demonstration) -> DemoWindows:
-        cfg = self.config
-        norm = self.stats.normalize_episode({k: v for k, v in demo.arrays.items()
-                                             if k in cfg.condition_features or k == ACTION})
-        device = self.model.geo_kappa.device
-        was_training = self.model.obs_encoder.training
-        self.model.obs_encoder.eval()  # cameras: the centre crop, as at inference
-        try:
-            feats = self.model.obs_encoder.frame_features({k: v.to(device) for k, v in norm.items() if k != ACTION})
-        finally:
-            self.model.obs_encoder.train(was_training)
-        return frame_windows(feats, norm[ACTION], cfg.n_obs_steps, cfg.horizon, demo.segments)
+        return demonstration_windows(demo, self.config, self.stats, self.model.obs_encoder, self.model.geo_kappa.device)
+
+    def _demonstration(self, episode: Episode, segments, need_action: bool) -> Demonstration:
+        return read_demonstration(episode, self.config, self.action_dim, segments, need_action)
 
     def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
                     noise) -> FitResult:
@@ -548,9 +525,7 @@ class PDPPolicy(PreTrainedPolicy):
         if not demo.per_phase:
             result.z, result.z_init = result.z[0], result.z_init[0]
         if activate:
-            self.set_latent(result.z)
-            if result.noise is not None:
-                self.active_noise = result.noise.to(self.active_noise.device)
+            self.steering.activate(result.z, result.noise)
         return result
 
     def _judge_fit(self, result: FitResult, windows: DemoWindows, seed: int | None) -> None:
@@ -579,78 +554,6 @@ class PDPPolicy(PreTrainedPolicy):
                 "fail?\", \"z plus one sampler noise per chunk\").",
                 result.error_ratio, result.fit_error, reference, self.config.fit_warn_ratio)
 
-    # ------------------------------------------------------------------ episode input
-
-    def _demonstration(self, episode: Episode, segments, need_action: bool) -> Demonstration:
-        """Validate a demonstration and split it into the segments that get one latent each."""
-        segments = self._segments_as_trained(segments)
-        arrays = self._episode_arrays(episode, need_action=need_action or segments == "gripper")
-        return Demonstration(arrays, self._resolve_segments(arrays, segments), per_phase=segments is not None)
-
-    def _segments_as_trained(self, segments):
-        """``"auto"``: split demonstrations the way the training behaviors were split."""
-        if isinstance(segments, str) and segments == "auto":
-            return "gripper" if self.config.segment_gripper_dim is not None else None
-        return segments
-
-    def _resolve_segments(self, ep: dict[str, np.ndarray], segments) -> list[tuple[int, int]]:
-        T = len(ep[self.config.trace_key])
-        if segments is None:
-            return [(0, T)]
-        if isinstance(segments, str) and segments != "gripper":
-            raise ValueError(f"segments must be None, 'auto', 'gripper' or a list of (start, end) frame ranges, "
-                             f"got {segments!r}")
-        if segments == "gripper":
-            if self.config.segment_gripper_dim is None:
-                raise ValueError("segments='gripper' needs config.segment_gripper_dim (the gripper action dim)")
-            return gripper_segments(ep[ACTION], self.config.segment_gripper_dim,
-                                    self.config.segment_gripper_threshold)
-        segs = [(int(a), int(b)) for a, b in segments]
-        for a, b in segs:
-            if not 0 <= a < b <= T:
-                raise ValueError(f"segment ({a}, {b}) is not a non-empty frame range within the episode's {T} frames")
-        return segs
-
-    def _episode_arrays(self, episode: Episode, need_action: bool) -> dict[str, np.ndarray]:
-        """Validate a demonstration and return its arrays (unnormalised) by feature key: vectors as float64
-        [T, dim], cameras as float32 [T, 3, H, W] in [0, 1]. The trace is always needed; the denoiser's
-        observations and the actions only where the demonstration is fitted (``need_action``)."""
-        cfg = self.config
-        required = {cfg.trace_key: tuple(cfg.input_features[cfg.trace_key].shape)}
-        if need_action:
-            required.update({k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
-            required[ACTION] = (self.action_dim,)
-        where = "episode"
-        if isinstance(episode, tuple):
-            source, index = episode
-            root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
-            if root is None:
-                raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
-            where = f"episode {index} of {root}"
-            check_recording(root, int(index), required)  # empty / interrupted / mismatched: a clear error
-            cameras = [k for k in required if k in cfg.image_features]
-            eps = read_episodes(root, [k for k in required if k not in cameras], [int(index)])
-            if int(index) not in eps:
-                raise KeyError(f"{root} has no episode {index}")
-            episode = {**eps[int(index)], **read_episode_frames(root, int(index), cameras)}
-        if not isinstance(episode, dict):
-            raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) pair, got {type(episode)}")
-        out: dict[str, np.ndarray] = {}
-        for key, shape in required.items():
-            if key not in episode:
-                raise KeyError(f"{where}: missing '{key}'; PDP needs {sorted(required)} (got {sorted(episode)})")
-            v = episode[key]
-            v = v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
-            out[key] = (_camera_frames(key, v, shape, where) if key in cfg.image_features
-                        else _vector_frames(key, v, shape[0], where))
-        lengths = {k: len(v) for k, v in out.items()}
-        if len(set(lengths.values())) != 1:
-            raise ValueError(f"{where}: keys have different lengths {lengths}")
-        T = next(iter(lengths.values()))
-        if T < cfg.horizon:
-            raise ValueError(f"{where}: has {T} frames, shorter than one action chunk (horizon {cfg.horizon})")
-        return out
-
     def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
         """Write config + weights into a temporary folder next to ``save_directory``, then move them in,
         so a crash mid-write never leaves a half checkpoint (weights are moved last)."""
@@ -674,33 +577,6 @@ class PDPPolicy(PreTrainedPolicy):
                             tags: list[str] | None, cfg: Any = None, dataset_meta: Any = None):
         """LeRobot's model card plus what PDP is and how to steer it (validated against the Hub only online)."""
         return pdp_model_card(self.config, dataset_repo_id, model_type, license, tags, cfg, dataset_meta)
-
-
-def _vector_frames(key: str, v: np.ndarray, dim: int, where: str) -> np.ndarray:
-    v = v.astype(np.float64)
-    if v.ndim != 2 or v.shape[1] != dim:
-        raise ValueError(f"{where}: '{key}' has shape {tuple(v.shape)}, expected [T, {dim}]")
-    check_finite(key, v, where)
-    return v
-
-
-def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) -> np.ndarray:
-    """Camera frames as LeRobotDataset yields them, float32 [T, 3, H, W] in [0, 1]; uint8 frames (either
-    channel order, as a camera or ``lerobot-record`` gives them) are converted."""
-    c, h, w = shape
-    if v.ndim == 4 and v.shape[1:] == (h, w, c) and v.shape[1:] != (c, h, w):
-        v = v.transpose(0, 3, 1, 2)
-    if v.ndim != 4 or v.shape[1:] != (c, h, w):
-        raise ValueError(f"{where}: camera '{key}' has frames of shape {tuple(v.shape)}, expected [T, {c}, {h}, {w}] "
-                         f"(or [T, {h}, {w}, {c}] uint8), the shape the policy was trained on")
-    if v.dtype == np.uint8:
-        return v.astype(np.float32) / 255.0
-    v = v.astype(np.float32)
-    check_finite(key, v.reshape(len(v), -1), where)
-    if v.min() < -1e-3 or v.max() > 1 + 1e-3:
-        raise ValueError(f"{where}: camera '{key}' has float values in [{v.min():.3g}, {v.max():.3g}]; expected "
-                         "[0, 1] (as LeRobotDataset yields frames) or uint8")
-    return v
 
 
 def _flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:

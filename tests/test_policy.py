@@ -1,6 +1,7 @@
 """PDPPolicy in-process: construction from a real dataset, training step, steering API, errors, save/load."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from policies import small_policy, training_batch
 
 from lerobot_pdp import PDPPolicy
 from lerobot_pdp.behavior import read_episodes
+from lerobot_pdp.demonstration import read_demonstration
 
 
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):
@@ -264,15 +266,18 @@ def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, mon
 
 
 def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
-    """lerobot-eval calls select_action under torch.inference_mode(); steering from the config fits z there,
-    and the log names the fit's error ratio (a fresh policy has no training reference yet: n/a)."""
+    """Steering from the config fits z also under torch.inference_mode() (as a user's loop may call it), the
+    log names the fit's duration and error ratio (a fresh policy has no training reference yet: n/a), and
+    reading the latent afterwards runs no fit."""
     p = small_policy(synthetic_meta)
     p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
     p.config.fit_steps = 3
     with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.modeling_pdp"):
+        p.apply_config_steering()
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
-    assert any("error ratio n/a; from 2 at risk" in r.getMessage() for r in caplog.records)
+    message = next(r.getMessage() for r in caplog.records if "fitted latent" in r.getMessage())
+    assert re.search(r"episode 1 in \d+\.\d s: .*error ratio n/a; from 2 at risk", message), message
 
 
 def _gripper_actions(p):
@@ -362,7 +367,7 @@ def test_segments_default_follows_training_and_bad_values_are_named(synthetic_me
 def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
     p = small_policy(synthetic_meta)
     ep = (synthetic_meta.root, 2)
-    arrays = p._episode_arrays(ep, need_action=True)
+    arrays = read_demonstration(ep, p.config, p.action_dim, segments=None).arrays
     T, cfg = len(arrays["action"]), p.config
     w = p.demo_windows(ep, segments=[(0, 10), (10, T)])
     assert w.n_segments == 2 and w.actions.shape == (T, cfg.horizon, p.action_dim)
@@ -496,3 +501,19 @@ def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
     r = PDPPolicy.from_pretrained(v1, config=given)
     assert (r.config.timestep_spacing, r.config.use_clipped_model_output) == ("trailing", True)
     assert r.model.noise_schedule.timestep_spacing == "trailing"
+
+
+def test_a_loaded_checkpoint_is_steered_by_its_config_before_the_first_action(synthetic_meta, tmp_path):
+    """lerobot-eval / lerobot-rollout load with the steering fields set: the latent (or the fit to a
+    recording) is in place when from_pretrained returns, not at the first select_action."""
+    import dataclasses
+
+    p = small_policy(synthetic_meta)
+    p.save_pretrained(tmp_path / "ckpt")
+    mode = sorted(p.mode_latents())[1]
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=dataclasses.replace(p.config, steer_mode=mode))
+    assert torch.equal(q.active_latent[0], q.mode_latents()[mode])
+    cfg = dataclasses.replace(p.config, steer_dataset_root=str(synthetic_meta.root), steer_episode_index=2, fit_steps=2)
+    fitted = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
+    assert len(fitted.active_latent) == 1 and torch.isfinite(fitted.active_latent).all()
+    assert len(PDPPolicy.from_pretrained(tmp_path / "ckpt").active_latent) == 0  # no steering fields: default

@@ -349,9 +349,8 @@ def test_a_bad_recording_gets_a_clear_error(case, synthetic_meta, tmp_path):
         p.fit_latent((root, episode), steps=1)
     # the same error through the start-up steering of lerobot-rollout / lerobot-eval
     p.config.steer_dataset_root, p.config.steer_episode_index = str(root), episode
-    p._steering_initialised = False
     with pytest.raises((ValueError, KeyError, FileNotFoundError), match=message):
-        p.current_latent(1)
+        p.apply_config_steering()
 
 
 def test_an_interrupted_record_loop_labels_only_saved_episodes(tmp_path):

@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from ..configuration_pdp import PDPConfig
 from ..latent_fitting import episode_windows
+from ..steering_state import ChunkNoises
 
 logger = logging.getLogger(__name__)
 
@@ -298,15 +299,11 @@ class FixedNoisePolicy(nn.Module):
         if noise.dim() != 3:
             raise ValueError(f"noise must have shape [C, horizon, action_dim] (C = 1, or one per chunk), "
                              f"got {tuple(noise.shape)}")
-        self.register_buffer("noise", noise.to(_device(policy)))
-        self._chunk = 0  # chunks generated since reset: which noise of a sequence comes next
+        self.noises = ChunkNoises(noise.to(_device(policy)))  # played as PDP plays its fitted chunk noises
 
     def _noise_for(self, batch: Mapping[str, Tensor], advance: bool) -> Tensor:
         b = batch[OBS_STATE].shape[0] if batch[OBS_STATE].dim() > 1 else 1
-        x = self.noise[min(self._chunk, len(self.noise) - 1)]
-        if advance:
-            self._chunk += 1
-        return x[None].expand(b, -1, -1)
+        return self.noises.next(b, self.noises.noise.device, advance=advance)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
@@ -319,7 +316,7 @@ class FixedNoisePolicy(nn.Module):
         return self.policy.predict_action_chunk(batch, noise=self._noise_for(batch, advance=True))
 
     def reset(self) -> None:
-        self._chunk = 0
+        self.noises.reset()
         self.policy.reset()
 
     def __getattr__(self, name: str):

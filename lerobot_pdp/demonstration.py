@@ -1,0 +1,153 @@
+"""One demonstration as the steering API reads it: validated, split into phases and windowed once.
+
+A demonstration is a dict of unnormalised arrays (as stored in a LeRobotDataset: ``observation.*``, ``action``,
+shapes [T, ...]) or a ``(LeRobotDataset | dataset folder, episode index)`` pair. :func:`read_demonstration`
+checks it against the policy's features (a clear error naming the key, shape, episode and file), converts
+camera frames as LeRobotDataset yields them, and splits it into the frame ranges that get one latent each;
+:func:`demonstration_windows` normalises it with the policy's statistics and cuts the training-style windows
+that fitting scores. Encoding and fitting (``modeling_pdp``, ``latent_fitting``) take what this module returns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from lerobot.utils.constants import ACTION
+from torch import Tensor, nn
+
+from .behavior import check_finite, gripper_segments, read_episodes
+from .configuration_pdp import PDPConfig
+from .episodes import read_episode_frames
+from .latent_fitting import DemoWindows, frame_windows
+from .normalization import FeatureStats
+from .steering import check_recording
+
+Episode = dict[str, Any] | tuple[Any, int]
+
+
+@dataclass
+class Demonstration:
+    """One demonstration as the steering API uses it, validated and split once."""
+
+    arrays: dict[str, np.ndarray]  # unnormalised float64 [T, dim] per feature key
+    segments: list[tuple[int, int]]  # frame ranges that get one latent each
+    per_phase: bool  # segments were asked for: latents are [M, d_z], else [d_z]
+
+
+def read_demonstration(episode: Episode, config: PDPConfig, action_dim: int, segments="auto",
+                       need_action: bool = True) -> Demonstration:
+    """Validate a demonstration and split it into the segments that get one latent each."""
+    segments = segments_as_trained(config, segments)
+    arrays = _episode_arrays(episode, config, action_dim, need_action=need_action or segments == "gripper")
+    return Demonstration(arrays, _resolve_segments(config, arrays, segments), per_phase=segments is not None)
+
+def segments_as_trained(config: PDPConfig, segments):
+    """``"auto"``: split demonstrations the way the training behaviors were split."""
+    if isinstance(segments, str) and segments == "auto":
+        return "gripper" if config.segment_gripper_dim is not None else None
+    return segments
+
+def _resolve_segments(config: PDPConfig, ep: dict[str, np.ndarray], segments) -> list[tuple[int, int]]:
+    T = len(ep[config.trace_key])
+    if segments is None:
+        return [(0, T)]
+    if isinstance(segments, str) and segments != "gripper":
+        raise ValueError(f"segments must be None, 'auto', 'gripper' or a list of (start, end) frame ranges, "
+                         f"got {segments!r}")
+    if segments == "gripper":
+        if config.segment_gripper_dim is None:
+            raise ValueError("segments='gripper' needs config.segment_gripper_dim (the gripper action dim)")
+        return gripper_segments(ep[ACTION], config.segment_gripper_dim,
+                                config.segment_gripper_threshold)
+    segs = [(int(a), int(b)) for a, b in segments]
+    for a, b in segs:
+        if not 0 <= a < b <= T:
+            raise ValueError(f"segment ({a}, {b}) is not a non-empty frame range within the episode's {T} frames")
+    return segs
+
+def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_action: bool) -> dict[str, np.ndarray]:
+    """Validate a demonstration and return its arrays (unnormalised) by feature key: vectors as float64
+    [T, dim], cameras as float32 [T, 3, H, W] in [0, 1]. The trace is always needed; the denoiser's
+    observations and the actions only where the demonstration is fitted (``need_action``)."""
+    cfg = config
+    required = {cfg.trace_key: tuple(cfg.input_features[cfg.trace_key].shape)}
+    if need_action:
+        required.update({k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
+        required[ACTION] = (action_dim,)
+    where = "episode"
+    if isinstance(episode, tuple):
+        source, index = episode
+        root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
+        if root is None:
+            raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
+        where = f"episode {index} of {root}"
+        check_recording(root, int(index), required)  # empty / interrupted / mismatched: a clear error
+        cameras = [k for k in required if k in cfg.image_features]
+        eps = read_episodes(root, [k for k in required if k not in cameras], [int(index)])
+        if int(index) not in eps:
+            raise KeyError(f"{root} has no episode {index}")
+        episode = {**eps[int(index)], **read_episode_frames(root, int(index), cameras)}
+    if not isinstance(episode, dict):
+        raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) pair, got {type(episode)}")
+    out: dict[str, np.ndarray] = {}
+    for key, shape in required.items():
+        if key not in episode:
+            raise KeyError(f"{where}: missing '{key}'; PDP needs {sorted(required)} (got {sorted(episode)})")
+        v = episode[key]
+        v = v.detach().cpu().numpy() if isinstance(v, Tensor) else np.asarray(v)
+        out[key] = (_camera_frames(key, v, shape, where) if key in cfg.image_features
+                    else _vector_frames(key, v, shape[0], where))
+    lengths = {k: len(v) for k, v in out.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"{where}: keys have different lengths {lengths}")
+    T = next(iter(lengths.values()))
+    if T < cfg.horizon:
+        raise ValueError(f"{where}: has {T} frames, shorter than one action chunk (horizon {cfg.horizon})")
+    return out
+
+
+def demonstration_windows(demo: Demonstration, config: PDPConfig, stats: FeatureStats, obs_encoder: nn.Module,
+                          device: torch.device | str) -> DemoWindows:
+    """The (normalised) training-style windows of ``demo``, each tagged with its phase; every frame is
+    encoded once (cameras with the centre crop, as at inference)."""
+    cfg = config
+    norm = stats.normalize_episode({k: v for k, v in demo.arrays.items()
+                                         if k in cfg.condition_features or k == ACTION})
+    was_training = obs_encoder.training
+    obs_encoder.eval()  # cameras: the centre crop, as at inference
+    try:
+        feats = obs_encoder.frame_features({k: v.to(device) for k, v in norm.items() if k != ACTION})
+    finally:
+        obs_encoder.train(was_training)
+    return frame_windows(feats, norm[ACTION], cfg.n_obs_steps, cfg.horizon, demo.segments)
+
+
+def _vector_frames(key: str, v: np.ndarray, dim: int, where: str) -> np.ndarray:
+    v = v.astype(np.float64)
+    if v.ndim != 2 or v.shape[1] != dim:
+        raise ValueError(f"{where}: '{key}' has shape {tuple(v.shape)}, expected [T, {dim}]")
+    check_finite(key, v, where)
+    return v
+
+
+def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) -> np.ndarray:
+    """Camera frames as LeRobotDataset yields them, float32 [T, 3, H, W] in [0, 1]; uint8 frames (either
+    channel order, as a camera or ``lerobot-record`` gives them) are converted."""
+    c, h, w = shape
+    if v.ndim == 4 and v.shape[1:] == (h, w, c) and v.shape[1:] != (c, h, w):
+        v = v.transpose(0, 3, 1, 2)
+    if v.ndim != 4 or v.shape[1:] != (c, h, w):
+        raise ValueError(f"{where}: camera '{key}' has frames of shape {tuple(v.shape)}, expected [T, {c}, {h}, {w}] "
+                         f"(or [T, {h}, {w}, {c}] uint8), the shape the policy was trained on")
+    if v.dtype == np.uint8:
+        return v.astype(np.float32) / 255.0
+    v = v.astype(np.float32)
+    check_finite(key, v.reshape(len(v), -1), where)
+    if v.min() < -1e-3 or v.max() > 1 + 1e-3:
+        raise ValueError(f"{where}: camera '{key}' has float values in [{v.min():.3g}, {v.max():.3g}]; expected "
+                         "[0, 1] (as LeRobotDataset yields frames) or uint8")
+    return v

@@ -1,0 +1,130 @@
+"""What a policy acts under between two action chunks: the steering state of a rollout.
+
+A PDP's next chunk is conditioned on the *active latent* (one z, or one per phase for policies segmented at
+gripper events), may start its sampler from a fitted noise (one per chunk of the demonstration, played in
+order), and each env of a vectorised rollout is in its own phase. :class:`Steering` owns all of it, with
+four verbs: ``activate`` (a new latent, and its noises), ``reset`` (a new episode), ``latent_for`` /
+``next_noise`` (the next chunk) and ``observe`` (an executed gripper command). It never fits anything: a
+fit produces what ``activate`` takes. :class:`ChunkNoises` alone is what the benchmark's DP replays.
+
+The state is small and can be kept: :meth:`Steering.state_tensors` / :meth:`Steering.load_state_tensors`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .phases import PhaseTracker
+
+
+class ChunkNoises(nn.Module):
+    """Sampler start noises [C, horizon, A], one per new action chunk of an episode in order; the last one
+    repeats. Empty: the sampler draws its own noise."""
+
+    def __init__(self, noise: Tensor | None = None):
+        super().__init__()
+        self.register_buffer("noise", torch.zeros(0, 0, 0) if noise is None else noise.detach().float(),
+                             persistent=False)
+        self.chunk = 0  # chunks generated since the episode began: which noise comes next
+
+    def __len__(self) -> int:
+        return len(self.noise)
+
+    def set(self, noise: Tensor | None) -> None:
+        self.noise = self.noise[:0] if noise is None else noise.detach().float().to(self.noise.device)
+        self.chunk = 0
+
+    def reset(self) -> None:
+        self.chunk = 0
+
+    def next(self, batch_size: int, device: torch.device | str, advance: bool = True) -> Tensor | None:
+        """The noise of the next chunk, [batch_size, horizon, A] (None when there are none)."""
+        if len(self.noise) == 0:
+            return None
+        x = self.noise[min(self.chunk, len(self.noise) - 1)]
+        if advance:
+            self.chunk += 1
+        return x.to(device).expand(batch_size, *x.shape)
+
+
+class Steering(nn.Module):
+    """The active latent(s), the chunk noises fitted with them, and each env's phase.
+
+    An ``nn.Module`` so that ``policy.to(device)`` moves it; its buffers are not part of the weights.
+    """
+
+    def __init__(self, latent_dim: int):
+        super().__init__()
+        self.latent_dim = latent_dim
+        # [M, d_z]: empty = the policy's default latent; M > 1 = one per phase, advanced on gripper events
+        self.register_buffer("latent", torch.zeros(0, latent_dim), persistent=False)
+        self.noises = ChunkNoises()
+        self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
+        self.episode_latent: Tensor | None = None  # the default latent drawn for this episode
+
+    @property
+    def active(self) -> bool:
+        return len(self.latent) > 0
+
+    @property
+    def per_phase(self) -> bool:
+        return len(self.latent) > 1
+
+    def activate(self, z: Tensor | Sequence[float] | np.ndarray | None, noise: Tensor | None = None) -> None:
+        """Make ``z`` ([d_z], or [M, d_z] = one per phase) the active latent, with the chunk noises fitted under
+        it (``None``: none; noises of an earlier latent never carry over). ``z=None``: the default latent."""
+        if z is None:
+            self.latent = self.latent[:0]
+        else:
+            z = torch.as_tensor(np.asarray(z, dtype=np.float32) if not isinstance(z, Tensor) else z).float()
+            if z.dim() == 1:
+                z = z[None]
+            if z.dim() != 2 or z.shape[1] != self.latent_dim:
+                raise ValueError(f"latent must have shape [{self.latent_dim}] or [M, {self.latent_dim}], "
+                                 f"got {tuple(z.shape)}")
+            if not torch.isfinite(z).all():
+                raise ValueError(f"latent has non-finite values: {z.tolist()}")
+            self.latent = z.detach().to(self.latent.device)
+        self.noises.set(noise)
+        self.phases.reset()
+
+    def reset(self) -> None:
+        """A new episode: phases and noises start over, the default latent is drawn anew."""
+        self.phases.reset()
+        self.noises.reset()
+        self.episode_latent = None
+
+    def latent_for(self, batch_size: int, device: torch.device | str,
+                   default: Callable[[int], Tensor]) -> Tensor:
+        """The latent of the next chunk, [batch_size, d_z]: each env's phase latent, or (nothing active)
+        ``default(batch_size)`` drawn once per episode."""
+        if len(self.latent) == 1:
+            return self.latent[0].to(device).expand(batch_size, -1)
+        if len(self.latent) > 1:
+            phase = self.phases.phases(batch_size, self.latent.device)
+            return self.latent[phase.clamp(max=len(self.latent) - 1)].to(device)
+        if self.episode_latent is None or self.episode_latent.shape[0] != batch_size:
+            self.episode_latent = default(batch_size).to(device)
+        return self.episode_latent
+
+    def next_noise(self, batch_size: int, device: torch.device | str) -> Tensor | None:
+        return self.noises.next(batch_size, device)
+
+    def observe(self, gripper_closed: Tensor, hold_steps: int) -> bool:
+        """An executed gripper command per env ([B] bool); True when some env moved to its next phase latent."""
+        if not self.per_phase:
+            return False
+        return self.phases.update(gripper_closed.to(self.latent.device), len(self.latent), hold_steps)
+
+    def state_tensors(self) -> dict[str, Tensor]:
+        """The active latent and noises (CPU copies), what an adapted checkpoint keeps."""
+        return {"latent": self.latent.detach().cpu(), "noise": self.noises.noise.detach().cpu()}
+
+    def load_state_tensors(self, tensors: dict[str, Tensor]) -> None:
+        noise = tensors.get("noise")
+        self.activate(tensors["latent"] if len(tensors["latent"]) else None,
+                      noise if noise is not None and len(noise) else None)
