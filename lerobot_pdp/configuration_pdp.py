@@ -239,7 +239,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     steer_latent: list[float] | None = None
     # Condition on the mean latent of this training mode (mode ids come from the episodes' task strings).
     steer_mode: int | None = None
-    # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration).
+    # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration): when the
+    # checkpoint is loaded (PDPPolicy.from_pretrained), before LeRobot's control loop starts.
     steer_dataset_root: str | None = None
     steer_episode_index: int | None = None
     # Live steering: a JSON file polled at every new action chunk; when it changes, its request

@@ -449,8 +449,8 @@ class PDPPolicy(PreTrainedPolicy):
         Returns:
             :class:`FitResult` with ``z`` ([d_z] or [M, d_z]), the initial z and the loss history.
         """
-        # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. when
-        # lerobot-eval's first select_action triggers fitting from --policy.steer_dataset_root.
+        # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. from a
+        # live steering request polled inside LeRobot's control loop.
         with torch.inference_mode(False), torch.enable_grad():
             return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
                                     noise)
