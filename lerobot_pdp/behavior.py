@@ -265,3 +265,19 @@ class TrajectoryVAE(nn.Module):
             geo = (dz - kappa * distances[iu[0], iu[1]]).pow(2).mean()
         total = rec + beta_kl * kl + beta_geo * geo
         return total, {"embed_rec": rec.detach(), "embed_kl": kl.detach(), "embed_geo": geo.detach()}
+
+
+def read_training_behaviors(config, root: str | Path, features: dict) -> BehaviorTraces:
+    """Every whole episode of the local training dataset at ``root`` as behavior traces (LeRobot's loader
+    yields windows; the encoder needs whole demonstrations). ``config``: the policy's ``PDPConfig``."""
+    cfg = config
+    keys = [k for k in ("observation.state", "observation.environment_state", "action", cfg.trace_key)
+            if k in features and k not in cfg.image_features]
+    episodes = read_episodes(root, keys)
+    for ep, item in episodes.items():
+        for k in keys:
+            check_finite(k, item[k], f"episode {ep}")
+    return build_behavior_traces(
+        episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
+        cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
+    )

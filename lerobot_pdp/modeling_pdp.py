@@ -7,19 +7,17 @@ The public face is :class:`PDPPolicy`, a LeRobot ``PreTrainedPolicy``:
 - steering: ``encode(episode)``, ``set_latent(z)``, ``mode_latents()``, ``interpolate(z_a, z_b, n)`` and
   ``fit_latent(episode)`` (paper Alg. 3: encoder warm start, then gradient steps on z, weights frozen).
 
-The networks, the training behaviors and the loss live in :class:`~lerobot_pdp.pdp_model.PDPModel`; this
-class holds what LeRobot and a user talk to: the training step, the action queue, the active latent and
-its phases, and the steering API. Data flows one way: dataset -> behavior traces -> trajectory encoder ->
-z -> FiLM denoiser -> actions.
+The networks, the training behaviors and the loss live in :class:`~lerobot_pdp.pdp_model.PDPModel`; the
+state a rollout acts under (active latent per phase, chunk noises, phases) in
+:class:`~lerobot_pdp.steering_state.Steering`; reading a demonstration in ``demonstration.py``, fitting to it
+in ``adaptation.py``, the checkpoint on disk in ``checkpoint.py``. This class holds what LeRobot and a user
+talk to: the training step, the action queue and the steering API. Data flows one way: dataset -> behavior
+traces -> trajectory encoder -> z -> FiLM denoiser -> actions.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
-import math
-import os
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -28,43 +26,32 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812
-from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
-from huggingface_hub.serialization import save_torch_state_dict
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
-from safetensors.torch import save_model as save_model_as_safetensor
-from torch import Tensor, nn
+from lerobot.utils.constants import ACTION
+from torch import Tensor
 
-from .atomic import staging_dir
-from .behavior import (
-    BehaviorTraces,
-    build_behavior_traces,
-    check_finite,
-    make_trace,
-    read_episodes,
-    trace_distances,
+from .adaptation import encode_demonstration, fit_demonstration, initial_latent
+from .behavior import read_training_behaviors, trace_distances
+from .checkpoint import (
+    apply_saved_config,
+    flatten_model_keys,
+    nest_model_keys,
+    resize_to_checkpoint,
+    save_checkpoint,
 )
-from .configuration_pdp import PDPConfig, apply_legacy_defaults
+from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
-from .latent_fitting import (
-    DemoWindows,
-    FitResult,
-    demonstration_error,
-    fit_chunk_noise,
-    fit_latent,
-    select_code,
-)
+from .interpolation import interpolate
+from .latent_fitting import DemoWindows, FitResult
 from .model_card import pdp_model_card
 from .modes import SPACES, DiscoveredModes, discover
 from .normalization import FeatureStats
-from .pdp_model import BEHAVIOR_BUFFERS, PDPModel
+from .pdp_model import PDPModel
 from .steering import SteerFile
 from .steering_state import Steering
 
 logger = logging.getLogger(__name__)
-
 
 
 class PDPPolicy(PreTrainedPolicy):
@@ -90,11 +77,11 @@ class PDPPolicy(PreTrainedPolicy):
 
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
-            behaviors = self._read_behaviors(dataset_meta)
+            behaviors = read_training_behaviors(config, dataset_meta.root, dataset_meta.features)
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         # Checkpoints keep the flat key names of the first release ("vae.*", "behavior_traces", ...).
-        self.register_state_dict_post_hook(_flatten_model_keys)
-        self.register_load_state_dict_pre_hook(_nest_model_keys)
+        self.register_state_dict_post_hook(flatten_model_keys)
+        self.register_load_state_dict_pre_hook(nest_model_keys)
 
         # What the next chunk is conditioned on (active latent per phase, chunk noises, phases): see
         # steering_state.py. The config's steering fields are applied when a checkpoint is loaded.
@@ -131,36 +118,13 @@ class PDPPolicy(PreTrainedPolicy):
     def phases(self, tracker) -> None:
         self.steering.phases = tracker
 
-    # ------------------------------------------------------------------ training data (whole episodes)
-
-    def _read_behaviors(self, dataset_meta: Any) -> BehaviorTraces:
-        """Every whole episode of the local training dataset as behavior traces (the loader yields windows)."""
-        cfg = self.config
-        keys = [k for k in (OBS_STATE, OBS_ENV_STATE, ACTION, cfg.trace_key)
-                if k in dataset_meta.features and k not in cfg.image_features]
-        episodes = read_episodes(dataset_meta.root, keys)
-        for ep, item in episodes.items():
-            for k in keys:
-                check_finite(k, item[k], f"episode {ep}")
-        return build_behavior_traces(
-            episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
-            cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
-        )
-
     @classmethod
     def _load_as_safetensor(cls, model: PDPPolicy, model_file: str, map_location: str, strict: bool):
-        """Resize the dataset-sized buffers to the checkpoint's shapes before loading them."""
-        from safetensors import safe_open
-
-        with safe_open(model_file, framework="pt") as f:
-            keys = set(f.keys())
-            model.model.resize_behaviors({name: tuple(f.get_slice(name).get_shape())
-                                          for name in BEHAVIOR_BUFFERS if name in keys})
+        """LeRobot's load, with the dataset-sized buffers resized to the checkpoint's and the legacy sampler
+        defaults of checkpoints written before a config field existed."""
+        resize_to_checkpoint(model.model, model_file)
         model = super()._load_as_safetensor(model, model_file, map_location, strict)
-        # config.json lies beside the weights (a local folder, or the hub snapshot the config came from)
-        saved = Path(model_file).with_name(CONFIG_NAME)
-        if saved.is_file() and apply_legacy_defaults(model.config, json.loads(saved.read_text())):
-            model.model.set_sampler(model.config.timestep_spacing, model.config.use_clipped_model_output)
+        apply_saved_config(model, model_file)
         return model
 
     # ------------------------------------------------------------------ LeRobot contract
@@ -364,42 +328,10 @@ class PDPPolicy(PreTrainedPolicy):
 
     @staticmethod
     def interpolate(z_a: Tensor, z_b: Tensor, n: int, path: str = "linear") -> Tensor:
-        """``n`` latents from ``z_a`` to ``z_b`` (endpoints included), [n, *z_a.shape].
-
-        ``linear``: straight line; between two clusters on opposite sides of the latent map it passes
-        through the map's centre, i.e. through behaviors that lie between opposite routes.
-        ``elliptical``: an arc around the origin in the plane of ``z_a`` and ``z_b``, angle and radius
-        interpolated linearly (a sweep around the ring of clusters; for orthogonal codes of equal
-        norm it is ``z_a cos(t) + z_b sin(t)``, t in [0, pi/2]). It keeps the radius between |z_a| and
-        |z_b|, so it visits the clusters between the two ends instead of the centre; opposite codes span
-        no plane, and the arc then turns towards the coordinate axis least aligned with ``z_a``. Each row
-        of a per-phase latent [P, d_z] gets its own arc.
-        """
-        z_a, z_b = torch.as_tensor(z_a).float(), torch.as_tensor(z_b).float()
-        if z_a.shape != z_b.shape:
-            raise ValueError(f"z_a {tuple(z_a.shape)} and z_b {tuple(z_b.shape)} must have the same shape")
-        if n < 2:
-            raise ValueError(f"n must be >= 2 (both endpoints), got {n}")
-        if path not in ("linear", "elliptical"):
-            raise ValueError(f"path must be 'linear' or 'elliptical', got {path!r}")
-        t = torch.linspace(0, 1, n).view(-1, *([1] * z_a.dim()))
-        line = (1 - t) * z_a + t * z_b
-        if path == "linear" or z_a.dim() == 0 or z_a.shape[-1] < 2:
-            return line
-        eps = 1e-8
-        r_a, r_b = z_a.norm(dim=-1, keepdim=True), z_b.norm(dim=-1, keepdim=True)
-        u = z_a / r_a.clamp_min(eps)
-        w = z_b - (z_b * u).sum(-1, keepdim=True) * u  # z_b's part orthogonal to z_a
-        # opposite (or parallel) codes span no plane: turn towards the basis axis least aligned with z_a
-        axis = F.one_hot(u.abs().argmin(-1), u.shape[-1]).to(u)
-        fallback = axis - (axis * u).sum(-1, keepdim=True) * u
-        degenerate = w.norm(dim=-1, keepdim=True) < 1e-6 * r_b.clamp_min(eps)
-        w = torch.where(degenerate, fallback, w)
-        v = w / w.norm(dim=-1, keepdim=True).clamp_min(eps)
-        phi = torch.atan2((z_b * v).sum(-1, keepdim=True).abs(), (z_b * u).sum(-1, keepdim=True))
-        arc = ((1 - t) * r_a + t * r_b) * (u * torch.cos(t * phi) + v * torch.sin(t * phi))
-        # a zero endpoint has no direction: the arc is the line there
-        return torch.where((torch.minimum(r_a, r_b) < eps).expand_as(z_a), line, arc)
+        """``n`` latents from ``z_a`` to ``z_b`` (endpoints included), [n, *z_a.shape]; ``path`` "linear" or
+        "elliptical" (an arc around the origin that visits the clusters between the two ends): see
+        :func:`lerobot_pdp.interpolation.interpolate`."""
+        return interpolate(z_a, z_b, n, path)
 
     def encode(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> Tensor:
         """z_bar = mu_phi(X(tau)) of a demonstration ([d_z]; [M, d_z] with ``segments``, see ``fit_latent``)."""
@@ -408,19 +340,7 @@ class PDPPolicy(PreTrainedPolicy):
         return z if demo.per_phase else z[0]
 
     def _encode_demo(self, demo: Demonstration) -> Tensor:
-        """mu_phi of each segment's trace, [M, d_z] on the CPU."""
-        cfg = self.config
-        traces = np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
-                                      cfg.trace_normalize) for a, b in demo.segments])
-        with torch.no_grad():
-            if cfg.latent_type == "onehot":
-                # nearest training behavior's mode (the one-hot ablation has no encoder)
-                t = torch.as_tensor(traces, dtype=torch.float32, device=self.model.behavior_traces.device)
-                d = (t[:, None] - self.model.behavior_traces[None]).pow(2).flatten(2).sum(-1)
-                z = F.one_hot(self.model.behavior_mode[d.argmin(1)], cfg.latent_dim).float()
-            else:
-                z = self.model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=self.model.geo_kappa.device))[0]
-        return z.cpu()
+        return encode_demonstration(self.model, self.config, demo)
 
     def fit_latent(self, episode: Episode, steps: int | None = None, init: str | Tensor = "encoder",
                    lr: float | None = None, lam: float | None = None,
@@ -452,8 +372,14 @@ class PDPPolicy(PreTrainedPolicy):
         # Gradients w.r.t. z are needed even when called under torch.inference_mode() / no_grad, e.g. from a
         # live steering request polled inside LeRobot's control loop.
         with torch.inference_mode(False), torch.enable_grad():
-            return self._fit_latent(episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
-                                    noise)
+            demo = self._demonstration(episode, segments, need_action=True)  # prepare: read, validate, split
+            windows = self._demo_windows(demo)
+            z0 = initial_latent(self.model, self.config, demo, init, seed)
+            result = fit_demonstration(self.model, self.config, demo, windows, z0, steps, lr, lam, seed,  # fit
+                                       progress, objective, noise)
+        if activate:
+            self.steering.activate(result.z, result.noise)
+        return result
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
         """The (normalised) training-style windows of one demonstration, each tagged with its phase.
@@ -469,125 +395,11 @@ class PDPPolicy(PreTrainedPolicy):
     def _demonstration(self, episode: Episode, segments, need_action: bool) -> Demonstration:
         return read_demonstration(episode, self.config, self.action_dim, segments, need_action)
 
-    def _fit_latent(self, episode, steps, init, lr, lam, segments, seed, activate, progress, objective,
-                    noise) -> FitResult:
-        cfg = self.config
-        if objective not in (None, "denoise", "sample"):
-            raise ValueError(f"objective must be 'denoise' or 'sample', got {objective!r}")
-        if noise not in (None, "none", "chunks"):
-            raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
-        demo = self._demonstration(episode, segments, need_action=True)  # validated and split once
-        segs = demo.segments
-        windows = self._demo_windows(demo)
-        if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
-            windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
-        device = self.model.geo_kappa.device
-        if isinstance(init, Tensor):
-            z0 = init.float().reshape(len(segs), cfg.latent_dim)
-        elif init == "encoder":
-            z0 = self._encode_demo(demo)
-        elif init == "random":
-            g = torch.Generator().manual_seed(seed if seed is not None else 0)
-            z0 = torch.randn(len(segs), cfg.latent_dim, generator=g)
-        elif init == "zero":
-            z0 = torch.zeros(len(segs), cfg.latent_dim)
-        else:
-            raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
-        steps = cfg.fit_steps if steps is None else steps
-        sample_steps = cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None
-        was_training = self.training
-        self.eval()
-        try:
-            if cfg.latent_type == "onehot" and steps > 0:
-                # the discrete ablation adapts by choosing one of its M codes per phase (it cannot
-                # interpolate between them): the code that scores best on the fit objective over `steps` batches
-                codes, mean = select_code(self.model.denoiser, self.model.noise_schedule, windows,
-                                          torch.eye(cfg.latent_dim, device=device), steps, cfg.fit_batch_size,
-                                          cfg.fit_noise_samples, seed, sample_steps)
-                result = FitResult(z=codes.cpu(), z_init=z0.detach().cpu(),
-                                   losses=[float(mean.min(0).values.sum())], steps=steps)
-            else:
-                result = fit_latent(
-                    self.model.denoiser, self.model.noise_schedule, windows, z0.to(device), steps=steps,
-                    lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
-                    batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
-                    progress=progress, gradient=cfg.fit_gradient,
-                    sample_steps=sample_steps,
-                )
-            self._judge_fit(result, windows, seed)
-            if (noise or cfg.fit_noise) == "chunks":
-                result.noise = fit_chunk_noise(
-                    self.model.denoiser, self.model.noise_schedule, windows, result.z.to(device),
-                    cfg.n_action_steps, cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr,
-                    seed=seed if seed is not None else 0)
-        finally:
-            self.train(was_training)
-        if not demo.per_phase:
-            result.z, result.z_init = result.z[0], result.z_init[0]
-        if activate:
-            self.steering.activate(result.z, result.noise)
-        return result
-
-    def _judge_fit(self, result: FitResult, windows: DemoWindows, seed: int | None) -> None:
-        """Fill ``result.fit_error`` / ``error_ratio`` and warn when the fitted latent reproduces the
-        demonstration much worse than the policy reproduces its training demonstrations: on the validation
-        scenes that is where steering failed (``config.fit_warn_ratio``)."""
-        if self.config.fit_report_chunks == 0:
-            return
-        device = self.model.geo_kappa.device
-        result.fit_error = demonstration_error(self.model.denoiser, self.model.noise_schedule, windows,
-                                               result.z.to(device), self.config.fit_report_chunks,
-                                               seed=seed if seed is not None else 0)
-        reference = float(self.model.train_loss_dp)
-        if not math.isfinite(reference) or reference <= 0:
-            return  # a checkpoint saved before the reference was tracked
-        result.error_ratio = result.fit_error / reference
-        if result.error_ratio >= self.config.fit_warn_ratio:
-            logger.warning(
-                "fit_latent: the fitted latent reproduces this demonstration %.1fx worse than the policy reproduces "
-                "its training demonstrations (L_fit %.4f against %.4f; warning from fit_warn_ratio=%g). Steering "
-                "to a route this far from the training behaviors often fails: on the benchmark's validation scenes "
-                "fits above 2x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
-                "training seed. Try it before relying on it; demonstrations of this route in the training data are "
-                "what helps, and fit_latent(noise='chunks') (also fitting the sampler's noise per chunk) reached "
-                "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
-                "fail?\", \"z plus one sampler noise per chunk\").",
-                result.error_ratio, result.fit_error, reference, self.config.fit_warn_ratio)
-
     def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
-        """Write config + weights into a temporary folder next to ``save_directory``, then move them in,
-        so a crash mid-write never leaves a half checkpoint (weights are moved last)."""
-        save_directory = Path(save_directory)
-        save_directory.mkdir(parents=True, exist_ok=True)
-        try:
-            with staging_dir(save_directory, prefix=".pdp-save-") as tmp:
-                self.config._save_pretrained(tmp)
-                if state_dict is None:
-                    save_model_as_safetensor(self, str(tmp / SAFETENSORS_SINGLE_FILE))
-                else:
-                    save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
-                names = sorted(p.name for p in tmp.iterdir())
-                for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
-                    os.replace(tmp / name, save_directory / name)
-        finally:
-            if not any(save_directory.iterdir()):
-                save_directory.rmdir()
+        """Config + weights written whole (temporary folder, then moved in; weights last)."""
+        save_checkpoint(self, save_directory, state_dict)
 
     def generate_model_card(self, dataset_repo_id: str, model_type: str, license: str | None,
                             tags: list[str] | None, cfg: Any = None, dataset_meta: Any = None):
         """LeRobot's model card plus what PDP is and how to steer it (validated against the Hub only online)."""
         return pdp_model_card(self.config, dataset_repo_id, model_type, license, tags, cfg, dataset_meta)
-
-
-def _flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:
-    """``model.vae.x`` -> ``vae.x``: the checkpoint keys of the first release, before the model module."""
-    for key in [k for k in state_dict if k.startswith(prefix + "model.")]:
-        state_dict[prefix + key[len(prefix) + len("model."):]] = state_dict.pop(key)
-
-
-def _nest_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, *args) -> None:
-    """The inverse of :func:`_flatten_model_keys` when a checkpoint is loaded."""
-    for key in [k for k in state_dict if k.startswith(prefix) and not k.startswith((prefix + "stats.", prefix + "model."))]:
-        state_dict[prefix + "model." + key[len(prefix):]] = state_dict.pop(key)
-    # saved before the training error was tracked: no reference (FitResult.error_ratio stays None), no warning
-    state_dict.setdefault(prefix + "model.train_loss_dp", torch.tensor(float("nan")))

@@ -179,7 +179,7 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
 
 
 def test_checkpoint_write_is_atomic(synthetic_meta, tmp_path, monkeypatch):
-    import lerobot_pdp.modeling_pdp as mp
+    import lerobot_pdp.checkpoint as mp
 
     p = small_policy(synthetic_meta)
 
@@ -241,7 +241,7 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
 @pytest.mark.parametrize("masked", [False, True])
 def test_padded_actions_are_trained_on_unless_masked(synthetic_meta, masked, monkeypatch):
     """Copy-padded chunk steps count in the loss and in fitting exactly when the config does not mask them."""
-    import lerobot_pdp.modeling_pdp as modeling
+    import lerobot_pdp.adaptation as modeling
 
     p = small_policy(synthetic_meta, do_mask_loss_for_padding=masked)
     p.eval()  # the denoising loss only (the embedding loss draws its own random batch)
@@ -454,17 +454,17 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
 
     ep = (synthetic_meta.root, 2)
     q.model.train_loss_dp.fill_(1e6)  # far above any demonstration's error: no warning
-    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+    with caplog.at_level("WARNING", logger="lerobot_pdp.adaptation"):
         res = q.fit_latent(ep, steps=2)
     assert res.error_ratio == pytest.approx(res.fit_error / 1e6) and not caplog.records
     q.model.train_loss_dp.fill_(res.fit_error / 3)
-    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+    with caplog.at_level("WARNING", logger="lerobot_pdp.adaptation"):
         res = q.fit_latent(ep, steps=2)
     assert res.error_ratio == pytest.approx(3.0, rel=1e-4)
     assert any("3.0x worse" in r.getMessage() for r in caplog.records)
     q.config.fit_report_chunks = 0  # no report, no warning
     caplog.clear()
-    with caplog.at_level("WARNING", logger="lerobot_pdp.modeling_pdp"):
+    with caplog.at_level("WARNING", logger="lerobot_pdp.adaptation"):
         res = q.fit_latent(ep, steps=2)
     assert res.fit_error is None and res.error_ratio is None and not caplog.records
 

@@ -1,0 +1,141 @@
+"""Adapting a trained PDP to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12).
+
+What ``PDPPolicy.fit_latent`` runs between reading the demonstration (``demonstration.py``) and activating the
+result (``steering_state.py``): the warm start z0 (the encoder's latent of each segment, or random / zero),
+gradient steps on z (``latent_fitting.fit_latent``; the one-hot ablation chooses a code instead), the
+fit-quality report against the training error, and optionally one sampler noise per executed chunk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor
+
+from .behavior import make_trace
+from .configuration_pdp import PDPConfig
+from .demonstration import Demonstration
+from .latent_fitting import (
+    DemoWindows,
+    FitResult,
+    demonstration_error,
+    fit_chunk_noise,
+    fit_latent,
+    select_code,
+)
+from .pdp_model import PDPModel
+
+logger = logging.getLogger(__name__)
+
+INITS = ("encoder", "random", "zero")
+
+
+def encode_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration) -> Tensor:
+    """mu_phi of each segment's trace, [M, d_z] on the CPU (one-hot ablation: the nearest training behavior's
+    mode code, as it has no encoder)."""
+    cfg = config
+    traces = np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
+                                  cfg.trace_normalize) for a, b in demo.segments])
+    with torch.no_grad():
+        if cfg.latent_type == "onehot":
+            t = torch.as_tensor(traces, dtype=torch.float32, device=model.behavior_traces.device)
+            d = (t[:, None] - model.behavior_traces[None]).pow(2).flatten(2).sum(-1)
+            z = F.one_hot(model.behavior_mode[d.argmin(1)], cfg.latent_dim).float()
+        else:
+            z = model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=model.geo_kappa.device))[0]
+    return z.cpu()
+
+
+def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init: str | Tensor,
+                   seed: int | None) -> Tensor:
+    """The warm start z0, [M, d_z] (one per segment)."""
+    n, d = len(demo.segments), config.latent_dim
+    if isinstance(init, Tensor):
+        if init.numel() != n * d:
+            raise ValueError(f"init has {init.numel()} values ({tuple(init.shape)}); this demonstration needs "
+                             f"{n} x {d} (one latent per segment)")
+        return init.float().reshape(n, d)
+    if init == "encoder":
+        return encode_demonstration(model, config, demo)
+    if init == "random":
+        return torch.randn(n, d, generator=torch.Generator().manual_seed(seed if seed is not None else 0))
+    if init == "zero":
+        return torch.zeros(n, d)
+    raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
+
+
+def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
+                      z0: Tensor, steps: int | None = None, lr: float | None = None, lam: float | None = None,
+                      seed: int | None = 0, progress: bool = False, objective: str | None = None,
+                      noise: str | None = None) -> FitResult:
+    """z (and, with ``noise="chunks"``, one sampler noise per chunk) fitted to ``demo``'s ``windows`` from
+    ``z0``; ``None`` arguments take the config's ``fit_*`` defaults. The model is put in eval mode meanwhile."""
+    cfg = config
+    if objective not in (None, "denoise", "sample"):
+        raise ValueError(f"objective must be 'denoise' or 'sample', got {objective!r}")
+    if noise not in (None, "none", "chunks"):
+        raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
+    if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
+        windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
+    device = model.geo_kappa.device
+    steps = cfg.fit_steps if steps is None else steps
+    sample_steps = cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None
+    was_training = model.training
+    model.eval()
+    try:
+        if cfg.latent_type == "onehot" and steps > 0:
+            # the discrete ablation adapts by choosing one of its M codes per phase (it cannot interpolate
+            # between them): the code that scores best on the fit objective over `steps` batches
+            codes, mean = select_code(model.denoiser, model.noise_schedule, windows,
+                                      torch.eye(cfg.latent_dim, device=device), steps, cfg.fit_batch_size,
+                                      cfg.fit_noise_samples, seed, sample_steps)
+            result = FitResult(z=codes.cpu(), z_init=z0.detach().cpu(), losses=[float(mean.min(0).values.sum())],
+                               steps=steps)
+        else:
+            result = fit_latent(
+                model.denoiser, model.noise_schedule, windows, z0.to(device), steps=steps,
+                lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
+                batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
+                progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps,
+            )
+        judge_fit(model, config, result, windows, seed)
+        if (noise or cfg.fit_noise) == "chunks":
+            result.noise = fit_chunk_noise(
+                model.denoiser, model.noise_schedule, windows, result.z.to(device), cfg.n_action_steps,
+                cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr, seed=seed if seed is not None else 0)
+    finally:
+        model.train(was_training)
+    if not demo.per_phase:
+        result.z, result.z_init = result.z[0], result.z_init[0]
+    return result
+
+
+def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: DemoWindows, seed: int | None) -> None:
+    """Fill ``result.fit_error`` / ``error_ratio`` and warn when the fitted latent reproduces the demonstration
+    much worse than the policy reproduces its training demonstrations: on the validation scenes that is where
+    steering failed (``config.fit_warn_ratio``)."""
+    if config.fit_report_chunks == 0:
+        return
+    result.fit_error = demonstration_error(model.denoiser, model.noise_schedule, windows,
+                                           result.z.to(model.geo_kappa.device), config.fit_report_chunks,
+                                           seed=seed if seed is not None else 0)
+    reference = float(model.train_loss_dp)
+    if not math.isfinite(reference) or reference <= 0:
+        return  # a checkpoint saved before the reference was tracked
+    result.error_ratio = result.fit_error / reference
+    if result.error_ratio >= config.fit_warn_ratio:
+        logger.warning(
+            "fit_latent: the fitted latent reproduces this demonstration %.1fx worse than the policy reproduces "
+            "its training demonstrations (L_fit %.4f against %.4f; warning from fit_warn_ratio=%g). Steering "
+            "to a route this far from the training behaviors often fails: on the benchmark's validation scenes "
+            "fits above 2x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
+            "training seed. Try it before relying on it; demonstrations of this route in the training data are "
+            "what helps, and fit_latent(noise='chunks') (also fitting the sampler's noise per chunk) reached "
+            "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
+            "fail?\", \"z plus one sampler noise per chunk\").",
+            result.error_ratio, result.fit_error, reference, config.fit_warn_ratio)
