@@ -9,8 +9,10 @@ fit-quality report against the training error, and optionally one sampler noise 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -139,3 +141,22 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
             "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
             "fail?\", \"z plus one sampler noise per chunk\").",
             result.error_ratio, result.fit_error, reference, config.fit_warn_ratio)
+
+
+def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **settings: object) -> dict:
+    """Where a fitted latent came from, as an adapted checkpoint keeps it (``adaptation.json``): the
+    demonstration, the fit settings (``None`` = the config's default, filled in), the fit error and its
+    ratio to the training error, and the date."""
+    source = {"arrays": "given in memory"}
+    if isinstance(episode, tuple):
+        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
+        source = {"dataset": str(Path(root).resolve()) if isinstance(root, (str, Path)) else str(root),
+                  "episode": int(episode[1])}
+    defaults = {"steps": config.fit_steps, "lr": config.fit_lr, "lam": config.fit_lambda,
+                "objective": config.fit_objective, "noise": config.fit_noise}
+    fit = {k: (defaults.get(k) if v is None else v) for k, v in settings.items()}
+    fit = {k: (v.tolist() if isinstance(v, Tensor) else v if isinstance(v, (int, float, str, bool, list)) or v is None
+               else str(v)) for k, v in fit.items()}
+    return {"source": "fit_latent", "demonstration": source, "fit": fit, "fit_error": result.fit_error,
+            "error_ratio": result.error_ratio, "noise_fitted": result.noise is not None,
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}

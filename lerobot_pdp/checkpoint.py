@@ -1,10 +1,16 @@
-"""A PDP checkpoint on disk: written whole, loaded into buffers sized by the checkpoint, first-release keys.
+"""A PDP checkpoint on disk: written whole, loaded into buffers sized by the checkpoint, first-release keys,
+and the adaptation an adapted checkpoint carries.
 
 ``PDPPolicy`` is LeRobot's ``PreTrainedPolicy``: ``save_pretrained`` / ``from_pretrained`` are LeRobot's. What
 PDP adds: the weights are written into a temporary folder and moved in last (a crash never leaves a half
 checkpoint); the behavior bank's buffers take the checkpoint's sizes before loading (their size is the
 training set's); checkpoints keep the flat key names of the first release; a config saved before a field
 existed gets that field's legacy default.
+
+An *adapted* checkpoint is a base checkpoint (weights unchanged, bit for bit) plus two small files: the
+active latent (one per phase) and chunk noises in ``adaptation.safetensors``, and where they came from in
+``adaptation.json`` (the demonstration, the fit settings, the fit error and its ratio to the training error,
+the date). Loading it makes the policy act adapted from the first action.
 """
 
 from __future__ import annotations
@@ -24,10 +30,14 @@ from .atomic import staging_dir
 from .configuration_pdp import apply_legacy_defaults
 from .pdp_model import BEHAVIOR_BUFFERS
 
+ADAPTATION_TENSORS = "adaptation.safetensors"
+ADAPTATION_INFO = "adaptation.json"
+
 
 def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[str, Tensor] | None = None) -> None:
-    """Write ``policy``'s config + weights into a temporary folder next to ``save_directory``, then move them
-    in, so a crash mid-write never leaves a half checkpoint (weights are moved last)."""
+    """Write ``policy``'s config + weights (+ its active adaptation, if any) into a temporary folder next to
+    ``save_directory``, then move them in, so a crash mid-write never leaves a half checkpoint (weights are
+    moved last). A folder reused for a policy without an adaptation loses its stale adaptation files."""
     save_directory = Path(save_directory)
     save_directory.mkdir(parents=True, exist_ok=True)
     try:
@@ -37,6 +47,9 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
                 save_model_as_safetensor(policy, str(tmp / SAFETENSORS_SINGLE_FILE))
             else:
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
+            if not write_adaptation(policy.steering, tmp):
+                for name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
+                    (save_directory / name).unlink(missing_ok=True)
             names = sorted(p.name for p in tmp.iterdir())
             for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
                 os.replace(tmp / name, save_directory / name)
@@ -74,3 +87,50 @@ def nest_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: st
         state_dict[prefix + "model." + key[len(prefix):]] = state_dict.pop(key)
     # saved before the training error was tracked: no reference (FitResult.error_ratio stays None), no warning
     state_dict.setdefault(prefix + "model.train_loss_dp", torch.tensor(float("nan")))
+
+
+def write_adaptation(steering: Any, directory: Path) -> bool:
+    """The active latent, chunk noises and provenance of ``steering`` as the adaptation files in ``directory``
+    (nothing, and False, when no latent is active)."""
+    from safetensors.torch import save_file
+
+    if not steering.active:
+        return False
+    tensors = {k: v.contiguous() for k, v in steering.state_tensors().items()}
+    save_file(tensors, str(directory / ADAPTATION_TENSORS))
+    info = {"latent": tensors["latent"].tolist(), "noise_chunks": len(tensors["noise"]),
+            **(steering.provenance or {"source": "set_latent"})}
+    (directory / ADAPTATION_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    return True
+
+
+def read_adaptation(pretrained: str | Path, **hub: Any) -> tuple[dict[str, Tensor], dict] | None:
+    """The adaptation files of a checkpoint (a local folder, or a Hub repo: ``hub`` holds ``revision``,
+    ``cache_dir``, ...), or None when it carries none. A damaged file is an error naming it."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    folder = Path(pretrained)
+    if folder.is_dir():
+        tensors_file, info_file = folder / ADAPTATION_TENSORS, folder / ADAPTATION_INFO
+        if not tensors_file.is_file():
+            return None
+    else:
+        from huggingface_hub import hf_hub_download
+        from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
+
+        kw = {k: hub[k] for k in ("revision", "cache_dir", "token", "local_files_only", "force_download") if k in hub}
+        try:
+            tensors_file = Path(hf_hub_download(str(pretrained), ADAPTATION_TENSORS, **kw))
+            info_file = Path(hf_hub_download(str(pretrained), ADAPTATION_INFO, **kw))
+        except (EntryNotFoundError, LocalEntryNotFoundError):
+            return None
+    try:
+        tensors = load_file(str(tensors_file))
+        info = json.loads(info_file.read_text()) if info_file.is_file() else {}
+    except (SafetensorError, OSError, ValueError) as e:
+        raise ValueError(f"{tensors_file.parent}: the adaptation files ({ADAPTATION_TENSORS}, {ADAPTATION_INFO}) are "
+                         f"damaged ({e}); adapt again, or load the base with --policy.use_adaptation=false") from e
+    if "latent" not in tensors:
+        raise ValueError(f"{tensors_file}: no 'latent' tensor (holds {sorted(tensors)})")
+    return tensors, info

@@ -218,6 +218,42 @@ def cmd_steer(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_adapt_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "adapt",
+        help="adapt a PDP checkpoint to one demonstration and write it as an adapted checkpoint",
+        description="Fit z (one per phase for segmented policies; with --noise chunks also one sampler noise per "
+        "chunk) to one recorded demonstration, weights frozen, and write a complete LeRobot checkpoint that acts "
+        "adapted from its first action: the base's files (weights bit for bit) plus adaptation.safetensors and "
+        "adaptation.json (the demonstration, fit settings, fit error and ratio, date). Use it as any checkpoint: "
+        "lerobot-eval / lerobot-rollout --policy.path=OUT; --policy.use_adaptation=false acts as the base.",
+    )
+    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
+    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+    p.add_argument("--out", required=True, type=Path, help="the adapted checkpoint folder to write (must not exist)")
+    p.add_argument("--noise", choices=("none", "chunks"), default=None,
+                   help="also fit one sampler noise per chunk (default: the checkpoint's fit_noise)")
+    p.add_argument("--steps", type=int, default=None, help="gradient steps on z (default: fit_steps)")
+    p.add_argument("--lr", type=float, default=None, help="Adam step size on z (default: fit_lr)")
+    p.add_argument("--seed", type=int, default=0, help="fitting seed (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device to fit on (default cpu)")
+    p.set_defaults(func=cmd_adapt)
+
+
+def cmd_adapt(args: argparse.Namespace) -> int:
+    from lerobot_pdp.adapted import adapt_checkpoint
+
+    out = adapt_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, noise=args.noise, steps=args.steps,
+                           lr=args.lr, seed=args.seed, device=args.device)
+    info = json.loads((out / "adaptation.json").read_text())
+    sizes = {p.name: p.stat().st_size for p in sorted(out.glob("adaptation.*"))}
+    ratio = info.get("error_ratio")
+    print(f"wrote {out}: latent {info['latent']}, {info['noise_chunks']} chunk noise(s), error ratio "
+          f"{'n/a' if ratio is None else f'{ratio:.2f}'}; adaptation files {sizes} bytes")
+    return 0
+
+
 # ---- benchmark -------------------------------------------------------------------------------------
 
 
@@ -389,6 +425,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_label_modes_parser,
     add_latent_map_parser,
     add_steer_parser,
+    add_adapt_parser,
     add_benchmark_parser,
     add_merge_results_parser,
 ]

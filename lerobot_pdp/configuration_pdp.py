@@ -247,6 +247,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # ({"mode": 3}, {"latent": [..]}, {"dataset": DIR, "episode": 0}) sets the active latent without
     # reloading the policy (lerobot_pdp/steering.py). Its request, once read, overrides the fields above.
     steer_file: str | None = None
+    # An adapted checkpoint (`lerobot-pdp adapt`, or save_pretrained after fit_latent / set_latent) carries
+    # its latent and chunk noises in adaptation.safetensors (provenance in adaptation.json) and acts adapted
+    # from the first action; false: load the base behaviour (`--policy.use_adaptation=false`). The steering
+    # fields above override it.
+    use_adaptation: bool = True
     # With no steering set: "episode" = a random training behavior's latent per reset (multimodal, like
     # DP); "prior" = a draw from N(0, I); "zero" = the prior mean.
     inference_latent: str = "episode"

@@ -31,12 +31,13 @@ from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .adaptation import encode_demonstration, fit_demonstration, initial_latent
+from .adaptation import encode_demonstration, fit_demonstration, fit_provenance, initial_latent
 from .behavior import read_training_behaviors, trace_distances
 from .checkpoint import (
     apply_saved_config,
     flatten_model_keys,
     nest_model_keys,
+    read_adaptation,
     resize_to_checkpoint,
     save_checkpoint,
 )
@@ -92,10 +93,18 @@ class PDPPolicy(PreTrainedPolicy):
         self.reset()
 
     @classmethod
-    def from_pretrained(cls, *args, **kwargs) -> PDPPolicy:
-        """LeRobot's loader, then the config's steering (``steer_latent`` / ``steer_mode`` /
-        ``steer_dataset_root``): a fit to a demonstration runs here, before any control loop starts."""
-        policy = super().from_pretrained(*args, **kwargs)
+    def from_pretrained(cls, pretrained_name_or_path: str | Path, **kwargs) -> PDPPolicy:
+        """LeRobot's loader; then the adaptation an adapted checkpoint carries (unless
+        ``config.use_adaptation`` is false), then the config's steering (``steer_latent`` / ``steer_mode`` /
+        ``steer_dataset_root``, which override it): a fit to a demonstration runs here, before any control
+        loop starts."""
+        policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
+        adaptation = read_adaptation(pretrained_name_or_path, **kwargs) if policy.config.use_adaptation else None
+        if adaptation is not None:
+            tensors, info = adaptation
+            policy.steering.load_state_tensors(tensors, info)
+            logger.info("adapted checkpoint %s: latent %s, %d chunk noise(s) (%s)", pretrained_name_or_path,
+                        tensors["latent"].tolist(), len(tensors.get("noise", ())), info.get("source", "?"))
         policy.apply_config_steering()
         return policy
 
@@ -228,7 +237,7 @@ class PDPPolicy(PreTrainedPolicy):
             means = self.mode_latents()
             if cfg.steer_mode not in means:
                 raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
-            self.set_latent(means[cfg.steer_mode])
+            self.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
         elif cfg.steer_dataset_root is not None:
             t0 = time.perf_counter()
             res = self.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
@@ -378,7 +387,9 @@ class PDPPolicy(PreTrainedPolicy):
             result = fit_demonstration(self.model, self.config, demo, windows, z0, steps, lr, lam, seed,  # fit
                                        progress, objective, noise)
         if activate:
-            self.steering.activate(result.z, result.noise)
+            self.steering.activate(result.z, result.noise, fit_provenance(
+                episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
+                objective=objective, noise=noise))
         return result
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:

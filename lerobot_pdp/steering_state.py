@@ -65,6 +65,7 @@ class Steering(nn.Module):
         self.noises = ChunkNoises()
         self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
         self.episode_latent: Tensor | None = None  # the default latent drawn for this episode
+        self.provenance: dict | None = None  # where the active latent came from (kept with an adapted checkpoint)
 
     @property
     def active(self) -> bool:
@@ -74,11 +75,14 @@ class Steering(nn.Module):
     def per_phase(self) -> bool:
         return len(self.latent) > 1
 
-    def activate(self, z: Tensor | Sequence[float] | np.ndarray | None, noise: Tensor | None = None) -> None:
+    def activate(self, z: Tensor | Sequence[float] | np.ndarray | None, noise: Tensor | None = None,
+                 provenance: dict | None = None) -> None:
         """Make ``z`` ([d_z], or [M, d_z] = one per phase) the active latent, with the chunk noises fitted under
-        it (``None``: none; noises of an earlier latent never carry over). ``z=None``: the default latent."""
+        it (``None``: none; noises of an earlier latent never carry over) and where it came from.
+        ``z=None``: the default latent."""
         if z is None:
             self.latent = self.latent[:0]
+            provenance = None
         else:
             z = torch.as_tensor(np.asarray(z, dtype=np.float32) if not isinstance(z, Tensor) else z).float()
             if z.dim() == 1:
@@ -91,6 +95,7 @@ class Steering(nn.Module):
             self.latent = z.detach().to(self.latent.device)
         self.noises.set(noise)
         self.phases.reset()
+        self.provenance = provenance
 
     def reset(self) -> None:
         """A new episode: phases and noises start over, the default latent is drawn anew."""
@@ -124,7 +129,7 @@ class Steering(nn.Module):
         """The active latent and noises (CPU copies), what an adapted checkpoint keeps."""
         return {"latent": self.latent.detach().cpu(), "noise": self.noises.noise.detach().cpu()}
 
-    def load_state_tensors(self, tensors: dict[str, Tensor]) -> None:
+    def load_state_tensors(self, tensors: dict[str, Tensor], provenance: dict | None = None) -> None:
         noise = tensors.get("noise")
         self.activate(tensors["latent"] if len(tensors["latent"]) else None,
-                      noise if noise is not None and len(noise) else None)
+                      noise if noise is not None and len(noise) else None, provenance)

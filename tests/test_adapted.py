@@ -1,0 +1,118 @@
+"""Adapted checkpoints: the adaptation saved with a checkpoint, loaded in another process's way (from disk),
+acting adapted from the first chunk; ``lerobot-pdp adapt`` writing a complete one; the base kept bit for bit."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+
+import pytest
+import torch
+from lerobot.policies.factory import make_pre_post_processors
+from policies import small_policy
+
+from lerobot_pdp import PDPPolicy
+from lerobot_pdp.checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
+from lerobot_pdp.cli import main as cli
+
+
+def _obs(p):
+    """A normalised observation history [2, n_obs_steps, dim] as LeRobot's preprocessor hands it over."""
+    pre, _ = make_pre_post_processors(p.config, dataset_stats=None)
+    g = torch.Generator().manual_seed(3)
+    return {k: torch.rand(2, p.config.n_obs_steps, ft.shape[0], generator=g) * 2 - 1
+            for k, ft in p.config.condition_features.items()}
+
+
+def _chunks(p, obs, n=3):
+    p.reset()
+    torch.manual_seed(0)
+    return torch.stack([p.predict_action_chunk(obs) for _ in range(n)])
+
+
+def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path):
+    p = small_policy(synthetic_meta)
+    p.eval()
+    res = p.fit_latent((synthetic_meta.root, 2), steps=2, noise="chunks")
+    p.save_pretrained(tmp_path / "adapted")
+    info = json.loads((tmp_path / "adapted" / ADAPTATION_INFO).read_text())
+    assert info["source"] == "fit_latent" and info["latent"] == [res.z.tolist()]  # [M, d_z]
+    assert info["demonstration"] == {"dataset": str(synthetic_meta.root.resolve()), "episode": 2}
+    assert info["fit"]["steps"] == 2 and info["fit"]["noise"] == "chunks" and info["fit"]["lr"] == p.config.fit_lr
+    assert info["noise_chunks"] == len(res.noise) > 1 and "error_ratio" in info and info["date"]
+    assert (tmp_path / "adapted" / ADAPTATION_TENSORS).stat().st_size < 20_000  # small beside the weights
+
+    q = PDPPolicy.from_pretrained(tmp_path / "adapted")
+    q.eval()
+    assert torch.equal(q.active_latent, p.active_latent) and torch.equal(q.active_noise, p.active_noise)
+    assert q.steering.provenance["demonstration"]["episode"] == 2
+    weights_p, weights_q = p.state_dict(), q.state_dict()
+    assert weights_p.keys() == weights_q.keys()
+    for k in weights_p:  # bit for bit (train_loss_dp is NaN in an untrained policy)
+        torch.testing.assert_close(weights_q[k], weights_p[k], rtol=0, atol=0, equal_nan=True, msg=k)
+    obs = _obs(p)
+    torch.testing.assert_close(_chunks(q, obs), _chunks(p, obs))  # adapted from the first chunk, noises in order
+
+    q.set_latent(None)  # back to the base behaviour
+    assert len(q.active_latent) == 0 and len(q.active_noise) == 0
+    cfg = PDPPolicy.from_pretrained(tmp_path / "adapted").config
+    cfg.use_adaptation = False  # what --policy.use_adaptation=false does
+    assert len(PDPPolicy.from_pretrained(tmp_path / "adapted", config=cfg).active_latent) == 0
+    q.save_pretrained(tmp_path / "adapted")  # a policy without an adaptation leaves no stale adaptation files
+    assert not (tmp_path / "adapted" / ADAPTATION_TENSORS).exists()
+    assert not (tmp_path / "adapted" / ADAPTATION_INFO).exists()
+
+
+def test_set_latent_and_steering_fields_travel_with_the_checkpoint(synthetic_meta, tmp_path):
+    p = small_policy(synthetic_meta)
+    p.set_latent([0.25, -0.5])
+    p.save_pretrained(tmp_path / "a")
+    assert json.loads((tmp_path / "a" / ADAPTATION_INFO).read_text())["source"] == "set_latent"
+    q = PDPPolicy.from_pretrained(tmp_path / "a")
+    assert q.active_latent.tolist() == [[0.25, -0.5]]
+    cfg = q.config
+    cfg.steer_latent = [1.0, 1.0]  # a steering field overrides the stored adaptation
+    assert PDPPolicy.from_pretrained(tmp_path / "a", config=cfg).active_latent.tolist() == [[1.0, 1.0]]
+
+
+def test_a_damaged_adaptation_file_is_named(synthetic_meta, tmp_path):
+    p = small_policy(synthetic_meta)
+    p.set_latent([0.25, -0.5])
+    p.save_pretrained(tmp_path / "a")
+    f = tmp_path / "a" / ADAPTATION_TENSORS
+    f.write_bytes(f.read_bytes()[:20])
+    with pytest.raises(ValueError, match=r"adaptation files .* are damaged .*use_adaptation=false"):
+        PDPPolicy.from_pretrained(tmp_path / "a")
+
+
+def _base_checkpoint(meta, path):
+    """A checkpoint as lerobot-train writes one: weights, config, processors."""
+    p = small_policy(meta)
+    p.save_pretrained(path)
+    pre, post = make_pre_post_processors(p.config, dataset_stats=meta.stats)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    (path / "README.md").write_text("# a model card\n")
+    return p
+
+
+def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, tmp_path, capsys):
+    base, out = tmp_path / "base", tmp_path / "adapted"
+    _base_checkpoint(synthetic_meta, base)
+    assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--episode", "2", "--steps", "2",
+                "--noise", "chunks", "--out", str(out)]) == 0
+    assert "adaptation files" in capsys.readouterr().out
+    for f in base.iterdir():  # every file of the base, the weights bit for bit
+        assert filecmp.cmp(f, out / f.name, shallow=False) or f.name == "README.md", f.name
+    assert "## Adaptation" in (out / "README.md").read_text()
+    info = json.loads((out / ADAPTATION_INFO).read_text())
+    assert info["demonstration"]["episode"] == 2 and info["noise_chunks"] > 1
+    assert info["base_checkpoint"] == str(base.resolve())
+    q = PDPPolicy.from_pretrained(out)
+    assert q.active_latent.tolist() == info["latent"] and len(q.active_noise) == info["noise_chunks"]
+    assert not list(tmp_path.glob(".pdp-adapt-*"))  # nothing half-written left beside it
+    # an existing output is refused by name; so is a folder that is no checkpoint
+    assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--out", str(out)]) == 2
+    assert f"{out} exists" in capsys.readouterr().err
+    assert cli(["adapt", str(tmp_path), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
+    assert "is not a PDP checkpoint folder" in capsys.readouterr().err
