@@ -462,3 +462,35 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
     assert total == 1 and [d["ended_by"] for d in lines] == ["success", "time"], (lines, err[-3000:])
     assert read_mode_labels(root)[0] == {0: 1}
     check_recording(root, 0, {"observation.state": (6,), "observation.environment_state": (6,), "action": (3,)})
+
+
+@pytest.mark.slow
+def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(untrained_reach_around, tmp_path):
+    """``lerobot-pdp adapt`` -> ``lerobot-eval`` / ``lerobot-rollout --policy.path=ADAPTED``: real processes that
+    load the adaptation (no steering flag, no fit in the loop) and act; ``use_adaptation=false`` acts as the base."""
+    from conftest import lerobot_cli, run_cli
+
+    ckpt, data = untrained_reach_around
+    adapted = tmp_path / "adapted"
+    run_cli([lerobot_cli("lerobot-pdp"), "adapt", str(ckpt), "--demo", str(data), "--episode", "0", "--steps", "2",
+             "--out", str(adapted)], timeout=300)
+    latent = json.loads((adapted / "adaptation.json").read_text())["latent"]
+    out = tmp_path / "eval"
+    proc = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={adapted}", "--env.type=pdp_reach_around",
+                    "--env.scene=0", "--policy.device=cpu", "--eval.n_episodes=1", "--eval.batch_size=1",
+                    f"--output_dir={out}"], timeout=600)
+    log = proc.stdout + proc.stderr
+    assert f"adapted checkpoint {adapted}: latent {latent}" in log and "fitted latent" not in log
+    assert json.loads(next(out.rglob("eval_info.json")).read_text())["overall"]["n_episodes"] == 1
+    base = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={adapted}", "--policy.use_adaptation=false",
+                    "--env.type=pdp_reach_around", "--env.scene=0", "--policy.device=cpu", "--eval.n_episodes=1",
+                    "--eval.batch_size=1", f"--output_dir={tmp_path / 'eval_base'}"], timeout=600)
+    assert "adapted checkpoint" not in base.stdout + base.stderr
+    outcomes = tmp_path / "rollout.jsonl"
+    rollout = run_cli([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={adapted}",
+                       "--policy.device=cpu", "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=0",
+                       "--robot.episodes=1", f"--robot.outcomes={outcomes}", f"--robot.calibration_dir={tmp_path / 'cal'}",
+                       "--fps=50", "--duration=30", "--return_to_initial_position=false", "--play_sounds=false"],
+                      timeout=300, env={**CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home")})
+    assert f"adapted checkpoint {adapted}: latent {latent}" in rollout.stdout + rollout.stderr
+    assert len(_outcomes(outcomes)) == 1
