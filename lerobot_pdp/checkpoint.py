@@ -58,6 +58,16 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             save_directory.rmdir()
 
 
+def check_finite_weights(policy: nn.Module, model_file: str) -> None:
+    """Refuse a checkpoint with non-finite weights or statistics, naming the tensor (``train_loss_dp`` is
+    NaN by design until trained). A NaN checkpoint would otherwise load and send NaN actions."""
+    for name, t in policy.state_dict().items():
+        if t.is_floating_point() and name != "train_loss_dp" and not bool(torch.isfinite(t).all()):
+            n = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{model_file}: tensor '{name}' {tuple(t.shape)} holds {n} non-finite value(s); "
+                             "this checkpoint cannot act (was its training diverging?)")
+
+
 def resize_to_checkpoint(model: nn.Module, model_file: str) -> None:
     """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the shapes ``model_file`` holds."""
     from safetensors import safe_open

@@ -18,6 +18,7 @@ traces -> trajectory encoder -> z -> FiLM denoiser -> actions.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -35,6 +36,7 @@ from .adaptation import encode_demonstration, fit_demonstration, fit_provenance,
 from .behavior import read_training_behaviors, trace_distances
 from .checkpoint import (
     apply_saved_config,
+    check_finite_weights,
     flatten_model_keys,
     nest_model_keys,
     read_adaptation,
@@ -90,6 +92,7 @@ class PDPPolicy(PreTrainedPolicy):
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
         self._steer_file = SteerFile(config.steer_file) if config.steer_file else None
         self._queues: dict[str, deque] = {}
+        self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)
         self.reset()
 
     @classmethod
@@ -133,6 +136,7 @@ class PDPPolicy(PreTrainedPolicy):
         defaults of checkpoints written before a config field existed."""
         resize_to_checkpoint(model.model, model_file)
         model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        check_finite_weights(model, model_file)
         apply_saved_config(model, model_file)
         return model
 
@@ -166,6 +170,14 @@ class PDPPolicy(PreTrainedPolicy):
         loss, metrics = self.model.loss_terms(batch)
         # one host transfer for all logged values (each .item() would wait for the GPU on its own)
         values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()
+        if self.training:
+            self._train_steps += 1
+            bad = {k: v for k, v in zip(metrics, values, strict=True) if not math.isfinite(v)}
+            if bad:  # stop before the optimizer writes non-finite weights into the next checkpoint
+                raise FloatingPointError(
+                    f"PDP training step {self._train_steps} of this process: non-finite loss term(s) {bad} (all terms: "
+                    f"{dict(zip(metrics, values, strict=True))}); the weights were not updated by it. Check the "
+                    "dataset for non-finite values and the soft-DTW cache (LEROBOT_PDP_CACHE), or lower the lr")
         return loss, dict(zip(metrics, values, strict=True))
 
     # ------------------------------------------------------------------ acting
@@ -188,6 +200,11 @@ class PDPPolicy(PreTrainedPolicy):
         if noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
             noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
         chunk = self.generate(obs_cond, z, noise=noise)
+        if not bool(torch.isfinite(chunk).all()):  # one check per chunk: a robot must never be sent NaN
+            raise FloatingPointError(
+                f"PDP generated non-finite actions (latent {z[0].tolist()}, observation condition finite: "
+                f"{bool(torch.isfinite(obs_cond).all())}): check the observation and the checkpoint; no action is "
+                "returned")
         start = self.config.n_obs_steps - 1
         return chunk[:, start : start + self.config.n_action_steps]
 

@@ -517,3 +517,31 @@ def test_a_loaded_checkpoint_is_steered_by_its_config_before_the_first_action(sy
     fitted = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
     assert len(fitted.active_latent) == 1 and torch.isfinite(fitted.active_latent).all()
     assert len(PDPPolicy.from_pretrained(tmp_path / "ckpt").active_latent) == 0  # no steering fields: default
+
+
+def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_meta, tmp_path):
+    """A NaN checkpoint does not load, a training step whose loss goes NaN stops naming the term, and a
+    non-finite chunk is an error, never an action."""
+    from safetensors.torch import load_file, save_file
+
+    p = small_policy(synthetic_meta)
+    p.save_pretrained(tmp_path / "ckpt")
+    weights = load_file(str(tmp_path / "ckpt" / "model.safetensors"))
+    name = next(k for k in weights if k.startswith("denoiser.") and weights[k].is_floating_point())
+    weights[name][..., 0] = float("nan")
+    save_file(weights, str(tmp_path / "ckpt" / "model.safetensors"))
+    with pytest.raises(ValueError, match=rf"tensor '{re.escape(name)}' .* non-finite value"):
+        PDPPolicy.from_pretrained(tmp_path / "ckpt")
+
+    p.train()
+    batch = training_batch(synthetic_meta, p)
+    batch["action"][0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match=r"training step 1 of this process: non-finite loss term\(s\) \{'loss_dp'"):
+        p.forward(batch)
+
+    p.eval()
+    with torch.no_grad():
+        next(p.model.denoiser.parameters()).fill_(float("nan"))
+    obs = {k: v[:1] for k, v in training_batch(synthetic_meta, p).items() if k.startswith("observation.")}
+    with pytest.raises(FloatingPointError, match="non-finite actions"):
+        p.predict_action_chunk(obs)
