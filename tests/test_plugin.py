@@ -87,15 +87,17 @@ def test_register_third_party_plugins_finds_pdp_from_wheel(tmp_path):
         if (ROOT / f).is_file():
             (src / f).parent.mkdir(parents=True, exist_ok=True)
             (src / f).write_bytes((ROOT / f).read_bytes())
+    projects = [src, *sorted(p for p in (src / "plugins").iterdir() if (p / "pyproject.toml").is_file())]
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(wheel_dir),
-                    str(src)], check=True, capture_output=True)
-    wheel = next(wheel_dir.glob("lerobot_policy_pdp-*.whl"))
+                    *map(str, projects)], check=True, capture_output=True)
+    wheels = sorted(wheel_dir.glob("*.whl"))
+    assert len(wheels) == len(projects) == 5, wheels  # the policy and the lab's four plugins
     # a fresh venv that sees the project's dependencies but not its editable install
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     site = next((venv / "lib").glob("python3*/site-packages"))
     (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)],
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), *map(str, wheels)],
                    check=True, capture_output=True)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     out = subprocess.run([str(venv / "bin" / "python"), "-c", CHECK], capture_output=True, text=True, env=env,
