@@ -114,7 +114,11 @@ def test_fused_training_forward_equals_the_blocks_one_by_one(mode, film_hidden_d
     torch.testing.assert_close(outs[0], outs[1], atol=1e-5, rtol=1e-5)
     assert grads[0].keys() == grads[1].keys() and len(grads[0]) == 1 + sum(1 for _ in net.parameters())
     for name in grads[0]:
-        torch.testing.assert_close(grads[0][name], grads[1][name], atol=1e-5, rtol=1e-4, msg=name)
+        # a weight's gradient sums over batch and chunk, the fused ops in another order than the blocks': its
+        # round-off scales with the tensor's largest entries (up to 4.7e-6 of them across CPU code paths)
+        want = grads[1][name]
+        scale = 1.0 if want is None else max(1.0, float(want.abs().max()))
+        torch.testing.assert_close(grads[0][name], want, atol=2e-5 * scale, rtol=1e-4, msg=name)
 
 
 def test_inference_caches_follow_weight_updates_and_pickle():
