@@ -194,6 +194,7 @@ def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, epi
     torch.testing.assert_close(again, noise)
 
 
+@pytest.mark.numerics
 def test_dp_noise_matching_counts_padded_steps_as_dp_was_trained(reach_meta, episode):
     policy, pre, _ = _dp(reach_meta)
     noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(0))
@@ -217,6 +218,7 @@ def test_adapt_dp_noise_rejects_non_diffusion_policy(reach_meta, episode):
         adapt_dp_noise(policy, pre, episode, steps=1)
 
 
+@pytest.mark.numerics
 def test_fixed_noise_policy_passes_its_noise(reach_meta, episode):
     policy, pre, _ = _dp(reach_meta)
     noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(1))

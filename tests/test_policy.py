@@ -381,6 +381,7 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
         p.demo_windows(ep, segments=[(10, 5)])
 
 
+@pytest.mark.numerics
 def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
     """``tests/data/pdp_checkpoint_v1`` was saved with its actions, mode latents and a 3-step fit (see
     ``tests/data/make_pdp_checkpoint_v1.py``): the current code must load it and reproduce all three, on any
