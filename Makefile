@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= outputs/demo
 
-.PHONY: install demo test test-fast lint bench results clean
+.PHONY: install demo test test-fast test-numerics lint bench results clean
 
 $(STAMP): pyproject.toml requirements-dev.txt $(wildcard plugins/*/pyproject.toml)
 	@if [ -z "$(PY312)" ]; then echo "Python 3.12 is required (LeRobot >= 0.5 needs it); none found" >&2; exit 1; fi
@@ -23,9 +23,17 @@ install: $(STAMP)
 demo: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/lerobot-pdp benchmark --env reach-around --quick --out $(DEMO_OUT)
 
-## Whole test suite (slow end-to-end tests included).
+## Whole test suite (slow end-to-end tests included), then the numerics-sensitive tests again on other kernels.
 test: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider --durations=15
+	@$(MAKE) --no-print-directory test-numerics
+
+## The tests marked `numerics` under other CPU code paths than this machine's: MKL's SSE2 'compatible' kernels, ATen's
+## scalar ones, oneDNN's SSE4.1 convolutions. A tolerance that only holds on one CPU's float kernels (another
+## vendor or vector width computes the low-order bits differently) fails here on any machine.
+NUMERICS_ENV ?= MKL_CBWR=COMPATIBLE ATEN_CPU_CAPABILITY=default ONEDNN_MAX_CPU_ISA=SSE41
+test-numerics: $(STAMP)
+	HF_HUB_OFFLINE=1 $(NUMERICS_ENV) $(VENV)/bin/pytest -q -p no:cacheprovider -m numerics
 
 ## Contributors' loop: the tests not marked slow (no lerobot-train processes), a few minutes.
 test-fast: $(STAMP)

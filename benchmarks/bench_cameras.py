@@ -313,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.envs.recording import make_dataset
 
     torch.set_num_threads(args.threads)
@@ -321,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                         progress=False)
     meta = LeRobotDatasetMetadata("local/reach", root=root)
     dev = args.device
-    env = {"host": platform.machine(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
+    env = {"host": platform.machine(), "cpu": cpu_model(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
            "torch": torch.__version__, "device": dev, "image_size": args.image_size,
            "gpu": torch.cuda.get_device_name() if dev.startswith("cuda") else None}
     for n_cam in args.cameras:

@@ -71,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     import lerobot_pdp.envs as envs
+    from lerobot_pdp.benchmark.machine import cpu_model
 
     names = args.envs or list(envs.SUITE)
     for name in names:
@@ -79,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as e:  # noqa: BLE001 - one broken env must not hide the others' numbers
             row = {"env": name, "error": f"{type(e).__name__}: {e}"}
         row["machine"] = f"{platform.machine()} {platform.processor() or ''}".strip()
+        row["cpu"] = cpu_model()
         print(json.dumps(row), flush=True)
     return 0
 

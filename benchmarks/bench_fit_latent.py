@@ -30,6 +30,12 @@ def _timed(fn, reps: int) -> list[float]:
     return out
 
 
+def _emit(record: dict) -> None:
+    from lerobot_pdp.benchmark.machine import cpu_model
+
+    print(json.dumps({**record, "cpu": cpu_model()}), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
@@ -70,13 +76,13 @@ def main() -> None:
                 ts[name] += _timed(lambda s=steps: pdp.fit_latent(demo, steps=s), 1)
         pdp.config.fit_gradient, pdp.config.fit_report_chunks = variants["auto"]
         for name, t in ts.items():
-            print(json.dumps({"bench": "fit_latent", "variant": name, "steps": steps, "demo_frames": T,
-                              "batch": pdp.config.fit_batch_size, "median_ms": 1000 * statistics.median(t),
-                              "min_ms": 1000 * min(t), "threads": args.threads}))
-        print(json.dumps({"bench": "fit_latent_ratio", "steps": steps,
-                          "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
-                          "report_share": 1 - statistics.median(ts["auto_no_report"]) / statistics.median(ts["auto"]),
-                          "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100}))
+            _emit({"bench": "fit_latent", "variant": name, "steps": steps, "demo_frames": T,
+                   "batch": pdp.config.fit_batch_size, "median_ms": 1000 * statistics.median(t),
+                   "min_ms": 1000 * min(t), "threads": args.threads})
+        _emit({"bench": "fit_latent_ratio", "steps": steps,
+               "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
+               "report_share": 1 - statistics.median(ts["auto_no_report"]) / statistics.median(ts["auto"]),
+               "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100})
     # the optional noise-per-chunk adaptation (fit_latent(noise="chunks")): the default fit plus one noise per
     # executed chunk fitted through the sampler (fit_noise_steps chains of 32 windows), next to the fit alone
     ts = {"z": [], "z_and_noise": []}
@@ -84,11 +90,11 @@ def main() -> None:
         ts["z"] += _timed(lambda: pdp.fit_latent(demo), 1)
         ts["z_and_noise"] += _timed(lambda: pdp.fit_latent(demo, noise="chunks"), 1)
     if ts["z"]:
-        print(json.dumps({"bench": "fit_latent_noise_chunks", "demo_frames": T,
-                          "ddim_steps": pdp.config.num_inference_steps, "z_ms": 1000 * statistics.median(ts["z"]),
-                          "z_and_noise_ms": 1000 * statistics.median(ts["z_and_noise"]),
-                          "ratio": statistics.median(ts["z_and_noise"]) / statistics.median(ts["z"]),
-                          "threads": args.threads}))
+        _emit({"bench": "fit_latent_noise_chunks", "demo_frames": T,
+               "ddim_steps": pdp.config.num_inference_steps, "z_ms": 1000 * statistics.median(ts["z"]),
+               "z_and_noise_ms": 1000 * statistics.median(ts["z_and_noise"]),
+               "ratio": statistics.median(ts["z_and_noise"]) / statistics.median(ts["z"]),
+               "threads": args.threads})
     if args.fit_only:
         return
 
@@ -125,9 +131,9 @@ def main() -> None:
         ts = [t / len(batches) for t in _timed(step, 5)]
         params = sum(p.numel() for p in policy.parameters())
         results[name] = statistics.median(ts)
-        print(json.dumps({"bench": "train_step", "policy": name, "batch": 64, "median_ms": 1000 * results[name],
-                          "steps_per_s": 1 / results[name], "params": params, "threads": args.threads}))
-    print(json.dumps({"bench": "train_step_ratio", "pdp_over_diffusion": results["pdp"] / results["diffusion_same_backbone"]}))
+        _emit({"bench": "train_step", "policy": name, "batch": 64, "median_ms": 1000 * results[name],
+               "steps_per_s": 1 / results[name], "params": params, "threads": args.threads})
+    _emit({"bench": "train_step_ratio", "pdp_over_diffusion": results["pdp"] / results["diffusion_same_backbone"]})
 
 
 if __name__ == "__main__":

@@ -86,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from lerobot_pdp import column_views
     from lerobot_pdp.benchmark.data import ensure_dataset
+    from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.benchmark.settings import SETTINGS
     from lerobot_pdp.envs import get_suite_env
 
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         roots.append(ensure_dataset(suite, args.data / suite.scene_key, SETTINGS[suite.name][0]))
 
     common = {"torch_threads": 1, "workers": args.workers, "batch": args.batch, "lerobot": lerobot.__version__,
-              "machine": platform.machine(), "cpus": os.cpu_count()}
+              "machine": platform.machine(), "cpu": cpu_model(), "cpus": os.cpu_count()}
     for root in roots:
         rows = {}
         for views in (True, False):

@@ -124,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from lerobot_pdp import PDPConfig
     from lerobot_pdp.benchmark.baselines import dp_config_kwargs
+    from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.envs.recording import make_dataset
 
     torch.set_num_threads(args.threads)
@@ -156,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             pdp = small[name][0]
             pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
 
-    env = {"host": platform.machine(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
+    env = {"host": platform.machine(), "cpu": cpu_model(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
            "torch": torch.__version__, "load_1min": round(os.getloadavg()[0], 2), "device": args.device,
            "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None}
     results: dict[str, dict] = {}

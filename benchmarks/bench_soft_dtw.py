@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from lerobot_pdp.benchmark.machine import cpu_model
 from lerobot_pdp.soft_dtw import soft_dtw, soft_dtw_cdist
 
 
@@ -35,7 +36,7 @@ def _time(fn: Callable[[], object], reps: int) -> tuple[float, float, float]:
 
 
 def _emit(**kw: object) -> None:
-    print(json.dumps(kw), flush=True)
+    print(json.dumps({**kw, "cpu": cpu_model()}), flush=True)
 
 
 def main() -> None:

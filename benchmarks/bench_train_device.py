@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.benchmark.settings import TrainSettings, methods_for
     from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.recording import make_dataset
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     methods = methods_for(get_suite_env("reach-around"))
     settings = TrainSettings(steps=args.steps)
     batch_sizes = args.batch_sizes or [settings.batch_size]
-    env = {"cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
+    env = {"cpu": cpu_model(), "cpus": cpus, "torch": torch.__version__, "num_workers": args.num_workers,
            "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
     for bs in batch_sizes:
         _run_batch_size(args, only, methods, root, settings, bs, cpu_threads, work, logs, env)

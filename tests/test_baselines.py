@@ -194,6 +194,7 @@ def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, epi
     torch.testing.assert_close(again, noise)
 
 
+@pytest.mark.numerics
 def test_dp_noise_matching_counts_padded_steps_as_dp_was_trained(reach_meta, episode):
     policy, pre, _ = _dp(reach_meta)
     noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(0))
@@ -217,6 +218,7 @@ def test_adapt_dp_noise_rejects_non_diffusion_policy(reach_meta, episode):
         adapt_dp_noise(policy, pre, episode, steps=1)
 
 
+@pytest.mark.numerics
 def test_fixed_noise_policy_passes_its_noise(reach_meta, episode):
     policy, pre, _ = _dp(reach_meta)
     noise = torch.randn(1, 16, 3, generator=torch.Generator().manual_seed(1))
@@ -243,7 +245,10 @@ def test_fixed_noise_policy_passes_its_noise(reach_meta, episode):
     torch.testing.assert_close(a, direct)
     wrapped.reset()
     torch.testing.assert_close(wrapped.select_action(pre(_obs(episode, 0, batch=3))), a)
-    assert torch.allclose(a[0], a[1]) and torch.allclose(a[0], a[2])  # one noise for all envs of the batch
+    assert all(torch.equal(seen[0][i], noise[0]) for i in range(3))  # one noise for all envs of the batch
+    # and so one action: each row is the same computation at another batch position, which BLAS kernels may
+    # round differently (up to 2.7e-6 apart across CPU code paths, after the sampler's steps): 1e-4
+    torch.testing.assert_close(a[1:], a[:1].expand(2, -1), atol=1e-4, rtol=0)
 
 
 def test_per_chunk_noise_is_fitted_per_chunk_and_played_in_order(reach_meta, episode):

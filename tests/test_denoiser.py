@@ -43,6 +43,7 @@ def test_unconditioned_ignores_z():
     assert torch.equal(net(x, k, c, torch.zeros(1, 2)), net(x, k, c, torch.ones(1, 2) * 5))
 
 
+@pytest.mark.numerics
 def test_schedule_and_ddim():
     s = NoiseSchedule(20)
     assert s.alphas_cumprod.shape == (20,) and bool((s.alphas_cumprod.diff() < 0).all())
@@ -63,6 +64,7 @@ def test_schedule_and_ddim():
 
 @pytest.mark.parametrize(("mode", "film_hidden_dims"),
                          [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("input", (16, 32)), ("none", (16, 32))])
+@pytest.mark.numerics
 def test_cached_inference_path_equals_forward(mode, film_hidden_dims):
     # film_hidden_dims=() is the affine FiLM pick-place trains with: the stacked-MLP fast path then has
     # no hidden layer at all
@@ -92,6 +94,7 @@ def test_cached_inference_path_equals_forward(mode, film_hidden_dims):
 
 @pytest.mark.parametrize(("mode", "film_hidden_dims"),
                          [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("input", (16, 32)), ("none", (16, 32))])
+@pytest.mark.numerics
 def test_fused_training_forward_equals_the_blocks_one_by_one(mode, film_hidden_dims):
     """Training's fused modulation (all blocks' conditioning and z-MLPs as a few stacked ops) gives the
     output and the gradients of every weight and of z that each block's own modules give."""
@@ -114,9 +117,14 @@ def test_fused_training_forward_equals_the_blocks_one_by_one(mode, film_hidden_d
     torch.testing.assert_close(outs[0], outs[1], atol=1e-5, rtol=1e-5)
     assert grads[0].keys() == grads[1].keys() and len(grads[0]) == 1 + sum(1 for _ in net.parameters())
     for name in grads[0]:
-        torch.testing.assert_close(grads[0][name], grads[1][name], atol=1e-5, rtol=1e-4, msg=name)
+        # a weight's gradient sums over batch and chunk, the fused ops in another order than the blocks': its
+        # round-off scales with the tensor's largest entries (up to 4.7e-6 of them across CPU code paths)
+        want = grads[1][name]
+        scale = 1.0 if want is None else max(1.0, float(want.abs().max()))
+        torch.testing.assert_close(grads[0][name], want, atol=2e-5 * scale, rtol=1e-4, msg=name)
 
 
+@pytest.mark.numerics
 def test_inference_caches_follow_weight_updates_and_pickle():
     net = _net("film").eval()
     x, c, z = torch.randn(1, 16, 3), torch.randn(1, 10), torch.randn(1, 2)
@@ -131,6 +139,7 @@ def test_inference_caches_follow_weight_updates_and_pickle():
     assert torch.equal(clone.run_cached(x, clone.make_context(c, z, [19, 0])[0]), after)
 
 
+@pytest.mark.numerics
 def test_concat_ablation_feeds_the_raw_latent_to_a_linear_map():
     """The paper's concat ablation: z meets a linear map first (no Mish, which would fold distinct negative
     coordinates onto nearly the same value), so every block's condition is affine in z."""
@@ -184,6 +193,7 @@ def test_input_ablation_appends_the_latent_to_the_denoiser_input_only():
         assert not torch.allclose(out_a, net(x, k, c, -z))
 
 
+@pytest.mark.numerics
 def test_pdp_ddim_step_is_diffusers_ddim_on_a_self_consistent_grid():
     """PDP's sampler step is diffusers' DDIM step (cosine schedule, x0 clipped to [-1, 1]) with the noise
     re-derived from the clipped x0 (``use_clipped_model_output=True``). Pinned on diffusers' "leading" grid,
@@ -216,6 +226,7 @@ def test_pdp_ddim_step_is_diffusers_ddim_on_a_self_consistent_grid():
 
 @pytest.mark.parametrize("spacing", ["leading", "trailing"])
 @pytest.mark.parametrize("clipped", [False, True])
+@pytest.mark.numerics
 def test_pdp_sampler_is_diffusers_ddim_on_diffusers_grids(spacing, clipped):
     """With ``timestep_spacing`` "leading" / "trailing" PDP's whole sampler (grid, step rule, final step)
     is diffusers' DDIM loop, at step counts that divide K and at ones that do not; "leading" without the
@@ -263,6 +274,7 @@ def test_sampler_fields_reach_the_policy(synthetic_meta):
         PDPConfig(device="cpu", timestep_spacing="linspace")
 
 
+@pytest.mark.numerics
 def test_cpu_sampler_matches_a_float64_reference(synthetic_meta):
     """The CPU sampler (unfolded convolutions through a TorchScript trace, float32) stays within 2e-5 of the
     same sampler run in float64 over the whole 20-step chain; a float64 copy of a policy samples in float64

@@ -40,6 +40,7 @@ def test_windows_equal_lerobot_dataset_windows(synthetic_dataset):
 
 
 @pytest.mark.parametrize("gradient", ["autograd", "finite_difference"])
+@pytest.mark.numerics
 def test_fit_changes_only_z_and_reduces_loss(gradient):
     torch.manual_seed(0)
     net = FiLMUnet1d(2, 4, 2, "film", down_dims=(16, 32))
@@ -73,6 +74,7 @@ def _two_phase_setup(mode: str):
 
 
 @pytest.mark.parametrize("mode", ["film", "concat", "input", "none"])
+@pytest.mark.numerics
 def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
     """fit_loss runs the denoiser from cached step/observation modulations; the maths must be forward's."""
     net, sched, w, T = _two_phase_setup(mode)
@@ -95,6 +97,7 @@ def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
         torch.testing.assert_close(g_got, g_want, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.numerics
 def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
     """Forward differences over z (all phases at once) agree with the backward pass on the same noise."""
     net, sched, w, T = _two_phase_setup("film")
@@ -148,6 +151,7 @@ def test_spread_steps_cover_every_stratum_once_and_spread_each_window():
         assert torch.equal(rounds, torch.arange(draws)[:, None].expand(draws, windows))
 
 
+@pytest.mark.numerics
 def test_demonstration_error_spread_steps_keep_the_mean_with_less_noise():
     """Stratified steps estimate the same L_fit as uniform ones (many draws agree) and, once the denoiser has
     learned the demonstration (its error then depends mostly on the step), vary much less over seeds."""
@@ -160,6 +164,7 @@ def test_demonstration_error_spread_steps_keep_the_mean_with_less_noise():
     assert small[0] < 0.7 * small[1], small
 
 
+@pytest.mark.numerics
 def test_chunk_noises_make_the_sampler_reproduce_the_demonstration():
     """fit_chunk_noise: the DDIM chains from the fitted noises (under each phase's z) come closer to the
     demonstration's chunks than from the noises it started at; no weight is touched."""
@@ -183,6 +188,7 @@ def test_chunk_noises_make_the_sampler_reproduce_the_demonstration():
     assert all(q.grad is None for q in net.parameters())
 
 
+@pytest.mark.numerics
 def test_discrete_latent_adapts_by_choosing_the_best_code_per_phase():
     """The one-hot ablation picks one of its codes per phase (no interpolation): every code is scored on the
     same windows and noise, so scoring them one at a time gives the same numbers, and the pick is the minimum."""
@@ -216,6 +222,7 @@ def test_onehot_policy_fit_returns_one_of_its_codes(synthetic_meta):
 
 
 @pytest.mark.parametrize("mode", ["film", "concat", "input"])
+@pytest.mark.numerics
 def test_sample_objective_is_the_error_of_the_policy_sampler(mode):
     """fit_objective="sample": the fitted quantity is the error of the chunk the network samples with the
     shared sampler (NoiseSchedule.sample over the plain forward), per phase, plus lambda|z|^2, and its

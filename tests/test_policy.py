@@ -381,25 +381,51 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
         p.demo_windows(ep, segments=[(10, 5)])
 
 
+@pytest.mark.numerics
 def test_checkpoint_written_by_an_earlier_version_loads_and_acts_the_same():
     """``tests/data/pdp_checkpoint_v1`` was saved with its actions, mode latents and a 3-step fit (see
-    ``tests/data/make_pdp_checkpoint_v1.py``): the current code must load it and reproduce all three."""
+    ``tests/data/make_pdp_checkpoint_v1.py``): the current code must load it and reproduce all three, on any
+    CPU. The stored numbers came from one machine's float kernels; the tolerances below cover other CPUs'
+    (spreads measured across the MKL_CBWR, ATEN_CPU_CAPABILITY and ONEDNN_MAX_CPU_ISA code paths on an AMD
+    EPYC; an AVX-512 Xeon's differences, reported for the fit, lie within them)."""
     import json
     from pathlib import Path
+
+    from lerobot_pdp.latent_fitting import demonstration_error
 
     ckpt = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
     exp = json.loads((ckpt / "expected.json").read_text())
     p = PDPPolicy.from_pretrained(ckpt)
     p.eval()
     t = {k: torch.tensor(exp[k]) for k in ("obs_cond", "z", "noise", "chunk")}
+    # 20 DDIM steps, actions clipped to [-1, 1]: the code paths moved the chunk by <= 1.0e-6
     torch.testing.assert_close(p.generate(t["obs_cond"], t["z"], noise=t["noise"]), t["chunk"], atol=1e-5, rtol=1e-5)
     means = p.mode_latents()
     assert sorted(means) == sorted(int(k) for k in exp["mode_latents"])
-    for k, v in exp["mode_latents"].items():
+    for k, v in exp["mode_latents"].items():  # one encoder pass and a mean: <= 1.2e-7 between code paths
         torch.testing.assert_close(means[int(k)], torch.tensor(v), atol=1e-5, rtol=1e-5)
-    res = p.fit_latent({k: torch.tensor(v) for k, v in exp["demo"].items()}, steps=3, seed=0)
-    torch.testing.assert_close(res.z_init, torch.tensor(exp["fit_z_init"]), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(res.z, torch.tensor(exp["fit_z"]), atol=1e-5, rtol=1e-5)
+    demo = {k: torch.tensor(v) for k, v in exp["demo"].items()}
+    res = p.fit_latent(demo, steps=3, seed=0)
+    torch.testing.assert_close(res.z_init, torch.tensor(exp["fit_z_init"]), atol=1e-5, rtol=1e-5)  # the encoder's
+    # The fit is compared as behaviour, not bit for bit: its forward-difference gradient (h = 1e-3, a loss
+    # difference over h) and three Adam steps amplify float-level kernel differences. They moved z by up to
+    # 9.1e-4 from the stored fit (3.9e-4 on the Xeon), against the 0.136 the fit itself moves it.
+    # 1) z lands where it did: 3e-3 is 3x that spread and 2 % of the fit's move.
+    stored = torch.tensor(exp["fit_z"])
+    torch.testing.assert_close(res.z, stored, atol=3e-3, rtol=0)
+    # 2) z reproduces the demonstration as well as the stored latent, both scored here by the current code
+    # (fit_error's windows, noise and steps): worse by at most 10 % of what the stored fit gained over its
+    # warm start (3.5e-4; the code paths were within 1.6e-6 of the stored latent's error).
+    windows = p.demo_windows(demo)
+
+    def demo_error(z: torch.Tensor) -> float:
+        return demonstration_error(p.model.denoiser, p.model.noise_schedule, windows, z.reshape(windows.n_segments, -1),
+                                   p.config.fit_report_chunks, seed=0)
+
+    e_stored, e_init = demo_error(stored), demo_error(res.z_init)
+    assert res.fit_error == pytest.approx(demo_error(res.z))  # what fit_latent reports is this score
+    assert e_init - e_stored > 1e-4, (e_init, e_stored)  # the stored fit did improve on its warm start
+    assert res.fit_error <= e_stored + 0.1 * (e_init - e_stored), (res.fit_error, e_stored, e_init)
     # it predates the tracked training error: the fit is scored, but there is nothing to compare it with
     assert torch.isnan(p.model.train_loss_dp) and res.fit_error > 0 and res.error_ratio is None
 

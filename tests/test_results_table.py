@@ -56,7 +56,9 @@ def test_mean_and_std_over_seeds_in_json_and_table():
 
 
 def test_the_device_each_evaluation_ran_on_is_recorded_and_merged():
-    """Cached evaluations are reused on any device: the table says where each method's evaluations ran."""
+    """Cached evaluations are reused on any device: the table says where each method's evaluations ran, and
+    which CPU the run was on (merged runs: every CPU)."""
+    from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.benchmark.results import merge_results
 
     cfg = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0, 1])
@@ -66,11 +68,14 @@ def test_the_device_each_evaluation_ran_on_is_recorded_and_merged():
                     TrainSettings(steps=10), 10)
     assert res["methods"]["pdp"]["eval_devices"] == ["cpu"] and res["methods"]["dp"]["eval_devices"] == ["cpu", "cuda"]
     assert "Evaluated on: pdp cpu, dp cpu/cuda." in results_markdown(res)
+    assert res["cpu"] == cpu_model() != "" and f"CPU: {cpu_model()}." in results_markdown(res)
     old = aggregate("reach-around", BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[2]),
                     {"pdp": {2: _run([1.0, 1.0, 1.0, 1.0])}, "dp": {2: _run([0.0, 0.0, 0.0, 0.0])}}, {},
                     TrainSettings(steps=10), 10)  # caches from before the device was recorded
     assert old["methods"]["pdp"]["eval_devices"] == ["unrecorded"]
+    del old["cpu"]  # a results.json from before the CPU was recorded
     merged = merge_results([("a", res), ("b", old)])
+    assert set(merged["cpu"].split("/")) == {cpu_model(), "unrecorded"}
     assert merged["methods"]["dp"]["eval_devices"] == ["cpu", "cuda", "unrecorded"]
     assert "Evaluated on: pdp cpu/unrecorded, dp cpu/cuda/unrecorded." in results_markdown(merged)
 
@@ -126,7 +131,7 @@ def test_merging_runs_of_different_seeds_equals_one_run_of_all_seeds():
         assert merged["init_ablation"][k]["mean"] == pytest.approx(entry["mean"])
         assert merged["init_ablation"][k]["scenes"] == pytest.approx(entry["scenes"])
     assert merged["seeds"] == [0, 1, 2] and merged["merged_from"] == ["b", "a"]
-    for key in ("frozen", "scenes", "device", "split"):  # what was frozen survives the merge
+    for key in ("frozen", "scenes", "device", "cpu", "split"):  # what was frozen survives the merge
         assert merged[key] == whole[key], key
     for m in ("pdp", "dp"):
         assert merged["methods"][m]["seeds"] == whole["methods"][m]["seeds"]

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from .machine import cpu_model
 from .settings import (
     FROZEN,
     INIT_STEPS,
@@ -55,7 +56,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
-                           "device": cfg.device,
+                           "device": cfg.device, "cpu": cpu_model(),
                            "frozen": frozen if frozen is not None else frozen_record(env, cfg),
                            "methods": {}}
     observation = cfg.observation()
@@ -193,6 +194,7 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     if all(res.get("scenes") == first.get("scenes") for _, res in results) and "scenes" in first:
         out["scenes"] = first["scenes"]
     out["device"] = "/".join(sorted({str(res.get("device", "unrecorded")) for _, res in results}))
+    out["cpu"] = "/".join(sorted({str(res.get("cpu", "unrecorded")) for _, res in results}))
     out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
     out["merged_from"] = [name for name, _ in results]
     out["methods"] = {}
@@ -290,6 +292,8 @@ def results_markdown(res: dict[str, Any]) -> str:
         same = len(set(devices.values())) == 1
         lines.append("Evaluated on: " + (f"{next(iter(devices.values()))} (every method)." if same
                                          else ", ".join(f"{n} {d}" for n, d in devices.items()) + "."))
+    if res.get("cpu"):  # results from before the key say nothing
+        lines.append(f"CPU: {res['cpu']}.")
     adapted = [f"{name} {e['adapt']}" for name, e in res["methods"].items() if e.get("adapt")]
     if adapted:
         lines.append(f"Adaptation settings besides the defaults: {'; '.join(adapted)}.")

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from .. import column_views
 from ..atomic import write_text_atomic
+from .machine import cpu_model
 from .settings import VQBET_VQVAE_SHARE, Method, TrainSettings
 
 # Two loader workers with one torch thread in the trainer overlap loading and the update on 2 cores.
@@ -161,7 +162,8 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
         if not (src / "model.safetensors").is_file():
             raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
         info = {"seconds": seconds_before + time.time() - t0, "steps": steps, "args": _portable(args, run_dir),
-                "column_views": column_views.active()}  # LeRobot's loader sped up: the seconds depend on it
+                "column_views": column_views.active(),  # LeRobot's loader sped up: the seconds depend on it
+                "cpu": cpu_model()}  # the seconds and the trained weights' low-order bits depend on it too
         if start:
             info["resumed_from_step"] = start
         # train_info.json first: a checkpoint must never be found without the arguments it was trained with
