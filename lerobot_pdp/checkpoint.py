@@ -47,12 +47,13 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
                 save_model_as_safetensor(policy, str(tmp / SAFETENSORS_SINGLE_FILE))
             else:
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
-            if not write_adaptation(policy.steering, tmp):
-                for name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
-                    (save_directory / name).unlink(missing_ok=True)
+            adapted = write_adaptation(policy.steering, tmp)
             names = sorted(p.name for p in tmp.iterdir())
             for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
                 os.replace(tmp / name, save_directory / name)
+            if not adapted:  # only once the new checkpoint is in place: a failed save keeps the old one whole
+                for name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
+                    (save_directory / name).unlink(missing_ok=True)
     finally:
         if not any(save_directory.iterdir()):
             save_directory.rmdir()
