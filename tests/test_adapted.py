@@ -18,7 +18,6 @@ from lerobot_pdp.cli import main as cli
 
 def _obs(p):
     """A normalised observation history [2, n_obs_steps, dim] as LeRobot's preprocessor hands it over."""
-    pre, _ = make_pre_post_processors(p.config, dataset_stats=None)
     g = torch.Generator().manual_seed(3)
     return {k: torch.rand(2, p.config.n_obs_steps, ft.shape[0], generator=g) * 2 - 1
             for k, ft in p.config.condition_features.items()}
