@@ -261,6 +261,8 @@ def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "c
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
+    import lerobot_pdp.baselines  # noqa: F401  (registers mlp_bc in any process, spawned workers included)
+
     cfg = PreTrainedConfig.from_pretrained(ckpt)
     cfg.device = device
     if inference_steps is not None and hasattr(cfg, "num_inference_steps"):
