@@ -193,6 +193,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # bound by kernel launches, not arithmetic. Off, or automatically eager, under compile_model, automatic
     # mixed precision, several processes, or a random image crop (its offsets are drawn on the host).
     train_cuda_graphs: bool = True
+    # Torch's CPU threads in the process that builds the policy (lerobot-train, lerobot-eval, lerobot-rollout,
+    # fits). None = half the usable cores, at least one (left alone when OMP_NUM_THREADS / MKL_NUM_THREADS is
+    # set): torch's default of one spinning thread per core collapses beside the loader workers or any other
+    # job (~70x slower on 2 cores, docs/performance.md "Threads"). 0 = torch's default; N = N threads.
+    cpu_threads: int | None = None
 
     # ---- Latent fitting defaults (policy.fit_latent) ----
     # Gradient steps S on z after the encoder warm start (0 = the warm start alone).
@@ -265,6 +270,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         errors = []
         if self.latent_dim < 1:
             errors.append(f"latent_dim must be >= 1, got {self.latent_dim}")
+        if self.cpu_threads is not None and self.cpu_threads < 0:
+            errors.append(f"cpu_threads must be >= 0 (0: torch's default) or None (auto), got {self.cpu_threads}")
         if not self.sdtw_gamma > 0:
             errors.append(f"sdtw_gamma must be > 0, got {self.sdtw_gamma}")
         if self.latent_conditioning not in LATENT_CONDITIONING:

@@ -44,6 +44,7 @@ from .checkpoint import (
     save_checkpoint,
 )
 from .configuration_pdp import PDPConfig
+from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
 from .interpolation import interpolate
 from .latent_fitting import DemoWindows, FitResult
@@ -70,6 +71,7 @@ class PDPPolicy(PreTrainedPolicy):
         super().__init__(config)
         config.validate_features()
         self.config = config
+        apply_cpu_threads(config.cpu_threads)  # before the behavior bank's soft-DTW and any step
 
         cfg = config
         self.action_dim = cfg.action_feature.shape[0]
