@@ -10,19 +10,14 @@ import argparse
 import json
 import os
 import sys
-import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lerobot_pdp import console
+
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
     from lerobot_pdp.benchmark.settings import BenchmarkConfig
-
-
-def _quiet_imports() -> None:
-    """torchcodec cannot load here (no FFmpeg) and prints a long warning on import; it is not used."""
-    warnings.filterwarnings("ignore", module=r"torchcodec.*")
-    warnings.filterwarnings("ignore", message=r".*torchcodec.*")
 
 
 def _env_names() -> list[str]:
@@ -440,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    _quiet_imports()
+    console.install()  # LeRobot's torchcodec fallback warning in one line on a machine without FFmpeg
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -2,12 +2,17 @@
 
 Importing it registers ``--policy.type=pdp``; the code lives in ``lerobot_pdp``. A process started with
 ``LEROBOT_PDP_COLUMN_VIEWS=1`` (the benchmark's trainings) also gets LeRobot's dataset delta queries read one
-column at a time on LeRobot <= 0.6.1 (``lerobot_pdp.column_views``).
+column at a time on LeRobot <= 0.6.1 (``lerobot_pdp.column_views``). On a machine without FFmpeg, LeRobot's
+"torchcodec cannot be loaded" warning (a hundred lines of tracebacks) is reported in one line
+(``lerobot_pdp.console``); every ``lerobot-*`` command imports this module first, before it builds any config.
 """
 
 from lerobot_pdp import *  # noqa: F401,F403
 from lerobot_pdp import __all__  # noqa: F401
 from lerobot_pdp import column_views as _column_views
+from lerobot_pdp import console as _console
+
+_console.install()
 
 if _column_views.requested():
     _column_views.install()

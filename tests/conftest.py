@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -15,7 +14,6 @@ os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("TQDM_DISABLE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("LEROBOT_PDP_CACHE", tempfile.mkdtemp(prefix="pdp-cache-"))
-warnings.filterwarnings("ignore", module="torchcodec")
 
 import pytest  # noqa: E402
 
