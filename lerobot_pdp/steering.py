@@ -9,7 +9,9 @@ its content changed, the request in it sets the active latent before the chunk i
   the policy's default (``inference_latent``);
 * ``{"dataset": DIR, "episode": 0}``: fit z to that episode of a local LeRobotDataset (e.g. a new
   ``lerobot-record`` demonstration); ``"steps"`` overrides ``fit_steps``. A relative ``DIR`` is taken
-  relative to the steering file's folder. Fitting blocks the control loop for its duration (~1 s on a CPU).
+  relative to the steering file's folder. The fit runs in a background thread, off the control path: the
+  policy keeps acting on its current latent until the fit is done, and the first chunk after that uses the
+  fitted one (a request written meanwhile supersedes it).
 
 Write the file whole (:func:`write_steering`, or ``lerobot-pdp steer``): a reader must never see half a
 request. A bad request is logged and the current latent kept: a typo must not stop a running robot.
@@ -20,6 +22,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +61,9 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
     size, recording that does not match the checkpoint, ...).
     """
     check_request(request)
+    if "dataset" in request:
+        root, episode, steps = fit_request(request, base)
+        return policy.fit_latent((root, episode), steps=steps).z
     if "latent" in request:
         policy.set_latent(request["latent"])
         return request["latent"]
@@ -67,6 +74,11 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
             raise KeyError(f"steering: mode {request['mode']!r} is not a training mode; modes are {sorted(means)}")
         policy.set_latent(means[mode])
         return means[mode]
+    raise AssertionError("unreachable: check_request admits one of REQUEST_KEYS")
+
+
+def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:
+    """The (dataset root, episode, steps) of a ``dataset`` request, checked before any fit starts."""
     root = Path(request["dataset"])
     if base is not None and not root.is_absolute():
         root = Path(base) / root
@@ -78,7 +90,7 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
     steps = request.get("steps")
     if steps is not None and (not isinstance(steps, int) or steps < 0):
         raise ValueError(f"steering: steps must be an integer >= 0, got {steps!r}")
-    return policy.fit_latent((root, episode), steps=steps).z
+    return root, episode, steps
 
 
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]]) -> None:
@@ -145,29 +157,91 @@ def _mode_id(policy: Any, mode: Any) -> int:
     raise ValueError(f"steering: mode must be a mode id or name, got {mode!r}")
 
 
+class BackgroundFit:
+    """One ``fit_latent`` of a ``dataset`` request in a daemon thread (a robot loop must not wait for it; a
+    process that ends meanwhile does not wait either). The result is activated by the control thread."""
+
+    def __init__(self, policy: Any, root: Path, episode: int, steps: int | None):
+        self.root, self.episode, self.steps = root, episode, steps
+        self.result: Any = None
+        self.error: BaseException | None = None
+        self.started = time.perf_counter()
+        self.seconds: float | None = None
+        self._thread = threading.Thread(target=self._run, args=(policy,), name="pdp-steering-fit", daemon=True)
+        self._thread.start()
+
+    def _run(self, policy: Any) -> None:
+        try:
+            self.result = policy.fit_latent((self.root, self.episode), steps=self.steps, activate=False)
+        except BaseException as e:  # noqa: BLE001 - reported by the control thread, which keeps its latent
+            self.error = e
+        self.seconds = time.perf_counter() - self.started
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        self._thread.join(timeout)
+        return self.done()
+
+
 class SteerFile:
-    """Polls one steering file; :meth:`poll` applies its request once per change of the file."""
+    """Polls one steering file; :meth:`poll` applies its request once per change of the file (a ``dataset``
+    request once its background fit is done)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._seen: tuple[int, int, int] | None = None
+        self.fit: BackgroundFit | None = None  # the fit of the newest request, while it is not applied
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the running fit (if any) is done; True when none is left running."""
+        return self.fit is None or self.fit.wait(timeout)
 
     def poll(self, policy: Any) -> bool:
-        """Apply the file's request if the file changed since the last poll; True when the latent changed."""
+        """Apply the file's request if the file changed since the last poll, and a background fit that has
+        finished; True when the latent changed."""
+        changed = self._finish_fit(policy)
         try:
             st = os.stat(self.path)
         except FileNotFoundError:
-            return False
+            return changed
         signature = (st.st_mtime_ns, st.st_size, st.st_ino)
         if signature == self._seen:
-            return False
+            return changed
         self._seen = signature
+        self.fit = None  # a newer request supersedes a fit still running (its result is dropped)
         try:
-            request = json.loads(self.path.read_text())
+            request = check_request(json.loads(self.path.read_text()))
+            if "dataset" in request:
+                root, episode, steps = fit_request(request, base=self.path.parent)
+                self.fit = BackgroundFit(policy, root, episode, steps)
+                logger.info("steering file %s: fitting z to %s episode %d in the background; acting on the "
+                            "current latent until it is ready", self.path, root, episode)
+                return changed
             z = apply_steering(policy, request, base=self.path.parent)
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
             logger.error("steering file %s: %s; keeping the current latent", self.path, e)
-            return False
+            return changed
         logger.info("steering file %s: %s -> latent %s", self.path, request,
                     z.tolist() if hasattr(z, "tolist") else z)
+        return True
+
+    def _finish_fit(self, policy: Any) -> bool:
+        """Activate the background fit's latent (and noises) if it is done; True when it was."""
+        fit = self.fit
+        if fit is None or not fit.done():
+            return False
+        self.fit = None
+        if fit.error is not None:
+            logger.error("steering file %s: the fit to %s episode %d failed: %s; keeping the current latent",
+                         self.path, fit.root, fit.episode, fit.error)
+            return False
+        from .adaptation import fit_provenance  # adaptation's import chain reaches this module
+
+        result = fit.result
+        policy.steering.activate(result.z, result.noise, fit_provenance((fit.root, fit.episode), result,
+                                                                        policy.config, steps=fit.steps))
+        logger.info("steering file %s: latent %s fitted to %s episode %d in %.1f s, active from this chunk",
+                    self.path, result.z.tolist(), fit.root, fit.episode, fit.seconds)
         return True

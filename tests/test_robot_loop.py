@@ -272,8 +272,12 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     # a recording, relative to the steering file's folder: z fitted to it
     shutil.copytree(synthetic_meta.root, tmp_path / "demo")
     write_steering(steer, {"dataset": "demo", "episode": 2, "steps": 1})
+    next_chunk()  # the fit starts in the background: the policy acts on, under the old latent
+    assert p._steer_file.fit is not None and p.active_latent[0].tolist() == [1.0, 1.0]
+    assert p._steer_file.wait(120)
     next_chunk()
     assert len(p.active_latent) == 1 and p.active_latent[0].tolist() != [1.0, 1.0]
+    assert p.steering.provenance["demonstration"]["episode"] == 2
     name = p.config.mode_names["1"]
     write_steering(steer, {"mode": name})
     next_chunk()
@@ -292,6 +296,45 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     write_steering(steer, {"latent": None})  # back to the default latent
     next_chunk()
     assert len(p.active_latent) == 0
+
+
+def test_a_steering_fit_runs_off_the_control_path_and_a_newer_request_supersedes_it(synthetic_meta, tmp_path):
+    steer = tmp_path / "steer.json"
+    p = small_policy(synthetic_meta, steer_file=str(steer), fit_steps=150)
+    p.eval()
+    from lerobot.policies.factory import make_pre_post_processors
+
+    pre, _ = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
+    batch = pre({"observation.state": torch.tensor([[0.0, -1.0]]),
+                 "observation.environment_state": torch.tensor([[0.0, 1.0]])})
+    def next_chunk():  # run out the current chunk, then start a new one
+        while len(p._queues["action"]):
+            p.select_action(batch)
+        p.select_action(batch)
+
+    p.set_latent([1.0, 1.0])
+    write_steering(steer, {"dataset": str(synthetic_meta.root), "episode": 1})
+    next_chunk()
+    fit = p._steer_file.fit
+    assert fit is not None
+    acted = 0
+    while not fit.done():  # the loop goes on acting, under the old latent, while z is fitted
+        p.select_action(batch)
+        acted += 1
+        assert p.active_latent[0].tolist() == [1.0, 1.0] or fit.done()
+    assert acted > 0
+    next_chunk()  # the first chunk after the fit: the fitted latent
+    assert p.active_latent[0].tolist() != [1.0, 1.0] and p._steer_file.fit is None
+    # a request written while a fit runs wins: the fit's result is dropped when it lands
+    write_steering(steer, {"dataset": str(synthetic_meta.root), "episode": 2})
+    next_chunk()
+    running = p._steer_file.fit
+    assert running is not None
+    write_steering(steer, {"mode": 0})
+    next_chunk()
+    assert running.wait(120)
+    next_chunk()
+    assert torch.allclose(p.active_latent[0], p.mode_latents()[0])
 
 
 def test_steering_requests_are_checked_before_writing(tmp_path, synthetic_meta):
