@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .adaptation import fit_provenance
 from .atomic import write_text_atomic
 
 logger = logging.getLogger(__name__)
@@ -91,55 +92,6 @@ def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tupl
     if steps is not None and (not isinstance(steps, int) or steps < 0):
         raise ValueError(f"steering: steps must be an integer >= 0, got {steps!r}")
     return root, episode, steps
-
-
-def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]]) -> None:
-    """Fail early, naming the problem, on a recording PDP cannot fit z to.
-
-    Checks what deep reads would report obscurely: a missing folder, an empty recording (no episode saved), an
-    interrupted one (a data file without its parquet footer), an episode index out of range, and features
-    that differ from the checkpoint's (``required``: key -> shape the policy was trained on; cameras are
-    compared as (C, H, W) against the recording's (H, W, C)).
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"recording {root} does not exist")
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
-    info = json.loads(info_path.read_text())
-    total = int(info.get("total_episodes") or 0)
-    files = sorted((root / "data").glob("**/*.parquet"))
-    if total == 0 or not files:
-        raise ValueError(f"recording {root} is empty (no saved episode): record at least one whole episode "
-                         "(an episode cut off by Ctrl-C is dropped, not saved)")
-    import pyarrow.parquet as pq
-
-    for f in files:
-        try:
-            pq.ParquetFile(f)
-        except Exception as e:  # noqa: BLE001 - any unreadable file means the same thing here
-            raise ValueError(f"recording {root}: {f.relative_to(root)} is unreadable ({e}); the recording was "
-                             "probably interrupted while writing: record it again") from e
-    if not 0 <= int(episode) < total:
-        raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
-    features = info.get("features", {})
-    problems = []
-    for key, shape in required.items():
-        ft = features.get(key)
-        if ft is None:
-            problems.append(f"lacks '{key}'")
-            continue
-        got = tuple(ft.get("shape") or ())
-        if ft.get("dtype") in ("image", "video") and len(got) == 3:
-            got = (got[2], got[0], got[1])  # stored (H, W, C)
-        if got != tuple(shape):
-            names = ft.get("names")
-            problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
-                            f"the policy was trained on {tuple(shape)}")
-    if problems:
-        raise ValueError(f"recording {root} does not match the checkpoint: " + "; ".join(problems)
-                         + ". Record with the robot/env (and features) the policy was trained on")
 
 
 def _mode_id(policy: Any, mode: Any) -> int:
@@ -237,8 +189,6 @@ class SteerFile:
             logger.error("steering file %s: the fit to %s episode %d failed: %s; keeping the current latent",
                          self.path, fit.root, fit.episode, fit.error)
             return False
-        from .adaptation import fit_provenance  # adaptation's import chain reaches this module
-
         result = fit.result
         policy.steering.activate(result.z, result.noise, fit_provenance((fit.root, fit.episode), result,
                                                                         policy.config, steps=fit.steps))

@@ -477,8 +477,8 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
     episode ended (our outcome line, written at once), lands inside the second one."""
     import os
 
+    from lerobot_pdp.demonstration import check_recording
     from lerobot_pdp.episodes import read_mode_labels
-    from lerobot_pdp.steering import check_recording
 
     root, outcomes = tmp_path / "demo", tmp_path / "o.jsonl"
     args = [a.replace("--dataset.fps=50", "--dataset.fps=25") for a in
