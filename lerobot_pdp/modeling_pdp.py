@@ -48,13 +48,16 @@ from .demonstration import Demonstration, Episode, demonstration_windows, read_d
 from .interpolation import interpolate
 from .latent_fitting import DemoWindows, FitResult
 from .model_card import pdp_model_card
-from .modes import SPACES, DiscoveredModes, discover
+from .modes import SPACES, DiscoveredModes, ModeLatents, discover
 from .normalization import FeatureStats
 from .pdp_model import PDPModel
 from .steering import SteerFile
 from .steering_state import Steering
 
 logger = logging.getLogger(__name__)
+
+# set_latent warns above this distance to the nearest training latent, in RMS standard deviations of them.
+FAR_LATENT_SPREADS = 3.0
 
 
 class PDPPolicy(PreTrainedPolicy):
@@ -266,8 +269,28 @@ class PDPPolicy(PreTrainedPolicy):
 
     def set_latent(self, z: Tensor | Sequence[float] | np.ndarray | None) -> None:
         """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default.
-        Noises fitted under another latent no longer apply."""
+        Noises fitted under another latent no longer apply. A latent far outside the training latents is
+        accepted with one warning (see :meth:`latent_outlier`): the policy never saw it condition an action."""
         self.steering.activate(z)
+        far = self.latent_outlier(self.steering.latent) if z is not None else None
+        if far is not None:
+            logger.warning("set_latent: latent %s is %.1f spreads of the training latents from the nearest one "
+                           "(warning above %g; spread = their RMS standard deviation per dim, %.3g): the policy "
+                           "was never trained there and may act erratically", self.steering.latent.tolist(),
+                           far[0], FAR_LATENT_SPREADS, far[1])
+
+    def latent_outlier(self, z: Tensor) -> tuple[float, float] | None:
+        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` [M, d_z] lies more
+        than ``FAR_LATENT_SPREADS`` spreads from every training latent, else None (also without behaviors)."""
+        if len(self.model.behavior_traces) < 2:
+            return None
+        with torch.no_grad():
+            train = self.behavior_latents().float().cpu()
+        spread = float(train.var(0).mean().sqrt())
+        if not spread > 0:
+            return None
+        nearest = float(torch.cdist(z.float().cpu(), train).min(1).values.max()) / spread
+        return (nearest, spread) if nearest > FAR_LATENT_SPREADS else None
 
     def mode_latents(self) -> dict[int, Tensor]:
         """Per-mode mean latent (mean of its training behaviors' encoder means).
@@ -287,7 +310,7 @@ class PDPPolicy(PreTrainedPolicy):
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
                            "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
                            "ids, see `lerobot-pdp latent-map`)", found.k)
-            return found.means
+            return ModeLatents(found.means, discovered=True)
         with torch.no_grad():
             z = self.behavior_latents()
         phase = self.behavior_phase()
@@ -299,7 +322,7 @@ class PDPPolicy(PreTrainedPolicy):
             else:
                 out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
                                            for k in range(int(phase[of_mode].max()) + 1)]).cpu()
-        return out
+        return ModeLatents(out, self.config.mode_names)
 
     def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0,
                        space: str = "traces") -> DiscoveredModes:
