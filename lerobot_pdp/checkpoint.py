@@ -16,7 +16,9 @@ the date). Loading it makes the policy act adapted from the first action.
 from __future__ import annotations
 
 import json
+import logging
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,8 @@ from torch import Tensor, nn
 from .atomic import staging_dir
 from .configuration_pdp import apply_legacy_defaults
 from .pdp_model import BEHAVIOR_BUFFERS
+
+logger = logging.getLogger(__name__)
 
 ADAPTATION_TENSORS = "adaptation.safetensors"
 ADAPTATION_INFO = "adaptation.json"
@@ -59,6 +63,96 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             save_directory.rmdir()
 
 
+PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+# LeRobot programs that load a checkpoint's processor files right after the policy (a checkpoint without them
+# is refused there, before LeRobot's misleading message); in-process loading only logs it.
+DEPLOY_PROGRAMS = ("lerobot-eval", "lerobot-rollout")
+
+
+def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, need_weights: bool = True) -> None:
+    """Fail early, naming the file, on a local checkpoint folder PDP cannot load: one that does not exist
+    (huggingface_hub would call its path an invalid repo id), lacks or holds a damaged config.json, or lacks
+    model.safetensors. A folder without LeRobot's processor files is refused by name in lerobot-eval /
+    lerobot-rollout (they load them next, and LeRobot then says the model "requires migration"); in-process
+    it loads, with an info line naming them."""
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
+    folder = Path(pretrained)
+    if not folder.exists():
+        try:
+            validate_repo_id(str(pretrained))
+            return  # a Hub repo id: huggingface_hub names what is missing there
+        except HFValidationError:
+            raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
+                                    "holding config.json and model.safetensors, or a Hub repo id)") from None
+    if not folder.is_dir():
+        raise NotADirectoryError(f"{pretrained} is a file; give its checkpoint folder (config.json + model.safetensors)")
+    config = folder / CONFIG_NAME
+    if need_config:
+        if not config.is_file():
+            raise FileNotFoundError(f"{folder} holds no {CONFIG_NAME}: give a PDP pretrained_model folder")
+        read_config_json(config)
+    if not need_weights:
+        return
+    if not (folder / SAFETENSORS_SINGLE_FILE).is_file():
+        raise FileNotFoundError(f"{folder} holds no {SAFETENSORS_SINGLE_FILE}: give a PDP pretrained_model folder")
+    missing = [name for name in PROCESSOR_FILES if not (folder / name).is_file()]
+    if missing:
+        program = Path(sys.argv[0]).stem.replace("_", "-") if sys.argv and sys.argv[0] else ""
+        text = (f"{folder} lacks LeRobot's processor files {missing}, which lerobot-eval / lerobot-rollout load next "
+                "(LeRobot then says the model 'requires migration'; it does not): copy them from the training run's "
+                "checkpoint folder, where lerobot-train wrote them")
+        if program in DEPLOY_PROGRAMS:
+            raise FileNotFoundError(f"{program}: {text}")
+        logger.info("%s; PDP itself loads without them", text)
+
+
+def read_config_json(path: str | Path) -> dict:
+    """A checkpoint's config.json as a dict; a damaged one is an error naming the file."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): the file is damaged (cut off while written or "
+                         "copied?); copy it again from the training run") from e
+
+
+def read_weight_shapes(model_file: str) -> dict[str, tuple[int, ...]]:
+    """The tensor shapes in ``model_file``; a damaged file is an error naming it."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(model_file, framework="pt") as f:
+            return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except (SafetensorError, OSError) as e:
+        raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged (cut off "
+                         "while written or copied?); copy it again from the training run") from e
+
+
+def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Weights that do not fit the model config.json builds: an error naming the config field where it can be
+    told from the weights (latent_dim, vae_hidden_dims), else the first mismatched tensors."""
+    built = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
+    wrong = [(k, shapes[k], built[k]) for k in built if k in shapes and shapes[k] != built[k]]
+    if not wrong:
+        return
+    cfg, where = policy.config, Path(model_file).with_name(CONFIG_NAME)
+    encoder = sorted((int(k.split(".")[2]), v) for k, v in shapes.items()
+                     if k.startswith("vae.encoder.") and k.endswith(".weight"))
+    fields = []
+    if encoder:
+        if encoder[-1][1][0] // 2 != cfg.latent_dim:
+            fields.append(f"latent_dim is {encoder[-1][1][0] // 2} in the weights, {cfg.latent_dim} in {where}")
+        hidden = tuple(v[0] for _, v in encoder[:-1])
+        if hidden != tuple(cfg.vae_hidden_dims):
+            fields.append(f"vae_hidden_dims is {hidden} in the weights, {tuple(cfg.vae_hidden_dims)} in {where}")
+    tensors = "; ".join(f"'{k}' is {a} in the weights, {b} as configured" for k, a, b in wrong[:3])
+    raise ValueError(f"{model_file} does not match its config: {'; '.join(fields) or tensors}"
+                     f"{f' ({tensors})' if fields else ''}. Was {CONFIG_NAME} edited? Use the config.json saved "
+                     "with these weights")
+
+
 def check_finite_weights(policy: nn.Module, model_file: str) -> None:
     """Refuse a checkpoint with non-finite weights or statistics, naming the tensor (``train_loss_dp`` is
     NaN by design until trained). A NaN checkpoint would otherwise load and send NaN actions."""
@@ -69,20 +163,16 @@ def check_finite_weights(policy: nn.Module, model_file: str) -> None:
                              "this checkpoint cannot act (was its training diverging?)")
 
 
-def resize_to_checkpoint(model: nn.Module, model_file: str) -> None:
-    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the shapes ``model_file`` holds."""
-    from safetensors import safe_open
-
-    with safe_open(model_file, framework="pt") as f:
-        keys = set(f.keys())
-        model.resize_behaviors({name: tuple(f.get_slice(name).get_shape()) for name in BEHAVIOR_BUFFERS if name in keys})
+def resize_to_checkpoint(model: nn.Module, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the checkpoint's ``shapes``."""
+    model.resize_behaviors({name: shapes[name] for name in BEHAVIOR_BUFFERS if name in shapes})
 
 
 def apply_saved_config(policy: Any, model_file: str) -> None:
     """Legacy defaults for the fields a checkpoint's config.json predates (it lies beside the weights: a local
     folder, or the hub snapshot the config came from); the sampler is rebuilt when they changed it."""
     saved = Path(model_file).with_name(CONFIG_NAME)
-    if saved.is_file() and apply_legacy_defaults(policy.config, json.loads(saved.read_text())):
+    if saved.is_file() and apply_legacy_defaults(policy.config, read_config_json(saved)):
         policy.model.set_sampler(policy.config.timestep_spacing, policy.config.use_clipped_model_output)
 
 

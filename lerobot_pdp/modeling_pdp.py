@@ -33,13 +33,16 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_demonstration, fit_provenance, initial_latent
-from .behavior import read_training_behaviors, trace_distances
+from .behavior import read_training_behaviors, trace_distances, warn_few_episodes
 from .checkpoint import (
     apply_saved_config,
+    check_checkpoint_source,
     check_finite_weights,
+    check_weight_shapes,
     flatten_model_keys,
     nest_model_keys,
     read_adaptation,
+    read_weight_shapes,
     resize_to_checkpoint,
     save_checkpoint,
 )
@@ -84,6 +87,7 @@ class PDPPolicy(PreTrainedPolicy):
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             behaviors = read_training_behaviors(config, dataset_meta.root, dataset_meta.features)
+            warn_few_episodes(behaviors, dataset_meta.root, config.beta_geo)
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         # Checkpoints keep the flat key names of the first release ("vae.*", "behavior_traces", ...).
         self.register_state_dict_post_hook(flatten_model_keys)
@@ -104,6 +108,7 @@ class PDPPolicy(PreTrainedPolicy):
         ``config.use_adaptation`` is false), then the config's steering (``steer_latent`` / ``steer_mode`` /
         ``steer_dataset_root``, which override it): a fit to a demonstration runs here, before any control
         loop starts."""
+        check_checkpoint_source(pretrained_name_or_path, need_config=kwargs.get("config") is None)
         policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
         adaptation = read_adaptation(pretrained_name_or_path, **kwargs) if policy.config.use_adaptation else None
         if adaptation is not None:
@@ -137,8 +142,16 @@ class PDPPolicy(PreTrainedPolicy):
     def _load_as_safetensor(cls, model: PDPPolicy, model_file: str, map_location: str, strict: bool):
         """LeRobot's load, with the dataset-sized buffers resized to the checkpoint's and the legacy sampler
         defaults of checkpoints written before a config field existed."""
-        resize_to_checkpoint(model.model, model_file)
-        model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        from safetensors import SafetensorError
+
+        shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
+        resize_to_checkpoint(model.model, shapes)
+        check_weight_shapes(model, model_file, shapes)  # e.g. latent_dim edited in config.json
+        try:
+            model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        except SafetensorError as e:
+            raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged; copy it "
+                             "again from the training run") from e
         check_finite_weights(model, model_file)
         apply_saved_config(model, model_file)
         return model
