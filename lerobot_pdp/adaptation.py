@@ -59,8 +59,9 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
     n, d = len(demo.segments), config.latent_dim
     if isinstance(init, Tensor):
         if init.numel() != n * d:
-            raise ValueError(f"init has {init.numel()} values ({tuple(init.shape)}); this demonstration needs "
-                             f"{n} x {d} (one latent per segment)")
+            shape = f"[{d}] or [1, {d}]" if n == 1 else f"[{n}, {d}]"
+            raise ValueError(f"init has shape {tuple(init.shape)} ({init.numel()} values); expected shape {shape}: "
+                             f"one latent of latent_dim {d} per segment, and this demonstration has {n} segment(s)")
         return init.float().reshape(n, d)
     if init == "encoder":
         return encode_demonstration(model, config, demo)
@@ -86,6 +87,12 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
         windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
     device = model.geo_kappa.device
     steps = cfg.fit_steps if steps is None else steps
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise ValueError(f"steps must be an integer >= 0 (gradient steps on z; 0: the warm start alone), got {steps!r}")
+    if lr is not None and not (math.isfinite(lr) and lr > 0):
+        raise ValueError(f"lr must be a finite number > 0 (Adam's step size on z), got {lr!r}")
+    if lam is not None and not (math.isfinite(lam) and lam >= 0):
+        raise ValueError(f"lam must be a finite number >= 0 (the weight of lambda |z|^2), got {lam!r}")
     sample_steps = cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None
     was_training = model.training
     model.eval()

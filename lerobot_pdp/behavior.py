@@ -162,9 +162,14 @@ def _trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_di
         cache = Path(cache_dir) / f"trace_distances_{key}.npy"
         if cache.is_file():
             d = np.load(cache)
-            if d.shape == (len(traces), len(traces)):
+            if d.shape == (len(traces), len(traces)) and np.isfinite(d).all():
                 report["source"] = "read from cache"
                 return d
+            logger.warning("soft-DTW cache %s holds a %s matrix%s, not the %d x %d of these traces: recomputing it",
+                           cache, d.shape, "" if np.isfinite(d).all() else " with non-finite values", len(traces),
+                           len(traces))
+    except (ValueError, EOFError) as e:  # a damaged file (cut off while written by an older version, ...)
+        logger.warning("soft-DTW cache %s is unreadable (%s): recomputing it", cache, e)
     except OSError:
         cache = None
     d = np.asarray(soft_dtw_cdist(traces, gamma, normalize=normalize, progress=progress), dtype=np.float64)
@@ -281,3 +286,15 @@ def read_training_behaviors(config, root: str | Path, features: dict) -> Behavio
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
         cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
     )
+
+
+def warn_few_episodes(behaviors: BehaviorTraces, root: str | Path, beta_geo: float) -> None:
+    """Warn once when the training dataset holds one episode: the latent then has nothing to be steered
+    between, and with one behavior the geometry term L_geo (over pairs of behaviors) is 0."""
+    if len(np.unique(behaviors.episode_index)) > 1:
+        return
+    why = ("its geometry term L_geo compares pairs of behaviors and is 0 with one" if len(behaviors) < 2 and beta_geo > 0
+           else "there is one demonstrated behavior")
+    logger.warning("training dataset %s holds one episode: PDP trains, but its latent learns no behavior geometry "
+                   "(%s), so steering has nothing to choose between; record several demonstrations of each "
+                   "behavior", root, why)

@@ -16,6 +16,7 @@ the date). Loading it makes the policy act adapted from the first action.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -27,8 +28,11 @@ from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
 from .atomic import staging_dir
+from .checkpoint_files import read_config_json
 from .configuration_pdp import apply_legacy_defaults
 from .pdp_model import BEHAVIOR_BUFFERS
+
+logger = logging.getLogger(__name__)
 
 ADAPTATION_TENSORS = "adaptation.safetensors"
 ADAPTATION_INFO = "adaptation.json"
@@ -59,6 +63,29 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             save_directory.rmdir()
 
 
+def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Weights that do not fit the model config.json builds: an error naming the config field where it can be
+    told from the weights (latent_dim, vae_hidden_dims), else the first mismatched tensors."""
+    built = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
+    wrong = [(k, shapes[k], built[k]) for k in built if k in shapes and shapes[k] != built[k]]
+    if not wrong:
+        return
+    cfg, where = policy.config, Path(model_file).with_name(CONFIG_NAME)
+    encoder = sorted((int(k.split(".")[2]), v) for k, v in shapes.items()
+                     if k.startswith("vae.encoder.") and k.endswith(".weight"))
+    fields = []
+    if encoder:
+        if encoder[-1][1][0] // 2 != cfg.latent_dim:
+            fields.append(f"latent_dim is {encoder[-1][1][0] // 2} in the weights, {cfg.latent_dim} in {where}")
+        hidden = tuple(v[0] for _, v in encoder[:-1])
+        if hidden != tuple(cfg.vae_hidden_dims):
+            fields.append(f"vae_hidden_dims is {hidden} in the weights, {tuple(cfg.vae_hidden_dims)} in {where}")
+    tensors = "; ".join(f"'{k}' is {a} in the weights, {b} as configured" for k, a, b in wrong[:3])
+    raise ValueError(f"{model_file} does not match its config: {'; '.join(fields) or tensors}"
+                     f"{f' ({tensors})' if fields else ''}. Was {CONFIG_NAME} edited? Use the config.json saved "
+                     "with these weights")
+
+
 def check_finite_weights(policy: nn.Module, model_file: str) -> None:
     """Refuse a checkpoint with non-finite weights or statistics, naming the tensor (``train_loss_dp`` is
     NaN by design until trained). A NaN checkpoint would otherwise load and send NaN actions."""
@@ -69,20 +96,16 @@ def check_finite_weights(policy: nn.Module, model_file: str) -> None:
                              "this checkpoint cannot act (was its training diverging?)")
 
 
-def resize_to_checkpoint(model: nn.Module, model_file: str) -> None:
-    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the shapes ``model_file`` holds."""
-    from safetensors import safe_open
-
-    with safe_open(model_file, framework="pt") as f:
-        keys = set(f.keys())
-        model.resize_behaviors({name: tuple(f.get_slice(name).get_shape()) for name in BEHAVIOR_BUFFERS if name in keys})
+def resize_to_checkpoint(model: nn.Module, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the checkpoint's ``shapes``."""
+    model.resize_behaviors({name: shapes[name] for name in BEHAVIOR_BUFFERS if name in shapes})
 
 
 def apply_saved_config(policy: Any, model_file: str) -> None:
     """Legacy defaults for the fields a checkpoint's config.json predates (it lies beside the weights: a local
     folder, or the hub snapshot the config came from); the sampler is rebuilt when they changed it."""
     saved = Path(model_file).with_name(CONFIG_NAME)
-    if saved.is_file() and apply_legacy_defaults(policy.config, json.loads(saved.read_text())):
+    if saved.is_file() and apply_legacy_defaults(policy.config, read_config_json(saved)):
         policy.model.set_sampler(policy.config.timestep_spacing, policy.config.use_clipped_model_output)
 
 

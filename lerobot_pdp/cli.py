@@ -194,11 +194,15 @@ def add_steer_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--default", action="store_true", help="back to the policy's default latent")
     p.add_argument("--episode", type=int, default=0, help="episode of --dataset (default 0)")
     p.add_argument("--steps", type=int, default=None, help="fitting steps for --dataset (default: fit_steps)")
+    p.add_argument("--policy-path", type=Path, default=None,
+                   help="the running policy's checkpoint folder: the request is checked against its latent_dim and "
+                   "modes before it is written (without it: the form, finite values, and the latent size of the "
+                   "request already in FILE)")
     p.set_defaults(func=cmd_steer)
 
 
 def cmd_steer(args: argparse.Namespace) -> int:
-    from lerobot_pdp.steering import write_steering
+    from lerobot_pdp.steering import checkpoint_target, file_target, write_steering
 
     if args.dataset is not None:
         request: dict = {"dataset": str(Path(args.dataset).resolve()), "episode": args.episode}
@@ -208,8 +212,11 @@ def cmd_steer(args: argparse.Namespace) -> int:
         request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}
     else:
         request = {"latent": None if args.default else args.latent}
-    write_steering(args.file, request)
-    print(f"wrote {args.file}: {request}")
+    target = checkpoint_target(args.policy_path) if args.policy_path is not None else file_target(args.file)
+    write_steering(args.file, request, target)
+    unchecked = "mode" in request and (target is None or target.modes is None)
+    print(f"wrote {args.file}: {request}" + (" (mode not checked against a checkpoint: --policy-path checks it)"
+                                             if unchecked else ""))
     return 0
 
 

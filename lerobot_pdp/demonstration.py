@@ -11,6 +11,7 @@ that fitting scores. Encoding and fitting (``modeling_pdp``, ``latent_fitting``)
 from __future__ import annotations
 
 import json
+import operator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,17 @@ def _resolve_segments(config: PDPConfig, ep: dict[str, np.ndarray], segments) ->
             raise ValueError(f"segment ({a}, {b}) is not a non-empty frame range within the episode's {T} frames")
     return segs
 
+def episode_index(index: Any, root: Any = None) -> int:
+    """An episode index as an int; a float such as 0.9 is an error (``int()`` would read it as episode 0)."""
+    try:
+        if isinstance(index, bool):
+            raise TypeError
+        return operator.index(index.item() if isinstance(index, Tensor) else index)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"episode index must be an integer{f' (an episode of {root})' if root is not None else ''}, "
+                        f"got {type(index).__name__} {index!r}") from None
+
+
 def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_action: bool) -> dict[str, np.ndarray]:
     """Validate a demonstration and return its arrays (unnormalised) by feature key: vectors as float64
     [T, dim], cameras as float32 [T, 3, H, W] in [0, 1]. The trace is always needed; the denoiser's
@@ -84,13 +96,14 @@ def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_a
         root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
         if root is None:
             raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
+        index = episode_index(index, root)
         where = f"episode {index} of {root}"
-        check_recording(root, int(index), required)  # empty / interrupted / mismatched: a clear error
+        check_recording(root, index, required)  # empty / interrupted / mismatched: a clear error
         cameras = [k for k in required if k in cfg.image_features]
-        eps = read_episodes(root, [k for k in required if k not in cameras], [int(index)])
-        if int(index) not in eps:
+        eps = read_episodes(root, [k for k in required if k not in cameras], [index])
+        if index not in eps:
             raise KeyError(f"{root} has no episode {index}")
-        episode = {**eps[int(index)], **read_episode_frames(root, int(index), cameras)}
+        episode = {**eps[index], **read_episode_frames(root, index, cameras)}
     if not isinstance(episode, dict):
         raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) pair, got {type(episode)}")
     out: dict[str, np.ndarray] = {}

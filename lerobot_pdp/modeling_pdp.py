@@ -33,29 +33,34 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_demonstration, fit_provenance, initial_latent
-from .behavior import read_training_behaviors, trace_distances
+from .behavior import read_training_behaviors, trace_distances, warn_few_episodes
 from .checkpoint import (
     apply_saved_config,
     check_finite_weights,
+    check_weight_shapes,
     flatten_model_keys,
     nest_model_keys,
     read_adaptation,
     resize_to_checkpoint,
     save_checkpoint,
 )
+from .checkpoint_files import check_checkpoint_source, read_weight_shapes
 from .configuration_pdp import PDPConfig
 from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
 from .interpolation import interpolate
 from .latent_fitting import DemoWindows, FitResult
 from .model_card import pdp_model_card
-from .modes import SPACES, DiscoveredModes, discover
+from .modes import SPACES, DiscoveredModes, ModeLatents, discover
 from .normalization import FeatureStats
 from .pdp_model import PDPModel
 from .steering import SteerFile
 from .steering_state import Steering
 
 logger = logging.getLogger(__name__)
+
+# set_latent warns above this distance to the nearest training latent, in RMS standard deviations of them.
+FAR_LATENT_SPREADS = 3.0
 
 
 class PDPPolicy(PreTrainedPolicy):
@@ -83,6 +88,7 @@ class PDPPolicy(PreTrainedPolicy):
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             behaviors = read_training_behaviors(config, dataset_meta.root, dataset_meta.features)
+            warn_few_episodes(behaviors, dataset_meta.root, config.beta_geo)
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         # Checkpoints keep the flat key names of the first release ("vae.*", "behavior_traces", ...).
         self.register_state_dict_post_hook(flatten_model_keys)
@@ -103,6 +109,7 @@ class PDPPolicy(PreTrainedPolicy):
         ``config.use_adaptation`` is false), then the config's steering (``steer_latent`` / ``steer_mode`` /
         ``steer_dataset_root``, which override it): a fit to a demonstration runs here, before any control
         loop starts."""
+        check_checkpoint_source(pretrained_name_or_path, need_config=kwargs.get("config") is None)
         policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
         adaptation = read_adaptation(pretrained_name_or_path, **kwargs) if policy.config.use_adaptation else None
         if adaptation is not None:
@@ -136,8 +143,16 @@ class PDPPolicy(PreTrainedPolicy):
     def _load_as_safetensor(cls, model: PDPPolicy, model_file: str, map_location: str, strict: bool):
         """LeRobot's load, with the dataset-sized buffers resized to the checkpoint's and the legacy sampler
         defaults of checkpoints written before a config field existed."""
-        resize_to_checkpoint(model.model, model_file)
-        model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        from safetensors import SafetensorError
+
+        shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
+        resize_to_checkpoint(model.model, shapes)
+        check_weight_shapes(model, model_file, shapes)  # e.g. latent_dim edited in config.json
+        try:
+            model = super()._load_as_safetensor(model, model_file, map_location, strict)
+        except SafetensorError as e:
+            raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged; copy it "
+                             "again from the training run") from e
         check_finite_weights(model, model_file)
         apply_saved_config(model, model_file)
         return model
@@ -268,8 +283,28 @@ class PDPPolicy(PreTrainedPolicy):
 
     def set_latent(self, z: Tensor | Sequence[float] | np.ndarray | None) -> None:
         """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default.
-        Noises fitted under another latent no longer apply."""
+        Noises fitted under another latent no longer apply. A latent far outside the training latents is
+        accepted with one warning (see :meth:`latent_outlier`): the policy never saw it condition an action."""
         self.steering.activate(z)
+        far = self.latent_outlier(self.steering.latent) if z is not None else None
+        if far is not None:
+            logger.warning("set_latent: latent %s is %.1f spreads of the training latents from the nearest one "
+                           "(warning above %g; spread = their RMS standard deviation per dim, %.3g): the policy "
+                           "was never trained there and may act erratically", self.steering.latent.tolist(),
+                           far[0], FAR_LATENT_SPREADS, far[1])
+
+    def latent_outlier(self, z: Tensor) -> tuple[float, float] | None:
+        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` [M, d_z] lies more
+        than ``FAR_LATENT_SPREADS`` spreads from every training latent, else None (also without behaviors)."""
+        if len(self.model.behavior_traces) < 2:
+            return None
+        with torch.no_grad():
+            train = self.behavior_latents().float().cpu()
+        spread = float(train.var(0).mean().sqrt())
+        if not spread > 0:
+            return None
+        nearest = float(torch.cdist(z.float().cpu(), train).min(1).values.max()) / spread
+        return (nearest, spread) if nearest > FAR_LATENT_SPREADS else None
 
     def mode_latents(self) -> dict[int, Tensor]:
         """Per-mode mean latent (mean of its training behaviors' encoder means).
@@ -289,7 +324,7 @@ class PDPPolicy(PreTrainedPolicy):
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
                            "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
                            "ids, see `lerobot-pdp latent-map`)", found.k)
-            return found.means
+            return ModeLatents(found.means, discovered=True)
         with torch.no_grad():
             z = self.behavior_latents()
         phase = self.behavior_phase()
@@ -301,7 +336,7 @@ class PDPPolicy(PreTrainedPolicy):
             else:
                 out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
                                            for k in range(int(phase[of_mode].max()) + 1)]).cpu()
-        return out
+        return ModeLatents(out, self.config.mode_names)
 
     def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0,
                        space: str = "traces") -> DiscoveredModes:

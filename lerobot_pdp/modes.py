@@ -36,6 +36,21 @@ MIN_CLUSTER_SIZE = 3
 SPACES = ("traces", "latents")
 
 
+class ModeLatents(dict):
+    """Mode id -> mean latent, as ``PDPPolicy.mode_latents()`` returns it; a missing mode is a KeyError that lists
+    the modes there are (a bare ``KeyError: 99`` leaves the user guessing)."""
+
+    def __init__(self, means: dict[int, Tensor], names: dict | None = None, discovered: bool = False):
+        super().__init__(means)
+        self.names = {int(k): v for k, v in (names or {}).items()}
+        self.discovered = discovered
+
+    def __missing__(self, mode: object) -> Tensor:
+        known = ", ".join(f"{m} ({self.names[m]})" if m in self.names else str(m) for m in sorted(self))
+        what = "discovered modes (cluster ids)" if self.discovered else "training modes"
+        raise KeyError(f"no mode {mode!r}: the {what} are {known}")
+
+
 @dataclass
 class DiscoveredModes:
     """Clusters of the training episodes on the latent map."""

@@ -14,16 +14,20 @@ its content changed, the request in it sets the active latent before the chunk i
   fitted one (a request written meanwhile supersedes it).
 
 Write the file whole (:func:`write_steering`, or ``lerobot-pdp steer``): a reader must never see half a
-request. A bad request is logged and the current latent kept: a typo must not stop a running robot.
+request. Requests are checked before they are written (finite values, mode ids; with the checkpoint, its
+latent size and modes) and written as strict JSON. A bad request that reaches the policy anyway (a
+hand-written file) is logged and the current latent kept: a typo must not stop a running robot.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,14 +39,75 @@ logger = logging.getLogger(__name__)
 REQUEST_KEYS = ("mode", "latent", "dataset")
 
 
-def write_steering(path: str | Path, request: dict[str, Any]) -> None:
-    """Validate ``request`` (its form, not against a policy) and write it atomically to ``path``."""
-    check_request(request)
-    write_text_atomic(path, json.dumps(request) + "\n")
+def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
+    """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes) and
+    write it atomically to ``path`` as strict JSON (no NaN / Infinity, which the policy would reject)."""
+    check_request(request, expect)
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"cannot write the steering file {path}: folder {path.parent} does not exist "
+                                "(give the path the running policy's --policy.steer_file names)")
+    write_text_atomic(path, json.dumps(request, allow_nan=False) + "\n")
 
 
-def check_request(request: Any) -> dict[str, Any]:
-    """The request's form: a JSON object with exactly one of ``mode``, ``latent``, ``dataset``."""
+@dataclass
+class SteerTarget:
+    """What a request is checked against: the latent size and mode ids a policy accepts, and where they came
+    from (named in the error). ``modes`` None: not known (unlabelled modes are discovered by the policy)."""
+
+    latent_dim: int | None
+    modes: dict[int, str] | None
+    source: str  # "checkpoint DIR", named with an unknown mode
+    latent_source: str  # why latent_dim is expected, named with a latent of another size
+
+
+def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
+    """The latent size and mode labels of a checkpoint folder, read from its config.json and the behavior bank
+    in model.safetensors (no policy is built)."""
+    from safetensors import SafetensorError, safe_open
+
+    folder = Path(checkpoint)
+    config, weights = folder / "config.json", folder / "model.safetensors"
+    if not config.is_file() or not weights.is_file():
+        raise FileNotFoundError(f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors)")
+    try:
+        cfg = json.loads(config.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{config} is not valid JSON ({e}): the file is damaged; copy it again") from e
+    try:
+        with safe_open(str(weights), framework="pt") as f:
+            labels = f.get_tensor("behavior_mode").tolist() if "behavior_mode" in f.keys() else []
+    except SafetensorError as e:
+        raise ValueError(f"{weights} is not a readable safetensors file ({e})") from e
+    names = {int(k): v for k, v in (cfg.get("mode_names") or {}).items()}
+    labelled = sorted({int(m) for m in labels if m >= 0})
+    modes = {m: names.get(m, str(m)) for m in labelled} if labelled else None
+    return SteerTarget(int(cfg.get("latent_dim", 2)), modes, f"checkpoint {folder}",
+                       f"latent_dim of checkpoint {folder}")
+
+
+def file_target(path: str | Path) -> SteerTarget | None:
+    """The latent size of the request already in a steering file (what the running policy accepted, or will
+    reject, already), or None when it holds no latent."""
+    try:
+        latent = json.loads(Path(path).read_text()).get("latent")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(latent, list) or not latent:
+        return None
+    row = latent[0] if isinstance(latent[0], list) else latent
+    return SteerTarget(len(row), None, str(path), f"the size of the latent already in {path}; --policy-path "
+                       "checks against the policy's checkpoint instead")
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def check_request(request: Any, expect: SteerTarget | None = None) -> dict[str, Any]:
+    """The request's form: a JSON object with exactly one of ``mode``, ``latent``, ``dataset``, finite latent
+    values, a mode id >= 0 or a name, an episode and steps >= 0; with ``expect``, the latent's size and the mode
+    against the policy's."""
     if not isinstance(request, dict):
         raise ValueError(f"a steering request must be a JSON object, got {type(request).__name__}: {request!r}")
     given = [k for k in REQUEST_KEYS if k in request]
@@ -52,7 +117,44 @@ def check_request(request: Any) -> dict[str, Any]:
     extra = sorted(set(request) - allowed)
     if extra:
         raise ValueError(f"unknown keys {extra} in a {given[0]!r} steering request (allowed: {sorted(allowed)})")
+    if "latent" in request and request["latent"] is not None:
+        _check_latent(request["latent"], expect)
+    if "mode" in request:
+        _check_mode(request["mode"], expect)
+    if "dataset" in request:
+        if not isinstance(request["dataset"], str) or not request["dataset"]:
+            raise ValueError(f"steering: dataset must be a folder path, got {request['dataset']!r}")
+        for key, what in (("episode", "an episode index (an integer >= 0)"), ("steps", "an integer >= 0")):
+            v = request.get(key)
+            if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 0):
+                raise ValueError(f"steering: {key} must be {what}, got {v!r}")
     return request
+
+
+def _check_latent(latent: Any, expect: SteerTarget | None) -> None:
+    rows = latent if isinstance(latent, list) and latent and all(isinstance(r, list) for r in latent) else [latent]
+    if not all(isinstance(r, list) and r and all(_is_number(x) for x in r) for r in rows):
+        raise ValueError(f"steering: latent must be a list of numbers (or one list per phase), got {latent!r}")
+    bad = [x for r in rows for x in r if not math.isfinite(x)]
+    if bad:
+        raise ValueError(f"steering: latent {latent} has non-finite values {bad}; every value must be a finite number")
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError(f"steering: the phase latents of {latent} have different sizes")
+    if expect is not None and expect.latent_dim is not None and len(rows[0]) != expect.latent_dim:
+        raise ValueError(f"steering: latent {latent} has {len(rows[0])} values; expected {expect.latent_dim} "
+                         f"({expect.latent_source})")
+
+
+def _check_mode(mode: Any, expect: SteerTarget | None) -> None:
+    if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():
+        mode = int(mode)
+    if isinstance(mode, bool) or not isinstance(mode, (int, str)) or mode == "" or (isinstance(mode, int) and mode < 0):
+        raise ValueError(f"steering: mode must be a mode id >= 0 or a mode name, got {mode!r}")
+    if expect is None or expect.modes is None:
+        return
+    if mode not in expect.modes and mode not in expect.modes.values():
+        known = ", ".join(f"{m} ({n})" for m, n in sorted(expect.modes.items()))
+        raise ValueError(f"steering: no mode {mode!r} in {expect.source}; its modes are {known}")
 
 
 def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None = None) -> Any:
@@ -85,13 +187,7 @@ def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tupl
         root = Path(base) / root
     if not (root / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"steering: {root} is not a LeRobotDataset (no meta/info.json)")
-    episode = request.get("episode", 0)
-    if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
-        raise ValueError(f"steering: episode must be an episode index >= 0, got {episode!r}")
-    steps = request.get("steps")
-    if steps is not None and (not isinstance(steps, int) or steps < 0):
-        raise ValueError(f"steering: steps must be an integer >= 0, got {steps!r}")
-    return root, episode, steps
+    return root, request.get("episode", 0), request.get("steps")
 
 
 def _mode_id(policy: Any, mode: Any) -> int:
@@ -139,11 +235,15 @@ class BackgroundFit:
 
 class SteerFile:
     """Polls one steering file; :meth:`poll` applies its request once per change of the file (a ``dataset``
-    request once its background fit is done)."""
+    request once its background fit is done).
+
+    A change is a new (mtime, size, inode) or new contents: a file rewritten in place at the same size within
+    one clock tick keeps its stat, so the contents (a few bytes) are compared at every poll as well.
+    """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self._seen: tuple[int, int, int] | None = None
+        self._seen: tuple[tuple[int, int, int], bytes] | None = None
         self.fit: BackgroundFit | None = None  # the fit of the newest request, while it is not applied
 
     def wait(self, timeout: float | None = None) -> bool:
@@ -156,15 +256,16 @@ class SteerFile:
         changed = self._finish_fit(policy)
         try:
             st = os.stat(self.path)
+            content = self.path.read_bytes()
         except FileNotFoundError:
             return changed
-        signature = (st.st_mtime_ns, st.st_size, st.st_ino)
-        if signature == self._seen:
+        seen = ((st.st_mtime_ns, st.st_size, st.st_ino), content)
+        if seen == self._seen:
             return changed
-        self._seen = signature
+        self._seen = seen
         self.fit = None  # a newer request supersedes a fit still running (its result is dropped)
         try:
-            request = check_request(json.loads(self.path.read_text()))
+            request = check_request(json.loads(content, parse_constant=_no_constant))
             if "dataset" in request:
                 root, episode, steps = fit_request(request, base=self.path.parent)
                 self.fit = BackgroundFit(policy, root, episode, steps)
@@ -195,3 +296,8 @@ class SteerFile:
         logger.info("steering file %s: latent %s fitted to %s episode %d in %.1f s, active from this chunk",
                     self.path, result.z.tolist(), fit.root, fit.episode, fit.seconds)
         return True
+
+
+def _no_constant(name: str) -> Any:
+    """json.loads reads NaN / Infinity by default; a steering request is strict JSON."""
+    raise ValueError(f"{name} is not valid JSON (every latent value must be a finite number)")

@@ -51,6 +51,22 @@ class ChunkNoises(nn.Module):
         return x.to(device).expand(batch_size, *x.shape)
 
 
+LATENT_TYPES_HELP = "a tensor, a numpy array or a sequence of floats, shape [d_z] or [M, d_z] (one per phase)"
+
+
+def as_latent_tensor(z: object) -> Tensor:
+    """``z`` as a float tensor; anything that is not numbers (a string such as ``"0.4 -1.2"``, a dict) is a
+    TypeError naming the accepted types, not numpy's "could not convert string to float"."""
+    if isinstance(z, Tensor):
+        return z.float()
+    if isinstance(z, (str, bytes, dict)):
+        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r}")
+    try:
+        return torch.as_tensor(np.asarray(z, dtype=np.float32))
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r} ({e})") from e
+
+
 class Steering(nn.Module):
     """The active latent(s), the chunk noises fitted with them, and each env's phase.
 
@@ -84,7 +100,7 @@ class Steering(nn.Module):
             self.latent = self.latent[:0]
             provenance = None
         else:
-            z = torch.as_tensor(np.asarray(z, dtype=np.float32) if not isinstance(z, Tensor) else z).float()
+            z = as_latent_tensor(z)
             if z.dim() == 1:
                 z = z[None]
             if z.dim() != 2 or z.shape[1] != self.latent_dim:

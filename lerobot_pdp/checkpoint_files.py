@@ -1,0 +1,80 @@
+"""A checkpoint folder's files checked before anything is built from them: a clear error naming the folder or
+file (a missing folder, a damaged config.json or model.safetensors, missing processor files) instead of
+huggingface_hub's or json's. Apart from checkpoint.py so that the config's own loader can use it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+
+logger = logging.getLogger(__name__)
+
+PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+# LeRobot programs that load a checkpoint's processor files right after the policy (a checkpoint without them
+# is refused there, before LeRobot's misleading message); in-process loading only logs it.
+DEPLOY_PROGRAMS = ("lerobot-eval", "lerobot-rollout")
+
+
+def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, need_weights: bool = True) -> None:
+    """Fail early, naming the file, on a local checkpoint folder PDP cannot load: one that does not exist
+    (huggingface_hub would call its path an invalid repo id), lacks or holds a damaged config.json, or lacks
+    model.safetensors. A folder without LeRobot's processor files is refused by name in lerobot-eval /
+    lerobot-rollout (they load them next, and LeRobot then says the model "requires migration"); in-process
+    it loads, with an info line naming them."""
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
+    folder = Path(pretrained)
+    if not folder.exists():
+        try:
+            validate_repo_id(str(pretrained))
+            return  # a Hub repo id: huggingface_hub names what is missing there
+        except HFValidationError:
+            raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
+                                    "holding config.json and model.safetensors, or a Hub repo id)") from None
+    if not folder.is_dir():
+        raise NotADirectoryError(f"{pretrained} is a file; give its checkpoint folder (config.json + model.safetensors)")
+    config = folder / CONFIG_NAME
+    if need_config:
+        if not config.is_file():
+            raise FileNotFoundError(f"{folder} holds no {CONFIG_NAME}: give a PDP pretrained_model folder")
+        read_config_json(config)
+    if not need_weights:
+        return
+    if not (folder / SAFETENSORS_SINGLE_FILE).is_file():
+        raise FileNotFoundError(f"{folder} holds no {SAFETENSORS_SINGLE_FILE}: give a PDP pretrained_model folder")
+    missing = [name for name in PROCESSOR_FILES if not (folder / name).is_file()]
+    if missing:
+        program = Path(sys.argv[0]).stem.replace("_", "-") if sys.argv and sys.argv[0] else ""
+        text = (f"{folder} lacks LeRobot's processor files {missing}, which lerobot-eval / lerobot-rollout load next "
+                "(LeRobot then says the model 'requires migration'; it does not): copy them from the training run's "
+                "checkpoint folder, where lerobot-train wrote them")
+        if program in DEPLOY_PROGRAMS:
+            raise FileNotFoundError(f"{program}: {text}")
+        logger.info("%s; PDP itself loads without them", text)
+
+
+def read_config_json(path: str | Path) -> dict:
+    """A checkpoint's config.json as a dict; a damaged one is an error naming the file."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): the file is damaged (cut off while written or "
+                         "copied?); copy it again from the training run") from e
+
+
+def read_weight_shapes(model_file: str) -> dict[str, tuple[int, ...]]:
+    """The tensor shapes in ``model_file``; a damaged file is an error naming it."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(model_file, framework="pt") as f:
+            return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except (SafetensorError, OSError) as e:
+        raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged (cut off "
+                         "while written or copied?); copy it again from the training run") from e

@@ -1,0 +1,247 @@
+"""Every bad input gets an error (or, where acting on it is legitimate, one warning) that names the file, key,
+field or value and what was expected (issue 54). One test per case; no test trains."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.policies.factory import make_pre_post_processors
+from policies import small_policy
+
+from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp.cli import main as lerobot_pdp
+from lerobot_pdp.steering import SteerFile, write_steering
+
+
+@pytest.fixture(scope="module")
+def policy(synthetic_meta):
+    return small_policy(synthetic_meta)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(policy, synthetic_meta, tmp_path_factory) -> Path:
+    """A checkpoint as lerobot-train writes one: weights, config, processors."""
+    path = tmp_path_factory.mktemp("bad_input") / "ckpt"
+    policy.save_pretrained(path)
+    pre, post = make_pre_post_processors(policy.config, dataset_stats=synthetic_meta.stats)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    return path
+
+
+def _copy(checkpoint: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(checkpoint, tmp_path / "ckpt"))
+
+
+def _warnings(caplog, text: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and text in r.getMessage()]
+
+
+# ---- the steering API
+
+
+def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
+    with caplog.at_level(logging.WARNING):
+        policy.set_latent(policy.mode_latents()[0])
+        assert not _warnings(caplog, "spreads")
+        policy.set_latent([1e6, -1e6])
+        for _ in range(3):
+            policy.current_latent(2)  # acting under it does not warn again
+    (msg,) = _warnings(caplog, "spreads")
+    assert "[[1000000.0, -1000000.0]]" in msg and "spreads of the training latents from the nearest one" in msg
+    assert "warning above 3" in msg
+    assert policy.active_latent.tolist() == [[1e6, -1e6]]  # acted on, as asked
+    policy.set_latent(None)
+
+
+def test_a_string_latent_names_the_accepted_types(policy):
+    with pytest.raises(TypeError, match=r"latent must be a tensor, a numpy array or a sequence of floats, shape "
+                                        r"\[d_z\] or \[M, d_z\].*got str '0.4 -1.2'"):
+        policy.set_latent("0.4 -1.2")
+    with pytest.raises(TypeError, match=r"latent must be .*got list \['a', 'b'\]"):
+        policy.set_latent(["a", "b"])
+
+
+def test_an_unknown_mode_lists_the_modes(policy):
+    means = policy.mode_latents()
+    with pytest.raises(KeyError, match=r"no mode 99: the training modes are 0 \(left-tight\), 1 \(left-wide\), "
+                                       r"2 \(right-tight\), 3 \(right-wide\)"):
+        means[99]
+    assert 99 not in means and means.get(99) is None  # still a dict: membership and get() do not raise
+
+
+def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
+    with pytest.raises(ValueError, match=r"steps must be an integer >= 0 .*got -5"):
+        policy.fit_latent((synthetic_dataset, 0), steps=-5)
+    with pytest.raises(ValueError, match=r"lr must be a finite number > 0 .*got -1.0"):
+        policy.fit_latent((synthetic_dataset, 0), steps=1, lr=-1.0)
+    with pytest.raises(ValueError, match=r"init has shape \(3,\) \(3 values\); expected shape \[2\] or \[1, 2\]"):
+        policy.fit_latent((synthetic_dataset, 0), steps=0, init=torch.zeros(3))
+    with pytest.raises(TypeError, match=rf"episode index must be an integer \(an episode of {synthetic_dataset}\), "
+                                        r"got float 0.9"):
+        policy.fit_latent((synthetic_dataset, 0.9), steps=0)
+    assert policy.fit_latent((synthetic_dataset, np.int64(1)), steps=0, activate=False).steps == 0
+
+
+# ---- live steering: the file and lerobot-pdp steer
+
+
+def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, tmp_path, capsys):
+    f = tmp_path / "steer.json"
+    assert lerobot_pdp(["steer", str(f), "--latent", "nan", "inf"]) == 2
+    assert "latent [nan, inf] has non-finite values [nan, inf]; every value must be a finite number" in capsys.readouterr().err
+    assert not f.exists()
+    assert lerobot_pdp(["steer", str(f), "--mode", "-1"]) == 2
+    assert "mode must be a mode id >= 0 or a mode name, got -1" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--mode", "99", "--policy-path", str(checkpoint)]) == 2
+    assert (f"no mode 99 in checkpoint {checkpoint}; its modes are 0 (left-tight), 1 (left-wide), 2 (right-tight), "
+            "3 (right-wide)") in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--latent", "1", "2", "3", "--policy-path", str(checkpoint)]) == 2
+    assert f"has 3 values; expected 2 (latent_dim of checkpoint {checkpoint})" in capsys.readouterr().err
+    assert not f.exists()
+
+    assert lerobot_pdp(["steer", str(f), "--latent", "1", "2"]) == 0
+    assert json.loads(f.read_text()) == {"latent": [1.0, 2.0]}
+    assert lerobot_pdp(["steer", str(f), "--latent", "1", "2", "3"]) == 2  # no checkpoint: the file's latent size
+    assert f"has 3 values; expected 2 (the size of the latent already in {f}" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--mode", "left-wide", "--policy-path", str(checkpoint)]) == 0
+    assert json.loads(f.read_text()) == {"mode": "left-wide"}
+    with pytest.raises(ValueError, match="non-finite"):
+        write_steering(f, {"latent": [float("nan"), 0.0]})
+    assert json.loads(f.read_text()) == {"mode": "left-wide"}  # strict JSON, never NaN
+
+
+def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
+    assert lerobot_pdp(["steer", str(tmp_path / "nowhere" / "steer.json"), "--mode", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot write the steering file {tmp_path / 'nowhere' / 'steer.json'}: folder {tmp_path / 'nowhere'} " \
+           "does not exist" in err and ".tmp" not in err
+
+
+def test_a_steer_file_rewritten_in_place_within_one_tick_is_seen(policy, tmp_path):
+    f = tmp_path / "steer.json"
+    f.write_text('{"latent": [0.1, 0.2]}')
+    steer = SteerFile(f)
+    assert steer.poll(policy) and policy.active_latent.tolist() == [[pytest.approx(0.1), pytest.approx(0.2)]]
+    st = os.stat(f)
+    with open(f, "r+") as h:  # same inode, same size, then the old mtime: a rewrite within one clock tick
+        h.write('{"latent": [0.3, 0.4]}')
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    now = os.stat(f)
+    assert (now.st_mtime_ns, now.st_size, now.st_ino) == (st.st_mtime_ns, st.st_size, st.st_ino)
+    assert steer.poll(policy) and policy.active_latent.tolist() == [[pytest.approx(0.3), pytest.approx(0.4)]]
+    assert not steer.poll(policy)  # unchanged: not applied again
+    f.write_text('{"latent": [NaN, 0.0]}')
+    assert not steer.poll(policy) and policy.active_latent.tolist()[0][0] == pytest.approx(0.3)
+    policy.set_latent(None)
+
+
+# ---- checkpoints on disk
+
+
+def test_a_damaged_weights_file_is_named(checkpoint, tmp_path):
+    ckpt = _copy(checkpoint, tmp_path)
+    weights = ckpt / "model.safetensors"
+    data = weights.read_bytes()
+    for cut in (100, len(data) // 2):  # "invalid header length", then "incomplete metadata"
+        weights.write_bytes(data[:cut])
+        with pytest.raises(ValueError, match=rf"{weights} is not a readable safetensors file .*damaged"):
+            PDPPolicy.from_pretrained(ckpt)
+
+
+def test_latent_map_on_a_damaged_checkpoint_names_the_file(checkpoint, tmp_path, capsys):
+    ckpt = _copy(checkpoint, tmp_path)
+    (ckpt / "model.safetensors").write_bytes((ckpt / "model.safetensors").read_bytes()[:100])
+    assert lerobot_pdp(["latent-map", str(ckpt), "--out", str(tmp_path / "map.png")]) == 2
+    assert f"{ckpt / 'model.safetensors'} is not a readable safetensors file" in capsys.readouterr().err
+
+
+def test_a_damaged_config_json_is_named(checkpoint, tmp_path):
+    ckpt = _copy(checkpoint, tmp_path)
+    (ckpt / "config.json").write_text((ckpt / "config.json").read_text()[:1500])
+    for load in (PDPPolicy.from_pretrained, PDPConfig.from_pretrained):
+        with pytest.raises(ValueError, match=rf"{ckpt / 'config.json'} is not valid JSON \(.*line \d+ column \d+"):
+            load(ckpt)
+
+
+def test_an_edited_latent_dim_names_the_field(checkpoint, tmp_path):
+    ckpt = _copy(checkpoint, tmp_path)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    (ckpt / "config.json").write_text(json.dumps({**cfg, "latent_dim": 3}))
+    with pytest.raises(ValueError, match=rf"does not match its config: latent_dim is 2 in the weights, 3 in "
+                                         rf"{ckpt / 'config.json'}"):
+        PDPPolicy.from_pretrained(ckpt)
+
+
+def test_a_missing_checkpoint_folder_is_named(tmp_path):
+    for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model"):
+        with pytest.raises(FileNotFoundError, match=rf"no such checkpoint folder: {missing}"):
+            PDPPolicy.from_pretrained(missing)
+
+
+def test_missing_processor_files_are_named(checkpoint, tmp_path, caplog, monkeypatch):
+    ckpt = _copy(checkpoint, tmp_path)
+    (ckpt / "policy_preprocessor.json").unlink()
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.checkpoint_files"):
+        PDPPolicy.from_pretrained(ckpt)  # in-process: loads, saying what lerobot-eval would miss
+    assert f"{ckpt} lacks LeRobot's processor files ['policy_preprocessor.json']" in caplog.text
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-eval", f"--policy.path={ckpt}"])
+    with pytest.raises(FileNotFoundError, match=rf"lerobot-eval: {ckpt} lacks LeRobot's processor files "
+                                                r"\['policy_preprocessor.json'\].*'requires migration'; it does not"):
+        PDPPolicy.from_pretrained(ckpt)
+
+
+# ---- the config on LeRobot's command line
+
+
+@pytest.mark.parametrize("arg, message", [("--policy.latent_dim=0", "latent_dim must be >= 1, got 0"),
+                                          ("--policy.horizon=0", "horizon must be >= 1, got 0")])
+def test_an_invalid_policy_field_on_the_command_line_shows_pdps_message(arg, message):
+    """draccus (LeRobot's parser) replaces a ValueError raised while building the config by "Couldn't
+    instantiate class PDPConfig"; PDP's own message must reach the user."""
+    import draccus
+    from draccus.utils import DecodingError
+    from lerobot.configs.train import TrainPipelineConfig
+
+    with pytest.raises(DecodingError, match=rf"Invalid PDPConfig: {message}"):
+        draccus.parse(TrainPipelineConfig, args=["--dataset.repo_id=local/x", "--policy.type=pdp", arg])
+    with pytest.raises(ValueError, match=rf"Invalid PDPConfig: {message}"):  # a Python caller: a ValueError
+        PDPConfig(**{arg.split("=")[0].removeprefix("--policy."): 0})
+
+
+# ---- training data
+
+
+def test_a_damaged_soft_dtw_cache_is_recomputed_with_a_warning(tmp_path, caplog):
+    from lerobot_pdp.behavior import trace_distances
+
+    traces = np.random.default_rng(0).normal(size=(4, 16, 2))
+    d = trace_distances(traces, 1e-2, False, cache_dir=tmp_path, progress=False)
+    (cache,) = tmp_path.glob("trace_distances_*.npy")
+    cache.write_bytes(cache.read_bytes()[:40])
+    report: dict = {}
+    with caplog.at_level(logging.WARNING):
+        again = trace_distances(traces, 1e-2, False, cache_dir=tmp_path, progress=False, report=report)
+    (msg,) = _warnings(caplog, "soft-DTW cache")
+    assert f"soft-DTW cache {cache} is unreadable" in msg and "recomputing it" in msg
+    assert report["source"] == "computed" and np.array_equal(again, d)
+    assert np.array_equal(np.load(cache), d)  # rewritten whole
+
+
+def test_a_one_episode_dataset_warns_naming_it(tmp_path, caplog):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from synthetic import write_dataset
+
+    root = write_dataset(tmp_path / "one", episodes_per_mode=1, modes=(0,))
+    with caplog.at_level(logging.WARNING):
+        small_policy(LeRobotDatasetMetadata("local/synthetic", root=root))
+    (msg,) = _warnings(caplog, "holds one episode")
+    assert f"training dataset {root} holds one episode" in msg and "L_geo" in msg and "is 0" in msg
