@@ -24,9 +24,6 @@ compiled during the warm-up calls, and their ratio.
 ``--vqbet`` adds LeRobot's ``vqbet`` with one camera (what ``benchmark --obs images`` trains as the third
 camera method), past its VQ-VAE phase; no ratio line (it is a baseline's cost, not ours against a peer).
 
-``--blocks`` adds ``pdp_blocks``: PDP's weights with the fused training modulation off (each block's
-conditioning and z-MLP run as its own small modules, as before the fusion), and PDP over it.
-
 ``--eager-pdp`` adds ``pdp_eager``: PDP's weights with its CUDA-graph training step off
 (``train_cuda_graphs=False``: forward and backward launched kernel by kernel), and PDP over it.
 
@@ -108,9 +105,8 @@ def _vqbet(meta, cameras, size, device):
 
 
 def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mode: str | None = None,
-              blocks: bool = False, eager_pdp: bool = False):
-    """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins; with ``blocks``,
-    ``pdp_blocks``: PDP's weights with the fused training modulation off)."""
+              eager_pdp: bool = False):
+    """PDP and matched DP with the same cameras, on ``device`` (and their compiled twins)."""
     import torch
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.factory import make_policy
@@ -130,9 +126,6 @@ def _policies(meta, cameras, size, device, steps, compiled: bool = False, pdp_mo
         dp = make_policy(DiffusionConfig(**dp_config_kwargs(sampler), **VISION, **comp, **common), ds_meta=meta)
         pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw
         out.update({f"pdp{sfx}": pdp, f"dp{sfx or '_matched'}": dp})
-    if blocks:
-        out["pdp_blocks"] = copy.deepcopy(out["pdp"])
-        out["pdp_blocks"].model.denoiser.fused_modulation = False
     if eager_pdp:
         out["pdp_eager"] = copy.deepcopy(out["pdp"])
         out["pdp_eager"].config.train_cuda_graphs = False
@@ -168,7 +161,7 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
     dev, size = args.device, args.image_size
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
     policies = _policies(meta, cameras, size, dev, args.inference_steps, args.compile, args.pdp_compile_mode,
-                         args.blocks, args.eager_pdp)
+                         args.eager_pdp)
     if args.vqbet and n_cam == 1:  # LeRobot's vqbet takes exactly one camera
         policies["vqbet"] = _vqbet(meta, cameras, size, dev)
     obs = {k: v[:1, -1] for k, v in _training_batch(meta, policies["pdp"], cameras, size, 1, dev).items()
@@ -218,13 +211,11 @@ def _run(args, meta, n_cam: int, env: dict) -> None:
                               "params": sum(q.numel() for q in policies[name].parameters()), **env}
         print(json.dumps(res[(name, bench)]), flush=True)
     pairs = ([("pdp", "dp_matched", "")] + ([("pdp_compiled", "dp_compiled", "compiled")] if args.compile else [])
-             + ([("pdp", "pdp_blocks", "fused_over_blocks")] if args.blocks else [])
              + ([("pdp_eager", "dp_matched", "pdp_eager")] if args.eager_pdp else []))
     for bench in ("select_action_new_chunk", "train_step"):
         for a, b, label in pairs:
             r = round(res[(a, bench)]["median_ms"] / res[(b, bench)]["median_ms"], 3)
-            ratio = ({"fused_over_blocks": r} if b == "pdp_blocks"
-                     else {"pdp_over_dp": r, "target_1.1_met": bool(r <= 1.1)})
+            ratio = {"pdp_over_dp": r, "target_1.1_met": bool(r <= 1.1)}
             print(json.dumps({"bench": f"{bench}_ratio", "cameras": n_cam, "pair": label or "eager", **ratio,
                               "device": dev}), flush=True)
 
@@ -256,7 +247,7 @@ def _count_ops(args, meta, n_cam: int, env: dict) -> None:
             return func(*args, **(kwargs or {}))
 
     cameras = [f"observation.images.cam{i}" for i in range(n_cam)]
-    policies = _policies(meta, cameras, args.image_size, args.device, args.inference_steps, blocks=args.blocks)
+    policies = _policies(meta, cameras, args.image_size, args.device, args.inference_steps)
     res = {}
     for name, policy in policies.items():
         policy.train()
@@ -275,8 +266,6 @@ def _count_ops(args, meta, n_cam: int, env: dict) -> None:
         res[name]["ops"] = res[name]["forward_ops"] + res[name]["backward_ops"]
         print(json.dumps(res[name]), flush=True)
     ratios = {"pdp_over_dp": round(res["pdp"]["ops"] / res["dp_matched"]["ops"], 3)}
-    if "pdp_blocks" in res:
-        ratios["pdp_blocks_over_dp"] = round(res["pdp_blocks"]["ops"] / res["dp_matched"]["ops"], 3)
     print(json.dumps({"bench": "train_step_ops_ratio", "cameras": n_cam, **ratios}), flush=True)
 
 
@@ -301,8 +290,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="PDP's compile_mode with --compile (default PDP's 'default'; DP keeps 'reduce-overhead')")
     ap.add_argument("--count-ops", action="store_true",
                     help="count a training step's aten operators and parameter tensors instead of timing")
-    ap.add_argument("--blocks", action="store_true",
-                    help="also PDP with its fused training modulation off (pdp_blocks: each block's modules)")
     ap.add_argument("--eager-pdp", action="store_true",
                     help="also PDP with its CUDA-graph training step off (pdp_eager: train_cuda_graphs=False)")
     ap.add_argument("--top-ops", type=int, default=8, help="with --count-ops: the most frequent forward operators listed")

@@ -14,7 +14,6 @@ the pre/post-processors (reported separately as ``pipeline_median_ms``). Policie
 
 ``--device cuda`` times the same calls on a GPU (each call waits for the GPU before the clock stops) and adds
 ``pdp_eager``: PDP with its CUDA-graph replay switched off, i.e. the kernels launched one by one.
-``pdp_cudnn``: PDP (graphed) with PyTorch's (cuDNN) convolutions instead of unfold + matmul.
 ``--compile`` adds ``pdp_compiled`` and ``dp_compiled``: each policy with its ``compile_model`` on (PDP: the
 denoiser's step fused by torch.compile, still replayed from PDP's graph on CUDA; DP: LeRobot's own
 ``torch.compile(unet, mode="reduce-overhead")``). Compilation happens in the warm-up calls.
@@ -147,12 +146,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.device.startswith("cuda"):
         small["pdp_eager"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
         small["pdp_eager"][0].model._cuda_graphs = False
-        small["pdp_cudnn"] = _build(PDPConfig(trace_dims=[0, 1, 2], **sampler, **common), meta)
-        small["pdp_cudnn"][0].model.denoiser.unfold_on_gpu = False
     if args.compile:
         small["pdp_compiled"] = _build(PDPConfig(trace_dims=[0, 1, 2], compile_model=True, **sampler, **common), meta)
         small["dp_compiled"] = _build(DiffusionConfig(**dp_config_kwargs(sampler), compile_model=True, **common), meta)
-    for name in ("pdp", "pdp_eager", "pdp_cudnn", "pdp_compiled"):
+    for name in ("pdp", "pdp_eager", "pdp_compiled"):
         if name in small:
             pdp = small[name][0]
             pdp.set_latent(pdp.behavior_latents()[0].detach())  # fixed latent: no per-episode latent draw

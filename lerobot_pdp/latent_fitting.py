@@ -18,6 +18,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .denoiser import FiLMUnet1d
+from .diffusion import NoiseSchedule
+from .fast_inference import Context, FrozenDenoiser
+
 FIT_GRADIENTS = ("auto", "autograd", "finite_difference")
 
 
@@ -99,13 +103,32 @@ def _spread_steps(n_windows: int, draws: int, num_steps: int, g: torch.Generator
     return ((strata + torch.rand(n, generator=g)) * (num_steps / n)).long().clamp_max(num_steps - 1)
 
 
-def _phase_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor, noise_samples: int,
-                  g: torch.Generator, consts: dict, obs_mod: Tensor, spread_steps: bool = False) -> Tensor:
+def frozen_denoiser(denoiser: FiLMUnet1d | FrozenDenoiser, schedule: NoiseSchedule) -> FrozenDenoiser:
+    """The fitting's view of the denoiser (weights frozen while it runs), built once per fit."""
+    if isinstance(denoiser, FrozenDenoiser):
+        return denoiser
+    return FrozenDenoiser(denoiser, schedule.num_train_timesteps)
+
+
+def _per_phase(err: Tensor, windows: DemoWindows, idx: Tensor, seg: Tensor, P: int, M: int) -> Tensor:
+    """Masked mean error per window [P, n] of ``err`` [P * n, H, A], averaged per phase -> [P, M]."""
+    device = err.device
+    n = len(idx)
+    err = err.view(P, n, *err.shape[1:])
+    mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)  # [n, H, 1]
+    per_window = (err * mask).sum((2, 3)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)  # [P, n]
+    seg_sum = torch.zeros(P, M, device=device).index_add(1, seg, per_window)
+    seg_cnt = torch.zeros(M, device=device).index_add(0, seg, torch.ones(n, device=device))
+    return seg_sum / seg_cnt.clamp_min(1)
+
+
+def _phase_losses(frozen: FrozenDenoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor,
+                  noise_samples: int, g: torch.Generator, obs: Tensor, spread_steps: bool = False) -> Tensor:
     """Per-phase mean noise-prediction error for each of P latent sets ``zs`` [P, M, d_z] -> [P, M].
 
     Every latent set sees the same windows, diffusion steps and noise (common random numbers), so the
-    P denoiser passes run as one batch of P * len(idx) chunks. ``spread_steps``: the steps of
-    :func:`_spread_steps` instead of uniform draws.
+    P denoiser passes run as one batch of P * len(idx) chunks. ``obs``: the windows'
+    ``frozen.observations``. ``spread_steps``: the steps of :func:`_spread_steps` instead of uniform draws.
     """
     device = zs.device
     P, M = zs.shape[:2]
@@ -118,87 +141,63 @@ def _phase_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Ten
          else torch.randint(0, schedule.num_train_timesteps, (n,), generator=g)).to(device)
     noisy = schedule.add_noise(actions, eps, k)
     seg = windows.segment[idx].to(device)
-    mod = consts["step"][k] + obs_mod[idx.to(device)]  # [n, R]: the z-independent part
-    gain, shift = denoiser.latent_terms(consts, zs.reshape(P * M, -1))  # [P * M, R], one row per latent
     rows = (torch.arange(P, device=device)[:, None] * M + seg[None]).reshape(-1)  # each chunk's latent
-    mod = mod.repeat(P, 1)
-    if shift is not None:
-        mod = mod + shift[rows] if gain is None else torch.addcmul(shift[rows], gain[rows], mod)
-    pred = denoiser.forward_cached(noisy.repeat(P, 1, 1), denoiser.split_modulation(consts, mod), fast_conv=False)
-    err = (pred - eps.repeat(P, 1, 1)).pow(2).view(P, n, *eps.shape[1:])
-    mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)  # [n, H, 1]
-    per_window = (err * mask).sum((2, 3)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)  # [P, n]
-    seg_sum = torch.zeros(P, M, device=device).index_add(1, seg, per_window)
-    seg_cnt = torch.zeros(M, device=device).index_add(0, seg, torch.ones(n, device=device))
-    return seg_sum / seg_cnt.clamp_min(1)
+    ctx = frozen.context(obs[idx.to(device)].repeat(P, 1), zs.reshape(P * M, -1), rows)
+    pred = frozen.eps(noisy.repeat(P, 1, 1), k.repeat(P), ctx)
+    return _per_phase((pred - eps.repeat(P, 1, 1)).pow(2), windows, idx, seg, P, M)
 
 
-def _ddim_chain(denoiser, schedule, consts: dict, x: Tensor, base: Tensor, gain: Tensor | None,
-                shift: Tensor | None, rows: Tensor, sample_steps: int) -> Tensor:
-    """The policy's DDIM sampler from ``x`` [n, H, A], differentiable: ``base`` [n, R] is each chunk's
-    z-independent modulation (observations), ``rows`` [n] picks each chunk's row of ``latent_terms``."""
+def _ddim_chain(frozen: FrozenDenoiser, schedule, x: Tensor, ctx: Context, sample_steps: int) -> Tensor:
+    """The policy's DDIM sampler from ``x`` [n, H, A] under conditioning ``ctx``, differentiable."""
     for k, k_prev in schedule.steps(sample_steps):
-        mod = consts["step"][k] + base
-        if shift is not None:
-            mod = mod + shift[rows] if gain is None else torch.addcmul(shift[rows], gain[rows], mod)
-        eps = denoiser.forward_cached(x, denoiser.split_modulation(consts, mod), fast_conv=False)
-        x = schedule.ddim_step(eps, k, k_prev, x)
+        x = schedule.ddim_step(frozen.eps(x, k, ctx), k, k_prev, x)
     return x
 
 
-def _phase_sample_losses(denoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor, noise_samples: int,
-                         g: torch.Generator, consts: dict, obs_mod: Tensor, sample_steps: int) -> Tensor:
+def _phase_sample_losses(frozen: FrozenDenoiser, schedule, windows: DemoWindows, zs: Tensor, idx: Tensor,
+                         noise_samples: int, g: torch.Generator, obs: Tensor, sample_steps: int) -> Tensor:
     """Per-phase mean error of the *sampled* chunk: each window's chunk denoised from fresh noise in
     ``sample_steps`` DDIM steps (the policy's own sampler) under each latent set ``zs`` [P, M, d_z], against
     the demonstration's chunk -> [P, M]. Common random numbers as in :func:`_phase_losses`."""
     device = zs.device
     P, M = zs.shape[:2]
     idx = idx.repeat(noise_samples)
-    n = len(idx)
     actions = windows.actions[idx].to(device)
     x = torch.randn(actions.shape, generator=g).to(device).repeat(P, 1, 1)
     seg = windows.segment[idx].to(device)
-    gain, shift = denoiser.latent_terms(consts, zs.reshape(P * M, -1))
     rows = (torch.arange(P, device=device)[:, None] * M + seg[None]).reshape(-1)
-    x = _ddim_chain(denoiser, schedule, consts, x, obs_mod[idx.to(device)].repeat(P, 1), gain, shift, rows,
-                    sample_steps)
-    err = (x - actions.repeat(P, 1, 1)).pow(2).view(P, n, *actions.shape[1:])
-    mask = (~windows.is_pad[idx]).to(device).unsqueeze(-1).to(err.dtype)
-    per_window = (err * mask).sum((2, 3)) / (mask.sum((1, 2)) * err.shape[-1]).clamp_min(1)
-    seg_sum = torch.zeros(P, M, device=device).index_add(1, seg, per_window)
-    seg_cnt = torch.zeros(M, device=device).index_add(0, seg, torch.ones(n, device=device))
-    return seg_sum / seg_cnt.clamp_min(1)
+    ctx = frozen.context(obs[idx.to(device)].repeat(P, 1), zs.reshape(P * M, -1), rows)
+    x = _ddim_chain(frozen, schedule, x, ctx, sample_steps)
+    return _per_phase((x - actions.repeat(P, 1, 1)).pow(2), windows, idx, seg, P, M)
 
 
-def _errors(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps):
+def _errors(frozen, schedule, windows, zs, idx, noise_samples, g, obs, sample_steps):
     if sample_steps is None:
-        return _phase_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod)
-    return _phase_sample_losses(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps)
+        return _phase_losses(frozen, schedule, windows, zs, idx, noise_samples, g, obs)
+    return _phase_sample_losses(frozen, schedule, windows, zs, idx, noise_samples, g, obs, sample_steps)
 
 
-def fit_loss(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-             lam: float, g: torch.Generator, obs_mod: Tensor | None = None, consts: dict | None = None,
+def fit_loss(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor,
+             noise_samples: int, lam: float, g: torch.Generator, obs: Tensor | None = None,
              sample_steps: int | None = None) -> Tensor:
     """L_fit on the windows ``idx``: per-phase mean noise-prediction error, summed over phases, + lambda|z|^2.
 
-    The denoiser runs on precomputed modulations (:meth:`FiLMUnet1d.weight_constants`): the step and
-    observation parts are fixed while z is fitted, so only z's FiLM is recomputed (and differentiated)
-    per step. ``obs_mod`` / ``consts``: the windows' observation modulation and the weight constants, if
-    already computed (a fitting loop computes them once; the weights are frozen while it runs).
+    The denoiser runs as a :class:`FrozenDenoiser`: the step and observation parts of its conditioning are
+    fixed while z is fitted, so only z's FiLM is recomputed (and differentiated) per step. ``obs``: the
+    windows' ``observations``, if already computed (a fitting loop computes them once).
     ``sample_steps``: instead of the noise-prediction error, the error of the chunk sampled in that many
     DDIM steps (``fit_objective="sample"``).
     """
-    if consts is None:
-        consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
-    if obs_mod is None:
+    frozen = frozen_denoiser(denoiser, schedule)
+    if obs is None:
         with torch.no_grad():
-            obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
-    losses = _errors(denoiser, schedule, windows, z[None], idx, noise_samples, g, consts, obs_mod, sample_steps)
+            obs = frozen.observations(windows.obs_cond.to(z.device))
+    losses = _errors(frozen, schedule, windows, z[None], idx, noise_samples, g, obs, sample_steps)
     return losses[0].sum() + lam * z.pow(2).sum()
 
 
-def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, idx: Tensor, noise_samples: int,
-                         lam: float, g: torch.Generator, obs_mod: Tensor, consts: dict,
+def fit_loss_and_grad_fd(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z: Tensor,
+                         idx: Tensor, noise_samples: int, lam: float, g: torch.Generator, obs: Tensor | None = None,
                          h: float = 1e-3, sample_steps: int | None = None) -> tuple[Tensor, Tensor]:
     """L_fit and its gradient in z by forward differences: no backward pass, d_z + 1 latent sets per step.
 
@@ -210,17 +209,20 @@ def fit_loss_and_grad_fd(denoiser, schedule, windows: DemoWindows, z: Tensor, id
     O(h) bias (< 2 % of the gradient at h = 1e-3 on trained reach-around weights, float32 round-off
     still negligible there; tested against autograd) is far below the step's Monte-Carlo noise.
     """
+    frozen = frozen_denoiser(denoiser, schedule)
     M, d = z.shape
     dirs = torch.cat([torch.zeros(1, d, device=z.device), torch.eye(d, device=z.device) * h])  # [d + 1, d]
     with torch.no_grad():
-        losses = _errors(denoiser, schedule, windows, z[None] + dirs[:, None], idx, noise_samples, g,
-                         consts, obs_mod, sample_steps)  # [d + 1, M]
+        if obs is None:
+            obs = frozen.observations(windows.obs_cond.to(z.device))
+        losses = _errors(frozen, schedule, windows, z[None] + dirs[:, None], idx, noise_samples, g, obs,
+                         sample_steps)  # [d + 1, M]
         grad = (losses[1:] - losses[:1]).T / h + 2 * lam * z
         loss = losses[0].sum() + lam * z.pow(2).sum()
     return loss, grad
 
 
-def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int, lr: float, lam: float,
+def fit_latent(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int, lr: float, lam: float,
                batch_size: int, noise_samples: int = 1, seed: int | None = 0, progress: bool = False,
                gradient: str = "auto", sample_steps: int | None = None) -> FitResult:
     """Adam on z (weights frozen). Each step samples demonstration chunks and noise afresh (Alg. 3).
@@ -248,16 +250,16 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="fit_latent", leave=False)
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    frozen = frozen_denoiser(denoiser, schedule)
     with torch.no_grad():
-        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
+        obs = frozen.observations(windows.obs_cond.to(z.device))
     for i in iterator:
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
         if use_fd:
-            loss, grad = fit_loss_and_grad_fd(denoiser, schedule, windows, z.detach(), idx, noise_samples, lam, g,
-                                              obs_mod, consts, sample_steps=sample_steps)
+            loss, grad = fit_loss_and_grad_fd(frozen, schedule, windows, z.detach(), idx, noise_samples, lam, g,
+                                              obs, sample_steps=sample_steps)
         else:
-            loss = fit_loss(denoiser, schedule, windows, z, idx, noise_samples, lam, g, obs_mod, consts, sample_steps)
+            loss = fit_loss(frozen, schedule, windows, z, idx, noise_samples, lam, g, obs, sample_steps)
             (grad,) = torch.autograd.grad(loss, z)
         z.grad = grad
         opt.step()
@@ -268,23 +270,23 @@ def fit_latent(denoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int,
     return FitResult(z=z_final.cpu(), z_init=z0.detach().cpu(), losses=losses, steps=steps)
 
 
-def demonstration_error(denoiser, schedule, windows: DemoWindows, z: Tensor, chunks: int = 256, seed: int = 0,
+def demonstration_error(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z: Tensor, chunks: int = 256, seed: int = 0,
                         spread_steps: bool = True) -> float:
     """L_fit without lambda|z|^2 on every window of the demonstration at ``z`` [M, d_z], as a mean over phases:
     the noise-prediction error that ``train_loss_dp`` measures for the training demonstrations at their own
     latents, so the two compare. Each window gets ``ceil(chunks / windows)`` noise draws, their diffusion steps
     stratified (:func:`_spread_steps`; ``spread_steps=False``: uniform draws, the same mean, noisier)."""
     g = torch.Generator().manual_seed(seed)
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    frozen = frozen_denoiser(denoiser, schedule)
     n = len(windows.segment)
     with torch.no_grad():
-        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(z.device))
-        per_phase = _phase_losses(denoiser, schedule, windows, z[None].float(), torch.arange(n), -(-chunks // n), g,
-                                  consts, obs_mod, spread_steps)[0]
+        obs = frozen.observations(windows.obs_cond.to(z.device))
+        per_phase = _phase_losses(frozen, schedule, windows, z[None].float(), torch.arange(n), -(-chunks // n), g,
+                                  obs, spread_steps)[0]
     return float(per_phase.mean())
 
 
-def fit_chunk_noise(denoiser, schedule, windows: DemoWindows, z: Tensor, chunk_frames: int, sample_steps: int,
+def fit_chunk_noise(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z: Tensor, chunk_frames: int, sample_steps: int,
                     steps: int = 100, lr: float = 0.05, batch_size: int = 32, seed: int = 0) -> Tensor:
     """One initial sampler noise per executed chunk of the demonstration, z [M, d_z] fixed: noise x_j is
     optimised (Adam) so that the ``sample_steps``-step DDIM chain from it, under z and each window's
@@ -296,18 +298,18 @@ def fit_chunk_noise(denoiser, schedule, windows: DemoWindows, z: Tensor, chunk_f
     n = len(windows.segment)
     chunk_of = (torch.arange(n) // chunk_frames).to(device)
     g = torch.Generator().manual_seed(int(seed))
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    frozen = frozen_denoiser(denoiser, schedule)
     actions, is_pad, seg_all = windows.actions.to(device), windows.is_pad.to(device), windows.segment.to(device)
     x = torch.randn(int(chunk_of.max()) + 1, *actions.shape[1:], generator=g).to(device).requires_grad_(True)
     with torch.no_grad():
-        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(device))
-        gain, shift = denoiser.latent_terms(consts, z.float())
+        obs = frozen.observations(windows.obs_cond.to(device))
     opt = torch.optim.Adam([x], lr=lr)
     with torch.inference_mode(False), torch.enable_grad():
         for _ in range(int(steps)):
             idx = torch.randperm(n, generator=g)[:batch_size].to(device)
-            chunk = _ddim_chain(denoiser, schedule, consts, x[chunk_of[idx]], obs_mod[idx], gain, shift,
-                                seg_all[idx], sample_steps)
+            with torch.no_grad():
+                ctx = frozen.context(obs[idx], z.float(), seg_all[idx])
+            chunk = _ddim_chain(frozen, schedule, x[chunk_of[idx]], ctx, sample_steps)
             mask = (~is_pad[idx]).unsqueeze(-1).to(chunk.dtype)
             loss = ((chunk - actions[idx]).pow(2) * mask).sum() / (mask.sum() * chunk.shape[-1]).clamp_min(1)
             (x.grad,) = torch.autograd.grad(loss, x)  # w.r.t. the noise alone: no weight gets a .grad
@@ -315,7 +317,7 @@ def fit_chunk_noise(denoiser, schedule, windows: DemoWindows, z: Tensor, chunk_f
     return x.detach()
 
 
-def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,
+def select_code(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, codes: Tensor, batches: int, batch_size: int,
                 noise_samples: int = 1, seed: int | None = 0, sample_steps: int | None = None
                 ) -> tuple[Tensor, Tensor]:
     """Adaptation of a discrete latent: per phase, the one of ``codes`` [C, d_z] with the lowest L_fit (with
@@ -327,15 +329,15 @@ def select_code(denoiser, schedule, windows: DemoWindows, codes: Tensor, batches
     """
     g = torch.Generator()
     g.manual_seed(int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
-    consts = denoiser.weight_constants(list(range(schedule.num_train_timesteps)))
+    frozen = frozen_denoiser(denoiser, schedule)
     codes = codes.float()
     M = windows.n_segments
     zs = codes[:, None, :].expand(len(codes), M, codes.shape[1])
     total = torch.zeros(len(codes), M, device=codes.device)
     with torch.no_grad():
-        obs_mod = denoiser.obs_modulation(consts, windows.obs_cond.to(codes.device))
+        obs = frozen.observations(windows.obs_cond.to(codes.device))
         for _ in range(max(1, batches)):
             idx = _stratified_batch(windows.segment, M, batch_size, g)
-            total += _errors(denoiser, schedule, windows, zs, idx, noise_samples, g, consts, obs_mod, sample_steps)
+            total += _errors(frozen, schedule, windows, zs, idx, noise_samples, g, obs, sample_steps)
     mean = total / max(1, batches)
     return codes[mean.argmin(0)], mean

@@ -20,8 +20,10 @@ from torch import Tensor, nn
 from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
 from .configuration_pdp import PDPConfig
 from .cuda_graphs import GraphCache, TrainGraphs
-from .denoiser import FiLMUnet1d, NoiseSchedule, diffusion_loss
+from .denoiser import FiLMUnet1d
+from .diffusion import NoiseSchedule, diffusion_loss
 from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
+from .fast_inference import FastDenoiser
 from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
@@ -78,6 +80,7 @@ class PDPModel(nn.Module):
         self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
                                             cfg.clip_sample_range, timestep_spacing, use_clipped_model_output)
         # captured (CUDA, see generate) and compiled (config.compile_model) samplers hold the step rule
+        self.fast_denoiser = FastDenoiser(self.denoiser, cfg.num_train_timesteps)
         self._graphs = GraphCache()
         self._compiled_fns: dict[str, Callable] = {}
 
@@ -305,22 +308,21 @@ class PDPModel(nn.Module):
                 self._graphs.clear()
         return self._sample(obs_cond, z, noise, n)
 
-    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int, cache_latent: bool = True) -> Tensor:
+    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
         steps = self.noise_schedule.timesteps(n)
+        fast = self.fast_denoiser
         if self.config.compile_model:
-            mod = self.denoiser.make_modulation(obs_cond, z, steps, cache_latent)
-            return self.compiled("sample")(noise, mod, n, noise.device.type == "cpu" or self.denoiser.unfold_on_gpu)
-        context = self.denoiser.make_context(obs_cond, z, steps, cache_latent)
-        return self.noise_schedule.sample(lambda x, i, k: self.denoiser.run_cached(x, context[i]), noise, n)
+            mod = fast.sample_modulation(obs_cond, z, steps)
+            return self.compiled("sample")(noise, mod, n)
+        context = fast.contexts(obs_cond, z, steps)
+        return self.noise_schedule.sample(lambda x, i, k: fast.run(x, context[i]), noise, n)
 
-    def _denoise(self, noise: Tensor, mod: Tensor, n: int, fast_conv: bool) -> Tensor:
-        """The whole sampler given its steps' modulation rows (``make_modulation``); what ``compiled("sample")``
+    def _denoise(self, noise: Tensor, mod: Tensor, n: int) -> Tensor:
+        """The whole sampler given its steps' modulation rows (``sample_modulation``); what ``compiled("sample")``
         compiles: one graph for all steps (a step's rows as input would be a view at another storage offset
         per step, which the compiled code is specialised on)."""
-        sizes = self.denoiser.modulation_sizes()
-        return self.noise_schedule.sample(
-            lambda x, i, k: self.denoiser.forward_cached(x, list(mod[i].unsqueeze(-1).split(sizes, dim=1)), fast_conv),
-            noise, n)
+        fast = self.fast_denoiser
+        return self.noise_schedule.sample(lambda x, i, k: fast.forward(x, mod[i]), noise, n)
 
     def compiled(self, name: str) -> Callable:
         """The torch.compile'd denoiser, built on first use: ``"train"`` (its forward, in ``compile_mode``)
@@ -348,11 +350,11 @@ class PDPModel(nn.Module):
         """:meth:`_sample` replayed from a CUDA graph, captured per input shape and sampler steps.
 
         Recaptured when the weights change (the graph reads the weight constants of the capture, and
-        ``weight_constants`` returns a new object after an optimizer step, ``load_state_dict`` or ``.to``).
+        ``FastDenoiser.frozen`` returns a new object after an optimizer step, ``load_state_dict`` or ``.to``).
         """
-        consts = self.denoiser.weight_constants(self.noise_schedule.timesteps(n))
+        consts = self.fast_denoiser.frozen()
         key = (tuple(obs_cond.shape), tuple(z.shape), tuple(noise.shape), n, obs_cond.dtype, obs_cond.device,
                torch.is_inference_mode_enabled())
-        call = self._graphs.get(key, consts, lambda o, zz, x: self._sample(o, zz, x, n, cache_latent=False),
+        call = self._graphs.get(key, consts, lambda o, zz, x: self._sample(o, zz, x, n),
                                 (obs_cond, z, noise))
         return call(obs_cond, z, noise)

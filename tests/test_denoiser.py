@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
+from lerobot_pdp.fast_inference import FastDenoiser, FrozenDenoiser
 
 
 def _net(mode="film", film_hidden_dims=(16, 32)):
@@ -65,78 +66,55 @@ def test_schedule_and_ddim():
 @pytest.mark.parametrize(("mode", "film_hidden_dims"),
                          [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("input", (16, 32)), ("none", (16, 32))])
 @pytest.mark.numerics
-def test_cached_inference_path_equals_forward(mode, film_hidden_dims):
-    # film_hidden_dims=() is the affine FiLM pick-place trains with: the stacked-MLP fast path then has
-    # no hidden layer at all
+def test_fast_paths_equal_the_reference_forward(mode, film_hidden_dims):
+    """Every fast path of fast_inference.py computes ``FiLMUnet1d.forward``: the precomputed modulation with
+    PyTorch's or unfolded convolutions, one step for all chunks or one per chunk, latents picked per chunk,
+    and the sampler's TorchScript trace. film_hidden_dims=() is the affine FiLM pick-place trains with: the
+    stacked z-MLP then has no hidden layer at all."""
     net = _net(mode, film_hidden_dims)
     for m in net.modules():
         if isinstance(m, LatentFiLM):
             torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
     net.eval()
     x, c, z = torch.randn(3, 16, 3), torch.randn(3, 10), torch.randn(3, 2)
+    frozen = FrozenDenoiser(net, 20)
+    obs = frozen.observations(c)
+    ctx = frozen.context(obs, z)
+    fast = FastDenoiser(net, 20)
     steps = [19, 7, 0]
-    ctx = net.make_context(c, z, steps)
+    contexts = fast.contexts(c, z, steps)
     for i, k in enumerate(steps):
-        kk = torch.full((3,), k)
-        torch.testing.assert_close(net.forward_cached(x, ctx[i]), net(x, kk, c, z), atol=1e-5, rtol=1e-5)
-        assert torch.equal(net.run_cached(x, ctx[i]), net.forward_cached(x, ctx[i]))  # TorchScript trace
+        want = net(x, torch.full((3,), k), c, z)
+        for unfold in (False, True):
+            torch.testing.assert_close(frozen.eps(x, k, ctx, unfold), want, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(fast.run(x, contexts[i]), want, atol=1e-5, rtol=1e-5)  # TorchScript trace
+    k = torch.tensor([19, 7, 0])  # one step per chunk, latents picked per chunk (latent fitting)
+    zs, rows = torch.randn(2, 2), torch.tensor([1, 0, 1])
+    torch.testing.assert_close(frozen.eps(x, k, frozen.context(obs, zs, rows), True), net(x, k, c, zs[rows]),
+                               atol=1e-5, rtol=1e-5)
     # the trace (built for batch 3) serves other batch sizes too, e.g. lerobot-eval's --eval.batch_size
-    x1, ctx1 = x[:1], net.make_context(c[:1], z[:1], steps)[0]
-    torch.testing.assert_close(net.run_cached(x1, ctx1), net(x1, torch.full((1,), 19), c[:1], z[:1]),
-                               atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(fast.run(x[:1], fast.contexts(c[:1], z[:1], steps)[0]),
+                               net(x[:1], torch.full((1,), 19), c[:1], z[:1]), atol=1e-5, rtol=1e-5)
     # and a trace built at batch 1 (a single-env rollout) serves a batch of 3 (a vectorised rollout)
-    net1 = _net(mode, film_hidden_dims).eval()
-    net1.load_state_dict(net.state_dict())
-    net1.run_cached(x1, net1.make_context(c[:1], z[:1], steps)[0])
-    torch.testing.assert_close(net1.run_cached(x, net1.make_context(c, z, steps)[0]), net(x, torch.full((3,), 19), c, z),
-                               atol=1e-5, rtol=1e-5)
-
-
-@pytest.mark.parametrize(("mode", "film_hidden_dims"),
-                         [("film", (16, 32)), ("film", ()), ("concat", (16, 32)), ("input", (16, 32)), ("none", (16, 32))])
-@pytest.mark.numerics
-def test_fused_training_forward_equals_the_blocks_one_by_one(mode, film_hidden_dims):
-    """Training's fused modulation (all blocks' conditioning and z-MLPs as a few stacked ops) gives the
-    output and the gradients of every weight and of z that each block's own modules give."""
-    net = _net(mode, film_hidden_dims)
-    for m in net.modules():
-        if isinstance(m, LatentFiLM):
-            torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
-    g = torch.Generator().manual_seed(3)
-    x, c = torch.randn(5, 16, 3, generator=g), torch.randn(5, 10, generator=g)
-    k = torch.randint(0, 20, (5,), generator=g)
-    outs, grads = [], []
-    for fused in (True, False):
-        net.fused_modulation = fused
-        z = torch.randn(5, 2, generator=torch.Generator().manual_seed(4), requires_grad=True)
-        net.zero_grad()
-        out = net(x, k, c, z)
-        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
-        outs.append(out.detach())
-        grads.append({"z": z.grad, **{n: q.grad for n, q in net.named_parameters() if q.grad is not None}})
-    torch.testing.assert_close(outs[0], outs[1], atol=1e-5, rtol=1e-5)
-    assert grads[0].keys() == grads[1].keys() and len(grads[0]) == 1 + sum(1 for _ in net.parameters())
-    for name in grads[0]:
-        # a weight's gradient sums over batch and chunk, the fused ops in another order than the blocks': its
-        # round-off scales with the tensor's largest entries (up to 4.7e-6 of them across CPU code paths)
-        want = grads[1][name]
-        scale = 1.0 if want is None else max(1.0, float(want.abs().max()))
-        torch.testing.assert_close(grads[0][name], want, atol=2e-5 * scale, rtol=1e-4, msg=name)
+    fast1 = FastDenoiser(net, 20)
+    fast1.run(x[:1], fast1.contexts(c[:1], z[:1], steps)[0])
+    torch.testing.assert_close(fast1.run(x, contexts[0]), net(x, torch.full((3,), 19), c, z), atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.numerics
 def test_inference_caches_follow_weight_updates_and_pickle():
     net = _net("film").eval()
+    fast = FastDenoiser(net, 20)
     x, c, z = torch.randn(1, 16, 3), torch.randn(1, 10), torch.randn(1, 2)
-    before = net.run_cached(x, net.make_context(c, z, [19, 0])[0])
+    before = fast.run(x, fast.contexts(c, z, [19, 0])[0])
     with torch.no_grad():  # an optimizer step / load_state_dict changes weights in place
         for p in net.parameters():
             p.add_(0.05 * torch.randn_like(p))
-    after = net.run_cached(x, net.make_context(c, z, [19, 0])[0])
+    after = fast.run(x, fast.contexts(c, z, [19, 0])[0])
     assert not torch.allclose(before, after)
     torch.testing.assert_close(after, net(x, torch.tensor([19]), c, z), atol=1e-5, rtol=1e-5)
-    clone = pickle.loads(pickle.dumps(net))  # traces and caches are dropped, rebuilt on demand
-    assert torch.equal(clone.run_cached(x, clone.make_context(c, z, [19, 0])[0]), after)
+    clone = pickle.loads(pickle.dumps(fast))  # traces and constants are dropped, rebuilt on demand
+    assert clone.net is not net and torch.equal(clone.run(x, clone.contexts(c, z, [19, 0])[0]), after)
 
 
 @pytest.mark.numerics
@@ -161,9 +139,9 @@ def test_concat_ablation_feeds_the_raw_latent_to_a_linear_map():
         k = torch.tensor([5])
         out_a = net(torch.randn(1, 16, 3), k, torch.randn(1, 10), z1)
         assert torch.isfinite(out_a).all()
-    consts = net.weight_constants([5])
-    _, shift = net.latent_terms(consts, z1)
-    _, shift2 = net.latent_terms(consts, z2)
+    frozen = FrozenDenoiser(net, 20)
+    _, shift = frozen.latent_terms(z1)
+    _, shift2 = frozen.latent_terms(z2)
     torch.testing.assert_close(shift2, 2 * shift, atol=1e-5, rtol=1e-4)
 
 
@@ -173,12 +151,13 @@ def test_input_ablation_appends_the_latent_to_the_denoiser_input_only():
     net = _net("input").eval()
     first = net.blocks()[0]
     assert first.conv1.block[0].in_channels == 3 + 2 and first.residual.in_channels == 3 + 2
-    consts = net.weight_constants([5])
+    frozen = FrozenDenoiser(net, 20)
+    block_rows = sum(frozen.sizes) - 2
     with torch.no_grad():
         z = torch.tensor([[0.7, -1.3]])
-        gain, shift = net.latent_terms(consts, z)
-        assert gain is None and torch.count_nonzero(shift[:, : net._block_rows]) == 0
-        assert torch.equal(shift[:, net._block_rows :], z)  # the last modulation rows carry z itself
+        gain, shift = frozen.latent_terms(z)
+        assert gain is None and torch.count_nonzero(shift[:, :block_rows]) == 0
+        assert torch.equal(shift[:, block_rows:], z)  # the last modulation rows carry z itself
         # the network reads [A^k | z z ... z]: the first block's conv on that input is what the forward sees
         x, k, c = torch.randn(1, 16, 3), torch.tensor([5]), torch.randn(1, 10)
         seen = {}
@@ -276,7 +255,7 @@ def test_sampler_fields_reach_the_policy(synthetic_meta):
 
 @pytest.mark.numerics
 def test_cpu_sampler_matches_a_float64_reference(synthetic_meta):
-    """The CPU sampler (unfolded convolutions through a TorchScript trace, float32) stays within 2e-5 of the
+    """The CPU sampler (precomputed modulation through a TorchScript trace, float32) stays within 2e-5 of the
     same sampler run in float64 over the whole 20-step chain; a float64 copy of a policy samples in float64
     throughout (the GPU test compares its two convolution paths this way). The weights are seeded: over 12
     weight seeds the error was 4e-6 to 2.5e-5, once 1.1e-4, where a predicted x0 sits at the clip bound and

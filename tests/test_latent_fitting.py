@@ -9,6 +9,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
+from lerobot_pdp.fast_inference import FrozenDenoiser
 from lerobot_pdp.latent_fitting import (
     _spread_steps,
     demonstration_error,
@@ -101,16 +102,16 @@ def test_fit_loss_on_precomputed_modulations_equals_the_training_forward(mode):
 def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
     """Forward differences over z (all phases at once) agree with the backward pass on the same noise."""
     net, sched, w, T = _two_phase_setup("film")
-    consts = net.weight_constants(list(range(20)))
-    obs_mod = net.obs_modulation(consts, w.obs_cond)
+    frozen = FrozenDenoiser(net, 20)
+    obs = frozen.observations(w.obs_cond)
     idx = torch.arange(0, T, 2)
     for trial in range(3):
         z = torch.randn(2, 2)
         zg = z.clone().requires_grad_(True)
-        loss = fit_loss(net, sched, w, zg, idx, 1, 1e-2, torch.Generator().manual_seed(trial), obs_mod)
+        loss = fit_loss(frozen, sched, w, zg, idx, 1, 1e-2, torch.Generator().manual_seed(trial), obs)
         (want,) = torch.autograd.grad(loss, zg)
-        fd_loss, got = fit_loss_and_grad_fd(net, sched, w, z, idx, 1, 1e-2, torch.Generator().manual_seed(trial),
-                                            obs_mod, consts)
+        fd_loss, got = fit_loss_and_grad_fd(frozen, sched, w, z, idx, 1, 1e-2, torch.Generator().manual_seed(trial),
+                                            obs)
         torch.testing.assert_close(fd_loss, loss.detach())
         assert float((got - want).norm() / want.norm()) < 0.02, (got, want)
     with pytest.raises(ValueError, match="gradient must be one of"):

@@ -45,6 +45,7 @@ def main() -> None:
     from lerobot_pdp.benchmark.settings import scene_seed_offset
     from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
+    from lerobot_pdp.fast_inference import FrozenDenoiser
     from lerobot_pdp.latent_fitting import fit_loss
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -90,14 +91,14 @@ def main() -> None:
     # L_fit on every window with the same noise at every grid point (a fresh generator per point).
     windows = policy.demo_windows(demo)
     den, sched = policy.model.denoiser, policy.model.noise_schedule
-    consts = den.weight_constants(list(range(sched.num_train_timesteps)))
+    den = FrozenDenoiser(den, sched.num_train_timesteps)  # weights frozen: built once
     idx = torch.arange(len(windows.segment))
     if args.first_windows:
         if args.first_windows > len(idx):
             ap.error(f"--first-windows {args.first_windows}: the scene-{args.scene} demonstration has {len(idx)} windows")
         idx = idx[: args.first_windows]
     with torch.no_grad():
-        obs_mod = den.obs_modulation(consts, windows.obs_cond)
+        obs = den.observations(windows.obs_cond)
 
         vae = policy.model.vae
         trace = make_trace(np.asarray(demo[cfg.trace_key]), cfg.trace_dims, cfg.trace_length, cfg.trace_normalize)
@@ -109,7 +110,7 @@ def main() -> None:
             if args.objective == "decoder":
                 return float((vae.decode(zt) - target).pow(2).mean())
             steps = cfg.num_inference_steps if args.objective == "sample" else None
-            return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs_mod, consts,
+            return float(fit_loss(den, sched, windows, zt, idx, args.noise_draws, cfg.fit_lambda, g, obs,
                                   sample_steps=steps))
 
         loss = np.zeros((args.n, args.n))

@@ -54,6 +54,7 @@ def main() -> None:
     from lerobot_pdp.benchmark.settings import scene_seed_offset
     from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
+    from lerobot_pdp.fast_inference import FrozenDenoiser
     from lerobot_pdp.latent_fitting import fit_loss
     from lerobot_pdp.soft_dtw import dtw
 
@@ -92,17 +93,17 @@ def main() -> None:
     demo_trace = trace(np.asarray(demo["observation.state"])[:, list(suite.trace_dims)])
     windows = policy.demo_windows(demo)
     den, sched = policy.model.denoiser, policy.model.noise_schedule
-    consts = den.weight_constants(list(range(sched.num_train_timesteps)))
+    den = FrozenDenoiser(den, sched.num_train_timesteps)  # weights frozen: built once
     idx = torch.arange(len(windows.segment))
     with torch.no_grad():
-        obs_mod = den.obs_modulation(consts, windows.obs_cond)
+        obs = den.observations(windows.obs_cond)
 
     rows, traces = [], {}
     for name, z in candidates.items():
         zt = torch.as_tensor(z, dtype=torch.float32)
         with torch.no_grad():
             loss = float(fit_loss(den, sched, windows, zt[None], idx, args.noise_draws, cfg.fit_lambda,
-                                  torch.Generator().manual_seed(0), obs_mod, consts))
+                                  torch.Generator().manual_seed(0), obs))
         row = {"candidate": name, "z": [round(float(v), 3) for v in z], "L_fit": round(loss, 5)}
         if args.rollouts:
             policy.set_latent(zt)
