@@ -24,8 +24,11 @@ demo: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/lerobot-pdp benchmark --env reach-around --quick --out $(DEMO_OUT)
 
 ## Whole test suite (slow end-to-end tests included), then the numerics-sensitive tests again on other kernels.
+## TEST_WORKERS pytest processes side by side (pytest-xdist; one torch thread each; 1 = none).
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadgroup,)
 test: $(STAMP)
-	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider --durations=15
+	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider $(XDIST) --durations=15
 	@$(MAKE) --no-print-directory test-numerics
 
 ## The tests marked `numerics` under other CPU code paths than this machine's: MKL's SSE2 'compatible' kernels, ATen's
@@ -33,11 +36,11 @@ test: $(STAMP)
 ## vendor or vector width computes the low-order bits differently) fails here on any machine.
 NUMERICS_ENV ?= MKL_CBWR=COMPATIBLE ATEN_CPU_CAPABILITY=default ONEDNN_MAX_CPU_ISA=SSE41
 test-numerics: $(STAMP)
-	HF_HUB_OFFLINE=1 $(NUMERICS_ENV) $(VENV)/bin/pytest -q -p no:cacheprovider -m numerics
+	HF_HUB_OFFLINE=1 $(NUMERICS_ENV) $(VENV)/bin/pytest -q -p no:cacheprovider $(XDIST) -m numerics
 
 ## Contributors' loop: the tests not marked slow (no lerobot-train processes), a few minutes.
 test-fast: $(STAMP)
-	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider -m "not slow"
+	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider $(XDIST) -m "not slow"
 
 ## The full protocol for every env (3 seeds x 40 rollouts, baselines, ablations): hours on 2 CPU cores.
 ## Resumable: finished (method, seed) runs under RESULTS_OUT are reused.

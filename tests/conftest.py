@@ -15,6 +15,14 @@ os.environ.setdefault("TQDM_DISABLE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("LEROBOT_PDP_CACHE", tempfile.mkdtemp(prefix="pdp-cache-"))
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs two pytest workers on the two cores: one torch thread each (and in their subprocesses),
+    # or two workers' spinning OpenMP threads oversubscribe the cores (docs/performance.md, "Threads").
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("MKL_NUM_THREADS", "1")
+    if "torch" in sys.modules:  # already imported (by a plugin): set its pool too
+        sys.modules["torch"].set_num_threads(1)
+
 import pytest  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -71,3 +79,12 @@ def reach_around_pdp(tmp_path_factory) -> Path:
     data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=10, seed=0, progress=False)
     return train_method(methods_for(get_suite_env("reach-around"))["pdp"], data, root / "run", 0,
                         TrainSettings(steps=3000), 3000)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under ``pytest -n N --dist loadgroup`` (``make test``): the tests of one file run on one worker (its
+    module fixtures are built once), and every test that needs the reach-around checkpoint runs on the same
+    worker, whatever its file (the suite's most expensive fixture is trained once)."""
+    for item in items:
+        group = "reach_around_pdp" if "reach_around_pdp" in item.fixturenames else item.module.__name__
+        item.add_marker(pytest.mark.xdist_group(group))
