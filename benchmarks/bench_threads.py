@@ -119,10 +119,12 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from lerobot_pdp import console
     from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.cpu_threads import usable_cores
     from lerobot_pdp.envs.recording import make_dataset
 
+    console.install()  # LeRobot's torchcodec fallback in one line
     tmp = tempfile.TemporaryDirectory(prefix="bench-threads-")
     work = Path(tmp.name)
     logs = args.out or work

@@ -197,8 +197,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     train_cuda_graphs: bool = True
     # Torch's CPU threads in the process that builds the policy (lerobot-train, lerobot-eval, lerobot-rollout,
     # fits). None = half the usable cores, at least one (left alone when OMP_NUM_THREADS / MKL_NUM_THREADS is
-    # set): torch's default of one spinning thread per core collapses beside the loader workers or any other
-    # job (~70x slower on 2 cores, docs/performance.md "Threads"). 0 = torch's default; N = N threads.
+    # set): torch's default of one spinning thread per core stalls beside the loader workers or any other job
+    # (on 2 cores lerobot-train ran 2.3x faster alone with one, docs/performance.md "Threads"). 0 = torch's
+    # default; N = N threads.
     cpu_threads: int | None = None
 
     # ---- Latent fitting defaults (policy.fit_latent) ----

@@ -2,10 +2,10 @@
 
 Torch starts one OpenMP thread per core, and its threads spin at every operator's barrier. A PDP step is
 thousands of small operators, so when anything else wants those cores (LeRobot's loader workers, a second
-training, an evaluation beside it) each barrier waits for a descheduled thread: on the 2-core machine a
-training step beside one other job took ~70x longer with torch's default threads than with one
-(docs/performance.md, "Threads"). PDP therefore takes half the cores it may run on (at least one) unless
-told otherwise, so two jobs side by side never oversubscribe them.
+training, an evaluation beside it) each barrier waits for a descheduled thread. On the 2-core machine, one
+thread made ``lerobot-train`` 2.3x faster alone and 3.2x faster beside a second training, and a fit 1.9x
+faster beside it (docs/performance.md, "Threads"). PDP therefore takes half the cores it may run on (at
+least one) unless told otherwise, so two jobs side by side never oversubscribe them.
 """
 
 from __future__ import annotations
