@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -167,6 +168,7 @@ class PDPSim(Robot):
         vec = np.asarray([float(action[n]) for n in self.action_keys], dtype=np.float32)
         self.obs, _, terminated, truncated, info = self.env.step(vec)
         self._steps += 1
+        self._action_times.append(time.perf_counter())
         self._states.append(np.asarray(self.obs["agent_pos"], dtype=float))
         if terminated or truncated:
             self._finish_episode(info, cut=False)
@@ -195,6 +197,7 @@ class PDPSim(Robot):
         self.obs, _ = self.env.reset(seed=seed)
         self._states = [np.asarray(self.obs["agent_pos"], dtype=float)]
         self._steps = 0
+        self._action_times: list[float] = []  # when each action of this episode was applied (loop timing)
         self._pending_reset = False
         self.last_label: int | str | None = None
 
@@ -211,6 +214,7 @@ class PDPSim(Robot):
             "steps": self._steps,
             "ended_by": "time" if cut else ("success" if info.get("is_success") else
                                             "collision" if info.get("collided") else "time_limit"),
+            **self._loop_timing(),
         }
         if self.config.outcomes:
             path = Path(self.config.outcomes)
@@ -225,6 +229,15 @@ class PDPSim(Robot):
         if self.done and self._stop_event is not None:
             logger.info("pdp_sim: %d episodes done, ending the rollout", self.finished)
             self._stop_event.set()  # as the operator's Ctrl-C would
+
+    def _loop_timing(self) -> dict[str, float]:
+        """How the control loop kept its pace in this episode: actions per second between the first and the
+        last action, and the longest pause between two actions (a stalled loop shows there)."""
+        t = self._action_times
+        if len(t) < 2:
+            return {}
+        gaps = np.diff(t)
+        return {"actions_per_s": round((len(t) - 1) / (t[-1] - t[0]), 2), "max_gap_s": round(float(gaps.max()), 4)}
 
     # ---- lerobot-record phases (called by record_hooks) ----
     def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
