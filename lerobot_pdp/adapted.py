@@ -10,6 +10,7 @@ the first action, in any process, with no fit and no steering flag.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import shutil
@@ -37,6 +38,13 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
         raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
     if out.exists():
         raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
+    if (base / ADAPTATION_INFO).is_file():  # its card and provenance would describe two adaptations
+        try:
+            origin = json.loads((base / ADAPTATION_INFO).read_text()).get("base_checkpoint")
+        except ValueError:
+            origin = None
+        raise ValueError(f"{base} is already an adapted checkpoint ({ADAPTATION_INFO}): adapt its base checkpoint "
+                         f"{origin or '(named in that file)'} instead")
     # fitted from the base behaviour, whatever adaptation or steering the base checkpoint carries
     cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)

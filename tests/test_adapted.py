@@ -115,3 +115,7 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     assert f"{out} exists" in capsys.readouterr().err
     assert cli(["adapt", str(tmp_path), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
     assert "is not a PDP checkpoint folder" in capsys.readouterr().err
+    # an adapted checkpoint is not adapted again: its base is named
+    assert cli(["adapt", str(out), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "twice")]) == 2
+    assert f"{out} is already an adapted checkpoint (adaptation.json): adapt its base checkpoint {base.resolve()}" \
+        in capsys.readouterr().err and not (tmp_path / "twice").exists()
