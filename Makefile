@@ -24,7 +24,9 @@ demo: $(STAMP)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/lerobot-pdp benchmark --env reach-around --quick --out $(DEMO_OUT)
 
 ## Whole test suite (slow end-to-end tests included), then the numerics-sensitive tests again on other kernels.
-## TEST_WORKERS pytest processes side by side (pytest-xdist; one torch thread each; 1 = none).
+## TEST_WORKERS pytest processes side by side (pytest-xdist; one torch thread each; 1 = none). With pytest 9.2
+## xdist 3.8's groups do not take (its suffix no longer reaches the test ids): tests are dealt one by one, and
+## a session fixture is built once per worker that needs it.
 TEST_WORKERS ?= 2
 XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadgroup,)
 test: $(STAMP)

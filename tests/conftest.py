@@ -79,15 +79,3 @@ def reach_around_pdp(tmp_path_factory) -> Path:
     data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=10, seed=0, progress=False)
     return train_method(methods_for(get_suite_env("reach-around"))["pdp"], data, root / "run", 0,
                         TrainSettings(steps=3000), 3000)
-
-
-def pytest_collection_modifyitems(config, items):
-    """Under ``pytest -n N --dist loadgroup`` (``make test``): the tests of one file run on one worker (its
-    module fixtures are built once), and every test that needs the reach-around checkpoint runs on the same
-    worker, whatever its file (the suite's most expensive fixture is trained once), and starts first."""
-    for item in items:
-        group = "reach_around_pdp" if "reach_around_pdp" in item.fixturenames else item.module.__name__
-        item.add_marker(pytest.mark.xdist_group(group))
-    # that group is the longest (a 3000-step training, then its tests): first, so the other worker does not
-    # finish everything else and wait idle while it runs at the end
-    items.sort(key=lambda item: "reach_around_pdp" not in item.fixturenames)
