@@ -72,7 +72,7 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
     lines = [json.loads(x) for x in outcomes.read_text().splitlines()]
     first = lines[0]
     first_action = (first_line_at or time.time()) - t0 - (first["steps"] - 1) / first["actions_per_s"]
-    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "max_gap_s")} for d in lines],
+    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s")} for d in lines],
             "startup_s": round(first_action, 1), "wall_s": round(time.time() - t0, 1)}
 
 

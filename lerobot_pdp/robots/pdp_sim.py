@@ -232,12 +232,13 @@ class PDPSim(Robot):
 
     def _loop_timing(self) -> dict[str, float]:
         """How the control loop kept its pace in this episode: actions per second between the first and the
-        last action, and the longest pause between two actions (a stalled loop shows there)."""
+        last action, the median pause between two actions and the longest one (a stalled loop shows there)."""
         t = self._action_times
         if len(t) < 2:
             return {}
         gaps = np.diff(t)
-        return {"actions_per_s": round((len(t) - 1) / (t[-1] - t[0]), 2), "max_gap_s": round(float(gaps.max()), 4)}
+        return {"actions_per_s": round((len(t) - 1) / (t[-1] - t[0]), 2),
+                "median_gap_s": round(float(np.median(gaps)), 4), "max_gap_s": round(float(gaps.max()), 4)}
 
     # ---- lerobot-record phases (called by record_hooks) ----
     def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
