@@ -47,6 +47,7 @@ def test_robot_and_teleop_step_with_named_values_and_reset_themselves(tmp_path):
     assert [d["episode"] for d in lines] == [0, 1]
     for d in lines:
         assert d["success"] is True and d["collided"] is False and d["mode"] == 2 and d["ended_by"] == "success"
+        assert d["actions_per_s"] > 0 and 0 < d["median_gap_s"] <= d["max_gap_s"]  # the loop's pace
     assert sum(d["steps"] for d in lines) == steps
 
 
