@@ -76,5 +76,10 @@ def read_weight_shapes(model_file: str) -> dict[str, tuple[int, ...]]:
         with safe_open(model_file, framework="pt") as f:
             return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
     except (SafetensorError, OSError) as e:
-        raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged (cut off "
-                         "while written or copied?); copy it again from the training run") from e
+        raise damaged_weights(model_file, e) from e
+
+
+def damaged_weights(model_file: str, error: Exception) -> ValueError:
+    """The error for a weights file safetensors cannot read (its header, or its tensors when loading)."""
+    return ValueError(f"{model_file} is not a readable safetensors file ({error}): the file is damaged (cut off "
+                      "while written or copied?); copy it again from the training run")

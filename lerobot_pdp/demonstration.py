@@ -70,6 +70,7 @@ def _resolve_segments(config: PDPConfig, ep: dict[str, np.ndarray], segments) ->
             raise ValueError(f"segment ({a}, {b}) is not a non-empty frame range within the episode's {T} frames")
     return segs
 
+
 def episode_index(index: Any, root: Any = None) -> int:
     """An episode index as an int; a float such as 0.9 is an error (``int()`` would read it as episode 0)."""
     try:

@@ -44,7 +44,7 @@ from .checkpoint import (
     resize_to_checkpoint,
     save_checkpoint,
 )
-from .checkpoint_files import check_checkpoint_source, read_weight_shapes
+from .checkpoint_files import check_checkpoint_source, damaged_weights, read_weight_shapes
 from .configuration_pdp import PDPConfig
 from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
@@ -151,8 +151,7 @@ class PDPPolicy(PreTrainedPolicy):
         try:
             model = super()._load_as_safetensor(model, model_file, map_location, strict)
         except SafetensorError as e:
-            raise ValueError(f"{model_file} is not a readable safetensors file ({e}): the file is damaged; copy it "
-                             "again from the training run") from e
+            raise damaged_weights(model_file, e) from e
         check_finite_weights(model, model_file)
         apply_saved_config(model, model_file)
         return model
