@@ -256,6 +256,48 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_teach_parser(sub: argparse._SubParsersAction) -> None:
+    from lerobot_pdp.teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS
+
+    p = sub.add_parser(
+        "teach",
+        help="teach a PDP checkpoint one demonstration as a new mode and write the taught checkpoint",
+        description="For a route no latent makes (the fit's error ratio warns of it): add the demonstration to the "
+        "policy as a new mode. The encoder stays as trained, so the old modes keep their latents; the new mode's "
+        "latent is the encoder's mean of the demonstration; the denoiser is fine-tuned with a share of each batch "
+        "from the demonstration and the rest rehearsing the training data. Writes a complete LeRobot checkpoint "
+        "(config naming the new mode, weights, processors, teaching.json, model card); steer to the new mode with "
+        "--policy.steer_mode=<id>.",
+    )
+    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
+    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+    p.add_argument("--out", required=True, type=Path, help="the taught checkpoint folder to write (must not exist)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="the dataset the checkpoint was trained on, rehearsed while teaching (default: the one its "
+                   "train_config.json names)")
+    p.add_argument("--name", default=None, help="the new mode's name (default: where the demonstration came from)")
+    p.add_argument("--steps", type=int, default=TEACH_STEPS, help=f"fine-tuning steps (default {TEACH_STEPS})")
+    p.add_argument("--lr", type=float, default=TEACH_LR, help=f"their Adam step size (default {TEACH_LR:g})")
+    p.add_argument("--demo-share", type=float, default=TEACH_DEMO_SHARE,
+                   help=f"the demonstration's share of each batch (default {TEACH_DEMO_SHARE:g})")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device to fine-tune on (default cpu)")
+    p.set_defaults(func=cmd_teach)
+
+
+def cmd_teach(args: argparse.Namespace) -> int:
+    from lerobot_pdp.taught import teach_checkpoint
+
+    out, res = teach_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, training_data=args.data,
+                                steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
+                                name=args.name, device=args.device)
+    print(f"wrote {out}: mode {res.mode}, latent {res.z.tolist()} ({res.nearest_spreads:.1f} spreads from the "
+          f"nearest training latent), {res.steps} steps in {res.seconds:.0f} s; steer with --policy.steer_mode="
+          f"{res.mode}")
+    return 0
+
+
 # ---- benchmark -------------------------------------------------------------------------------------
 
 
@@ -428,6 +470,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_latent_map_parser,
     add_steer_parser,
     add_adapt_parser,
+    add_teach_parser,
     add_benchmark_parser,
     add_merge_results_parser,
 ]

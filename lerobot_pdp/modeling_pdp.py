@@ -56,6 +56,7 @@ from .normalization import FeatureStats
 from .pdp_model import PDPModel
 from .steering import SteerFile
 from .steering_state import Steering
+from .teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS, TeachResult, teach_new_mode
 
 logger = logging.getLogger(__name__)
 
@@ -444,6 +445,19 @@ class PDPPolicy(PreTrainedPolicy):
                 episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
                 objective=objective, noise=noise))
         return result
+
+    def teach(self, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
+              demo_share: float = TEACH_DEMO_SHARE, seed: int = 0, name: str | None = None,
+              progress: bool = False) -> TeachResult:
+        """Add one demonstration of a route no latent makes as a new mode (its id: ``result.mode``).
+
+        The encoder stays frozen (every old latent keeps its place) and the new mode's latent is the encoder's
+        mean of the demonstration; the denoiser alone is fine-tuned for ``steps`` Adam steps at ``lr``, each batch
+        ``demo_share`` demonstration windows and the rest rehearsing the windows of ``training_data`` (the dataset
+        the policy was trained on, checked against its behaviour bank). See :mod:`lerobot_pdp.teaching`.
+        """
+        return teach_new_mode(self, episode, training_data, steps=steps, lr=lr, demo_share=demo_share, seed=seed,
+                              name=name, progress=progress)
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
         """The (normalised) training-style windows of one demonstration, each tagged with its phase.

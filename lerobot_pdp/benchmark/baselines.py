@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, asdict, fields, is_dataclass
 from typing import Any
 
@@ -340,9 +340,21 @@ def finetune_bc(policy, preprocessor, episode: dict[str, np.ndarray], steps: int
     inside ``forward`` is seeded by ``seed`` without disturbing the global RNG. Returns the copy in eval
     mode, queues reset.
     """
+    return finetune_with_rehearsal(policy, preprocessor, episode, (), steps, lr, batch_size, 1.0, seed)
+
+
+def finetune_with_rehearsal(policy, preprocessor, episode: Mapping[str, Any], rehearsal: Sequence[Mapping[str, Any]],
+                            steps: int, lr: float, batch_size: int, demo_share: float, seed: int = 0):
+    """A deep copy of ``policy`` with all its trainable weights fine-tuned on one demonstration, each batch
+    ``demo_share`` of its windows and the rest windows of the ``rehearsal`` episodes (the training data, raw
+    arrays): how a policy without a latent is taught a new route without dropping its old ones. The same
+    loss, optimizer and clipping as :func:`finetune_bc` (``demo_share=1`` and no rehearsal is it)."""
     tuned = copy.deepcopy(policy)
     batch = demo_batch(tuned, preprocessor, episode)
     n = batch[ACTION].shape[0]
+    old = [demo_batch(tuned, preprocessor, ep) for ep in rehearsal]
+    old_batch = {k: torch.cat([b[k] for b in old]) for k in batch} if old else None
+    n_demo = batch_size if old_batch is None else max(1, round(demo_share * batch_size))
     params = [p for p in tuned.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=lr)
     clip = float(getattr(tuned.config, "optimizer_grad_clip_norm", 10.0) or 0.0)
@@ -351,7 +363,12 @@ def finetune_bc(policy, preprocessor, episode: dict[str, np.ndarray], steps: int
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
         for _ in range(int(steps)):
-            loss, _ = tuned.forward(_subset(batch, _minibatch(n, batch_size, g)))
+            step_batch = _subset(batch, _minibatch(n, n_demo, g))
+            if old_batch is not None and n_demo < batch_size:
+                n_old = len(old_batch[ACTION])
+                extra = _subset(old_batch, torch.randint(0, n_old, (batch_size - n_demo,), generator=g))
+                step_batch = {k: torch.cat([step_batch[k], extra[k]]) for k in step_batch}
+            loss, _ = tuned.forward(step_batch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if clip > 0:

@@ -67,11 +67,14 @@ def _spread(n: int, k: int) -> list[int]:
     return [n // k + (1 if i < n % k else 0) for i in range(k)]
 
 
-def evaluate_scene0(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed: int) -> RolloutBatch:
+def evaluate_scene0(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed: int,
+                    modes: list[int] | None = None) -> RolloutBatch:
+    """Scene 0: a steerable method steered to each mode's mean latent in turn (``modes``: these only), the
+    ``n`` rollouts spread over them; another method's rollouts as it samples."""
     batch = RolloutBatch()
     if method.steerable:
         means = policy.mode_latents()
-        modes = sorted(means)
+        modes = sorted(means) if modes is None else modes
         for m, count in zip(modes, _spread(n, len(modes)), strict=True):
             if count == 0:
                 continue

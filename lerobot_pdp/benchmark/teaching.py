@@ -1,0 +1,98 @@
+"""Teaching a new route on the scenes no latent reaches: PDP's ``teach`` beside BC and DP fine-tuned with the same
+rehearsal, one demonstration, the same step budget.
+
+For each method and setting: the taught policy's success on the new route (PDP steered to its new mode; BC and DP
+as they act, they have nothing to select with) and what it kept of scene 0 (PDP: each old mode steered by its
+latent, success and the share that took the mode it was given; BC and DP: success and the modes their sampled
+rollouts cover), beside the untaught checkpoint's scene 0 under the same rollout seeds, and the wall time of the
+teaching. Rollouts and teaching are seeded per (seed, scene).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from ..atomic import write_text_atomic
+from ..envs.suite import SuiteEnv
+from ..episodes import read_episodes
+from .data import demo_episode
+from .evaluation import evaluate_scene0, summarize_rollouts
+from .rollouts import run_rollouts
+from .settings import Method, scene_seed_offset
+from .training import load_policy
+
+# The settings compared on the validation scenes, the same grid for every method (the same tuning budget):
+# fine-tuning steps and Adam step size; every batch 64 windows, a quarter of them from the demonstration.
+TEACH_CANDIDATES: tuple[dict[str, Any], ...] = (
+    {"steps": 300, "lr": 1e-4}, {"steps": 1000, "lr": 1e-4}, {"steps": 1000, "lr": 3e-4},
+)
+TEACH_BATCH = 64
+TEACH_SHARE = 0.25
+
+
+def _rehearsal_episodes(data: Path) -> list[dict]:
+    eps = read_episodes(data, ["observation.state", "observation.environment_state", "action"])
+    return [{k: v for k, v in item.items() if k.startswith(("observation.", "action"))} for item in eps.values()]
+
+
+def teach_policy(method: Method, policy, pre, demo_root: Path, data: Path, seed: int, steps: int, lr: float,
+                 rehearsal: list[dict] | None = None) -> tuple[Any, dict[str, Any]]:
+    """The taught policy and what teaching reported: PDP's ``teach`` (its new mode made active), or the
+    baseline fine-tuned on the demonstration with rehearsal of ``data``."""
+    from .baselines import finetune_with_rehearsal
+
+    t0 = time.perf_counter()
+    if method.policy_type == "pdp":
+        res = policy.teach((demo_root, 0), data, steps=steps, lr=lr, demo_share=TEACH_SHARE, seed=seed)
+        policy.set_latent(policy.mode_latents()[res.mode])
+        info = {"mode": res.mode, "z": res.z.tolist(), "nearest_spreads": res.nearest_spreads}
+        return policy, {**info, "teach_seconds": time.perf_counter() - t0}
+    episodes = rehearsal if rehearsal is not None else _rehearsal_episodes(data)
+    tuned = finetune_with_rehearsal(policy, pre, demo_episode(demo_root), episodes, steps, lr, TEACH_BATCH,
+                                    TEACH_SHARE, seed)
+    return tuned, {"teach_seconds": time.perf_counter() - t0}
+
+
+def scene0_kept(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed: int,
+                modes: list[int] | None = None) -> dict[str, Any]:
+    """Scene 0 of ``policy``: PDP steered to each of ``modes`` (default all), the others sampled."""
+    batch = evaluate_scene0(suite, method, policy, pre, post, n, seed, modes=modes)
+    return summarize_rollouts(batch, suite.n_modes, with_modes=True)
+
+
+def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, demos: dict[str | int, Path],
+                      seed: int, out: Path, rollouts: int = 40, rollouts_scene0: int | None = None,
+                      candidates: tuple[dict[str, Any], ...] = TEACH_CANDIDATES) -> dict[str, Any]:
+    """Every candidate setting on every scene of ``demos`` for one trained (method, seed); cached in ``out``
+    (a JSON file written after each evaluation, so a run cut short goes on from there)."""
+    result: dict[str, Any] = json.loads(out.read_text()) if out.is_file() else {}
+    result.update(method=method.name, seed=seed, rollouts=rollouts)
+    rollouts_scene0 = rollouts_scene0 or rollouts
+    base = result.setdefault("base_scene0", {})
+    if not base:
+        policy, pre, post = load_policy(ckpt)
+        base.update(scene0_kept(suite, method, policy, pre, post, rollouts_scene0, seed * 10_000))
+        write_text_atomic(out, json.dumps(result, indent=1))
+    rehearsal = None if method.policy_type == "pdp" else _rehearsal_episodes(data)
+    runs = result.setdefault("runs", {})
+    for cand in candidates:
+        for scene, demo_root in demos.items():
+            key = f"{scene} steps={cand['steps']} lr={cand['lr']:g}"
+            if key in runs:
+                continue
+            policy, pre, post = load_policy(ckpt)
+            old_modes = sorted(policy.mode_latents()) if method.steerable else None
+            offset = scene_seed_offset(scene)
+            actor, info = teach_policy(method, policy, pre, demo_root, data, seed * 10_000 + offset, cand["steps"],
+                                       cand["lr"], rehearsal)
+            new = run_rollouts(suite, scene, actor, pre, post, rollouts, seed * 10_000 + offset, label=f"scene {scene}")
+            kept = scene0_kept(suite, method, actor, pre, post, rollouts_scene0, seed * 10_000, modes=old_modes)
+            runs[key] = {"scene": str(scene), **cand, "new_route": summarize_rollouts(new, suite.n_modes, False),
+                         "scene0": kept, **info}
+            print(f"[teach] {method.name} seed {seed} {key}: new route {runs[key]['new_route']['success']:.0%}, "
+                  f"scene 0 {kept['success']:.0%} (base {base['success']:.0%}), {info['teach_seconds']:.0f} s")
+            write_text_atomic(out, json.dumps(result, indent=1))
+    return result

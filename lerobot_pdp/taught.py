@@ -1,0 +1,107 @@
+"""Taught checkpoints: a trained PDP that learned one demonstration as a new mode, kept as a checkpoint of its own.
+
+``lerobot-pdp teach CKPT --demo DATASET --out TAUGHT`` (:func:`teach_checkpoint`) runs
+:func:`~lerobot_pdp.teaching.teach_new_mode` once and writes TAUGHT whole: the base's processors and training
+config, the fine-tuned weights with the grown behaviour bank, the config naming the new mode, ``teaching.json``
+(where the demonstration came from, the settings, the loss, the time) and a model card section. The new mode is
+then a mode like the others: ``--policy.steer_mode=<id>`` in ``lerobot-eval`` / ``lerobot-rollout``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+from .atomic import staging_dir
+from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
+from .configuration_pdp import PDPConfig
+from .demonstration import Episode
+from .teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS, TeachResult
+
+logger = logging.getLogger(__name__)
+
+TEACHING_INFO = "teaching.json"
+# written anew for the taught policy; every other file of the base is copied
+_REWRITTEN = ("config.json", "model.safetensors", "README.md", ADAPTATION_TENSORS, ADAPTATION_INFO, TEACHING_INFO)
+
+
+def training_data_of(checkpoint: str | Path) -> Path:
+    """The local training dataset a LeRobot checkpoint names in its ``train_config.json`` (``dataset.root``)."""
+    path = Path(checkpoint) / "train_config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{checkpoint} has no train_config.json naming its training dataset: give it with "
+                                "--data (the dataset the checkpoint was trained on)")
+    try:
+        root = json.loads(path.read_text()).get("dataset", {}).get("root")
+    except ValueError as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): give the training dataset with --data") from e
+    if not root:
+        raise ValueError(f"{path} names no local dataset root (dataset.root): give the training dataset with --data")
+    return Path(root)
+
+
+def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, training_data: str | Path | None = None,
+                     steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
+                     seed: int = 0, name: str | None = None, device: str = "cpu") -> tuple[Path, TeachResult]:
+    """Teach ``base`` one demonstration as a new mode and write the taught checkpoint ``out`` (which must not
+    exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names."""
+    from .modeling_pdp import PDPPolicy
+
+    base, out = Path(base), Path(out)
+    if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
+        raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
+    if out.exists():
+        raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
+    if (base / ADAPTATION_INFO).is_file():
+        raise ValueError(f"{base} is an adapted checkpoint ({ADAPTATION_INFO}): teach its base checkpoint, whose "
+                         "weights it shares")
+    data = Path(training_data) if training_data is not None else training_data_of(base)
+    cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
+                              steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
+    policy = PDPPolicy.from_pretrained(base, config=cfg)
+    result = policy.teach(episode, data, steps=steps, lr=lr, demo_share=demo_share, seed=seed, name=name,
+                          progress=True)
+    policy.eval()
+    info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""))
+    with staging_dir(out, prefix=".pdp-teach-") as tmp:
+        for f in base.iterdir():
+            if f.name not in _REWRITTEN:
+                (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
+        policy.save_pretrained(tmp)
+        (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
+        card = base / "README.md"
+        if card.is_file():
+            (tmp / "README.md").write_text(card.read_text().rstrip() + "\n\n" + _card_section(info))
+        os.replace(tmp, out)
+    return out, result
+
+
+def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str) -> dict:
+    """What ``teaching.json`` records: the base, the demonstration, the rehearsal data, the new mode, settings, the
+    loss at the start and end, the time, the date."""
+    demo: dict = {"arrays": "given in memory"}
+    if isinstance(episode, tuple):
+        demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
+    head, tail = result.losses[:50], result.losses[-50:]
+    return {"source": "teach", "base_checkpoint": str(base.resolve()), "demonstration": demo,
+            "training_data": str(data.resolve()), "mode": result.mode, "mode_name": name, "latent": result.z.tolist(),
+            "nearest_training_latent_spreads": result.nearest_spreads, "settings": result.settings,
+            "loss_first_50": sum(head) / max(1, len(head)), "loss_last_50": sum(tail) / max(1, len(tail)),
+            "demo_windows": result.demo_windows, "rehearsal_windows": result.rehearsal_windows,
+            "seconds": round(result.seconds, 1),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+
+
+def _card_section(info: dict) -> str:
+    demo = info["demonstration"]
+    return (f"## Taught mode\n\nThis checkpoint learned one demonstration (episode {demo.get('episode', '?')} of "
+            f"`{Path(str(demo.get('dataset', 'arrays'))).name}`) as mode {info['mode']} ({info['mode_name']}), latent "
+            f"`{info['latent']}`: its denoiser was fine-tuned {info['settings']['steps']} steps with rehearsal of the "
+            f"training data, the encoder kept as trained ({info['date']}). Steer to it with "
+            f"`--policy.steer_mode={info['mode']}`; the other modes keep their latents. `{TEACHING_INFO}` holds the "
+            "provenance.\n")

@@ -1,0 +1,281 @@
+"""Teaching a new mode: one demonstration of a route no latent makes becomes a behaviour of the policy.
+
+Fitting z (``adaptation.py``) moves nothing but the latent, so it can only pick among the behaviours the
+denoiser already knows. When the fit's error ratio says the route is out of reach, :func:`teach_new_mode` adds the
+demonstration as a new mode instead:
+
+- **Its latent** is the frozen encoder's mean of its trace (one per phase for segmented policies): the encoder
+  and decoder (phi, psi) do not move, so every training behaviour keeps its latent, each old mode is selected
+  by the latent it had, and the new route lands where the soft-DTW geometry the encoder learned puts it.
+- **It joins the behaviour bank** as mode ``max + 1`` (its trace, frame ranges, soft-DTW distances), so
+  ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
+- **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
+  batch is the demonstration's windows at the new latent, the rest *rehearses* the training windows at their
+  own latents, so the old modes keep acting as before. The loss is the training loss L_DP.
+
+LeRobot's training loop is not reused for it: it samples one dataset uniformly and trains every parameter of
+the optimizer groups, while teaching needs a fixed demonstration share and all but theta frozen.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from lerobot.utils.constants import ACTION
+from torch import Tensor
+
+from .behavior import UNLABELED, make_trace, read_episodes, read_training_behaviors, trace_distances
+from .configuration_pdp import PDPConfig
+from .demonstration import Demonstration, Episode, check_recording, read_demonstration
+from .diffusion import diffusion_loss
+from .episodes import read_episode_frames
+from .latent_fitting import DemoWindows
+
+logger = logging.getLogger(__name__)
+
+# Defaults of teach_new_mode(), chosen on the validation scenes (docs/experiments.md, "Teaching a new mode").
+TEACH_STEPS = 1000
+TEACH_LR = 1e-4
+TEACH_DEMO_SHARE = 0.25
+TEACH_BATCH_SIZE = 64
+# behavior_global_start of a taught behaviour: it has no frames in the training dataset
+TAUGHT_START = -1
+
+
+@dataclass
+class TeachResult:
+    """What :func:`teach` did: the new mode, its latent(s), the loss history and the windows it trained on."""
+
+    mode: int  # the new mode id
+    z: Tensor  # its latent(s), [M, d_z] (one per phase)
+    losses: list[float] = field(default_factory=list)  # L_DP per step (demonstration and rehearsal windows)
+    steps: int = 0
+    demo_windows: int = 0
+    rehearsal_windows: int = 0
+    # distance from the new latent to the nearest training latent, in RMS standard deviations of them
+    nearest_spreads: float = float("nan")
+    seconds: float = 0.0
+    settings: dict[str, Any] = field(default_factory=dict)
+
+
+def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
+          demo_share: float = TEACH_DEMO_SHARE, batch_size: int = TEACH_BATCH_SIZE, seed: int = 0,
+          name: str | None = None, progress: bool = False) -> TeachResult:
+    """Add one demonstration to ``policy`` (a ``PDPPolicy``, changed in place) as a new mode; see the module.
+
+    Args:
+        episode: the demonstration, a ``(dataset folder, episode index)`` pair or a dict of arrays.
+        training_data: the folder of the dataset the policy was trained on (its behaviour bank must match).
+        steps, lr, batch_size: Adam steps on theta, their step size, windows per step.
+        demo_share: the demonstration's share of each batch; the rest rehearses the training windows.
+        name: the new mode's name (default: where the demonstration came from).
+    """
+    model, cfg = policy.model, policy.config
+    _check_settings(steps, lr, demo_share, batch_size)
+    if cfg.latent_type != "continuous":
+        raise ValueError(f"teach needs a continuous latent; this policy's latent_type is {cfg.latent_type!r}")
+    if bool((model.behavior_mode == UNLABELED).any()):
+        raise ValueError("teach needs mode-labelled training episodes (meta/mode_labels.json or task strings "
+                         "'mode <id>: <name>'): without labels the modes are discovered clusters, which a taught "
+                         "mode cannot join; label the training dataset (lerobot-pdp latent-map shows the clusters)")
+    check_training_data(policy, training_data)
+    t0 = time.perf_counter()
+    demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
+    demo_win = policy._demo_windows(demo)
+    z_new = _encode_segments(model, cfg, demo)
+    rehearsal, z_old = rehearsal_windows(policy, training_data)
+    with torch.no_grad():
+        z_bank = model.behavior_latents().cpu()
+    spread = float(z_bank.var(0).mean().sqrt()) if len(z_bank) > 1 else float("nan")  # as set_latent's warning
+    nearest = float(torch.cdist(z_new, z_bank).min()) / spread
+    losses = _finetune(model, cfg, demo_win, z_new[demo_win.segment], rehearsal, z_old, steps, lr, demo_share,
+                       batch_size, seed, progress)
+    mode = _append_behaviors(policy, demo, name or _demo_name(episode))
+    policy.steering.activate(None)
+    result = TeachResult(mode, z_new, losses, steps, len(demo_win.actions), len(rehearsal.actions), nearest,
+                         time.perf_counter() - t0, {"steps": steps, "lr": lr, "demo_share": demo_share,
+                                                    "batch_size": batch_size, "seed": seed})
+    logger.info("taught mode %d (%s) in %.1f s: latent %s, %.1f spreads from the nearest training latent; L_DP "
+                "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, z_new.tolist(), nearest,
+                _mean(losses[:20]), _mean(losses[-20:]))
+    return result
+
+
+def _check_settings(steps: int, lr: float, demo_share: float, batch_size: int) -> None:
+    errors = []
+    if not isinstance(steps, int) or steps < 1:
+        errors.append(f"steps must be a positive integer, got {steps!r}")
+    if not lr > 0:
+        errors.append(f"lr must be > 0, got {lr!r}")
+    if not 0 < demo_share <= 1:
+        errors.append(f"demo_share must be in (0, 1], got {demo_share!r}")
+    if not isinstance(batch_size, int) or batch_size < 2:
+        errors.append(f"batch_size must be an integer >= 2, got {batch_size!r}")
+    if errors:
+        raise ValueError("teach: " + "; ".join(errors))
+
+
+def _mean(xs: list[float]) -> float:
+    return float(np.mean(xs)) if xs else float("nan")
+
+
+def _demo_name(episode: Episode) -> str:
+    if isinstance(episode, tuple):
+        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
+        return f"taught: episode {int(episode[1])} of {Path(str(root)).name}"
+    return "taught"
+
+
+def _traces(cfg: PDPConfig, demo: Demonstration) -> np.ndarray:
+    return np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
+                                cfg.trace_normalize) for a, b in demo.segments])
+
+
+def _encode_segments(model: Any, cfg: PDPConfig, demo: Demonstration) -> Tensor:
+    """The frozen encoder's latent of each phase of the demonstration, [M, d_z] on the CPU."""
+    with torch.no_grad():
+        t = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.geo_kappa.device)
+        return model.vae.encode(t)[0].cpu()
+
+
+def check_training_data(policy: Any, root: str | Path) -> None:
+    """Refuse a dataset that is not the one ``policy`` was trained on: its behaviour traces (one per episode, or
+    per phase) must be the ones the checkpoint's behaviour bank holds."""
+    root = Path(root)
+    if not (root / "meta" / "info.json").is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobotDataset folder (no meta/info.json): give the dataset the "
+                                "policy was trained on")
+    model, cfg = policy.model, policy.config
+    check_recording(root, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
+    features = json.loads((root / "meta" / "info.json").read_text()).get("features", {})
+    found = read_training_behaviors(cfg, root, features)
+    bank = model.behavior_traces.detach().cpu().numpy()
+    taught = model.behavior_global_start.detach().cpu().numpy() == TAUGHT_START
+    n_bank = int((~taught).sum())
+    if len(found) != n_bank or not np.array_equal(found.episode_index, model.behavior_episode.cpu().numpy()[~taught]):
+        raise ValueError(f"{root} is not the policy's training dataset: it holds {len(found)} behaviours of episodes "
+                         f"{_span(found.episode_index)}, the checkpoint's behaviour bank {n_bank} of episodes "
+                         f"{_span(model.behavior_episode.cpu().numpy()[~taught])}")
+    diff = np.abs(found.traces.astype(np.float32) - bank[~taught]).reshape(len(found), -1).max(1)
+    if (diff > 1e-4).any():
+        ep = int(found.episode_index[int(np.argmax(diff > 1e-4))])
+        raise ValueError(f"{root} is not the policy's training dataset: episode {ep}'s behaviour trace differs from "
+                         f"the one in the checkpoint's behaviour bank (by up to {float(diff.max()):.3g})")
+
+
+def _span(episodes: np.ndarray) -> str:
+    return f"{int(episodes.min())}..{int(episodes.max())}" if len(episodes) else "(none)"
+
+
+def rehearsal_windows(policy: Any, root: str | Path) -> tuple[DemoWindows, Tensor]:
+    """Every training-style window of the training dataset at ``root`` (normalised, split into the phases the
+    behaviour bank holds), and the latent of the behaviour each window belongs to, [N, d_z]."""
+    model, cfg = policy.model, policy.config
+    cameras = [k for k in cfg.condition_features if k in cfg.image_features]
+    keys = [k for k in dict.fromkeys([*cfg.condition_features, ACTION, cfg.trace_key]) if k not in cameras]
+    episodes = read_episodes(root, keys)
+    with torch.no_grad():
+        z_bank = model.behavior_latents().detach().cpu()
+    bank_ep = model.behavior_episode.cpu().numpy()
+    bank_start, bank_end = model.behavior_start.cpu().numpy(), model.behavior_end.cpu().numpy()
+    parts, zs = [], []
+    for ep, arrays in episodes.items():
+        ids = np.flatnonzero(bank_ep == ep)
+        ids = ids[np.argsort(bank_start[ids])]
+        arrays = {**arrays, **read_episode_frames(root, ep, cameras)} if cameras else arrays
+        segments = [(int(bank_start[i]), int(bank_end[i])) for i in ids]
+        demo = read_demonstration(arrays, cfg, policy.action_dim, segments, need_action=True)
+        w = policy._demo_windows(demo)
+        parts.append(w)
+        zs.append(z_bank[torch.as_tensor(ids)][w.segment])
+    windows = DemoWindows(torch.cat([w.obs_cond for w in parts]), torch.cat([w.actions for w in parts]),
+                          torch.cat([w.is_pad for w in parts]), torch.cat([w.segment for w in parts]),
+                          max(w.n_segments for w in parts))
+    return windows, torch.cat(zs)
+
+
+def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, rehearsal: DemoWindows, z_old: Tensor,
+              steps: int, lr: float, demo_share: float, batch_size: int, seed: int, progress: bool) -> list[float]:
+    """Adam on the denoiser alone: each batch ``demo_share`` demonstration windows at their new latent, the rest
+    training windows at their own, the training loss L_DP; gradient norm clipped as in training."""
+    device = model.geo_kappa.device
+    n_demo = max(1, round(demo_share * batch_size))
+    n_old = batch_size - n_demo
+    params = list(model.denoiser.parameters())
+    opt = torch.optim.Adam(params, lr=lr)
+    g = torch.Generator().manual_seed(int(seed))
+    mask_pad = cfg.do_mask_loss_for_padding
+    losses: list[float] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, desc="teach", unit="step")
+    was_training = model.denoiser.training
+    model.denoiser.train()
+    with torch.inference_mode(False), torch.enable_grad(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        for _ in range(steps):
+            i_demo = torch.randint(0, len(demo.actions), (n_demo,), generator=g)
+            i_old = torch.randint(0, len(rehearsal.actions), (n_old,), generator=g) if n_old else i_demo[:0]
+            obs = torch.cat([demo.obs_cond[i_demo], rehearsal.obs_cond[i_old]]).to(device)
+            actions = torch.cat([demo.actions[i_demo], rehearsal.actions[i_old]]).to(device)
+            is_pad = torch.cat([demo.is_pad[i_demo], rehearsal.is_pad[i_old]]).to(device)
+            z = torch.cat([z_demo[i_demo], z_old[i_old]]).to(device)
+            eps = torch.randn_like(actions)
+            k = torch.randint(0, cfg.num_train_timesteps, (len(actions),), device=device)
+            pred = model.denoiser(model.noise_schedule.add_noise(actions, eps, k), k, obs, z)
+            loss = diffusion_loss(pred, eps, is_pad if mask_pad else None)
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise FloatingPointError(f"teach: the loss became non-finite at step {len(losses) + 1} ({value}); "
+                                         "the policy's weights are now partly fine-tuned: reload it. Lower the lr")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.optimizer_grad_clip_norm)
+            opt.step()
+            losses.append(value)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{losses[-1]:.4f}", refresh=False)
+    model.denoiser.train(was_training)
+    if bar is not None:
+        bar.close()
+    return losses
+
+
+def _append_behaviors(policy: Any, demo: Demonstration, name: str) -> int:
+    """The demonstration's phases join the behaviour bank as a new episode of a new mode (one past the last of
+    each); delta^X gains their soft-DTW distances. Returns the new mode id."""
+    model, cfg = policy.model, policy.config
+    traces = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.behavior_traces.device)
+    n = len(traces)
+    mode = int(model.behavior_mode.max()) + 1
+    episode = int(model.behavior_episode.max()) + 1
+
+    def longs(values) -> Tensor:
+        return torch.as_tensor(values, dtype=torch.long, device=model.behavior_episode.device)
+
+    starts = [a for a, _ in demo.segments]
+    model.behavior_traces = torch.cat([model.behavior_traces, traces])
+    model.behavior_episode = torch.cat([model.behavior_episode, longs([episode] * n)])
+    model.behavior_start = torch.cat([model.behavior_start, longs(starts)])
+    model.behavior_global_start = torch.cat([model.behavior_global_start, longs([TAUGHT_START] * n)])
+    model.behavior_end = torch.cat([model.behavior_end, longs([b for _, b in demo.segments])])
+    model.behavior_mode = torch.cat([model.behavior_mode, longs([mode] * n)])
+    d = trace_distances(model.behavior_traces.cpu().numpy().astype(np.float64), cfg.sdtw_gamma, cfg.sdtw_normalize,
+                        progress=False)
+    model.trace_distance_matrix = torch.as_tensor(d, dtype=torch.float32, device=model.trace_distance_matrix.device)
+    names = dict(cfg.mode_names or {})
+    names[str(mode)] = name
+    cfg.mode_names = names
+    policy._discovered = None
+    return mode

@@ -1,0 +1,157 @@
+"""Teaching a new mode: the demonstration joins the behaviour bank as a new mode with the encoder's latent, only the
+denoiser moves, the old modes keep their latents, the taught checkpoint carries it all; bad inputs are named."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from policies import small_policy
+from synthetic import GOAL, MAX_STEP, START, write_dataset
+
+from lerobot_pdp import PDPPolicy
+from lerobot_pdp.cli import main as cli
+from lerobot_pdp.latent_fitting import demonstration_error
+from lerobot_pdp.taught import TEACHING_INFO
+
+
+def new_route(x_via: float = 1.6, hold: int = 4) -> dict[str, np.ndarray]:
+    """A demonstration of a route none of the synthetic modes takes: around the disc far out on the right, via
+    a second way-point above the goal."""
+    pts = [START, np.array([x_via, -0.2]), np.array([x_via * 0.5, 1.4]), GOAL]
+    pos = [START.copy()]
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        n = int(np.ceil(np.linalg.norm(b - a) / (0.7 * MAX_STEP)))
+        pos += [a + (b - a) * i / n for i in range(1, n + 1)]
+    pos = np.concatenate([np.array(pos), np.repeat(np.array(pos[-1:]), hold, axis=0)])
+    act = np.clip(np.diff(pos, axis=0, append=pos[-1:]) / MAX_STEP, -1, 1)
+    return {"observation.state": pos.astype(np.float32), "action": act.astype(np.float32),
+            "observation.environment_state": np.repeat(GOAL[None].astype(np.float32), len(pos), axis=0)}
+
+
+def _params(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+
+def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
+    p = small_policy(synthetic_meta)
+    old_modes = {m: z.clone() for m, z in p.mode_latents().items()}
+    vae, obs_enc, den = _params(p.model.vae), _params(p.model.obs_encoder), _params(p.model.denoiser)
+    n = len(p.model.behavior_traces)
+    demo = new_route()
+    res = p.teach(demo, synthetic_meta.root, steps=3, seed=0, name="far right")
+
+    assert res.mode == 4 and res.steps == 3 and len(res.losses) == 3
+    assert res.rehearsal_windows == sum(int(e - s) for s, e in zip(p.model.behavior_start[:n], p.model.behavior_end[:n],
+                                                                  strict=True))
+    assert res.demo_windows == len(demo["action"]) and np.isfinite(res.nearest_spreads)
+    modes = p.mode_latents()
+    assert sorted(modes) == [0, 1, 2, 3, 4] and modes.names[4] == "far right"
+    for m, z in old_modes.items():  # the encoder did not move: every old mode keeps its latent (up to the float
+        torch.testing.assert_close(modes[m], z, rtol=0, atol=1e-6)  # rounding of a batch one behaviour larger)
+    torch.testing.assert_close(modes[4], res.z[0], rtol=0, atol=1e-6)  # the new mode: the encoder's latent of the demo
+    assert len(p.model.behavior_traces) == n + 1 and p.model.trace_distance_matrix.shape == (n + 1, n + 1)
+    d = p.model.trace_distance_matrix
+    torch.testing.assert_close(d, d.T)
+    assert float(d[-1, :-1].min()) > 0  # a route of its own, away from every training behaviour
+    for before, module in ((vae, p.model.vae), (obs_enc, p.model.obs_encoder)):
+        for k, v in module.state_dict().items():
+            torch.testing.assert_close(v, before[k], rtol=0, atol=0, msg=k)
+    assert any(not torch.equal(v, den[k]) for k, v in p.model.denoiser.state_dict().items())
+
+
+def test_teaching_makes_the_new_route_the_denoisers_own(synthetic_meta):
+    """After teaching, the denoiser reproduces the demonstration at its new latent better than before, while the
+    training demonstrations' error at their own latents stays where it was."""
+    p = small_policy(synthetic_meta, optimizer_lr=1e-3)
+    demo = new_route()
+    old_demo = (synthetic_meta.root, 1)
+    z_new = p.encode(demo)[None]
+    z_old = p.encode(old_demo)[None]
+
+    def errors():
+        return (demonstration_error(p.model.denoiser, p.model.noise_schedule, p.demo_windows(demo), z_new, 8, seed=0),
+                demonstration_error(p.model.denoiser, p.model.noise_schedule, p.demo_windows(old_demo), z_old, 8, seed=0))
+
+    new_before, old_before = errors()
+    p.teach(demo, synthetic_meta.root, steps=60, lr=1e-3, seed=0)
+    new_after, old_after = errors()
+    assert new_after < 0.7 * new_before, (new_before, new_after)
+    assert old_after < 1.5 * old_before, (old_before, old_after)
+
+
+def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, capsys):
+    base = tmp_path / "base"
+    small_policy(synthetic_meta).save_pretrained(base)
+    demo_root = tmp_path / "demo"
+    _write_demo(demo_root, new_route())
+    code = cli(["teach", str(base), "--demo", str(demo_root), "--data", str(synthetic_meta.root), "--steps", "2",
+                "--name", "far right", "--out", str(tmp_path / "taught")])
+    assert code == 0 and "mode 4" in capsys.readouterr().out
+    info = json.loads((tmp_path / "taught" / TEACHING_INFO).read_text())
+    assert info["mode"] == 4 and info["settings"]["steps"] == 2 and info["demonstration"]["episode"] == 0
+    assert info["training_data"] == str(synthetic_meta.root.resolve())
+
+    q = PDPPolicy.from_pretrained(tmp_path / "taught")
+    assert sorted(q.mode_latents()) == [0, 1, 2, 3, 4] and q.config.mode_names["4"] == "far right"
+    torch.testing.assert_close(q.mode_latents()[4], torch.tensor(info["latent"][0]))
+    cfg = q.config
+    cfg.steer_mode = 4  # what --policy.steer_mode=4 does in lerobot-eval / lerobot-rollout
+    r = PDPPolicy.from_pretrained(tmp_path / "taught", config=cfg)
+    torch.testing.assert_close(r.active_latent, q.mode_latents()[4][None])
+
+    # teaching the taught checkpoint again: its own taught episode is not mistaken for a foreign dataset
+    code = cli(["teach", str(tmp_path / "taught"), "--demo", str(demo_root), "--data", str(synthetic_meta.root),
+                "--steps", "1", "--out", str(tmp_path / "taught2")])
+    assert code == 0 and sorted(PDPPolicy.from_pretrained(tmp_path / "taught2").mode_latents()) == [0, 1, 2, 3, 4, 5]
+
+
+def _write_demo(root, arrays: dict[str, np.ndarray]) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {k: {"dtype": "float32", "shape": (v.shape[1],), "names": None} for k, v in arrays.items()}
+    ds = LeRobotDataset.create(repo_id="local/demo", fps=10, features=features, root=root, use_videos=False)
+    for t in range(len(arrays["action"])):
+        ds.add_frame({**{k: v[t] for k, v in arrays.items()}, "task": "new route"})
+    ds.save_episode()
+    ds.finalize()
+
+
+def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
+    p = small_policy(synthetic_meta)
+    other = write_dataset(tmp_path / "other", episodes_per_mode=2, seed=5)
+    with pytest.raises(ValueError, match=r"other is not the policy's training dataset: it holds 8 behaviours"):
+        p.teach(new_route(), other)
+    with pytest.raises(FileNotFoundError, match="is not a LeRobotDataset"):
+        p.teach(new_route(), tmp_path / "nowhere")
+    demo = new_route()
+    with pytest.raises(KeyError, match="missing 'observation.environment_state'"):
+        p.teach({k: v for k, v in demo.items() if k != "observation.environment_state"}, synthetic_meta.root)
+    with pytest.raises(ValueError, match="shorter than one action chunk"):
+        p.teach({k: v[:5] for k, v in demo.items()}, synthetic_meta.root)
+    with pytest.raises(ValueError, match=r"steps must be a positive integer.*demo_share must be in \(0, 1\]"):
+        p.teach(demo, synthetic_meta.root, steps=0, demo_share=1.5)
+    assert len(p.mode_latents()) == 4  # nothing half-done
+
+    unlabeled = write_dataset(tmp_path / "unlabeled", episodes_per_mode=2, task="go to the goal")
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    q = small_policy(LeRobotDatasetMetadata("local/synthetic", root=unlabeled))
+    with pytest.raises(ValueError, match="teach needs mode-labelled training episodes"):
+        q.teach(demo, unlabeled)
+
+    base = tmp_path / "base"
+    p.save_pretrained(base)
+    (tmp_path / "taken").mkdir()
+    args = ["teach", str(base), "--demo", str(synthetic_meta.root), "--data", str(synthetic_meta.root)]
+    assert cli([*args, "--out", str(tmp_path / "taken")]) == 2
+    assert "taken exists" in capsys.readouterr().err
+    assert cli(["teach", str(base), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "t")]) == 2
+    assert "has no train_config.json naming its training dataset" in capsys.readouterr().err
+    p.fit_latent((synthetic_meta.root, 1), steps=1)
+    p.save_pretrained(tmp_path / "adapted")
+    assert cli(["teach", str(tmp_path / "adapted"), *args[2:], "--out", str(tmp_path / "t")]) == 2
+    assert "is an adapted checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
