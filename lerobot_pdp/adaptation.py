@@ -146,7 +146,8 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
             "training seed. Try it before relying on it; demonstrations of this route in the training data are "
             "what helps, and fit_latent(noise='chunks') (also fitting the sampler's noise per chunk) reached "
             "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
-            "fail?\", \"z plus one sampler noise per chunk\").",
+            "fail?\", \"z plus one sampler noise per chunk\"). Where neither reaches the route, teach it as a new "
+            "mode: policy.teach(demo, training_dataset) or `lerobot-pdp teach CKPT --demo DATASET --out TAUGHT`.",
             result.error_ratio, result.fit_error, reference, config.fit_warn_ratio)
 
 

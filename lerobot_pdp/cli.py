@@ -350,6 +350,10 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reuse-validation", type=Path, default=None,
                    help="with --validate: an earlier validation.json of this env whose candidates are not evaluated "
                    "again where the retrained runs reproduce its rollouts exactly (then only new candidates run)")
+    p.add_argument("--teach", action="store_true",
+                   help="also teach each method the route of the split's zero-mode scenes (PDP: teach, a new mode; "
+                   "BC / DP: fine-tuned with the same rehearsal) and measure the new route and what scene 0 kept; "
+                   "writes teach.json / teach.md")
     p.add_argument("--device", default="cpu",
                    help="torch device every method trains, adapts and acts on: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--film", choices=("mlp", "affine"), default=None,
@@ -392,7 +396,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
                            lr=args.lr, batch_size=args.batch_size, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
                            figures=not args.no_figures, device=args.device, jobs=args.jobs, film=args.film,
-                           reuse_validation=args.reuse_validation,
+                           reuse_validation=args.reuse_validation, teach=args.teach,
                            **camera)
 
 

@@ -487,7 +487,7 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
     with caplog.at_level("WARNING", logger="lerobot_pdp.adaptation"):
         res = q.fit_latent(ep, steps=2)
     assert res.error_ratio == pytest.approx(3.0, rel=1e-4)
-    assert any("3.0x worse" in r.getMessage() for r in caplog.records)
+    assert any("3.0x worse" in r.getMessage() and "lerobot-pdp teach" in r.getMessage() for r in caplog.records)
     q.config.fit_report_chunks = 0  # no report, no warning
     caplog.clear()
     with caplog.at_level("WARNING", logger="lerobot_pdp.adaptation"):

@@ -229,3 +229,31 @@ def test_a_training_setting_is_chosen_on_validation_runs_by_the_same_rule():
         validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": res([1.0] * 5, rollouts=20)})
     with pytest.raises(ValueError, match="no dp in its results"):
         validation.choose_training_setting("dp", "film", {"mlp": mlp})
+
+
+@pytest.mark.slow
+def test_teach_tiny(tmp_path, monkeypatch):
+    """``benchmark --teach`` on the validation split: every method taught the zero-mode scene's route with each
+    candidate (PDP a new mode, BC / DP fine-tuned with rehearsal), the new route and scene 0 measured beside the
+    untaught checkpoint's scene 0 (real lerobot-train runs, real rollouts)."""
+    from lerobot_pdp.benchmark import teaching
+
+    monkeypatch.setattr(teaching, "TEACH_CANDIDATES", ({"steps": 3, "lr": 1e-4},))
+    cfg = BenchmarkConfig(env="avoiding", out=tmp_path / "teach", seeds=[100], rollouts=2, methods=["pdp", "dp", "bc"],
+                          steps=20, episodes_per_mode=1, scenes=(0, "val4"), split="validation", figures=False,
+                          inference_steps=4, teach=True)
+    res = run_benchmark(cfg)
+    record = json.loads((tmp_path / "teach" / "teach.json").read_text())
+    assert res["teach"] == record and record["rollouts_scene0"] == 24  # 2 rollouts, one per mode of the 24
+    assert set(record["runs"]) == {"pdp", "dp", "bc"}
+    for name, seeds in record["runs"].items():
+        run = seeds["100"]["runs"]["val4 steps=3 lr=0.0001"]
+        assert run["new_route"]["n"] == 2 and run["scene0"]["n"] == 24 and run["teach_seconds"] > 0
+        assert seeds["100"]["base_scene0"]["n"] == 24
+        if name == "pdp":  # the new mode, steered to; scene 0 steered to the 24 old modes only
+            assert run["mode"] == 24 and "steer_accuracy" in run["scene0"]
+    assert "| pdp | 100 | val4 | 3 | 0.0001 |" in (tmp_path / "teach" / "teach.md").read_text()
+    with pytest.raises(ValueError, match="no zero-mode scene in the validation split"):
+        run_benchmark(replace(cfg, env="reach-around", scenes=split_scenes("reach-around", "validation")))
+    with pytest.raises(ValueError, match=r"evaluate them too \(--scenes\)"):
+        run_benchmark(replace(cfg, scenes=(0, "val1")))

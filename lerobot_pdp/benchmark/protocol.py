@@ -57,6 +57,12 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         suite = suite.with_camera(camera, cfg.image_size)
         cfg = replace(cfg, camera=camera)
         os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder would log its configuration per episode
+    if cfg.teach:  # refused now, not after the training
+        from .settings import teach_scenes
+
+        missing = [s for s in teach_scenes(suite.name, cfg.split) if s not in cfg.scenes]
+        if missing:
+            raise ValueError(f"--teach teaches {suite.name}'s zero-mode scenes {missing}: evaluate them too (--scenes)")
     if cfg.reuse_validation:  # a wrong file is refused now, not after hours of training
         from .validation import load_reuse_record
 
@@ -125,6 +131,10 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
             if cfg.ablations and name == "pdp":
                 init_abl[seed] = evaluate_init_ablation(suite, ckpt, demos, mcfg, seed, run_dir)
     res = aggregate(suite.name, cfg, per_run, init_abl, settings, steps, frozen)
+    if cfg.teach:
+        from .teaching import run_teaching
+
+        res["teach"] = run_teaching(suite, cfg, {n: all_methods[n] for n in names}, ckpts, dataset, demos, out)
     if cfg.validate:
         from .validation import validate, validation_markdown
 

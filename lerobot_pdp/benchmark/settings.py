@@ -31,6 +31,23 @@ VALIDATION_SEEDS = (100, 101, 102)
 VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never reported as test numbers
 
 
+# Scenes of each split where no latent of the trained PDP reaches the route (the fit and the chunk noises stay at
+# 0 %): where `benchmark --teach` teaches the demonstration as a new mode. The test split has none yet.
+TEACH_SCENES: dict[str, dict[str, tuple[int | str, ...]]] = {
+    "avoiding": {"validation": ("val4",)},
+    "pick-place": {"validation": ("val4",)},
+}
+
+
+def teach_scenes(env: str, split: str) -> tuple[int | str, ...]:
+    """The zero-mode scenes of ``split`` on ``env`` that ``--teach`` teaches (an error if there are none)."""
+    scenes = TEACH_SCENES.get(env, {}).get(split, ())
+    if not scenes:
+        have = {e: sorted(s) for e, s in TEACH_SCENES.items()}
+        raise ValueError(f"--teach: {env} has no zero-mode scene in the {split} split; envs and splits with one: {have}")
+    return scenes
+
+
 def split_scenes(env: str, split: str = "test") -> tuple[int | str, ...]:
     """Scenes ``split`` evaluates on ``env`` (a suite name): scene 0 always, then the test scenes 1-3 or the
     env's validation scenes."""
@@ -326,6 +343,10 @@ class BenchmarkConfig:
     # With validate: an earlier validation.json whose candidate rows stand for this run's checkpoints where
     # they are checked identical, so that only candidates it lacks are evaluated (validation.check_reuse)
     reuse_validation: Path | None = None
+    # Also teach every method the route of each zero-mode scene of the split (TEACH_SCENES) and measure the new
+    # route and what scene 0 kept (benchmark/teaching.py): all candidates on the validation split, the frozen
+    # choice (TEACH_FROZEN) on the test split
+    teach: bool = False
 
     def observation(self) -> dict[str, Any] | None:
         """What the policies observe, as results.json and validation.json record it (``observation``): None for

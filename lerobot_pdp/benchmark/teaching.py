@@ -21,7 +21,7 @@ from ..episodes import read_episodes
 from .data import demo_episode
 from .evaluation import evaluate_scene0, summarize_rollouts
 from .rollouts import run_rollouts
-from .settings import Method, scene_seed_offset
+from .settings import BenchmarkConfig, Method, frozen_for, scene_seed_offset, teach_scenes
 from .training import load_policy
 
 # The settings compared on the validation scenes, the same grid for every method (the same tuning budget):
@@ -31,6 +31,7 @@ TEACH_CANDIDATES: tuple[dict[str, Any], ...] = (
 )
 TEACH_BATCH = 64
 TEACH_SHARE = 0.25
+TAUGHT_METHODS = ("pdp", "dp", "bc")  # PDP teaches a mode; BC and DP are fine-tuned with the same rehearsal
 
 
 def _rehearsal_episodes(data: Path) -> list[dict]:
@@ -96,3 +97,59 @@ def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, d
                   f"scene 0 {kept['success']:.0%} (base {base['success']:.0%}), {info['teach_seconds']:.0f} s")
             write_text_atomic(out, json.dumps(result, indent=1))
     return result
+
+
+def teach_candidates(env: str, cfg: BenchmarkConfig, method: str) -> tuple[dict[str, Any], ...]:
+    """Every candidate on the validation split; the frozen one (``FROZEN[...][method]["teach"]``) on the test split."""
+    if cfg.split == "validation":
+        return TEACH_CANDIDATES
+    chosen = frozen_for(env, cfg.quick, method, cfg.obs).get("teach")
+    if chosen is None:
+        raise ValueError(f"--teach on the test split: no teaching setting of {method} on {env} is frozen yet "
+                         "(settings.FROZEN[...][method]['teach']): choose it with --split validation --teach first")
+    return (chosen,)
+
+
+def run_teaching(suite: SuiteEnv, cfg: BenchmarkConfig, methods: dict[str, Method], ckpts: dict[tuple[str, int], Path],
+                 data: Path, demos: dict[int | str, Path], out: Path) -> dict[str, Any]:
+    """``benchmark --teach``: :func:`evaluate_teaching` for every (method, seed) that can be taught (PDP, DP, BC),
+    on the split's zero-mode scenes; writes ``teach.json`` and ``teach.md`` in ``out``."""
+    scenes = teach_scenes(suite.name, cfg.split)
+    n0 = -(-cfg.rollouts // suite.n_modes) * suite.n_modes  # every old mode the same number of rollouts
+    record: dict[str, Any] = {"env": suite.name, "split": cfg.split, "rollouts": cfg.rollouts, "rollouts_scene0": n0,
+                              "batch_size": TEACH_BATCH, "demo_share": TEACH_SHARE, "runs": {}}
+    for name, method in methods.items():
+        if name not in TAUGHT_METHODS:
+            continue
+        for seed in cfg.seeds:
+            res = evaluate_teaching(suite, method, ckpts[(name, seed)], data, {s: demos[s] for s in scenes}, seed,
+                                    out / "runs" / name / f"seed{seed}" / "teach.json", cfg.rollouts, n0,
+                                    teach_candidates(suite.name, cfg, name))
+            record["runs"].setdefault(name, {})[str(seed)] = res
+    write_text_atomic(out / "teach.json", json.dumps(record, indent=1))
+    write_text_atomic(out / "teach.md", teach_markdown(record))
+    return record
+
+
+def teach_markdown(record: dict[str, Any]) -> str:
+    """One row per (method, seed, scene, setting): new-route success, scene 0 kept against the untaught checkpoint."""
+    lines = [f"# Teaching a new route: {record['env']}, {record['split']} split",
+             "",
+             f"{record['rollouts']} rollouts on the new route, {record['rollouts_scene0']} on scene 0; batches of "
+             f"{record['batch_size']} windows, {record['demo_share']:.0%} from the demonstration.",
+             "",
+             "| method | seed | scene | steps | lr | new route | scene 0 (untaught) | scene-0 steer accuracy | "
+             "scene-0 modes covered | teach s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, seeds in record["runs"].items():
+        for seed, res in seeds.items():
+            base = res["base_scene0"]
+            for run in res["runs"].values():
+                kept = run["scene0"]
+                acc = kept.get("steer_accuracy")
+                lines.append(
+                    f"| {name} | {seed} | {run['scene']} | {run['steps']} | {run['lr']:g} | "
+                    f"{run['new_route']['success']:.1%} | {kept['success']:.1%} ({base['success']:.1%}) | "
+                    f"{'-' if acc is None else f'{acc:.1%}'} | {kept['coverage']:.0%} | "
+                    f"{run['teach_seconds']:.0f} |")
+    return "\n".join(lines) + "\n"
