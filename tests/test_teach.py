@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 from policies import small_policy
-from synthetic import GOAL, MAX_STEP, START, write_dataset
 
 from lerobot_pdp import PDPPolicy
 from lerobot_pdp.cli import main as cli
 from lerobot_pdp.latent_fitting import demonstration_error
 from lerobot_pdp.taught import TEACHING_INFO
+
+from synthetic import GOAL, MAX_STEP, START, write_dataset
 
 
 def new_route(x_via: float = 1.6, hold: int = 4) -> dict[str, np.ndarray]:
