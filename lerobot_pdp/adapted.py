@@ -1,10 +1,12 @@
-"""Adapted checkpoints: a trained PDP adapted to one demonstration, kept as a checkpoint of its own.
+"""Adapted checkpoints: a trained PDP adapted to one demonstration or to an outcome, kept as a checkpoint of its own.
 
 ``lerobot-pdp adapt CKPT --demo DATASET --out ADAPTED`` (:func:`adapt_checkpoint`) fits the latent (and, if
 asked, one sampler noise per chunk) once, and writes ADAPTED whole: every file of CKPT (weights bit for bit,
 config, processors, model card) plus the adaptation files of ``checkpoint.py``. Loading ADAPTED with
 ``PDPPolicy.from_pretrained``, ``lerobot-eval`` or ``lerobot-rollout --policy.path=ADAPTED`` acts adapted from
-the first action, in any process, with no fit and no steering flag.
+the first action, in any process, with no fit and no steering flag. ``lerobot-pdp search CKPT --env ... --out
+ADAPTED`` (:func:`search_checkpoint`) writes the same files for a latent searched by outcome (success, reward or
+way-points), without a demonstration.
 """
 
 from __future__ import annotations
@@ -16,13 +18,19 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 from .atomic import staging_dir
-from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, write_adaptation
+from .candidate_rollouts import EnvFactory
+from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, read_adaptation, write_adaptation
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
+from .latent_search import SearchResult
+from .outcome_scores import Score
 
 logger = logging.getLogger(__name__)
+
+CARD_HEADING = "## Adaptation"  # the model card's section on the adaptation, replaced when a checkpoint is re-adapted
 
 
 def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise: str | None = None,
@@ -31,30 +39,69 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
     """Fit ``base`` to one demonstration (``episode``: a ``(dataset folder, episode index)`` pair or arrays) and
     write the adapted checkpoint ``out`` (which must not exist); ``None`` settings take the checkpoint's
     ``fit_*`` defaults. Returns ``out``."""
-    from .modeling_pdp import PDPPolicy
-
     base, out = Path(base), Path(out)
-    if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
-        raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
-    if out.exists():
-        raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
+    _check_folders(base, out)
     if (base / ADAPTATION_INFO).is_file():  # its card and provenance would describe two adaptations
-        try:
-            origin = json.loads((base / ADAPTATION_INFO).read_text()).get("base_checkpoint")
-        except ValueError:
-            origin = None
         raise ValueError(f"{base} is already an adapted checkpoint ({ADAPTATION_INFO}): adapt its base checkpoint "
-                         f"{origin or '(named in that file)'} instead")
-    # fitted from the base behaviour, whatever adaptation or steering the base checkpoint carries
-    cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
-                              steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
-    policy = PDPPolicy.from_pretrained(base, config=cfg)
-    policy.eval()
+                         f"{_origin(base) or '(named in that file)'} instead")
+    policy = load_base_policy(base, device)
     t0 = time.perf_counter()
     result = policy.fit_latent(episode, steps=steps, lr=lr, seed=seed, noise=noise, progress=True)
     logger.info("fitted in %.1f s: latent %s, error ratio %s", time.perf_counter() - t0, result.z.tolist(),
                 "n/a" if result.error_ratio is None else f"{result.error_ratio:.2f}")
     policy.steering.provenance = {**policy.steering.provenance, "base_checkpoint": str(base.resolve())}
+    write_adapted_checkpoint(base, policy, out, _card_section(policy.steering.provenance, result))
+    return out
+
+
+def search_checkpoint(base: str | Path, env_factory: EnvFactory, score: str | Score, out: str | Path | None = None,
+                      init: Any = "modes", device: str = "cpu", provenance: dict | None = None,
+                      **search: Any) -> SearchResult:
+    """Search ``base``'s latent by outcome (:func:`lerobot_pdp.latent_search.search_latent`; ``search`` holds its
+    settings) and, with ``out`` (which must not exist), write the best latent as an adapted checkpoint.
+
+    ``init="adaptation"`` starts from the latent ``base`` carries (an adapted checkpoint, e.g. a fit); ``out`` is
+    then written from ``base``'s files with the search in place of that adaptation. ``provenance`` adds to
+    what ``adaptation.json`` records (e.g. the env and scene)."""
+    base = Path(base)
+    _check_folders(base, out)
+    policy = load_base_policy(base, device)
+    if isinstance(init, str) and init == "adaptation":
+        carried = read_adaptation(base)
+        if carried is None:
+            raise ValueError(f"init 'adaptation': {base} carries no {ADAPTATION_TENSORS} (not an adapted checkpoint); "
+                             "start from 'modes' or give a latent")
+        init = carried[0]["latent"]
+        init = init[0] if len(init) == 1 else init
+    if "processors" not in search and (base / "policy_preprocessor.json").is_file():  # as lerobot-eval loads them
+        from lerobot.policies.factory import make_pre_post_processors
+
+        search["processors"] = make_pre_post_processors(
+            policy.config, pretrained_path=str(base), preprocessor_overrides={"device_processor": {"device": device}})
+    result = policy.search_latent(env_factory, score, init=init, **search)
+    logger.info("searched in %.0f s: latent %s, score %.3g, success %.0f %%", result.seconds, result.latent.tolist(),
+                result.score, 100 * result.success)
+    if out is not None:
+        policy.steering.provenance = {**policy.steering.provenance, **(provenance or {}),
+                                      "base_checkpoint": _origin(base) or str(base.resolve())}
+        write_adapted_checkpoint(base, policy, Path(out), _search_card_section(policy.steering.provenance, result))
+    return result
+
+
+def load_base_policy(base: Path, device: str = "cpu") -> Any:
+    """``base`` as its weights act, whatever adaptation or steering it carries, in eval mode."""
+    from .modeling_pdp import PDPPolicy
+
+    cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
+                              steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
+    policy = PDPPolicy.from_pretrained(base, config=cfg)
+    policy.eval()
+    return policy
+
+
+def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: str) -> None:
+    """``out`` whole or not at all: every file of ``base`` but its adaptation, then ``policy``'s active latent
+    with its provenance, and ``card_section`` in place of any earlier one in the model card."""
     with staging_dir(out, prefix=".pdp-adapt-") as tmp:
         for f in base.iterdir():
             if f.name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
@@ -63,17 +110,46 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
         write_adaptation(policy.steering, tmp)
         card = tmp / "README.md"
         if card.is_file():
-            card.write_text(card.read_text().rstrip() + "\n\n" + _card_section(policy.steering.provenance, result))
+            text = card.read_text()
+            if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
+                text = text.split(f"\n{CARD_HEADING}\n")[0]
+            card.write_text(text.rstrip() + "\n\n" + card_section)
         os.replace(tmp, out)
-    return out
+
+
+def _check_folders(base: Path, out: str | Path | None) -> None:
+    if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
+        raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
+    if out is not None and Path(out).exists():
+        raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
+
+
+def _origin(base: Path) -> str | None:
+    """The base checkpoint an adapted checkpoint names, if it is one."""
+    try:
+        return json.loads((base / ADAPTATION_INFO).read_text()).get("base_checkpoint")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def _card_section(provenance: dict, result) -> str:
     demo = provenance.get("demonstration", {})
     ratio = "n/a" if result.error_ratio is None else f"{result.error_ratio:.2f}"
     noises = "" if result.noise is None else f" and {len(result.noise)} sampler noises (one per chunk)"
-    return (f"## Adaptation\n\nThis checkpoint is adapted to one demonstration (episode {demo.get('episode', '?')} of "
+    return (f"{CARD_HEADING}\n\nThis checkpoint is adapted to one demonstration (episode {demo.get('episode', '?')} of "
             f"`{Path(str(demo.get('dataset', 'arrays'))).name}`): it acts under the fitted latent "
             f"`{result.z.tolist()}`{noises} from its first action (fit error ratio {ratio}, {provenance['date']}). "
             f"Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
+            "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
+
+
+def _search_card_section(provenance: dict, result: SearchResult) -> str:
+    objective = provenance.get("objective")
+    what = (f"passing {len(objective['waypoints'])} way-points in order within {objective['radius']:g} m"
+            if isinstance(objective, dict) and "waypoints" in objective else f"its score `{objective}`")
+    where = "".join(f", {k} `{provenance[k]}`" for k in ("env", "scene") if k in provenance)
+    return (f"{CARD_HEADING}\n\nThis checkpoint acts under a latent found by searching for an outcome, without a "
+            f"demonstration ({result.method}, {result.rollouts_used} rollouts{where}): `{result.latent.tolist()}`, "
+            f"{what}: score {result.score:.3g}, success {100 * result.success:.0f} % of its rollouts "
+            f"({provenance['date']}). Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
             "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")

@@ -256,6 +256,117 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_search_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "search",
+        help="search a PDP checkpoint's latent by outcome (success, reward, way-points) and write it adapted",
+        description="Search z (one per phase for segmented policies) with CMA-ES or CEM, scoring each candidate by "
+        "rollouts in a suite env: by task success, the summed reward, or --waypoints passed in order within "
+        "--radius, which steers without any demonstration. With --out, writes a complete LeRobot checkpoint acting "
+        "under the best latent (the base's files plus adaptation.safetensors / adaptation.json recording the "
+        "search). Deterministic under --seed; Ctrl-C stops the search and keeps the best so far.",
+    )
+    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--scene", default="0",
+                   help="scene index 0-3, a validation scene (val1, ...) or a scene file (JSON/YAML); default 0")
+    p.add_argument("--waypoints", default=None,
+                   help="score by way-points passed in order: a JSON/YAML file (a list of points or a scene file "
+                   "with 'waypoints') or 'scene' for the scene's own")
+    p.add_argument("--radius", type=float, default=0.05, help="a way-point counts as passed within this distance "
+                   "(metres, default 0.05)")
+    p.add_argument("--score", choices=("success", "reward"), default="success",
+                   help="without --waypoints: task success (default) or the summed reward")
+    p.add_argument("--budget", type=int, default=200, help="rollouts in all (default 200)")
+    p.add_argument("--rollouts-per-candidate", type=int, default=2, help="rollouts scoring each latent (default 2)")
+    p.add_argument("--method", choices=("cma", "cem"), default="cma", help="CMA-ES (default) or the cross-entropy method")
+    p.add_argument("--init", choices=("modes", "adaptation"), default="modes",
+                   help="start from every mode's mean latent (default), or from the latent CHECKPOINT carries (an "
+                   "adapted checkpoint, e.g. from lerobot-pdp adapt)")
+    p.add_argument("--seed", type=int, default=0, help="search seed: same seed, same candidates and rollouts (default 0)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="the adapted checkpoint folder to write (must not exist); without it nothing is written")
+    p.add_argument("--history", type=Path, default=None,
+                   help="also write every candidate (latent, score, success, rollouts) to this JSON file (must not exist)")
+    p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=cmd_search)
+
+
+def cmd_search(args: argparse.Namespace) -> int:
+    import functools
+    import math
+
+    import gymnasium as gym
+
+    import lerobot_pdp.envs as envs
+    from lerobot_pdp.adapted import search_checkpoint
+    from lerobot_pdp.atomic import write_text_atomic
+    from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
+    from lerobot_pdp.envs.scene import load_scene
+    from lerobot_pdp.latent_search import LatentSearchError
+    from lerobot_pdp.outcome_scores import SCORES, WaypointScore
+
+    for path, flag in ((args.out, "--out"), (args.history, "--history")):
+        if path is not None and path.exists():
+            raise FileExistsError(f"{flag} {path} exists: give a new path")
+    for flag, value in (("--budget", args.budget), ("--rollouts-per-candidate", args.rollouts_per_candidate)):
+        if value < 1:
+            raise ValueError(f"{flag} must be >= 1, got {value}")
+    if args.budget < args.rollouts_per_candidate:
+        raise ValueError(f"--budget {args.budget} rollouts pays for no candidate of --rollouts-per-candidate "
+                         f"{args.rollouts_per_candidate} rollouts")
+    suite = envs.get_suite_env(args.env)
+    scene = load_scene(args.scene, suite.scene_key)
+    objective: dict = {"env": suite.name, "scene": scene.name}
+    if args.waypoints is not None:
+        if not (math.isfinite(args.radius) and args.radius > 0):
+            raise ValueError(f"--radius must be a finite number > 0 (metres), got {args.radius}")
+        source = f"way-points of {scene.source}" if args.waypoints == "scene" else args.waypoints
+        points = resolve_waypoints(args.waypoints, scene, suite)
+        check_waypoints(suite, points, source)
+        score = WaypointScore(points, args.radius, dims=suite.trace_dims)
+        objective["waypoints_from"] = str(source)
+    else:
+        score = SCORES[args.score]
+    cfg = _checkpoint_config(args.checkpoint)
+    cams = {k.removeprefix("observation.images."): f.shape for k, f in cfg.input_features.items()
+            if k.startswith("observation.images.")}
+    camera = {} if not cams else {"camera": ",".join(cams), "image_size": "x".join(map(str, next(iter(cams.values()))[1:]))}
+    factory = functools.partial(gym.make, suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
+                                disable_env_checker=True, **camera)
+    try:
+        res = search_checkpoint(args.checkpoint, factory, score, out=args.out, init=args.init, device=args.device,
+                                provenance=objective, budget=args.budget, method=args.method, seed=args.seed,
+                                rollouts_per_candidate=args.rollouts_per_candidate, progress=not args.no_progress)
+    except LatentSearchError as e:  # the candidates so far are kept where asked
+        if args.history is not None:
+            write_text_atomic(args.history, json.dumps(e.result.to_dict(), indent=1))
+            print(f"wrote {args.history}: the {len(e.result.history)} candidates before the error")
+        raise
+    if args.history is not None:
+        write_text_atomic(args.history, json.dumps(res.to_dict(), indent=1))
+    print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
+          f"success {100 * res.success:.0f} % of its {res.rollouts_per_candidate} rollouts; {len(res.history)} "
+          f"candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
+    print(f"wrote {args.out}" if args.out is not None else "no --out: no checkpoint written")
+    return 0
+
+
+def _checkpoint_config(checkpoint: Path):
+    from lerobot_pdp import PDPConfig
+    from lerobot_pdp.checkpoint_files import check_checkpoint_source
+
+    if not checkpoint.is_dir():
+        raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
+                                "config.json and model.safetensors)")
+    check_checkpoint_source(checkpoint)
+    cfg = PDPConfig.from_pretrained(checkpoint)
+    if not isinstance(cfg, PDPConfig):
+        raise ValueError(f"{checkpoint} is a '{cfg.type}' checkpoint: search needs a PDP one (type 'pdp')")
+    return cfg
+
+
 def add_teach_parser(sub: argparse._SubParsersAction) -> None:
     from lerobot_pdp.teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS
 
@@ -474,6 +585,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_latent_map_parser,
     add_steer_parser,
     add_adapt_parser,
+    add_search_parser,
     add_teach_parser,
     add_benchmark_parser,
     add_merge_results_parser,

@@ -5,7 +5,8 @@ The public face is :class:`PDPPolicy`, a LeRobot ``PreTrainedPolicy``:
 - training runs inside ``lerobot-train`` (``forward`` returns L_DP + L_embed, see its docstring);
 - ``select_action`` / ``predict_action_chunk`` act conditioned on the *active latent*;
 - steering: ``encode(episode)``, ``set_latent(z)``, ``mode_latents()``, ``interpolate(z_a, z_b, n)`` and
-  ``fit_latent(episode)`` (paper Alg. 3: encoder warm start, then gradient steps on z, weights frozen).
+  ``fit_latent(episode)`` (paper Alg. 3: encoder warm start, then gradient steps on z, weights frozen) and
+  ``search_latent(env_factory, score)`` (z searched by what rollouts achieve, without a demonstration).
 
 The networks, the training behaviors and the loss live in :class:`~lerobot_pdp.pdp_model.PDPModel`; the
 state a rollout acts under (active latent per phase, chunk noises, phases) in
@@ -34,6 +35,7 @@ from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_demonstration, fit_provenance, initial_latent
 from .behavior import read_training_behaviors, trace_distances, warn_few_episodes
+from .candidate_rollouts import EnvFactory
 from .checkpoint import (
     apply_saved_config,
     check_finite_weights,
@@ -50,9 +52,11 @@ from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
 from .interpolation import interpolate
 from .latent_fitting import DemoWindows, FitResult
+from .latent_search import SearchResult, search_latent, search_provenance
 from .model_card import pdp_model_card
 from .modes import SPACES, DiscoveredModes, ModeLatents, discover
 from .normalization import FeatureStats
+from .outcome_scores import Score
 from .pdp_model import PDPModel
 from .steering import SteerFile
 from .steering_state import Steering
@@ -444,6 +448,19 @@ class PDPPolicy(PreTrainedPolicy):
             self.steering.activate(result.z, result.noise, fit_provenance(
                 episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
                 objective=objective, noise=noise))
+        return result
+
+    def search_latent(self, env_factory: EnvFactory, score: str | Score = "success", budget: int = 200, init: Any = "modes",
+                      method: str = "cma", seed: int = 0, rollouts_per_candidate: int = 2, progress: bool = True,
+                      activate: bool = True, **options: Any) -> SearchResult:
+        """Search z by what rollouts achieve (task success, a reward, way-points passed in order): no
+        demonstration needed. ``budget`` rollouts in all, CMA-ES or CEM, deterministic under ``seed``; Ctrl-C
+        returns the best so far. See :func:`lerobot_pdp.latent_search.search_latent` for every argument.
+        ``activate``: make the best latent the active one (``save_pretrained`` then keeps it, with its search)."""
+        result = search_latent(self, env_factory, score, budget=budget, init=init, method=method, seed=seed,
+                               rollouts_per_candidate=rollouts_per_candidate, progress=progress, **options)
+        if activate:
+            self.steering.activate(result.latent, provenance=search_provenance(result))
         return result
 
     def teach(self, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,

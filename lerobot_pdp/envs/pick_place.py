@@ -61,7 +61,7 @@ Way-points for :func:`expert_from_waypoints` (JSON-friendly), either
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import mujoco
@@ -213,6 +213,8 @@ class PickPlaceEnv(gym.Env):
     """Two-phase pick-and-place around two obstacles; see the module docstring for layout and physics."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / DT)}
+    workspace_low: ClassVar[tuple[float, ...]] = tuple(WORKSPACE_LOW)  # the end effector's clamp
+    workspace_high: ClassVar[tuple[float, ...]] = tuple(WORKSPACE_HIGH)
 
     def __init__(self, scene: Any = 0, render_mode: str | None = None,
                  max_episode_steps: int = MAX_EPISODE_STEPS, camera: str | Sequence[str] | None = None,

@@ -86,6 +86,23 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
     return arr
 
 
+def check_waypoints(suite: SuiteEnv, waypoints: np.ndarray, source: Any) -> None:
+    """Way-points that a path of ``suite`` can pass: one coordinate per trace dim, inside the env's workspace
+    (where the env declares one); else a ValueError naming ``source``, the point and what was expected."""
+    w = np.asarray(waypoints, dtype=float)
+    if w.ndim != 2 or w.shape[1] != len(suite.trace_dims):
+        raise ValueError(f"{source}: {suite.name} way-points are points of {len(suite.trace_dims)} coordinates (its "
+                         f"path's dims), got shape {w.shape}")
+    cls = gym.envs.registration.load_env_creator(gym.spec(suite.gym_id).entry_point)
+    low, high = getattr(cls, "workspace_low", ()), getattr(cls, "workspace_high", ())
+    if len(low) != w.shape[1] or len(high) != w.shape[1]:
+        return
+    for i, p in enumerate(w):
+        if np.any(p < np.asarray(low)) or np.any(p > np.asarray(high)):
+            raise ValueError(f"{source}: way-point {i} {p.tolist()} lies outside {suite.name}'s workspace "
+                             f"{list(low)} .. {list(high)}: the agent can never pass it")
+
+
 def _rollout(env: gym.Env, expert, reset_seed: int) -> tuple[list[dict[str, np.ndarray]], list[np.ndarray], dict]:
     """One expert episode: the observations it acted on (plus the final one), its actions, the last info."""
     obs, info = env.reset(seed=reset_seed)

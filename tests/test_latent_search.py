@@ -1,0 +1,321 @@
+"""Search by outcome: z searched with CMA-ES / CEM over rollouts of a real suite env through LeRobot's rollout loop,
+scored by success, reward or way-points; deterministic, within budget, interruptible; ``lerobot-pdp search``
+writing an adapted checkpoint; bad input named.
+
+The policy is small and untrained, with its FiLM layers drawn at random (training starts them at the identity,
+where z changes nothing) so that different latents act differently. These tests check the machinery, not that
+a search finds success: that needs a trained checkpoint (docs/deploy.md, "Search by outcome").
+"""
+
+from __future__ import annotations
+
+import filecmp
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp.candidate_rollouts import CandidateRollouts, PerEnvLatents
+from lerobot_pdp.checkpoint import ADAPTATION_INFO
+from lerobot_pdp.cli import main as cli
+from lerobot_pdp.latent_search import LatentSearchError, make_optimizer, search_latent
+from lerobot_pdp.outcome_scores import Outcome, WaypointScore, waypoint_progress
+
+SCENE3_WAYPOINTS = [[0.0, -0.30, 0.40], [0.19, -0.12, 0.59], [0.19, 0.12, 0.59], [0.0, 0.30, 0.40]]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    """A small untrained PDP with reach-around's features and random FiLM layers, saved as lerobot-train saves
+    one (weights + processors)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    from lerobot_pdp.denoiser import LatentFiLM
+    from lerobot_pdp.envs.recording import make_dataset
+
+    tmp = tmp_path_factory.mktemp("search")
+    data = make_dataset("reach-around", tmp / "data", scene=0, episodes_per_mode=1, progress=False)
+    meta = LeRobotDatasetMetadata("local/ra", root=data)
+    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,
+                    fit_steps=2)
+    policy = make_policy(cfg, ds_meta=meta)
+    torch.manual_seed(0)
+    for m in policy.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
+    out = tmp / "ckpt"
+    policy.save_pretrained(out)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    (out / "README.md").write_text("# A model card\n")
+    return out
+
+
+@pytest.fixture
+def policy(checkpoint) -> PDPPolicy:
+    p = PDPPolicy.from_pretrained(checkpoint)
+    p.eval()
+    return p
+
+
+def short_env(scene=0, steps: int = 30, name: str = "reach-around"):
+    """A suite env cut to ``steps`` steps: the search's machinery in a fraction of an episode's time."""
+    import lerobot_pdp.envs as envs
+
+    suite = envs.get_suite_env(name)
+    return lambda: gym.make(suite.gym_id, scene=scene, max_episode_steps=steps, disable_env_checker=True)
+
+
+def history(res) -> list:
+    return [(c.latent.tolist(), c.scores, c.success, c.generation) for c in res.history]
+
+
+# ------------------------------------------------------------------------------------------------ scores
+
+
+def test_waypoint_progress_on_hand_made_paths():
+    w = np.array([[0.0, 0.0], [1.0, 0.0]])
+    line = np.linspace([0.0, 0.0], [1.0, 0.0], 11)
+    assert waypoint_progress(line, w, 0.05) == 1.0
+    # backwards: the second way-point comes first, so only the first counts; the rest of the path is at 1 m
+    assert waypoint_progress(line[::-1], w, 0.05) == pytest.approx((1 + 0.05 / 1.0) / 2)
+    # none passed: the closest approach to the first gives the partial credit
+    far = np.array([[0.0, 0.2], [1.0, 0.2]])
+    assert waypoint_progress(far, w, 0.05) == pytest.approx(0.05 / 0.2 / 2)
+    # closer scores higher, and passing one more always beats coming close to it
+    near = np.array([[0.0, 0.1], [1.0, 0.1]])
+    half = np.array([[0.0, 0.0], [0.5, 0.0]])
+    assert waypoint_progress(far, w, 0.05) < waypoint_progress(near, w, 0.05) < 0.5 <= waypoint_progress(half, w, 0.05)
+    # a point exactly at the radius is passed; in order means after the previous pass, not before
+    assert waypoint_progress(np.array([[0.05, 0.0], [1.0, 0.05]]), w, 0.05) == 1.0
+    assert waypoint_progress(np.array([[1.0, 0.0], [0.0, 0.0]]), w, 0.05) == pytest.approx((1 + 0.05) / 2)
+    with pytest.raises(ValueError, match=r"path must be \[T, 2\]"):
+        waypoint_progress(np.zeros((5, 3)), w, 0.05)
+    with pytest.raises(ValueError, match="radius must be > 0"):
+        waypoint_progress(line, w, 0.0)
+
+
+def test_waypoint_score_reads_the_agents_positions():
+    states = np.c_[np.linspace([0.0, -0.3, 0.4], [0.0, 0.3, 0.4], 20), np.ones((20, 3))]  # positions, velocities
+    score = WaypointScore([[0.0, -0.3, 0.4], [0.0, 0.3, 0.4]], radius=0.02)
+    assert score(Outcome(False, 0.0, states)) == 1.0
+    assert WaypointScore([[1.0, 1.0]], 0.02, dims=[3, 4])(Outcome(False, 0.0, states)) == 1.0  # the velocity dims
+    with pytest.raises(ValueError, match="agent_pos"):
+        score(Outcome(False, 0.0, np.zeros((0, 0))))
+    for bad, match in ((([[0.0, np.nan, 0.0]], 0.05), "finite"), (([[0.0, 0.0, 0.0]], -1.0), "radius"),
+                       (([], 0.05), "non-empty")):
+        with pytest.raises(ValueError, match=match):
+            WaypointScore(*bad)
+
+
+@pytest.mark.parametrize("method", ["cma", "cem"])
+def test_optimizers_climb_to_the_best_point_and_repeat_under_a_seed(method):
+    target = np.array([0.7, -0.4, 0.2, 0.1])
+
+    def run(seed):
+        opt, asked = make_optimizer(method, np.zeros(4), 0.5, bounds=[[-2] * 4, [2] * 4], seed=seed), []
+        for _ in range(30):
+            x = opt.ask()
+            asked.append(x)
+            opt.tell(x, -((x - target) ** 2).sum(1))  # maximised
+        return np.concatenate(asked)
+
+    x = run(0)
+    assert np.linalg.norm(x[-6:].mean(0) - target) < 0.1
+    assert np.array_equal(x, run(0)) and not np.array_equal(x, run(1))
+
+
+# ------------------------------------------------------------------------------------- batched rollouts
+
+
+def test_each_env_of_a_batch_acts_under_its_own_latent(policy):
+    """Three candidates x two rollouts share one vector env: the denoiser gets each env its candidate's z."""
+    from lerobot_pdp.processor_pdp import make_pdp_pre_post_processors
+
+    seen: list[torch.Tensor] = []
+    generate = policy.generate
+    policy.generate = lambda obs, z, *a, **kw: (seen.append(z.clone()), generate(obs, z, *a, **kw))[1]
+    policy.set_latent([0.5, 0.5])
+    latents = [torch.tensor([0.1, 0.2]), torch.tensor([-1.0, 0.3]), torch.tensor([0.7, -0.7])]
+    procs = make_pdp_pre_post_processors(policy.config, policy.stats.as_dict())
+    with CandidateRollouts(policy, short_env(steps=12), rollouts=2, seed=0, processors=procs) as run:
+        outcomes = run(latents)
+    assert [len(o) for o in outcomes] == [2, 2, 2]
+    assert len(seen) == 2 and all(torch.equal(z, torch.stack(latents).repeat_interleave(2, 0)) for z in seen)
+    o = outcomes[0][0]
+    assert o.states.shape == (13, 6) and np.allclose(o.states[0, :3], [0.0, -0.3, 0.4], atol=0.01)
+    assert "is_success" in o.info and o.success is False
+    assert policy.active_latent.tolist() == [[0.5, 0.5]] and not isinstance(policy.steering, PerEnvLatents)
+
+
+def test_per_phase_latents_follow_each_envs_phase():
+    latents = torch.arange(12.0).reshape(2, 3, 2)  # 2 envs, 3 phases
+    s = PerEnvLatents(latents)
+    assert s.per_phase
+    s.phases.phases(2, "cpu")
+    s.phases.phase = torch.tensor([0, 2])
+    assert s.latent_for(2, "cpu", None).tolist() == [latents[0, 0].tolist(), latents[1, 2].tolist()]
+    with pytest.raises(RuntimeError, match="3 envs for 2 candidate"):
+        s.latent_for(3, "cpu", None)
+
+
+# ----------------------------------------------------------------------------------------------- search
+
+
+@pytest.mark.parametrize("method", ["cma", "cem"])
+def test_search_is_deterministic_within_budget_and_keeps_every_candidate(policy, method):
+    score = WaypointScore(SCENE3_WAYPOINTS, 0.05)
+    kw = {"budget": 21, "rollouts_per_candidate": 2, "method": method, "max_envs": 8, "progress": False}
+    a = search_latent(policy, short_env(scene=3), score, seed=4, **kw)
+    assert len(a.history) == 10 and a.rollouts_used == 20 <= a.budget  # a last odd rollout buys no candidate
+    assert [c.generation for c in a.history] == [0] * 8 + [1, 1]  # the 8 mode means first
+    assert all(c.rollouts == 2 and len(c.scores) == 2 and c.score == pytest.approx(np.mean(c.scores))
+               for c in a.history)
+    best = max(a.history, key=lambda c: (c.score, c.success))
+    assert torch.equal(a.latent, best.latent) and a.score == best.score and not a.interrupted
+    assert len({tuple(c.latent.tolist()) for c in a.history}) == 10 and len({c.score for c in a.history}) > 1
+    b = search_latent(policy, short_env(scene=3), score, seed=4, **kw)
+    assert history(a) == history(b)
+    c = search_latent(policy, short_env(scene=3), score, seed=5, **kw)
+    assert history(c)[8:] != history(a)[8:]
+    assert json.loads(json.dumps(a.to_dict()))["rollouts_used"] == 20
+
+
+def test_search_from_a_latent_or_a_fit(policy, checkpoint):
+    z0 = torch.tensor([0.3, -0.2])
+    res = search_latent(policy, short_env(), "reward", budget=6, init=z0, rollouts_per_candidate=2, progress=False)
+    assert torch.equal(res.history[0].latent, z0) and [c.generation for c in res.history] == [0, 1, 1]
+    assert res.objective == "reward"
+    data = checkpoint.parent / "data"
+    fit = policy.fit_latent((data, 0), steps=1, activate=False)
+    res = search_latent(policy, short_env(), "success", budget=2, init=fit, rollouts_per_candidate=1,
+                        progress=False)
+    assert torch.equal(res.history[0].latent, fit.z) and res.rollouts_used == 2
+
+
+def test_ctrl_c_returns_the_best_so_far_marked_interrupted(policy):
+    calls = []
+
+    def score(outcome):
+        calls.append(1)
+        if len(calls) > 6:
+            raise KeyboardInterrupt
+        return float(len(calls) == 3)  # the second candidate's first rollout
+
+    res = search_latent(policy, short_env(), score, budget=40, rollouts_per_candidate=2, max_envs=4, progress=False)
+    assert res.interrupted and len(res.history) == 3 and res.rollouts_used == 6
+    assert torch.equal(res.latent, res.history[1].latent) and res.score == 0.5
+
+
+def test_a_failing_score_keeps_the_search_so_far(policy):
+    calls = []
+
+    def flaky(outcome):
+        calls.append(1)
+        if len(calls) > 4:
+            raise RuntimeError("lost the tracker")
+        return 0.0
+
+    with pytest.raises(LatentSearchError, match="after 2 candidates.*score flaky raised RuntimeError: lost the "
+                       r"tracker \(candidate 2") as e:
+        search_latent(policy, short_env(), flaky, budget=20, rollouts_per_candidate=2, max_envs=4, progress=False)
+    assert len(e.value.result.history) == 2 and e.value.result.rollouts_used == 4
+    with pytest.raises(ValueError, match="returned nan for candidate 0"):
+        search_latent(policy, short_env(), lambda o: float("nan"), budget=2, rollouts_per_candidate=1,
+                      progress=False)
+
+
+def test_bad_search_arguments_are_named(policy):
+    env = short_env()
+    for kw, match in (({"budget": 0}, "budget must be an integer >= 1, got 0"),
+                      ({"budget": 3, "rollouts_per_candidate": 4}, "budget 3 rollouts cannot pay"),
+                      ({"method": "adam"}, "method must be one of"),
+                      ({"init": "encoder"}, "init must be 'modes'"),
+                      ({"init": torch.zeros(3)}, r"init latent must have shape \[2\]"),
+                      ({"score": "distance"}, "score must be one of"),
+                      ({"sigma": -1.0}, "sigma must be")):
+        with pytest.raises(ValueError, match=match):
+            search_latent(policy, env, **{"budget": 4, "progress": False, **kw})
+    with pytest.raises(ValueError, match=r"'observation.state' has shape \(4,\) but the checkpoint was trained on "
+                       r"\(6,\)"):
+        search_latent(policy, short_env(name="avoiding"), budget=2, progress=False)
+
+
+def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(policy, tmp_path):
+    res = policy.search_latent(short_env(), "reward", budget=4, rollouts_per_candidate=1, progress=False)
+    assert torch.equal(policy.active_latent[0], res.latent)
+    assert policy.steering.provenance["source"] == "search" and policy.steering.provenance["budget"] == 4
+    policy.save_pretrained(tmp_path / "searched")
+    info = json.loads((tmp_path / "searched" / ADAPTATION_INFO).read_text())
+    assert info["source"] == "search" and info["rollouts_used"] == 4 and info["objective"] == "reward"
+    assert torch.equal(PDPPolicy.from_pretrained(tmp_path / "searched").active_latent[0], res.latent)
+
+
+# -------------------------------------------------------------------------------------------------- CLI
+
+
+def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoint, tmp_path, capsys):
+    wps = tmp_path / "wps.json"
+    wps.write_text(json.dumps(SCENE3_WAYPOINTS))
+    out, hist = tmp_path / "searched", tmp_path / "history.json"
+    args = ["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--waypoints", str(wps), "--budget",
+            "3", "--rollouts-per-candidate", "1", "--radius", "0.08", "--no-progress"]
+    assert cli([*args, "--out", str(out), "--history", str(hist)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    record = json.loads(hist.read_text())
+    assert len(record["history"]) == 3 and record["rollouts_used"] == 3
+    info = json.loads((out / ADAPTATION_INFO).read_text())
+    assert info["source"] == "search" and info["env"] == "reach-around" and info["scene"].startswith("scene 3")
+    assert info["objective"]["radius"] == 0.08 and info["objective"]["waypoints"] == SCENE3_WAYPOINTS
+    assert info["score"] == record["score"] and info["seed"] == 0 and info["budget"] == 3
+    assert info["base_checkpoint"] == str(checkpoint.resolve())
+    assert filecmp.cmp(out / "model.safetensors", checkpoint / "model.safetensors", shallow=False)
+    assert PDPPolicy.from_pretrained(out).active_latent[0].tolist() == record["latent"]
+    card = (out / "README.md").read_text()
+    assert card.startswith("# A model card") and "passing 4 way-points in order within 0.08 m" in card
+
+    # an existing --out is refused before anything runs
+    assert cli([*args, "--out", str(out)]) == 2
+    assert f"--out {out} exists" in capsys.readouterr().err
+
+    # searched again from the latent it carries: the new search replaces the old one, base named as before
+    again = tmp_path / "again"
+    assert cli(["search", str(out), "--env", "reach-around", "--scene", "3", "--budget", "1",
+                "--rollouts-per-candidate", "1", "--init", "adaptation", "--out", str(again), "--no-progress"]) == 0
+    info2 = json.loads((again / ADAPTATION_INFO).read_text())
+    assert info2["objective"] == "success" and info2["latent"] == [record["latent"]]
+    assert info2["base_checkpoint"] == str(checkpoint.resolve())
+    card = (again / "README.md").read_text()
+    assert card.count("## Adaptation") == 1 and "its score `success`" in card and "way-points" not in card
+
+
+def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
+    base = ["search", str(checkpoint), "--env", "reach-around", "--no-progress"]
+    outside, flat = tmp_path / "outside.json", tmp_path / "flat.json"
+    outside.write_text(json.dumps([[0.0, -0.3, 0.4], [0.0, 0.0, 1.5]]))
+    flat.write_text(json.dumps([[0.0, 0.3]]))
+    cases = [
+        (["--waypoints", str(outside)], rf"{outside}: way-point 1 \[0.0, 0.0, 1.5\] lies outside reach-around's workspace"),
+        (["--waypoints", str(flat)], rf"{flat}: reach-around way-points are points of 3 coordinates"),
+        (["--waypoints", str(tmp_path / "none.json")], "way-point file .*none.json does not exist"),
+        (["--waypoints", "scene"], "waypoints='scene' but the scene has no 'waypoints'"),
+        (["--waypoints", "scene", "--scene", "3", "--radius", "0"], "--radius must be a finite number > 0"),
+        (["--budget", "0"], "--budget must be >= 1, got 0"),
+        (["--budget", "1"], "--budget 1 rollouts pays for no candidate of --rollouts-per-candidate 2"),
+        (["--scene", "val9"], "ships no validation scene 'val9'"),
+        (["--init", "adaptation", "--budget", "1", "--rollouts-per-candidate", "1"], "carries no adaptation.safetensors"),
+    ]
+    for extra, match in cases:
+        assert cli([*base, *extra]) == 2, extra
+        assert __import__("re").search(match, capsys.readouterr().err), (extra, match)
+    assert cli(["search", str(tmp_path / "nope"), "--env", "reach-around"]) == 2
+    assert "no such checkpoint folder" in capsys.readouterr().err
+    assert cli(["search", str(checkpoint), "--env", "avoiding", "--budget", "1", "--rollouts-per-candidate", "1",
+                "--no-progress"]) == 2
+    assert "'observation.state' has shape (4,)" in capsys.readouterr().err
