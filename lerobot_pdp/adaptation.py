@@ -45,11 +45,11 @@ def encode_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration
                                   cfg.trace_normalize) for a, b in demo.segments])
     with torch.no_grad():
         if cfg.latent_type == "onehot":
-            t = torch.as_tensor(traces, dtype=torch.float32, device=model.behavior_traces.device)
-            d = (t[:, None] - model.behavior_traces[None]).pow(2).flatten(2).sum(-1)
-            z = F.one_hot(model.behavior_mode[d.argmin(1)], cfg.latent_dim).float()
+            t = torch.as_tensor(traces, dtype=torch.float32, device=model.bank.traces.device)
+            d = (t[:, None] - model.bank.traces[None]).pow(2).flatten(2).sum(-1)
+            z = F.one_hot(model.bank.mode[d.argmin(1)], cfg.latent_dim).float()
         else:
-            z = model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=model.geo_kappa.device))[0]
+            z = model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=model.device))[0]
     return z.cpu()
 
 
@@ -85,7 +85,7 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
         raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
     if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
         windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
-    device = model.geo_kappa.device
+    device = model.device
     steps = cfg.fit_steps if steps is None else steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0 (gradient steps on z; 0: the warm start alone), got {steps!r}")
@@ -131,7 +131,7 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
     if config.fit_report_chunks == 0:
         return
     result.fit_error = demonstration_error(model.denoiser, model.noise_schedule, windows,
-                                           result.z.to(model.geo_kappa.device), config.fit_report_chunks,
+                                           result.z.to(model.device), config.fit_report_chunks,
                                            seed=seed if seed is not None else 0)
     reference = float(model.train_loss_dp)
     if not math.isfinite(reference) or reference <= 0:

@@ -28,9 +28,9 @@ from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
 from .atomic import staging_dir
+from .behavior_bank import CHECKPOINT_KEYS
 from .checkpoint_files import read_config_json
 from .configuration_pdp import apply_legacy_defaults
-from .pdp_model import BEHAVIOR_BUFFERS
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +97,8 @@ def check_finite_weights(policy: nn.Module, model_file: str) -> None:
 
 
 def resize_to_checkpoint(model: nn.Module, shapes: dict[str, tuple[int, ...]]) -> None:
-    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the checkpoint's ``shapes``."""
-    model.resize_behaviors({name: shapes[name] for name in BEHAVIOR_BUFFERS if name in shapes})
+    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``: its behavior bank) the checkpoint's ``shapes``."""
+    model.bank.resize(shapes)
 
 
 def apply_saved_config(policy: Any, model_file: str) -> None:
@@ -110,15 +110,21 @@ def apply_saved_config(policy: Any, model_file: str) -> None:
 
 
 def flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:
-    """``model.vae.x`` -> ``vae.x``: the checkpoint keys of the first release, before the model module."""
+    """``model.vae.x`` -> ``vae.x``, ``model.bank.traces`` -> ``behavior_traces``: the checkpoint keys of the
+    first release, before the model module and its behavior bank (``behavior_bank.CHECKPOINT_KEYS``)."""
     for key in [k for k in state_dict if k.startswith(prefix + "model.")]:
-        state_dict[prefix + key[len(prefix) + len("model."):]] = state_dict.pop(key)
+        name = key[len(prefix) + len("model."):]
+        if name.startswith("bank."):
+            name = CHECKPOINT_KEYS[name[len("bank."):]]
+        state_dict[prefix + name] = state_dict.pop(key)
 
 
 def nest_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, *args) -> None:
     """The inverse of :func:`flatten_model_keys` when a checkpoint is loaded."""
+    bank = {key: "bank." + name for name, key in CHECKPOINT_KEYS.items()}
     for key in [k for k in state_dict if k.startswith(prefix) and not k.startswith((prefix + "stats.", prefix + "model."))]:
-        state_dict[prefix + "model." + key[len(prefix):]] = state_dict.pop(key)
+        name = key[len(prefix):]
+        state_dict[prefix + "model." + bank.get(name, name)] = state_dict.pop(key)
     # saved before the training error was tracked: no reference (FitResult.error_ratio stays None), no warning
     state_dict.setdefault(prefix + "model.train_loss_dp", torch.tensor(float("nan")))
 

@@ -34,7 +34,8 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_demonstration, fit_provenance, initial_latent
-from .behavior import read_training_behaviors, trace_distances, warn_few_episodes
+from .behavior import read_training_behaviors, warn_few_episodes
+from .behavior_bank import resolve_dataset_config
 from .candidate_rollouts import EnvFactory
 from .checkpoint import (
     apply_saved_config,
@@ -54,7 +55,7 @@ from .interpolation import interpolate
 from .latent_fitting import DemoWindows, FitResult
 from .latent_search import SearchResult, search_latent, search_provenance
 from .model_card import pdp_model_card
-from .modes import SPACES, DiscoveredModes, ModeLatents, discover
+from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
 from .outcome_scores import Score
 from .pdp_model import PDPModel
@@ -63,9 +64,6 @@ from .steering_state import Steering
 from .teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS, TeachResult, teach_new_mode
 
 logger = logging.getLogger(__name__)
-
-# set_latent warns above this distance to the nearest training latent, in RMS standard deviations of them.
-FAR_LATENT_SPREADS = 3.0
 
 
 class PDPPolicy(PreTrainedPolicy):
@@ -94,6 +92,7 @@ class PDPPolicy(PreTrainedPolicy):
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             behaviors = read_training_behaviors(config, dataset_meta.root, dataset_meta.features)
             warn_few_episodes(behaviors, dataset_meta.root, config.beta_geo)
+            resolve_dataset_config(config, behaviors)  # mode_names, one-hot latent_dim: before anything is built
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         # Checkpoints keep the flat key names of the first release ("vae.*", "behavior_traces", ...).
         self.register_state_dict_post_hook(flatten_model_keys)
@@ -102,7 +101,6 @@ class PDPPolicy(PreTrainedPolicy):
         # What the next chunk is conditioned on (active latent per phase, chunk noises, phases): see
         # steering_state.py. The config's steering fields are applied when a checkpoint is loaded.
         self.steering = Steering(cfg.latent_dim)
-        self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
         self._steer_file = SteerFile(config.steer_file) if config.steer_file else None
         self._queues: dict[str, deque] = {}
         self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)
@@ -252,18 +250,10 @@ class PDPPolicy(PreTrainedPolicy):
             self._queues[ACTION].clear()  # the envs that did not switch just replan early
 
     def current_latent(self, batch_size: int = 1, device: torch.device | str | None = None) -> Tensor:
-        """The latent the next chunk is conditioned on, [batch_size, d_z] (each env's own phase latent)."""
-        return self.steering.latent_for(batch_size, device or self.model.geo_kappa.device, self._default_latent)
-
-    def _default_latent(self, batch_size: int) -> Tensor:
-        d = self.config.latent_dim
-        if self.config.inference_latent == "zero":
-            return torch.zeros(batch_size, d)
-        if self.config.inference_latent == "prior" or len(self.model.behavior_traces) == 0:
-            return torch.randn(batch_size, d)
-        with torch.no_grad():
-            ids = torch.randint(0, len(self.model.behavior_traces), (batch_size,), device=self.model.behavior_traces.device)
-            return self.behavior_latents(ids).cpu()
+        """The latent the next chunk is conditioned on, [batch_size, d_z] (each env's own phase latent; nothing
+        active: ``config.inference_latent``, drawn once per episode). Never fits."""
+        bank, vae = self.model.bank, self.model.vae
+        return self.steering.latent_for(batch_size, device or self.model.device, lambda n: bank.default_latents(vae, n))
 
     def apply_config_steering(self) -> None:
         """Apply the config's steering fields (how ``lerobot-eval`` / ``lerobot-rollout`` steer a checkpoint);
@@ -290,96 +280,23 @@ class PDPPolicy(PreTrainedPolicy):
         Noises fitted under another latent no longer apply. A latent far outside the training latents is
         accepted with one warning (see :meth:`latent_outlier`): the policy never saw it condition an action."""
         self.steering.activate(z)
-        far = self.latent_outlier(self.steering.latent) if z is not None else None
-        if far is not None:
-            logger.warning("set_latent: latent %s is %.1f spreads of the training latents from the nearest one "
-                           "(warning above %g; spread = their RMS standard deviation per dim, %.3g): the policy "
-                           "was never trained there and may act erratically", self.steering.latent.tolist(),
-                           far[0], FAR_LATENT_SPREADS, far[1])
+        if z is not None:
+            self.model.bank.warn_if_far(self.model.vae, self.steering.latent)
 
     def latent_outlier(self, z: Tensor) -> tuple[float, float] | None:
-        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` [M, d_z] lies more
-        than ``FAR_LATENT_SPREADS`` spreads from every training latent, else None (also without behaviors)."""
-        if len(self.model.behavior_traces) < 2:
-            return None
-        with torch.no_grad():
-            train = self.behavior_latents().float().cpu()
-        spread = float(train.var(0).mean().sqrt())
-        if not spread > 0:
-            return None
-        nearest = float(torch.cdist(z.float().cpu(), train).min(1).values.max()) / spread
-        return (nearest, spread) if nearest > FAR_LATENT_SPREADS else None
+        """(distance in spreads, spread) when a row of ``z`` lies far from every training latent: :meth:`BehaviorBank.outlier`."""
+        return self.model.bank.outlier(self.model.vae, z)
 
-    def mode_latents(self) -> dict[int, Tensor]:
-        """Per-mode mean latent (mean of its training behaviors' encoder means).
-
-        Mode ids are the training episodes' labels (task strings ``"mode <id>: <name>"``). Without labels
-        (e.g. a dataset of language instructions) the modes are discovered by clustering the training
-        episodes (:meth:`discover_modes`; ids are then cluster ids, and a warning says so). With
-        gripper-segmented behaviors (several per episode) each mode gets one mean per phase,
-        [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
-        """
-        if len(self.model.behavior_mode) == 0:
-            raise ValueError("mode_latents() needs the training behaviors: build the policy with dataset_meta "
-                             "(lerobot-train does) or load a checkpoint")
-        labeled = self.model.behavior_mode >= 0
-        if not bool(labeled.any()):
-            found = self.discover_modes()
-            logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
-                           "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
-                           "ids, see `lerobot-pdp latent-map`)", found.k)
-            return ModeLatents(found.means, discovered=True)
-        with torch.no_grad():
-            z = self.behavior_latents()
-        phase = self.behavior_phase()
-        out = {}
-        for m in self.model.behavior_mode[labeled].unique():
-            of_mode = self.model.behavior_mode == m
-            if int(phase.max()) == 0:
-                out[int(m)] = z[of_mode].mean(0).cpu()
-            else:
-                out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
-                                           for k in range(int(phase[of_mode].max()) + 1)]).cpu()
-        return ModeLatents(out, self.config.mode_names)
+    def mode_latents(self) -> ModeLatents:
+        """Per-mode mean latent (one per phase for segmented policies); without mode labels, the discovered modes
+        with a warning. See :meth:`lerobot_pdp.behavior_bank.BehaviorBank.mode_latents`."""
+        return self.model.bank.mode_latents(self.model.vae)
 
     def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0,
                        space: str = "traces") -> DiscoveredModes:
-        """Cluster the training episodes: the modes of a dataset without mode labels.
-
-        Args:
-            k: number of clusters; None finds it (``"traces"``: HDBSCAN; ``"latents"``: silhouette score
-                over 2..``max_k``).
-            max_k: ``space="latents"`` only: largest k tried; None = half the training episodes (at most
-                ``modes.MAX_K_LIMIT``).
-            seed: k-means seed of ``space="latents"`` (the result is deterministic for a given policy and seed).
-            space: ``"traces"`` clusters the episodes by their behavior traces' soft-DTW divergences (the
-                similarity the latents are trained to reproduce, without the distortion of a low-dimensional
-                map); ``"latents"`` by their latents. See :mod:`lerobot_pdp.modes`.
-
-        Returns:
-            :class:`~lerobot_pdp.modes.DiscoveredModes`: ``labels`` (training episode index -> cluster id),
-            ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k``, silhouette scores,
-            and the episodes that joined a cluster as outliers.
-        """
-        if space not in SPACES:
-            raise ValueError(f"space must be one of {SPACES}, got {space!r}")
-        if len(self.model.behavior_episode) == 0:
-            raise ValueError("discover_modes() needs the training behaviors: build the policy with dataset_meta "
-                             "or load a checkpoint")
-        with torch.no_grad():
-            z = self.behavior_latents().cpu().numpy()
-        key = (k, max_k, seed, space, hash(z.tobytes()))
-        if self._discovered is None or self._discovered[0] != key:
-            distances = None
-            if space == "traces":  # delta^X, stored with the bank (one-hot latents store none: computed here)
-                distances = self.model.trace_distance_matrix.detach().cpu().numpy().astype(np.float64)
-                if self.config.latent_type == "onehot" or distances.shape != (len(z), len(z)):
-                    cfg = self.config
-                    distances = trace_distances(self.model.behavior_traces.cpu().numpy(), cfg.sdtw_gamma,
-                                                cfg.sdtw_normalize, progress=False)
-            self._discovered = (key, discover(z, self.model.behavior_episode.cpu().numpy(),
-                                              self.behavior_phase().cpu().numpy(), k, max_k, seed, distances))
-        return self._discovered[1]
+        """Cluster the training episodes, the modes of a dataset without mode labels (``space`` "traces" or
+        "latents"). Every argument: :meth:`lerobot_pdp.behavior_bank.BehaviorBank.discover_modes`."""
+        return self.model.bank.discover_modes(self.model.vae, k, max_k, seed, space)
 
     def behavior_latents(self, ids: Tensor | None = None) -> Tensor:
         """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``); one-hot codes for that ablation."""
@@ -387,11 +304,11 @@ class PDPPolicy(PreTrainedPolicy):
 
     def behavior_phase(self) -> Tensor:
         """Phase index of each training behavior within its episode (0 when episodes are not segmented)."""
-        return self.model.behavior_phase()
+        return self.model.bank.phase()
 
     def behavior_table(self) -> dict[str, np.ndarray]:
         """Latent of every training behavior with its episode, frame range and mode (for maps/plots)."""
-        return self.model.behavior_table()
+        return self.model.bank.table(self.model.vae)
 
     @staticmethod
     def interpolate(z_a: Tensor, z_b: Tensor, n: int, path: str = "linear") -> Tensor:
@@ -485,7 +402,7 @@ class PDPPolicy(PreTrainedPolicy):
         return self._demo_windows(self._demonstration(episode, segments, need_action=True))
 
     def _demo_windows(self, demo: Demonstration) -> DemoWindows:
-        return demonstration_windows(demo, self.config, self.stats, self.model.obs_encoder, self.model.geo_kappa.device)
+        return demonstration_windows(demo, self.config, self.stats, self.model.obs_encoder, self.model.device)
 
     def _demonstration(self, episode: Episode, segments, need_action: bool) -> Demonstration:
         return read_demonstration(episode, self.config, self.action_dim, segments, need_action)
