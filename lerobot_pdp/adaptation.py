@@ -72,6 +72,34 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
     raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
 
 
+def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
+                         init: str | Tensor = "encoder", steps: int | None = None, lr: float | None = None,
+                         lam: float | None = None, seed: int | None = 0, progress: bool = False,
+                         objective: str | None = None, noise: str | None = None) -> FitResult:
+    """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments): the
+    warm start, then the fit; what ``PDPPolicy.fit_latent`` runs between reading the demonstration and
+    activating the result.
+
+    Args:
+        demo, windows: the demonstration (read, validated and split into segments: one z per segment, used in
+            order during the rollout) and its training-style windows (``PDPPolicy.demo_windows``).
+        init: ``"encoder"`` (z0 = mu_phi(X(tau)), the semantic warm start), ``"random"`` (N(0, I)),
+            ``"zero"``, or a tensor.
+        steps: gradient steps S (default ``config.fit_steps``); 0 returns the warm start.
+        lr, lam: Adam step size and the weight of lambda |z|^2.
+        seed: the fit's random draws (windows, noise); also the ``"random"`` warm start's.
+        objective: "denoise" or "sample" (default ``config.fit_objective``, which documents both).
+        noise: "chunks" or "none" (default ``config.fit_noise``, which documents both): also fit one
+            initial sampler noise per executed chunk, z fixed (``FitResult.noise``).
+
+    Returns:
+        :class:`FitResult` with ``z`` ([d_z], or [M, d_z] for a demonstration split into M segments), the
+        initial z and the loss history.
+    """
+    z0 = initial_latent(model, config, demo, init, seed)
+    return fit_demonstration(model, config, demo, windows, z0, steps, lr, lam, seed, progress, objective, noise)
+
+
 def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
                       z0: Tensor, steps: int | None = None, lr: float | None = None, lam: float | None = None,
                       seed: int | None = 0, progress: bool = False, objective: str | None = None,

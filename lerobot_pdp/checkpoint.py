@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from torch import Tensor, nn
 
 from .atomic import staging_dir
 from .behavior_bank import CHECKPOINT_KEYS
-from .checkpoint_files import read_config_json
+from .checkpoint_files import damaged_weights, read_config_json, read_weight_shapes
 from .configuration_pdp import apply_legacy_defaults
 
 logger = logging.getLogger(__name__)
@@ -61,6 +62,24 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     finally:
         if not any(save_directory.iterdir()):
             save_directory.rmdir()
+
+
+def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> Any:
+    """LeRobot's load of ``model_file`` into ``policy`` (``load(policy)``), with PDP's steps around it: the
+    behavior bank's buffers take the checkpoint's sizes, the weights must fit the config and be finite, and a
+    config saved before a field existed gets that field's legacy default (and the sampler it implies)."""
+    from safetensors import SafetensorError
+
+    shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
+    resize_to_checkpoint(policy.model, shapes)
+    check_weight_shapes(policy, model_file, shapes)  # e.g. latent_dim edited in config.json
+    try:
+        policy = load(policy)
+    except SafetensorError as e:
+        raise damaged_weights(model_file, e) from e
+    check_finite_weights(policy, model_file)
+    apply_saved_config(policy, model_file)
+    return policy
 
 
 def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:
@@ -142,6 +161,17 @@ def write_adaptation(steering: Any, directory: Path) -> bool:
             **(steering.provenance or {"source": "set_latent"})}
     (directory / ADAPTATION_INFO).write_text(json.dumps(info, indent=2) + "\n")
     return True
+
+
+def apply_adaptation(policy: Any, pretrained: str | Path, **hub: Any) -> None:
+    """Make ``policy`` act under the adaptation its checkpoint ``pretrained`` carries, if any (and unless
+    ``config.use_adaptation`` is false): the active latent(s), chunk noises and provenance."""
+    adaptation = read_adaptation(pretrained, **hub) if policy.config.use_adaptation else None
+    if adaptation is not None:
+        tensors, info = adaptation
+        policy.steering.load_state_tensors(tensors, info)
+        logger.info("adapted checkpoint %s: latent %s, %d chunk noise(s) (%s)", pretrained,
+                    tensors["latent"].tolist(), len(tensors.get("noise", ())), info.get("source", "?"))
 
 
 def read_adaptation(pretrained: str | Path, **hub: Any) -> tuple[dict[str, Tensor], dict] | None:

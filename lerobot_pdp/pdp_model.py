@@ -8,6 +8,7 @@ bank, ``behavior_bank.py``) -> encoder mu_phi -> z -> FiLM-modulated denoiser (`
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 
 import torch
@@ -25,6 +26,29 @@ from .fast_inference import FastDenoiser
 from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
+
+
+def read_loss_terms(metrics: dict[str, Tensor], train_step: int | None = None) -> dict[str, float]:
+    """The logged loss terms as floats, in one host transfer (each ``.item()`` would wait for the GPU on its
+    own); ``train_step`` (in training): refuse non-finite terms, before the optimizer writes non-finite weights
+    into the next checkpoint."""
+    values = dict(zip(metrics, torch.stack([v.detach().float() for v in metrics.values()]).tolist(), strict=True))
+    bad = {k: v for k, v in values.items() if not math.isfinite(v)}
+    if train_step is not None and bad:
+        raise FloatingPointError(
+            f"PDP training step {train_step} of this process: non-finite loss term(s) {bad} (all terms: "
+            f"{values}); the weights were not updated by it. Check the "
+            "dataset for non-finite values and the soft-DTW cache (LEROBOT_PDP_CACHE), or lower the lr")
+    return values
+
+
+def check_finite_actions(chunk: Tensor, z: Tensor, obs_cond: Tensor) -> None:
+    """One check per action chunk: a robot must never be sent NaN."""
+    if not bool(torch.isfinite(chunk).all()):
+        raise FloatingPointError(
+            f"PDP generated non-finite actions (latent {z[0].tolist()}, observation condition finite: "
+            f"{bool(torch.isfinite(obs_cond).all())}): check the observation and the checkpoint; no action is "
+            "returned")
 
 
 class PDPModel(nn.Module):
@@ -77,9 +101,25 @@ class PDPModel(nn.Module):
 
     # ------------------------------------------------------------------ training loss
 
+    def optim_groups(self) -> list[dict]:
+        """Two parameter groups: embedding (phi, psi) and denoiser (theta, with its camera encoders), each
+        with its learning rate (``PDPPolicy.get_optim_params``)."""
+        theta = [*self.denoiser.parameters(), *self.obs_encoder.parameters()]
+        return [
+            {"params": [p for p in self.vae.parameters() if p.requires_grad], "lr": self.config.embedding_lr},
+            {"params": [p for p in theta if p.requires_grad], "lr": self.config.optimizer_lr},
+        ]
+
     def loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi) on a training batch, and its logged terms as 0-d
-        tensors, without a single host synchronisation (see ``PDPPolicy.forward``).
+        tensors, without a single host synchronisation (``PDPPolicy.forward`` reads them once).
+
+        Why one summed loss reproduces the paper's alternating Algorithm 1: the two terms share no
+        parameters' gradients. L_embed depends only on (phi, psi); L_DP depends only on theta because the
+        latent enters it through a stop-gradient z_bar = sg(mu_phi(tau)). So the gradient of the sum is
+        (grad_{phi,psi} L_embed, grad_theta L_DP), exactly Step 1 and Step 2 of Algorithm 1; LeRobot's
+        optimizer applies them in one step with each group's own learning rate (:meth:`optim_groups`). The
+        only difference is that Step 2 sees phi before rather than after this step's Step-1 update.
 
         On CUDA in training the forward and backward are replayed from captured graphs
         (``config.train_cuda_graphs``); the returned tensors are then the graphs' outputs, valid until the

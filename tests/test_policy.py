@@ -273,7 +273,7 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
     p = small_policy(synthetic_meta)
     p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
     p.config.fit_steps = 3
-    with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.modeling_pdp"):
+    with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.steering"):
         p.apply_config_steering()
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
