@@ -28,6 +28,29 @@ def test_builds_behaviors_from_whole_episodes(synthetic_meta):
     assert p.model.bank.distances[same & off].mean() < p.model.bank.distances[~same].mean()
 
 
+def test_the_model_reads_the_config_and_never_rewrites_it(synthetic_meta):
+    """The fields the dataset decides (mode names, the one-hot latent size) are set once, before the model is
+    built (``resolve_dataset_config``); building the model and its behavior bank only reads the config."""
+    import copy
+
+    from lerobot_pdp.behavior import read_training_behaviors
+    from lerobot_pdp.behavior_bank import resolve_dataset_config
+    from lerobot_pdp.pdp_model import PDPModel
+
+    p = small_policy(synthetic_meta, latent_type="onehot", latent_dim=2)
+    assert p.config.latent_dim == 4 and p.config.mode_names["3"] == "right-wide"  # resolved from the dataset
+    behaviors = read_training_behaviors(p.config, synthetic_meta.root, synthetic_meta.features)
+    before = copy.deepcopy(p.config)
+    PDPModel(p.config, p.action_dim, behaviors)
+    assert p.config == before
+    stale = copy.deepcopy(p.config)
+    stale.latent_dim, stale.mode_names = 2, None
+    with pytest.raises(ValueError, match="resolve_dataset_config"):  # a one-hot size that is not the dataset's
+        PDPModel(stale, p.action_dim, behaviors)
+    resolve_dataset_config(stale, behaviors)
+    assert stale == before
+
+
 def test_forward_and_param_groups(synthetic_meta):
     p = small_policy(synthetic_meta)
     p.train()
