@@ -45,11 +45,11 @@ def encode_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration
                                   cfg.trace_normalize) for a, b in demo.segments])
     with torch.no_grad():
         if cfg.latent_type == "onehot":
-            t = torch.as_tensor(traces, dtype=torch.float32, device=model.behavior_traces.device)
-            d = (t[:, None] - model.behavior_traces[None]).pow(2).flatten(2).sum(-1)
-            z = F.one_hot(model.behavior_mode[d.argmin(1)], cfg.latent_dim).float()
+            t = torch.as_tensor(traces, dtype=torch.float32, device=model.bank.traces.device)
+            d = (t[:, None] - model.bank.traces[None]).pow(2).flatten(2).sum(-1)
+            z = F.one_hot(model.bank.mode[d.argmin(1)], cfg.latent_dim).float()
         else:
-            z = model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=model.geo_kappa.device))[0]
+            z = model.vae.encode(torch.as_tensor(traces, dtype=torch.float32, device=model.device))[0]
     return z.cpu()
 
 
@@ -72,6 +72,34 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
     raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
 
 
+def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
+                         init: str | Tensor = "encoder", steps: int | None = None, lr: float | None = None,
+                         lam: float | None = None, seed: int | None = 0, progress: bool = False,
+                         objective: str | None = None, noise: str | None = None) -> FitResult:
+    """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments): the
+    warm start, then the fit; what ``PDPPolicy.fit_latent`` runs between reading the demonstration and
+    activating the result.
+
+    Args:
+        demo, windows: the demonstration (read, validated and split into segments: one z per segment, used in
+            order during the rollout) and its training-style windows (``PDPPolicy.demo_windows``).
+        init: ``"encoder"`` (z0 = mu_phi(X(tau)), the semantic warm start), ``"random"`` (N(0, I)),
+            ``"zero"``, or a tensor.
+        steps: gradient steps S (default ``config.fit_steps``); 0 returns the warm start.
+        lr, lam: Adam step size and the weight of lambda |z|^2.
+        seed: the fit's random draws (windows, noise); also the ``"random"`` warm start's.
+        objective: "denoise" or "sample" (default ``config.fit_objective``, which documents both).
+        noise: "chunks" or "none" (default ``config.fit_noise``, which documents both): also fit one
+            initial sampler noise per executed chunk, z fixed (``FitResult.noise``).
+
+    Returns:
+        :class:`FitResult` with ``z`` ([d_z], or [M, d_z] for a demonstration split into M segments), the
+        initial z and the loss history.
+    """
+    z0 = initial_latent(model, config, demo, init, seed)
+    return fit_demonstration(model, config, demo, windows, z0, steps, lr, lam, seed, progress, objective, noise)
+
+
 def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
                       z0: Tensor, steps: int | None = None, lr: float | None = None, lam: float | None = None,
                       seed: int | None = 0, progress: bool = False, objective: str | None = None,
@@ -85,7 +113,7 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
         raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
     if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
         windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
-    device = model.geo_kappa.device
+    device = model.device
     steps = cfg.fit_steps if steps is None else steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0 (gradient steps on z; 0: the warm start alone), got {steps!r}")
@@ -131,7 +159,7 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
     if config.fit_report_chunks == 0:
         return
     result.fit_error = demonstration_error(model.denoiser, model.noise_schedule, windows,
-                                           result.z.to(model.geo_kappa.device), config.fit_report_chunks,
+                                           result.z.to(model.device), config.fit_report_chunks,
                                            seed=seed if seed is not None else 0)
     reference = float(model.train_loss_dp)
     if not math.isfinite(reference) or reference <= 0:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +29,9 @@ from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
 from .atomic import staging_dir
-from .checkpoint_files import read_config_json
+from .behavior_bank import CHECKPOINT_KEYS
+from .checkpoint_files import damaged_weights, read_config_json, read_weight_shapes
 from .configuration_pdp import apply_legacy_defaults
-from .pdp_model import BEHAVIOR_BUFFERS
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +62,24 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     finally:
         if not any(save_directory.iterdir()):
             save_directory.rmdir()
+
+
+def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> Any:
+    """LeRobot's load of ``model_file`` into ``policy`` (``load(policy)``), with PDP's steps around it: the
+    behavior bank's buffers take the checkpoint's sizes, the weights must fit the config and be finite, and a
+    config saved before a field existed gets that field's legacy default (and the sampler it implies)."""
+    from safetensors import SafetensorError
+
+    shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
+    resize_to_checkpoint(policy.model, shapes)
+    check_weight_shapes(policy, model_file, shapes)  # e.g. latent_dim edited in config.json
+    try:
+        policy = load(policy)
+    except SafetensorError as e:
+        raise damaged_weights(model_file, e) from e
+    check_finite_weights(policy, model_file)
+    apply_saved_config(policy, model_file)
+    return policy
 
 
 def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:
@@ -97,8 +116,8 @@ def check_finite_weights(policy: nn.Module, model_file: str) -> None:
 
 
 def resize_to_checkpoint(model: nn.Module, shapes: dict[str, tuple[int, ...]]) -> None:
-    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``) the checkpoint's ``shapes``."""
-    model.resize_behaviors({name: shapes[name] for name in BEHAVIOR_BUFFERS if name in shapes})
+    """Give the dataset-sized buffers of ``model`` (a ``PDPModel``: its behavior bank) the checkpoint's ``shapes``."""
+    model.bank.resize(shapes)
 
 
 def apply_saved_config(policy: Any, model_file: str) -> None:
@@ -110,15 +129,21 @@ def apply_saved_config(policy: Any, model_file: str) -> None:
 
 
 def flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:
-    """``model.vae.x`` -> ``vae.x``: the checkpoint keys of the first release, before the model module."""
+    """``model.vae.x`` -> ``vae.x``, ``model.bank.traces`` -> ``behavior_traces``: the checkpoint keys of the
+    first release, before the model module and its behavior bank (``behavior_bank.CHECKPOINT_KEYS``)."""
     for key in [k for k in state_dict if k.startswith(prefix + "model.")]:
-        state_dict[prefix + key[len(prefix) + len("model."):]] = state_dict.pop(key)
+        name = key[len(prefix) + len("model."):]
+        if name.startswith("bank."):
+            name = CHECKPOINT_KEYS[name[len("bank."):]]
+        state_dict[prefix + name] = state_dict.pop(key)
 
 
 def nest_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, *args) -> None:
     """The inverse of :func:`flatten_model_keys` when a checkpoint is loaded."""
+    bank = {key: "bank." + name for name, key in CHECKPOINT_KEYS.items()}
     for key in [k for k in state_dict if k.startswith(prefix) and not k.startswith((prefix + "stats.", prefix + "model."))]:
-        state_dict[prefix + "model." + key[len(prefix):]] = state_dict.pop(key)
+        name = key[len(prefix):]
+        state_dict[prefix + "model." + bank.get(name, name)] = state_dict.pop(key)
     # saved before the training error was tracked: no reference (FitResult.error_ratio stays None), no warning
     state_dict.setdefault(prefix + "model.train_loss_dp", torch.tensor(float("nan")))
 
@@ -136,6 +161,17 @@ def write_adaptation(steering: Any, directory: Path) -> bool:
             **(steering.provenance or {"source": "set_latent"})}
     (directory / ADAPTATION_INFO).write_text(json.dumps(info, indent=2) + "\n")
     return True
+
+
+def apply_adaptation(policy: Any, pretrained: str | Path, **hub: Any) -> None:
+    """Make ``policy`` act under the adaptation its checkpoint ``pretrained`` carries, if any (and unless
+    ``config.use_adaptation`` is false): the active latent(s), chunk noises and provenance."""
+    adaptation = read_adaptation(pretrained, **hub) if policy.config.use_adaptation else None
+    if adaptation is not None:
+        tensors, info = adaptation
+        policy.steering.load_state_tensors(tensors, info)
+        logger.info("adapted checkpoint %s: latent %s, %d chunk noise(s) (%s)", pretrained,
+                    tensors["latent"].tolist(), len(tensors.get("noise", ())), info.get("source", "?"))
 
 
 def read_adaptation(pretrained: str | Path, **hub: Any) -> tuple[dict[str, Tensor], dict] | None:

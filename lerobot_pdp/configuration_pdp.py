@@ -112,7 +112,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # ---- Behavior latent and trajectory VAE ----
     # d_z, the size of the behavior latent z (paper: 2, so that the latent map can be drawn).
     latent_dim: int = 2
-    # "continuous" = the paper's VAE latent; "onehot" = ablation with a discrete one-hot mode latent.
+    # "continuous" = the paper's VAE latent; "onehot" = ablation with a discrete one-hot mode latent (its
+    # latent_dim is then the dataset's number of modes, set before the model is built:
+    # behavior_bank.resolve_dataset_config).
     latent_type: str = "continuous"
     # Hidden layer sizes of the trace encoder E_phi (the decoder D_psi mirrors them).
     vae_hidden_dims: tuple[int, ...] = (256, 256)
@@ -264,8 +266,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # DP); "prior" = a draw from N(0, I); "zero" = the prior mean.
     inference_latent: str = "episode"
 
-    # ---- Filled in at training time from the dataset (saved with the checkpoint) ----
-    # Mode names by mode id, parsed from task strings "mode <id>: <name>".
+    # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
+    # behavior_bank.resolve_dataset_config) ----
+    # Mode names by mode id, from meta/mode_labels.json or task strings "mode <id>: <name>"; teach adds one.
     mode_names: dict[str, str] | None = None
 
     def __post_init__(self):

@@ -5,7 +5,7 @@ shapes [T, ...]) or a ``(LeRobotDataset | dataset folder, episode index)`` pair.
 checks it against the policy's features (a clear error naming the key, shape, episode and file), converts
 camera frames as LeRobotDataset yields them, and splits it into the frame ranges that get one latent each;
 :func:`demonstration_windows` normalises it with the policy's statistics and cuts the training-style windows
-that fitting scores. Encoding and fitting (``modeling_pdp``, ``latent_fitting``) take what this module returns.
+that fitting scores. Encoding and fitting (``adaptation``, ``latent_fitting``) take what this module returns.
 """
 
 from __future__ import annotations
@@ -41,7 +41,14 @@ class Demonstration:
 
 def read_demonstration(episode: Episode, config: PDPConfig, action_dim: int, segments="auto",
                        need_action: bool = True) -> Demonstration:
-    """Validate a demonstration and split it into the segments that get one latent each."""
+    """Validate a demonstration and split it into the segments that get one latent each.
+
+    ``episode``: a dict of unnormalised arrays/tensors as stored in a LeRobotDataset (``observation.*``,
+    ``action``; shapes [T, ...]) or a ``(LeRobotDataset | root path, episode_index)`` pair. ``segments``: None
+    (one z), a list of frame ranges, or ``"gripper"`` (split on gripper events of ``config.segment_gripper_dim``):
+    one z per phase, used in order during the rollout. ``"auto"`` (default): as the policy was trained, i.e.
+    ``"gripper"`` when ``config.segment_gripper_dim`` is set, else None.
+    """
     segments = segments_as_trained(config, segments)
     arrays = _episode_arrays(episode, config, action_dim, need_action=need_action or segments == "gripper")
     return Demonstration(arrays, _resolve_segments(config, arrays, segments), per_phase=segments is not None)

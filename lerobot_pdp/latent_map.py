@@ -63,7 +63,7 @@ def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: st
                  (" (markers = phases)" if len(np.unique(phase)) > 1 else ""), fontsize=10)
     if len(ids) <= 12:
         ax.legend(fontsize=7, loc="best")
-    traces = policy.model.behavior_traces.cpu().numpy()
+    traces = policy.model.bank.traces.cpu().numpy()
     j = 1 if traces.shape[2] > 1 else 0
     for i, g in enumerate(shown):
         tax = fig.add_subplot(grid[i // cols, 2 + i % cols])

@@ -216,7 +216,7 @@ def latent_geometry(policy: Any, x0: np.ndarray, shape: torch.Size) -> tuple[flo
     """The training latents' spread (RMS std per dim; 1 = the prior's without behaviors) and a search box: their
     range widened by one spread on each side (and around ``x0``), per phase. The policy was never trained far
     outside them."""
-    if len(policy.model.behavior_traces) < 2:
+    if len(policy.model.bank.traces) < 2:
         return 1.0, None
     with torch.no_grad():
         train = policy.behavior_latents().double().cpu().numpy()

@@ -1,4 +1,5 @@
-"""Modes of the training behaviors when the data has no mode labels: clusters of the training episodes.
+"""Modes of the training behaviors: per-mode mean latents of labelled data, and, when the data has no mode
+labels, clusters of the training episodes.
 
 Most LeRobot datasets carry language instructions, not mode labels. Demonstrations that took the same route
 have behavior traces a small soft-DTW divergence apart, the similarity PDP's latent space is trained to
@@ -64,6 +65,20 @@ class DiscoveredModes:
     space: str = "latents"  # what was clustered: "traces" (the behaviors' soft-DTW divergences) or "latents"
     # episodes HDBSCAN left in no group (none of >= MIN_CLUSTER_SIZE close enough), each given its nearest cluster
     outliers: list[int] = field(default_factory=list)
+
+
+def labelled_mode_latents(z: Tensor, mode: Tensor, phase: Tensor, names: dict | None = None) -> ModeLatents:
+    """Mean latent of each labelled mode (``mode`` >= 0) of behaviors with latents ``z`` [N, d_z]: [d_z], or one
+    mean per phase, [n_phases, d_z], when episodes are segmented (``phase`` > 0 somewhere)."""
+    out = {}
+    for m in mode[mode >= 0].unique():
+        of_mode = mode == m
+        if int(phase.max()) == 0:
+            out[int(m)] = z[of_mode].mean(0).cpu()
+        else:
+            out[int(m)] = torch.stack([z[of_mode & (phase == k)].mean(0)
+                                       for k in range(int(phase[of_mode].max()) + 1)]).cpu()
+    return ModeLatents(out, names)
 
 
 def episode_layout(episode: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

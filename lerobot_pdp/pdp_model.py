@@ -1,69 +1,79 @@
 """The PDP model: training behaviors, trajectory VAE, FiLM denoiser, noise schedule, and the loss.
 
 What :class:`~lerobot_pdp.modeling_pdp.PDPPolicy` (the LeRobot face) trains and samples. Data flows one way:
-whole demonstrations -> behavior traces and their soft-DTW distances (``behavior.py``) -> encoder
-mu_phi -> z -> FiLM-modulated denoiser (``denoiser.py``) -> action chunks.
+whole demonstrations -> behavior traces and their soft-DTW distances (``behavior.py``, kept in the behavior
+bank, ``behavior_bank.py``) -> encoder mu_phi -> z -> FiLM-modulated denoiser (``denoiser.py``) -> action chunks.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
+import math
 from collections.abc import Callable
 
-import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812
 from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 
-from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
+from .behavior import BehaviorTraces, TrajectoryVAE
+from .behavior_bank import BehaviorBank
 from .configuration_pdp import PDPConfig
 from .cuda_graphs import GraphCache, TrainGraphs
 from .denoiser import FiLMUnet1d
 from .diffusion import NoiseSchedule, diffusion_loss
-from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
+from .distributed import world
 from .fast_inference import FastDenoiser
 from .observation_encoder import ObservationEncoder
 
 logger = logging.getLogger(__name__)
 
-# Buffers whose first dimension is the number of behaviors in the training set: their size is only known
-# from the dataset (at training) or from the checkpoint file (at load).
-BEHAVIOR_BUFFERS = ("behavior_traces", "behavior_episode", "behavior_start", "behavior_global_start",
-                    "behavior_end", "behavior_mode", "trace_distance_matrix")
+
+def read_loss_terms(metrics: dict[str, Tensor], train_step: int | None = None) -> dict[str, float]:
+    """The logged loss terms as floats, in one host transfer (each ``.item()`` would wait for the GPU on its
+    own); ``train_step`` (in training): refuse non-finite terms, before the optimizer writes non-finite weights
+    into the next checkpoint."""
+    values = dict(zip(metrics, torch.stack([v.detach().float() for v in metrics.values()]).tolist(), strict=True))
+    bad = {k: v for k, v in values.items() if not math.isfinite(v)}
+    if train_step is not None and bad:
+        raise FloatingPointError(
+            f"PDP training step {train_step} of this process: non-finite loss term(s) {bad} (all terms: "
+            f"{values}); the weights were not updated by it. Check the "
+            "dataset for non-finite values and the soft-DTW cache (LEROBOT_PDP_CACHE), or lower the lr")
+    return values
+
+
+def check_finite_actions(chunk: Tensor, z: Tensor, obs_cond: Tensor) -> None:
+    """One check per action chunk: a robot must never be sent NaN."""
+    if not bool(torch.isfinite(chunk).all()):
+        raise FloatingPointError(
+            f"PDP generated non-finite actions (latent {z[0].tolist()}, observation condition finite: "
+            f"{bool(torch.isfinite(obs_cond).all())}): check the observation and the checkpoint; no action is "
+            "returned")
 
 
 class PDPModel(nn.Module):
     """Networks, training behaviors and loss of a PDP; built from the config and the feature sizes.
 
-    ``behaviors`` (read from the training dataset) must be given before the networks are built: the
-    one-hot ablation takes its latent size from the number of modes.
+    ``behaviors``: the training dataset's (at training; a loaded checkpoint fills the bank instead). The config
+    is only read here: the fields the dataset decides are set before (``behavior_bank.resolve_dataset_config``).
     """
 
     def __init__(self, config: PDPConfig, action_dim: int, behaviors: BehaviorTraces | None = None):
         super().__init__()
         cfg = self.config = config
         self.action_dim = action_dim
-        # Behaviors of the training set (traces, where they sit in which episode, mode labels, delta^X).
-        self.register_buffer("behavior_traces", torch.zeros(0, cfg.trace_length, cfg.trace_dim))
-        self.register_buffer("behavior_episode", torch.zeros(0, dtype=torch.long))
-        self.register_buffer("behavior_start", torch.zeros(0, dtype=torch.long))
-        self.register_buffer("behavior_global_start", torch.zeros(0, dtype=torch.long))
-        self.register_buffer("behavior_end", torch.zeros(0, dtype=torch.long))
-        self.register_buffer("behavior_mode", torch.zeros(0, dtype=torch.long))
-        self.register_buffer("trace_distance_matrix", torch.zeros(0, 0))
-        self.register_buffer("geo_kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
+        # The training behaviors (traces, where they sit, modes, delta^X, kappa): see behavior_bank.py.
+        self.bank = BehaviorBank(cfg)
         # Running mean of L_DP over the last ~100 training steps: the denoising error of the training
         # demonstrations at their own latents, what a fitted demonstration's L_fit is compared with
         # (FitResult.error_ratio). NaN until trained (and in checkpoints saved before it existed).
         self.register_buffer("train_loss_dp", torch.tensor(float("nan")))
         if behaviors is not None:
-            self.set_behaviors(behaviors)
+            self.bank.set(behaviors)
 
         self.vae = TrajectoryVAE(cfg.trace_length, cfg.trace_dim, cfg.latent_dim, tuple(cfg.vae_hidden_dims))
-        if len(self.behavior_traces):
-            self.vae.set_trace_stats(self.behavior_traces)
+        if len(self.bank.traces):
+            self.vae.set_trace_stats(self.bank.traces)
         self.obs_encoder = ObservationEncoder(cfg)
         self.denoiser = FiLMUnet1d(
             action_dim, self.obs_encoder.frame_dim * cfg.n_obs_steps, cfg.latent_dim, cfg.latent_conditioning,
@@ -73,6 +83,11 @@ class PDPModel(nn.Module):
         self._cuda_graphs = True
         self._train_graphs: TrainGraphs | None = TrainGraphs()  # None: capture failed once, train eagerly
         self.set_sampler(cfg.timestep_spacing, cfg.use_clipped_model_output)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the model's weights and buffers are."""
+        return self.bank.kappa.device
 
     def set_sampler(self, timestep_spacing: str, use_clipped_model_output: bool) -> None:
         """(Re)build the noise schedule with this DDIM grid and step rule (a legacy checkpoint's, on load)."""
@@ -84,83 +99,27 @@ class PDPModel(nn.Module):
         self._graphs = GraphCache()
         self._compiled_fns: dict[str, Callable] = {}
 
-    # ------------------------------------------------------------------ training behaviors
-
-    def set_behaviors(self, b: BehaviorTraces) -> None:
-        """Take the training behaviors and compute their soft-DTW distance matrix delta^X (and kappa)."""
-        cfg = self.config
-        self.behavior_traces = torch.as_tensor(b.traces, dtype=torch.float32)
-        self.behavior_episode = torch.as_tensor(b.episode_index, dtype=torch.long)
-        self.behavior_start = torch.as_tensor(b.start, dtype=torch.long)
-        self.behavior_global_start = torch.as_tensor(b.global_start, dtype=torch.long)
-        self.behavior_end = torch.as_tensor(b.end, dtype=torch.long)
-        self.behavior_mode = torch.as_tensor(b.mode, dtype=torch.long)
-        if b.mode_names:
-            cfg.mode_names = {str(k): v for k, v in sorted(b.mode_names.items())}
-        if cfg.latent_type == "onehot":
-            n_modes = int(b.mode.max()) + 1 if (b.mode >= 0).any() else 0
-            if n_modes < 1 or (b.mode == UNLABELED).any():
-                raise ValueError("latent_type='onehot' needs a mode label for every episode (meta/mode_labels.json, "
-                                 "or task strings 'mode <id>: <name>')")
-            if cfg.latent_dim != n_modes:
-                logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
-                cfg.latent_dim = n_modes
-            self.trace_distance_matrix = torch.zeros(len(b), len(b))
-            self.check_ranks_agree("not needed (one-hot latents)")
-            return
-        report: dict[str, str] = {}
-        d = trace_distances(b.traces, cfg.sdtw_gamma, cfg.sdtw_normalize, report=report)
-        self.trace_distance_matrix = torch.as_tensor(d, dtype=torch.float32)
-        kappa = cfg.geo_kappa if cfg.geo_kappa is not None else choose_kappa(d, cfg.latent_dim)
-        self.geo_kappa = torch.tensor(float(kappa))
-        self.check_ranks_agree(report.get("source", "computed"))
-
-    def behavior_digest(self) -> str:
-        """SHA-1 of the behavior bank (traces, where they sit, modes, delta^X, kappa): equal iff the banks are."""
-        h = hashlib.sha1()
-        for name in (*BEHAVIOR_BUFFERS, "geo_kappa"):
-            t = getattr(self, name).detach().cpu().contiguous()
-            h.update(f"{name}{tuple(t.shape)}{t.dtype}".encode())
-            h.update(t.numpy().tobytes())
-        return h.hexdigest()
-
-    def check_ranks_agree(self, distance_source: str) -> None:
-        """Under multi-process training, make sure every rank built the same behavior bank, and log (rank 0)
-        which rank computed delta^X and which read it from the cache. A no-op in a single process."""
-        rank, size = world()
-        if size == 1:
-            warn_if_cpu_launch_ran_one_process()
-            return
-        digest = self.behavior_digest()
-        sources = agree_across_ranks("the behavior bank", digest, distance_source)
-        if rank == 0:
-            logger.info("behavior bank: %d behaviors, identical on all %d ranks (sha1 %s); soft-DTW distances: %s",
-                        len(self.behavior_traces), size, digest[:12],
-                        ", ".join(f"rank {r} {s}" for r, s in enumerate(sources)))
-
-    def resize_behaviors(self, shapes: dict[str, tuple[int, ...]]) -> None:
-        """Give the dataset-sized buffers the shapes a checkpoint holds, so that it loads into them."""
-        for name, shape in shapes.items():
-            setattr(self, name, torch.zeros(shape, dtype=getattr(self, name).dtype))
-
-    def behavior_phase(self) -> Tensor:
-        """Phase index of each training behavior within its episode (0 when episodes are not segmented)."""
-        same = self.behavior_episode.view(-1, 1) == self.behavior_episode.view(1, -1)
-        earlier = self.behavior_start.view(1, -1) < self.behavior_start.view(-1, 1)
-        return (same & earlier).sum(1)
-
-    def behavior_table(self) -> dict[str, np.ndarray]:
-        """Latent of every training behavior with its episode, frame range and mode (for maps/plots)."""
-        with torch.no_grad():
-            z = self.behavior_latents().cpu().numpy()
-        return {"z": z, "episode": self.behavior_episode.cpu().numpy(), "start": self.behavior_start.cpu().numpy(),
-                "end": self.behavior_end.cpu().numpy(), "mode": self.behavior_mode.cpu().numpy()}
-
     # ------------------------------------------------------------------ training loss
+
+    def optim_groups(self) -> list[dict]:
+        """Two parameter groups: embedding (phi, psi) and denoiser (theta, with its camera encoders), each
+        with its learning rate (``PDPPolicy.get_optim_params``)."""
+        theta = [*self.denoiser.parameters(), *self.obs_encoder.parameters()]
+        return [
+            {"params": [p for p in self.vae.parameters() if p.requires_grad], "lr": self.config.embedding_lr},
+            {"params": [p for p in theta if p.requires_grad], "lr": self.config.optimizer_lr},
+        ]
 
     def loss_terms(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi) on a training batch, and its logged terms as 0-d
-        tensors, without a single host synchronisation (see ``PDPPolicy.forward``).
+        tensors, without a single host synchronisation (``PDPPolicy.forward`` reads them once).
+
+        Why one summed loss reproduces the paper's alternating Algorithm 1: the two terms share no
+        parameters' gradients. L_embed depends only on (phi, psi); L_DP depends only on theta because the
+        latent enters it through a stop-gradient z_bar = sg(mu_phi(tau)). So the gradient of the sum is
+        (grad_{phi,psi} L_embed, grad_theta L_DP), exactly Step 1 and Step 2 of Algorithm 1; LeRobot's
+        optimizer applies them in one step with each group's own learning rate (:meth:`optim_groups`). The
+        only difference is that Step 2 sees phi before rather than after this step's Step-1 update.
 
         On CUDA in training the forward and backward are replayed from captured graphs
         (``config.train_cuda_graphs``); the returned tensors are then the graphs' outputs, valid until the
@@ -168,7 +127,7 @@ class PDPModel(nn.Module):
         self.check_batch(batch)
         if self._graph_training(batch):
             inputs = self._loss_inputs(batch)
-            self.behavior_ids(inputs["episode_index"], None)  # the unknown-episode check, outside the graph
+            self.bank.ids(inputs["episode_index"], None)  # the unknown-episode check, outside the graph
             try:
                 return self._train_graphs(self, self._graphed_loss_terms, inputs)
             except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
@@ -217,13 +176,14 @@ class PDPModel(nn.Module):
         return loss, metrics
 
     def embedding_loss(self, device) -> tuple[Tensor, dict]:
-        n = len(self.behavior_traces)
+        bank = self.bank
+        n = len(bank.traces)
         if torch.device(device).type == "cuda":  # randperm of a small n is drawn on the host: not graph-safe
             idx = torch.rand(n, device=device).argsort()[: self.config.embed_batch_size]
         else:
             idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
         return self.vae.loss(
-            self.behavior_traces[idx], self.trace_distance_matrix[idx][:, idx], self.geo_kappa,
+            bank.traces[idx], bank.distances[idx][:, idx], bank.kappa,
             self.config.beta_kl, self.config.beta_geo,
         )
 
@@ -240,43 +200,12 @@ class PDPModel(nn.Module):
         if "episode_index" not in batch:
             raise KeyError("batch has no 'episode_index': PDP conditions each window on its episode's latent")
 
-    def behavior_ids(self, episode_index: Tensor, global_index: Tensor | None, check: bool = True) -> Tensor:
-        """Behavior (episode, or gripper phase of an episode) of each training sample; ``check``: refuse an
-        episode that is not among the training behaviors."""
-        if len(self.behavior_episode) == 0:
-            raise RuntimeError(
-                "PDP has no behavior traces: build it with dataset_meta (lerobot-train does) or load a checkpoint"
-            )
-        ep = episode_index.view(-1, 1).to(self.behavior_episode.device)
-        match = ep == self.behavior_episode.view(1, -1)
-        known = match.any(1).all()
-        if check and known.device.type == "cpu":
-            if not bool(known):
-                missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
-                raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
-                               f"({self.behavior_episode.unique().numel()} episodes, "
-                               f"{len(self.behavior_episode)} behaviors)")
-        elif check:  # checked on the device: reading the flag back would stall the GPU every training step
-            torch._assert_async(known, "a training batch holds episodes that are not among the policy's "
-                                       "training episodes (run one step on CPU to see which)")
-        if global_index is not None:
-            # behaviors of one episode partition its frames in order: take the last one that starts <= frame
-            f = global_index.view(-1, 1).to(self.behavior_start.device)
-            later = match & (self.behavior_global_start.view(1, -1) <= f)
-            match = torch.where(later.any(1, keepdim=True), later, match)
-        ids = torch.arange(match.shape[1], device=match.device).view(1, -1).expand_as(match)
-        return torch.where(match, ids, torch.full_like(ids, -1)).max(1).values
-
     def behavior_latents(self, ids: Tensor | None = None) -> Tensor:
         """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``); one-hot mode codes for that ablation."""
-        if self.config.latent_type == "onehot":
-            modes = self.behavior_mode if ids is None else self.behavior_mode[ids]
-            return F.one_hot(modes, self.config.latent_dim).float()
-        traces = self.behavior_traces if ids is None else self.behavior_traces[ids]
-        return self.vae.encode(traces)[0]
+        return self.bank.latents(self.vae, ids)
 
     def batch_latents(self, batch: dict[str, Tensor], check_episodes: bool = True) -> tuple[Tensor, Tensor]:
-        ids = self.behavior_ids(batch["episode_index"], batch.get("index"), check_episodes)
+        ids = self.bank.ids(batch["episode_index"], batch.get("index"), check_episodes)
         with torch.no_grad():  # stop-gradient: L_DP must not shape the latent geometry
             if ids.device.type != "cpu":  # unique() has a data-dependent size: the host would wait for it
                 return self.behavior_latents(ids).to(batch[ACTION].device), ids

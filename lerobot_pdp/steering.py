@@ -17,6 +17,8 @@ Write the file whole (:func:`write_steering`, or ``lerobot-pdp steer``): a reade
 request. Requests are checked before they are written (finite values, mode ids; with the checkpoint, its
 latent size and modes) and written as strict JSON. A bad request that reaches the policy anyway (a
 hand-written file) is logged and the current latent kept: a typo must not stop a running robot.
+
+A checkpoint is also steered once, as it loads, by its config's ``steer_*`` fields (:func:`apply_config_steering`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from .adaptation import fit_provenance
 from .atomic import write_text_atomic
@@ -178,6 +182,26 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
         policy.set_latent(means[mode])
         return means[mode]
     raise AssertionError("unreachable: check_request admits one of REQUEST_KEYS")
+
+
+def apply_config_steering(policy: Any) -> None:
+    """Apply ``policy``'s config steering fields, the steering of a checkpoint loaded by ``lerobot-eval`` /
+    ``lerobot-rollout``: ``steer_latent``, else ``steer_mode`` (that mode's mean latent), else
+    ``steer_dataset_root`` + ``steer_episode_index`` (a fit to that episode, run now, not in the control loop)."""
+    cfg = policy.config
+    if cfg.steer_latent is not None:
+        policy.set_latent(torch.tensor(cfg.steer_latent, dtype=torch.float32))
+    elif cfg.steer_mode is not None:
+        means = policy.mode_latents()
+        if cfg.steer_mode not in means:
+            raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
+        policy.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
+    elif cfg.steer_dataset_root is not None:
+        t0 = time.perf_counter()
+        res = policy.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
+        logger.info("fitted latent to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)",
+                    cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
+                    "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
 
 def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:

@@ -7,8 +7,8 @@ demonstration as a new mode instead:
 - **Its latent** is the frozen encoder's mean of its trace (one per phase for segmented policies): the encoder
   and decoder (phi, psi) do not move, so every training behaviour keeps its latent, each old mode is selected
   by the latent it had, and the new route lands where the soft-DTW geometry the encoder learned puts it.
-- **It joins the behaviour bank** as mode ``max + 1`` (its trace, frame ranges, soft-DTW distances), so
-  ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
+- **It joins the behaviour bank** as mode ``max + 1`` (its trace, frame ranges, soft-DTW distances and name;
+  ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
 - **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
   batch is the demonstration's windows at the new latent, the rest *rehearses* the training windows at their
   own latents, so the old modes keep acting as before. The loss is the training loss L_DP.
@@ -32,7 +32,8 @@ import torch
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .behavior import UNLABELED, make_trace, read_episodes, read_training_behaviors, trace_distances
+from .behavior import UNLABELED, make_trace, read_episodes, read_training_behaviors
+from .behavior_bank import TAUGHT_START
 from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
@@ -46,8 +47,6 @@ TEACH_STEPS = 1000
 TEACH_LR = 1e-4
 TEACH_DEMO_SHARE = 0.25
 TEACH_BATCH_SIZE = 64
-# behavior_global_start of a taught behaviour: it has no frames in the training dataset
-TAUGHT_START = -1
 
 
 @dataclass
@@ -82,7 +81,7 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     _check_settings(steps, lr, demo_share, batch_size)
     if cfg.latent_type != "continuous":
         raise ValueError(f"teach needs a continuous latent; this policy's latent_type is {cfg.latent_type!r}")
-    if bool((model.behavior_mode == UNLABELED).any()):
+    if bool((model.bank.mode == UNLABELED).any()):
         raise ValueError("teach needs mode-labelled training episodes (meta/mode_labels.json or task strings "
                          "'mode <id>: <name>'): without labels the modes are discovered clusters, which a taught "
                          "mode cannot join; label the training dataset (lerobot-pdp latent-map shows the clusters)")
@@ -98,7 +97,7 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     nearest = float(torch.cdist(z_new, z_bank).min()) / spread
     losses = _finetune(model, cfg, demo_win, z_new[demo_win.segment], rehearsal, z_old, steps, lr, demo_share,
                        batch_size, seed, progress)
-    mode = _append_behaviors(policy, demo, name or _demo_name(episode))
+    mode = model.bank.append(_traces(cfg, demo), demo.segments, name or _demo_name(episode))
     policy.steering.activate(None)
     result = TeachResult(mode, z_new, losses, steps, len(demo_win.actions), len(rehearsal.actions), nearest,
                          time.perf_counter() - t0, {"steps": steps, "lr": lr, "demo_share": demo_share,
@@ -142,7 +141,7 @@ def _traces(cfg: PDPConfig, demo: Demonstration) -> np.ndarray:
 def _encode_segments(model: Any, cfg: PDPConfig, demo: Demonstration) -> Tensor:
     """The frozen encoder's latent of each phase of the demonstration, [M, d_z] on the CPU."""
     with torch.no_grad():
-        t = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.geo_kappa.device)
+        t = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.device)
         return model.vae.encode(t)[0].cpu()
 
 
@@ -157,13 +156,13 @@ def check_training_data(policy: Any, root: str | Path) -> None:
     check_recording(root, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
     features = json.loads((root / "meta" / "info.json").read_text()).get("features", {})
     found = read_training_behaviors(cfg, root, features)
-    bank = model.behavior_traces.detach().cpu().numpy()
-    taught = model.behavior_global_start.detach().cpu().numpy() == TAUGHT_START
+    bank = model.bank.traces.detach().cpu().numpy()
+    taught = model.bank.global_start.detach().cpu().numpy() == TAUGHT_START
     n_bank = int((~taught).sum())
-    if len(found) != n_bank or not np.array_equal(found.episode_index, model.behavior_episode.cpu().numpy()[~taught]):
+    if len(found) != n_bank or not np.array_equal(found.episode_index, model.bank.episode.cpu().numpy()[~taught]):
         raise ValueError(f"{root} is not the policy's training dataset: it holds {len(found)} behaviours of episodes "
                          f"{_span(found.episode_index)}, the checkpoint's behaviour bank {n_bank} of episodes "
-                         f"{_span(model.behavior_episode.cpu().numpy()[~taught])}")
+                         f"{_span(model.bank.episode.cpu().numpy()[~taught])}")
     diff = np.abs(found.traces.astype(np.float32) - bank[~taught]).reshape(len(found), -1).max(1)
     if (diff > 1e-4).any():
         ep = int(found.episode_index[int(np.argmax(diff > 1e-4))])
@@ -184,8 +183,8 @@ def rehearsal_windows(policy: Any, root: str | Path) -> tuple[DemoWindows, Tenso
     episodes = read_episodes(root, keys)
     with torch.no_grad():
         z_bank = model.behavior_latents().detach().cpu()
-    bank_ep = model.behavior_episode.cpu().numpy()
-    bank_start, bank_end = model.behavior_start.cpu().numpy(), model.behavior_end.cpu().numpy()
+    bank_ep = model.bank.episode.cpu().numpy()
+    bank_start, bank_end = model.bank.start.cpu().numpy(), model.bank.end.cpu().numpy()
     parts, zs = [], []
     for ep, arrays in episodes.items():
         ids = np.flatnonzero(bank_ep == ep)
@@ -206,7 +205,7 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
               steps: int, lr: float, demo_share: float, batch_size: int, seed: int, progress: bool) -> list[float]:
     """Adam on the denoiser alone: each batch ``demo_share`` demonstration windows at their new latent, the rest
     training windows at their own, the training loss L_DP; gradient norm clipped as in training."""
-    device = model.geo_kappa.device
+    device = model.device
     n_demo = max(1, round(demo_share * batch_size))
     n_old = batch_size - n_demo
     params = list(model.denoiser.parameters())
@@ -250,32 +249,3 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
     if bar is not None:
         bar.close()
     return losses
-
-
-def _append_behaviors(policy: Any, demo: Demonstration, name: str) -> int:
-    """The demonstration's phases join the behaviour bank as a new episode of a new mode (one past the last of
-    each); delta^X gains their soft-DTW distances. Returns the new mode id."""
-    model, cfg = policy.model, policy.config
-    traces = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.behavior_traces.device)
-    n = len(traces)
-    mode = int(model.behavior_mode.max()) + 1
-    episode = int(model.behavior_episode.max()) + 1
-
-    def longs(values) -> Tensor:
-        return torch.as_tensor(values, dtype=torch.long, device=model.behavior_episode.device)
-
-    starts = [a for a, _ in demo.segments]
-    model.behavior_traces = torch.cat([model.behavior_traces, traces])
-    model.behavior_episode = torch.cat([model.behavior_episode, longs([episode] * n)])
-    model.behavior_start = torch.cat([model.behavior_start, longs(starts)])
-    model.behavior_global_start = torch.cat([model.behavior_global_start, longs([TAUGHT_START] * n)])
-    model.behavior_end = torch.cat([model.behavior_end, longs([b for _, b in demo.segments])])
-    model.behavior_mode = torch.cat([model.behavior_mode, longs([mode] * n)])
-    d = trace_distances(model.behavior_traces.cpu().numpy().astype(np.float64), cfg.sdtw_gamma, cfg.sdtw_normalize,
-                        progress=False)
-    model.trace_distance_matrix = torch.as_tensor(d, dtype=torch.float32, device=model.trace_distance_matrix.device)
-    names = dict(cfg.mode_names or {})
-    names[str(mode)] = name
-    cfg.mode_names = names
-    policy._discovered = None
-    return mode

@@ -91,7 +91,7 @@ def measure(env: str, out: Path, steps: int | None, episodes_per_mode: int | Non
 
     with torch.no_grad():
         z = policy.behavior_latents().cpu().numpy()
-    eps, feats = episode_features(z, policy.model.behavior_episode.cpu().numpy(), policy.behavior_phase().cpu().numpy())
+    eps, feats = episode_features(z, policy.model.bank.episode.cpu().numpy(), policy.behavior_phase().cpu().numpy())
     modes = np.array([truth[int(e)] for e in eps])
     row["latent_range"] = {str(m): [[round(float(lo), 2), round(float(hi), 2)] for lo, hi in
                                     zip(feats[modes == m].min(0), feats[modes == m].max(0), strict=True)]

@@ -77,10 +77,10 @@ def test_two_process_cpu_training_computes_the_bank_once_and_the_checkpoint_stee
     policy = PDPPolicy.from_pretrained(out / "checkpoints" / "last" / "pretrained_model")
     policy.eval()
     n, digest = banks[0]
-    assert len(policy.model.behavior_traces) == int(n) == 12
-    assert policy.model.behavior_digest().startswith(digest)  # the checkpoint holds the bank the ranks agreed on
+    assert len(policy.model.bank.traces) == int(n) == 12
+    assert policy.model.bank.digest().startswith(digest)  # the checkpoint holds the bank the ranks agreed on
     cached = np.load(next(cache.glob("trace_distances_*.npy")))
-    assert np.allclose(policy.model.trace_distance_matrix.numpy(), cached, atol=1e-6)
+    assert np.allclose(policy.model.bank.distances.numpy(), cached, atol=1e-6)
     modes = policy.mode_latents()
     assert sorted(modes) == [0, 1, 2, 3] and all(torch.isfinite(z).all() for z in modes.values())
     res = policy.fit_latent((data, 5), steps=3)

@@ -18,7 +18,7 @@ def test_training_step_runs_on_the_gpu_without_host_syncs(synthetic_meta):
     p = small_policy(synthetic_meta, "cuda")
     p.train()
     batch = training_batch(synthetic_meta, p)
-    assert batch[ACTION].is_cuda and p.model.behavior_traces.is_cuda and p.model.trace_distance_matrix.is_cuda
+    assert batch[ACTION].is_cuda and p.model.bank.traces.is_cuda and p.model.bank.distances.is_cuda
     p.model.loss_terms(batch)  # first call: lazy CUDA initialisation may synchronise
     torch.cuda.set_sync_debug_mode("error")
     try:

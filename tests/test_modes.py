@@ -31,7 +31,7 @@ def embedded(synthetic_meta):
 @pytest.mark.parametrize("space", ["traces", "latents"])
 def test_discover_modes_recovers_the_four_routes(embedded, space):
     found = embedded.discover_modes(space=space)
-    true = {int(e): int(m) for e, m in zip(embedded.model.behavior_episode, embedded.model.behavior_mode, strict=True)}
+    true = {int(e): int(m) for e, m in zip(embedded.model.bank.episode, embedded.model.bank.mode, strict=True)}
     episodes = sorted(true)
     ari = adjusted_rand_score([true[e] for e in episodes], [found.labels[e] for e in episodes])
     assert found.k == 4 and ari >= 0.9, (found.k, ari, found.silhouette)
@@ -41,7 +41,7 @@ def test_discover_modes_recovers_the_four_routes(embedded, space):
     assert embedded.discover_modes(k=3, space=space).k == 3
     if space == "traces":  # each cluster's mean latent is its episodes' mean latent, as with the latents
         z = embedded.behavior_latents().detach().numpy()
-        ep = embedded.model.behavior_episode.numpy()
+        ep = embedded.model.bank.episode.numpy()
         for c, mean in found.means.items():
             members = [e for e, lab in found.labels.items() if lab == c]
             assert np.allclose(mean.numpy(), z[np.isin(ep, members)].mean(0), atol=1e-5)
@@ -90,9 +90,9 @@ def test_clustering_trace_distances_finds_close_modes_a_latent_map_merges():
 
 def test_mode_latents_fall_back_to_discovered_modes_with_a_warning(embedded, caplog):
     labeled = embedded.mode_latents()
-    saved = embedded.model.behavior_mode.clone()
+    saved = embedded.model.bank.mode.clone()
     try:
-        embedded.model.behavior_mode = torch.full_like(saved, -1)  # an instruction-string dataset
+        embedded.model.bank.mode = torch.full_like(saved, -1)  # an instruction-string dataset
         with caplog.at_level(logging.WARNING):
             means = embedded.mode_latents()
         assert "no mode labels" in caplog.text and "discover_modes" in caplog.text
@@ -102,7 +102,7 @@ def test_mode_latents_fall_back_to_discovered_modes_with_a_warning(embedded, cap
         assert nearest == set(labeled)
         embedded.set_latent(means[0])  # and steers like any latent
     finally:
-        embedded.model.behavior_mode = saved
+        embedded.model.bank.mode = saved
 
 
 def test_cluster_choice_errors_are_named():
@@ -176,7 +176,7 @@ def test_instruction_task_strings_are_no_labels_and_a_label_file_adds_them(instr
     from lerobot_pdp.cli import main
 
     p = small_policy(_meta(instruction_dataset))
-    assert (p.model.behavior_mode == -1).all() and p.config.mode_names is None
+    assert (p.model.bank.mode == -1).all() and p.config.mode_names is None
     root = tmp_path / "labelled"
     shutil.copytree(instruction_dataset, root)
     true = [m for _ in range(3) for m in (0, 1, 2, 3)]  # write_dataset's episode order
@@ -185,7 +185,7 @@ def test_instruction_task_strings_are_no_labels_and_a_label_file_adds_them(instr
                                   "names": {"0": "left, tight", "3": "right, wide"}}))
     assert main(["label-modes", str(root), "--labels", str(labels)]) == 0
     q = small_policy(_meta(root))
-    assert q.model.behavior_mode.tolist() == true
+    assert q.model.bank.mode.tolist() == true
     assert q.config.mode_names == {"0": "left, tight", "1": "1", "2": "2", "3": "right, wide"}
     assert sorted(q.mode_latents()) == [0, 1, 2, 3]
     # the task strings are untouched

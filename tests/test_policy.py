@@ -17,15 +17,38 @@ from lerobot_pdp.demonstration import read_demonstration
 
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):
     p = small_policy(synthetic_meta)
-    assert len(p.model.behavior_traces) == 40
-    assert p.model.trace_distance_matrix.shape == (40, 40)
-    assert torch.allclose(p.model.trace_distance_matrix, p.model.trace_distance_matrix.T, atol=1e-4)
+    assert len(p.model.bank.traces) == 40
+    assert p.model.bank.distances.shape == (40, 40)
+    assert torch.allclose(p.model.bank.distances, p.model.bank.distances.T, atol=1e-4)
     assert p.config.mode_names == {"0": "left-tight", "1": "left-wide", "2": "right-tight", "3": "right-wide"}
     # distances: same-mode pairs are closer than cross-mode pairs
-    m = p.model.behavior_mode
+    m = p.model.bank.mode
     same = m[:, None] == m[None]
     off = ~torch.eye(40, dtype=torch.bool)
-    assert p.model.trace_distance_matrix[same & off].mean() < p.model.trace_distance_matrix[~same].mean()
+    assert p.model.bank.distances[same & off].mean() < p.model.bank.distances[~same].mean()
+
+
+def test_the_model_reads_the_config_and_never_rewrites_it(synthetic_meta):
+    """The fields the dataset decides (mode names, the one-hot latent size) are set once, before the model is
+    built (``resolve_dataset_config``); building the model and its behavior bank only reads the config."""
+    import copy
+
+    from lerobot_pdp.behavior import read_training_behaviors
+    from lerobot_pdp.behavior_bank import resolve_dataset_config
+    from lerobot_pdp.pdp_model import PDPModel
+
+    p = small_policy(synthetic_meta, latent_type="onehot", latent_dim=2)
+    assert p.config.latent_dim == 4 and p.config.mode_names["3"] == "right-wide"  # resolved from the dataset
+    behaviors = read_training_behaviors(p.config, synthetic_meta.root, synthetic_meta.features)
+    before = copy.deepcopy(p.config)
+    PDPModel(p.config, p.action_dim, behaviors)
+    assert p.config == before
+    stale = copy.deepcopy(p.config)
+    stale.latent_dim, stale.mode_names = 2, None
+    with pytest.raises(ValueError, match="resolve_dataset_config"):  # a one-hot size that is not the dataset's
+        PDPModel(stale, p.action_dim, behaviors)
+    resolve_dataset_config(stale, behaviors)
+    assert stale == before
 
 
 def test_forward_and_param_groups(synthetic_meta):
@@ -51,10 +74,10 @@ def test_forward_and_param_groups(synthetic_meta):
 
 def test_behavior_lookup_by_episode_and_global_index(synthetic_meta):
     p = small_policy(synthetic_meta)
-    ids = p.model.behavior_ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.model.behavior_global_start[5]) + 3, 10**6]))
+    ids = p.model.bank.ids(torch.tensor([0, 5, 39]), torch.tensor([0, int(p.model.bank.global_start[5]) + 3, 10**6]))
     assert ids.tolist() == [0, 5, 39]
     with pytest.raises(KeyError, match=r"episode\(s\) \[99\]"):
-        p.model.behavior_ids(torch.tensor([99]), None)
+        p.model.bank.ids(torch.tensor([99]), None)
 
 
 def test_batch_shape_errors_name_key(synthetic_meta):
@@ -165,10 +188,11 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
 
     with safe_open(str(tmp_path / "ckpt" / "model.safetensors"), framework="pt") as f:  # first release's keys
         keys = set(f.keys())
-    assert {"behavior_traces", "geo_kappa", "vae.trace_mean"} <= keys and not any(k.startswith("model.") for k in keys)
-    q = PDPPolicy.from_pretrained(tmp_path / "ckpt")
-    for name in ("behavior_traces", "trace_distance_matrix", "behavior_mode", "geo_kappa"):
-        assert torch.equal(getattr(p.model, name), getattr(q.model, name)), name
+    assert {"behavior_traces", "geo_kappa", "vae.trace_mean"} <= keys and not any(k.startswith(("model.", "bank."))
+                                                                               for k in keys)
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt", strict=True)
+    for name in ("traces", "distances", "mode", "kappa"):
+        assert torch.equal(getattr(p.model.bank, name), getattr(q.model.bank, name)), name
     assert q.config.mode_names == p.config.mode_names
     for a, b in zip(p.mode_latents().values(), q.mode_latents().values(), strict=True):
         torch.testing.assert_close(a, b)
@@ -235,7 +259,7 @@ def test_push_to_hub_writes_card_and_checkpoint(synthetic_meta, tmp_path, monkey
     readme = (out / "README.md").read_text()
     assert "Parameterized Diffusion Policy" in readme and "steer_mode" in readme
     q = PDPPolicy.from_pretrained(out)
-    assert len(q.model.behavior_traces) == 40
+    assert len(q.model.bank.traces) == 40
 
 
 @pytest.mark.parametrize("masked", [False, True])
@@ -272,7 +296,7 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
     p = small_policy(synthetic_meta)
     p.config.steer_dataset_root, p.config.steer_episode_index = str(synthetic_meta.root), 1
     p.config.fit_steps = 3
-    with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.modeling_pdp"):
+    with torch.inference_mode(), caplog.at_level("INFO", logger="lerobot_pdp.steering"):
         p.apply_config_steering()
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
@@ -337,11 +361,11 @@ def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
 def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):
     """Gripper-segmented training (several behaviors per episode): a mode's mean latent is per phase."""
     p = small_policy(synthetic_meta)
-    n = len(p.model.behavior_episode)
+    n = len(p.model.bank.episode)
     # re-index the behaviors as 2 phases of n // 2 episodes, all of mode 3 (phase order = start frame)
-    p.model.behavior_episode = torch.arange(n) // 2
-    p.model.behavior_start = (torch.arange(n) % 2) * 10
-    p.model.behavior_mode = torch.full((n,), 3)
+    p.model.bank.episode = torch.arange(n) // 2
+    p.model.bank.start = (torch.arange(n) % 2) * 10
+    p.model.bank.mode = torch.full((n,), 3)
     assert p.behavior_phase().tolist() == [i % 2 for i in range(n)]
     z = p.behavior_latents().detach()
     means = p.mode_latents()
@@ -379,6 +403,25 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
     assert p.demo_windows(ep).n_segments == 1  # "auto" on an unsegmented policy
     with pytest.raises(ValueError, match=r"segment \(10, 5\) is not a non-empty frame range"):
         p.demo_windows(ep, segments=[(10, 5)])
+
+
+def test_checkpoint_keys_stay_the_first_release_keys():
+    """The behavior bank is a submodule of the model, but checkpoints keep the first release's flat keys
+    (``behavior_traces``, ``trace_distance_matrix``, ``geo_kappa``, ...): ``tests/data/pdp_checkpoint_v1`` loads
+    with every key matched, and the loaded policy's weights have the file's keys (and one added since)."""
+    from pathlib import Path
+
+    from safetensors import safe_open
+
+    from lerobot_pdp.behavior_bank import CHECKPOINT_KEYS
+
+    ckpt = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
+    with safe_open(str(ckpt / "model.safetensors"), framework="pt") as f:
+        keys = set(f.keys())
+    assert set(CHECKPOINT_KEYS.values()) <= keys
+    p = PDPPolicy.from_pretrained(ckpt, strict=True)
+    assert set(p.state_dict()) == keys | {"train_loss_dp"}  # the training error, tracked since
+    assert len(p.model.bank.traces) == len(p.model.bank.distances) == 12
 
 
 @pytest.mark.numerics

@@ -40,12 +40,12 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
     p = small_policy(synthetic_meta)
     old_modes = {m: z.clone() for m, z in p.mode_latents().items()}
     vae, obs_enc, den = _params(p.model.vae), _params(p.model.obs_encoder), _params(p.model.denoiser)
-    n = len(p.model.behavior_traces)
+    n = len(p.model.bank.traces)
     demo = new_route()
     res = p.teach(demo, synthetic_meta.root, steps=3, seed=0, name="far right")
 
     assert res.mode == 4 and res.steps == 3 and len(res.losses) == 3
-    assert res.rehearsal_windows == sum(int(e - s) for s, e in zip(p.model.behavior_start[:n], p.model.behavior_end[:n],
+    assert res.rehearsal_windows == sum(int(e - s) for s, e in zip(p.model.bank.start[:n], p.model.bank.end[:n],
                                                                   strict=True))
     assert res.demo_windows == len(demo["action"]) and np.isfinite(res.nearest_spreads)
     modes = p.mode_latents()
@@ -53,8 +53,8 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
     for m, z in old_modes.items():  # the encoder did not move: every old mode keeps its latent (up to the float
         torch.testing.assert_close(modes[m], z, rtol=0, atol=1e-6)  # rounding of a batch one behaviour larger)
     torch.testing.assert_close(modes[4], res.z[0], rtol=0, atol=1e-6)  # the new mode: the encoder's latent of the demo
-    assert len(p.model.behavior_traces) == n + 1 and p.model.trace_distance_matrix.shape == (n + 1, n + 1)
-    d = p.model.trace_distance_matrix
+    assert len(p.model.bank.traces) == n + 1 and p.model.bank.distances.shape == (n + 1, n + 1)
+    d = p.model.bank.distances
     torch.testing.assert_close(d, d.T)
     assert float(d[-1, :-1].min()) > 0  # a route of its own, away from every training behaviour
     for before, module in ((vae, p.model.vae), (obs_enc, p.model.obs_encoder)):

@@ -38,7 +38,7 @@ def test_b_trace_and_latent_distances_rank_correlate(trained):
     policy, _, _ = trained
     z = policy.behavior_table()["z"]
     dz = np.linalg.norm(z[:, None] - z[None], axis=-1)
-    dx = policy.model.trace_distance_matrix.numpy()
+    dx = policy.model.bank.distances.numpy()
     iu = np.triu_indices(len(z), 1)
     rank = lambda v: np.argsort(np.argsort(v))  # noqa: E731
     rho = np.corrcoef(rank(dz[iu]), rank(dx[iu]))[0, 1]  # Spearman's rank correlation

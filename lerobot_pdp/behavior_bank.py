@@ -1,0 +1,332 @@
+"""The behaviour bank: the training behaviours of a PDP, as one object.
+
+:class:`BehaviorBank` holds every training behaviour (one per episode, or one per gripper phase of each
+episode) and what PDP knows about them:
+
+- **the traces** X(tau) [N, L, d] and **where each sits**: its episode, its frame range in that episode, and its
+  first frame as a dataset-wide ``index`` (what training batches carry; ``TAUGHT_START`` for a taught behaviour,
+  which has no frames in the training dataset);
+- **the modes**: each behaviour's mode label (``UNLABELED`` without one); per-mode mean latents, or, without
+  labels, the modes discovered by clustering the episodes (:mod:`lerobot_pdp.modes`);
+- **delta^X**, the soft-DTW distance matrix of the traces, and **kappa**, the scale L_geo puts between latent and
+  trace distances (``behavior.py``);
+- **a checksum** (:meth:`BehaviorBank.digest`), which multi-process training compares across ranks
+  (:meth:`BehaviorBank.check_ranks_agree`).
+
+It is filled once from the dataset (:meth:`~BehaviorBank.set`, at training), sized by a checkpoint before that
+loads into it (:meth:`~BehaviorBank.resize`), and grows by a taught mode (:meth:`~BehaviorBank.append`). Its
+buffers are saved under the first release's flat key names (``CHECKPOINT_KEYS``; ``checkpoint.py`` maps them).
+
+The mode names and the one-hot ablation's latent size are config fields (config.json keeps them with the
+checkpoint): :func:`resolve_dataset_config` sets them from the dataset before the model is built, the one place
+the config is written from data. The model and its bank only read the config; a taught mode's name is the one
+field :meth:`~BehaviorBank.append` adds to it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor, nn
+
+from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
+from .configuration_pdp import PDPConfig
+from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
+from .modes import SPACES, DiscoveredModes, ModeLatents, discover, labelled_mode_latents
+
+logger = logging.getLogger(__name__)
+
+# The bank's buffers and their checkpoint keys (the first release's, when they were buffers of the model), in
+# the order the checksum reads them. All but kappa are sized by the dataset (their first dimension is N).
+CHECKPOINT_KEYS = {"traces": "behavior_traces", "episode": "behavior_episode", "start": "behavior_start",
+                   "global_start": "behavior_global_start", "end": "behavior_end", "mode": "behavior_mode",
+                   "distances": "trace_distance_matrix", "kappa": "geo_kappa"}
+DATASET_SIZED = ("traces", "episode", "start", "global_start", "end", "mode", "distances")
+# global_start of a taught behaviour: it has no frames in the training dataset
+TAUGHT_START = -1
+# A latent farther than this from every training latent, in RMS standard deviations of them, is an outlier.
+FAR_LATENT_SPREADS = 3.0
+
+
+def onehot_modes(behaviors: BehaviorTraces) -> int:
+    """The number of modes, the one-hot ablation's latent size; every behaviour must carry a mode label."""
+    n_modes = int(behaviors.mode.max()) + 1 if (behaviors.mode >= 0).any() else 0
+    if n_modes < 1 or (behaviors.mode == UNLABELED).any():
+        raise ValueError("latent_type='onehot' needs a mode label for every episode (meta/mode_labels.json, "
+                         "or task strings 'mode <id>: <name>')")
+    return n_modes
+
+
+def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces) -> None:
+    """Set the config fields the training dataset decides, before the model is built from the config:
+    ``mode_names`` (the episodes' mode labels) and, for the one-hot ablation, ``latent_dim`` (the number of
+    modes). They are config fields because config.json is where a checkpoint keeps them, and LeRobot builds
+    the networks of every later load (and a resumed training) from ``config.latent_dim``."""
+    if behaviors.mode_names:
+        config.mode_names = {str(k): v for k, v in sorted(behaviors.mode_names.items())}
+    if config.latent_type == "onehot":
+        n_modes = onehot_modes(behaviors)
+        if config.latent_dim != n_modes:
+            logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
+            config.latent_dim = n_modes
+
+
+class BehaviorBank(nn.Module):
+    """The training behaviours: traces, where they sit, modes, delta^X and kappa (see the module docstring).
+
+    An ``nn.Module`` of buffers, so that ``.to(device)`` moves it and the checkpoint keeps it. Latents are
+    computed by the encoder it is given (``vae``): the bank holds data, the model the networks.
+    """
+
+    def __init__(self, config: PDPConfig):
+        super().__init__()
+        cfg = self.config = config
+        self.register_buffer("traces", torch.zeros(0, cfg.trace_length, cfg.trace_dim))
+        self.register_buffer("episode", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("start", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("global_start", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("end", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("mode", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("distances", torch.zeros(0, 0))
+        self.register_buffer("kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
+        self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
+
+    # ------------------------------------------------------------------ filling it
+
+    def set(self, b: BehaviorTraces) -> None:
+        """Take the training behaviours and compute their soft-DTW distance matrix delta^X (and kappa); under
+        multi-process training every rank checks it holds the same bank. The config must already be resolved
+        for this dataset (:func:`resolve_dataset_config`)."""
+        cfg = self.config
+        self.traces = torch.as_tensor(b.traces, dtype=torch.float32)
+        self.episode = torch.as_tensor(b.episode_index, dtype=torch.long)
+        self.start = torch.as_tensor(b.start, dtype=torch.long)
+        self.global_start = torch.as_tensor(b.global_start, dtype=torch.long)
+        self.end = torch.as_tensor(b.end, dtype=torch.long)
+        self.mode = torch.as_tensor(b.mode, dtype=torch.long)
+        self._discovered = None
+        if cfg.latent_type == "onehot":
+            if cfg.latent_dim != onehot_modes(b):
+                raise ValueError(f"latent_type='onehot' with latent_dim {cfg.latent_dim} for {onehot_modes(b)} modes: "
+                                 "resolve the config for the dataset first (behavior_bank.resolve_dataset_config)")
+            self.distances = torch.zeros(len(b), len(b))
+            self.check_ranks_agree("not needed (one-hot latents)")
+            return
+        report: dict[str, str] = {}
+        d = trace_distances(b.traces, cfg.sdtw_gamma, cfg.sdtw_normalize, report=report)
+        self.distances = torch.as_tensor(d, dtype=torch.float32)
+        kappa = cfg.geo_kappa if cfg.geo_kappa is not None else choose_kappa(d, cfg.latent_dim)
+        self.kappa = torch.tensor(float(kappa))
+        self.check_ranks_agree(report.get("source", "computed"))
+
+    def resize(self, shapes: dict[str, tuple[int, ...]]) -> None:
+        """Give the dataset-sized buffers the shapes a checkpoint holds (``shapes`` by checkpoint key), so that
+        it loads into them."""
+        for name in DATASET_SIZED:
+            if CHECKPOINT_KEYS[name] in shapes:
+                setattr(self, name, torch.zeros(shapes[CHECKPOINT_KEYS[name]], dtype=getattr(self, name).dtype))
+        self._discovered = None
+
+    def append(self, traces: np.ndarray, segments: list[tuple[int, int]], name: str) -> int:
+        """A taught demonstration's phases (``traces`` [M, L, d] with their frame ``segments``) join the bank as a
+        new episode of a new mode (one past the last of each), at ``TAUGHT_START``; delta^X gains their soft-DTW
+        distances (kappa stays), and the config's ``mode_names`` the new mode's ``name``. Returns the new mode id."""
+        cfg = self.config
+        traces = torch.as_tensor(traces, dtype=torch.float32, device=self.traces.device)
+        n = len(traces)
+        mode = int(self.mode.max()) + 1
+        episode = int(self.episode.max()) + 1
+
+        def longs(values) -> Tensor:
+            return torch.as_tensor(values, dtype=torch.long, device=self.episode.device)
+
+        self.traces = torch.cat([self.traces, traces])
+        self.episode = torch.cat([self.episode, longs([episode] * n)])
+        self.start = torch.cat([self.start, longs([a for a, _ in segments])])
+        self.global_start = torch.cat([self.global_start, longs([TAUGHT_START] * n)])
+        self.end = torch.cat([self.end, longs([b for _, b in segments])])
+        self.mode = torch.cat([self.mode, longs([mode] * n)])
+        d = trace_distances(self.traces.cpu().numpy().astype(np.float64), cfg.sdtw_gamma, cfg.sdtw_normalize,
+                            progress=False)
+        self.distances = torch.as_tensor(d, dtype=torch.float32, device=self.distances.device)
+        cfg.mode_names = {**(cfg.mode_names or {}), str(mode): name}
+        self._discovered = None
+        return mode
+
+    # ------------------------------------------------------------------ checksum, ranks
+
+    def digest(self) -> str:
+        """SHA-1 of the bank (traces, where they sit, modes, delta^X, kappa): equal iff the banks are."""
+        h = hashlib.sha1()
+        for name, key in CHECKPOINT_KEYS.items():
+            t = getattr(self, name).detach().cpu().contiguous()
+            h.update(f"{key}{tuple(t.shape)}{t.dtype}".encode())
+            h.update(t.numpy().tobytes())
+        return h.hexdigest()
+
+    def check_ranks_agree(self, distance_source: str) -> None:
+        """Under multi-process training, make sure every rank built the same behavior bank, and log (rank 0)
+        which rank computed delta^X and which read it from the cache. A no-op in a single process."""
+        rank, size = world()
+        if size == 1:
+            warn_if_cpu_launch_ran_one_process()
+            return
+        digest = self.digest()
+        sources = agree_across_ranks("the behavior bank", digest, distance_source)
+        if rank == 0:
+            logger.info("behavior bank: %d behaviors, identical on all %d ranks (sha1 %s); soft-DTW distances: %s",
+                        len(self.traces), size, digest[:12], ", ".join(f"rank {r} {s}" for r, s in enumerate(sources)))
+
+    # ------------------------------------------------------------------ lookups
+
+    def ids(self, episode_index: Tensor, global_index: Tensor | None, check: bool = True) -> Tensor:
+        """Behavior (episode, or gripper phase of an episode) of each training sample; ``check``: refuse an
+        episode that is not among the training behaviors."""
+        if len(self.episode) == 0:
+            raise RuntimeError(
+                "PDP has no behavior traces: build it with dataset_meta (lerobot-train does) or load a checkpoint"
+            )
+        ep = episode_index.view(-1, 1).to(self.episode.device)
+        match = ep == self.episode.view(1, -1)
+        known = match.any(1).all()
+        if check and known.device.type == "cpu":
+            if not bool(known):
+                missing = episode_index.view(-1)[~match.any(1).cpu()].unique().tolist()
+                raise KeyError(f"episode(s) {missing} are not among the policy's training episodes "
+                               f"({self.episode.unique().numel()} episodes, {len(self.episode)} behaviors)")
+        elif check:  # checked on the device: reading the flag back would stall the GPU every training step
+            torch._assert_async(known, "a training batch holds episodes that are not among the policy's "
+                                       "training episodes (run one step on CPU to see which)")
+        if global_index is not None:
+            # behaviors of one episode partition its frames in order: take the last one that starts <= frame
+            f = global_index.view(-1, 1).to(self.start.device)
+            later = match & (self.global_start.view(1, -1) <= f)
+            match = torch.where(later.any(1, keepdim=True), later, match)
+        ids = torch.arange(match.shape[1], device=match.device).view(1, -1).expand_as(match)
+        return torch.where(match, ids, torch.full_like(ids, -1)).max(1).values
+
+    def phase(self) -> Tensor:
+        """Phase index of each training behavior within its episode (0 when episodes are not segmented)."""
+        same = self.episode.view(-1, 1) == self.episode.view(1, -1)
+        earlier = self.start.view(1, -1) < self.start.view(-1, 1)
+        return (same & earlier).sum(1)
+
+    def latents(self, vae: TrajectoryVAE, ids: Tensor | None = None) -> Tensor:
+        """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``) under the encoder ``vae``; one-hot mode
+        codes for that ablation."""
+        if self.config.latent_type == "onehot":
+            modes = self.mode if ids is None else self.mode[ids]
+            return F.one_hot(modes, self.config.latent_dim).float()
+        traces = self.traces if ids is None else self.traces[ids]
+        return vae.encode(traces)[0]
+
+    def default_latents(self, vae: TrajectoryVAE, batch_size: int) -> Tensor:
+        """The latent a policy acts under when none is active, [batch_size, d_z] on the CPU (see
+        ``config.inference_latent``): zero, a prior draw, or a random training behaviour's latent."""
+        d = self.config.latent_dim
+        if self.config.inference_latent == "zero":
+            return torch.zeros(batch_size, d)
+        if self.config.inference_latent == "prior" or len(self.traces) == 0:
+            return torch.randn(batch_size, d)
+        with torch.no_grad():
+            ids = torch.randint(0, len(self.traces), (batch_size,), device=self.traces.device)
+            return self.latents(vae, ids).cpu()
+
+    def table(self, vae: TrajectoryVAE) -> dict[str, np.ndarray]:
+        """Latent of every training behavior with its episode, frame range and mode (for maps/plots)."""
+        with torch.no_grad():
+            z = self.latents(vae).cpu().numpy()
+        return {"z": z, "episode": self.episode.cpu().numpy(), "start": self.start.cpu().numpy(),
+                "end": self.end.cpu().numpy(), "mode": self.mode.cpu().numpy()}
+
+    def outlier(self, vae: TrajectoryVAE, z: Tensor) -> tuple[float, float] | None:
+        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` [M, d_z] lies more
+        than ``FAR_LATENT_SPREADS`` spreads (RMS standard deviations of the training latents per dim) from every
+        training latent, else None (also without behaviors)."""
+        if len(self.traces) < 2:
+            return None
+        with torch.no_grad():
+            train = self.latents(vae).float().cpu()
+        spread = float(train.var(0).mean().sqrt())
+        if not spread > 0:
+            return None
+        nearest = float(torch.cdist(z.float().cpu(), train).min(1).values.max()) / spread
+        return (nearest, spread) if nearest > FAR_LATENT_SPREADS else None
+
+    def warn_if_far(self, vae: TrajectoryVAE, z: Tensor) -> None:
+        """One warning when ``z`` (a latent just made active) is an :meth:`outlier`: the policy never saw it
+        condition an action."""
+        far = self.outlier(vae, z)
+        if far is not None:
+            logger.warning("set_latent: latent %s is %.1f spreads of the training latents from the nearest one "
+                           "(warning above %g; spread = their RMS standard deviation per dim, %.3g): the policy "
+                           "was never trained there and may act erratically", z.tolist(), far[0],
+                           FAR_LATENT_SPREADS, far[1])
+
+    # ------------------------------------------------------------------ modes
+
+    def mode_latents(self, vae: TrajectoryVAE) -> ModeLatents:
+        """Per-mode mean latent (mean of its training behaviors' encoder means).
+
+        Mode ids are the training episodes' labels (task strings ``"mode <id>: <name>"`` or
+        ``meta/mode_labels.json``). Without labels (e.g. a dataset of language instructions) the modes are
+        discovered by clustering the training episodes (:meth:`discover_modes`; ids are then cluster ids, and a
+        warning says so). With gripper-segmented behaviors (several per episode) each mode gets one mean per
+        phase, [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
+        """
+        if len(self.mode) == 0:
+            raise ValueError("mode_latents() needs the training behaviors: build the policy with dataset_meta "
+                             "(lerobot-train does) or load a checkpoint")
+        if not bool((self.mode >= 0).any()):
+            found = self.discover_modes(vae)
+            logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
+                           "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
+                           "ids, see `lerobot-pdp latent-map`)", found.k)
+            return ModeLatents(found.means, discovered=True)
+        with torch.no_grad():
+            z = self.latents(vae)
+        return labelled_mode_latents(z, self.mode, self.phase(), self.config.mode_names)
+
+    def discover_modes(self, vae: TrajectoryVAE, k: int | None = None, max_k: int | None = None, seed: int = 0,
+                       space: str = "traces") -> DiscoveredModes:
+        """Cluster the training episodes: the modes of a dataset without mode labels.
+
+        Args:
+            k: number of clusters; None finds it (``"traces"``: HDBSCAN; ``"latents"``: silhouette score
+                over 2..``max_k``).
+            max_k: ``space="latents"`` only: largest k tried; None = half the training episodes (at most
+                ``modes.MAX_K_LIMIT``).
+            seed: k-means seed of ``space="latents"`` (the result is deterministic for a given policy and seed).
+            space: ``"traces"`` clusters the episodes by their behavior traces' soft-DTW divergences (the
+                similarity the latents are trained to reproduce, without the distortion of a low-dimensional
+                map); ``"latents"`` by their latents. See :mod:`lerobot_pdp.modes`.
+
+        Returns:
+            :class:`~lerobot_pdp.modes.DiscoveredModes`: ``labels`` (training episode index -> cluster id),
+            ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k``, silhouette scores,
+            and the episodes that joined a cluster as outliers. The result is cached until the bank or the
+            latents change.
+        """
+        if space not in SPACES:
+            raise ValueError(f"space must be one of {SPACES}, got {space!r}")
+        if len(self.episode) == 0:
+            raise ValueError("discover_modes() needs the training behaviors: build the policy with dataset_meta "
+                             "or load a checkpoint")
+        with torch.no_grad():
+            z = self.latents(vae).cpu().numpy()
+        key = (k, max_k, seed, space, hash(z.tobytes()))
+        if self._discovered is None or self._discovered[0] != key:
+            distances = None
+            if space == "traces":  # delta^X, stored with the bank (one-hot latents store none: computed here)
+                distances = self.distances.detach().cpu().numpy().astype(np.float64)
+                if self.config.latent_type == "onehot" or distances.shape != (len(z), len(z)):
+                    cfg = self.config
+                    distances = trace_distances(self.traces.cpu().numpy(), cfg.sdtw_gamma, cfg.sdtw_normalize,
+                                                progress=False)
+            self._discovered = (key, discover(z, self.episode.cpu().numpy(), self.phase().cpu().numpy(), k, max_k,
+                                              seed, distances))
+        return self._discovered[1]
