@@ -22,7 +22,7 @@ import torch
 from lerobot.robots.utils import make_robot_from_config
 from policies import small_policy
 
-from lerobot_pdp import PDPConfig
+from lerobot_pdp import PDPConfig, PDPPolicy
 from lerobot_pdp.robots import PDPSimConfig
 from lerobot_pdp.robots.rollout_hooks import check_policy_inputs
 from lerobot_pdp.steering import SteerFile, apply_steering, write_steering
@@ -537,3 +537,33 @@ def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(
                       timeout=300, env={**CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home")})
     assert f"adapted checkpoint {adapted}: latent {latent}" in rollout.stdout + rollout.stderr
     assert len(_outcomes(outcomes)) == 1
+
+
+@pytest.mark.slow
+def test_a_taught_checkpoint_steers_to_its_new_mode_in_lerobot_eval(untrained_reach_around, tmp_path):
+    """``lerobot-pdp teach`` (a demonstration of a validation scene's new route, recorded with its way-points) ->
+    ``lerobot-eval --policy.path=TAUGHT --policy.steer_mode=<new mode>``: real processes; the taught checkpoint
+    knows the new mode by id and name, and the old modes keep theirs."""
+    from conftest import lerobot_cli, run_cli
+
+    from lerobot_pdp.envs.recording import make_dataset
+
+    ckpt, data = untrained_reach_around
+    demo = make_dataset("reach-around", tmp_path / "demo", scene="val3", episodes_per_mode=1, waypoints="scene",
+                        progress=False)
+    taught = tmp_path / "taught"
+    proc = run_cli([lerobot_cli("lerobot-pdp"), "teach", str(ckpt), "--demo", str(demo), "--data", str(data),
+                    "--steps", "3", "--name", "val3 route", "--out", str(taught)], timeout=300)
+    assert "mode 8" in proc.stdout, proc.stdout + proc.stderr
+    info = json.loads((taught / "teaching.json").read_text())
+    assert info["mode"] == 8 and info["mode_name"] == "val3 route" and (taught / "policy_preprocessor.json").is_file()
+    out = tmp_path / "eval"
+    run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={taught}", "--policy.steer_mode=8",
+             "--env.type=pdp_reach_around", "--env.scene=val3", "--policy.device=cpu", "--eval.n_episodes=1",
+             "--eval.batch_size=1", f"--output_dir={out}"], timeout=600)
+    assert json.loads(next(out.rglob("eval_info.json")).read_text())["overall"]["n_episodes"] == 1
+    policy = PDPPolicy.from_pretrained(taught)
+    base = PDPPolicy.from_pretrained(ckpt)
+    for m, z in base.mode_latents().items():
+        torch.testing.assert_close(policy.mode_latents()[m], z, rtol=0, atol=1e-6)
+    assert policy.mode_latents().names[8] == "val3 route"
