@@ -46,6 +46,9 @@ CHECKPOINT_KEYS = {"traces": "behavior_traces", "episode": "behavior_episode", "
                    "global_start": "behavior_global_start", "end": "behavior_end", "mode": "behavior_mode",
                    "distances": "trace_distance_matrix", "kappa": "geo_kappa"}
 DATASET_SIZED = ("traces", "episode", "start", "global_start", "end", "mode", "distances")
+# The latents taught behaviours were taught at, [n_taught, d_z] (the bank's last rows), and their checkpoint key:
+# not in the checksum, so that a bank's digest is the same as before taught modes existed.
+TAUGHT_KEY = "taught_latents"
 # global_start of a taught behaviour: it has no frames in the training dataset
 TAUGHT_START = -1
 # A latent farther than this from every training latent, in RMS standard deviations of them, is an outlier.
@@ -93,6 +96,7 @@ class BehaviorBank(nn.Module):
         self.register_buffer("mode", torch.zeros(0, dtype=torch.long))
         self.register_buffer("distances", torch.zeros(0, 0))
         self.register_buffer("kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
+        self.register_buffer("taught", torch.zeros(0, cfg.latent_dim))
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
 
     # ------------------------------------------------------------------ filling it
@@ -129,13 +133,17 @@ class BehaviorBank(nn.Module):
         for name in DATASET_SIZED:
             if CHECKPOINT_KEYS[name] in shapes:
                 setattr(self, name, torch.zeros(shapes[CHECKPOINT_KEYS[name]], dtype=getattr(self, name).dtype))
+        if TAUGHT_KEY in shapes:
+            self.taught = torch.zeros(shapes[TAUGHT_KEY])
         self._discovered = None
 
-    def append(self, traces: np.ndarray, segments: list[tuple[int, int]], name: str) -> int:
+    def append(self, traces: np.ndarray, segments: list[tuple[int, int]], name: str, latents: Tensor) -> int:
         """A taught demonstration's phases (``traces`` [M, L, d] with their frame ``segments``) join the bank as a
-        new episode of a new mode (one past the last of each), at ``TAUGHT_START``; delta^X gains their soft-DTW
+        new episode of a new mode (one past the last of each), at ``TAUGHT_START``, acting under ``latents``
+        [M, d_z] (kept: :meth:`latents` returns them for these behaviours); delta^X gains their soft-DTW
         distances (kappa stays), and the config's ``mode_names`` the new mode's ``name``. Returns the new mode id."""
         cfg = self.config
+        self.taught = torch.cat([self.taught, latents.to(self.taught)])
         traces = torch.as_tensor(traces, dtype=torch.float32, device=self.traces.device)
         n = len(traces)
         mode = int(self.mode.max()) + 1
@@ -222,7 +230,17 @@ class BehaviorBank(nn.Module):
             modes = self.mode if ids is None else self.mode[ids]
             return F.one_hot(modes, self.config.latent_dim).float()
         traces = self.traces if ids is None else self.traces[ids]
-        return vae.encode(traces)[0]
+        z = vae.encode(traces)[0]
+        if len(self.taught):  # taught behaviours (the last rows) act under the latent they were taught at
+            first = len(self.traces) - len(self.taught)
+            idx = torch.arange(len(self.traces), device=z.device) if ids is None else ids.to(z.device)
+            pinned = self.taught.to(z)[(idx - first).clamp_min(0)]
+            z = torch.where((idx >= first).unsqueeze(-1), pinned, z)
+        return z
+
+    def place_taught(self, latents: Tensor) -> None:
+        """Move the last taught behaviours' latents (one per phase of the last taught mode) to ``latents``."""
+        self.taught[len(self.taught) - len(latents):] = latents.to(self.taught)
 
     def default_latents(self, vae: TrajectoryVAE, batch_size: int) -> Tensor:
         """The latent a policy acts under when none is active, [batch_size, d_z] on the CPU (see

@@ -29,7 +29,7 @@ from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
 from .atomic import staging_dir
-from .behavior_bank import CHECKPOINT_KEYS
+from .behavior_bank import CHECKPOINT_KEYS, TAUGHT_KEY
 from .checkpoint_files import damaged_weights, read_config_json, read_weight_shapes
 from .configuration_pdp import apply_legacy_defaults
 
@@ -134,18 +134,20 @@ def flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix:
     for key in [k for k in state_dict if k.startswith(prefix + "model.")]:
         name = key[len(prefix) + len("model."):]
         if name.startswith("bank."):
-            name = CHECKPOINT_KEYS[name[len("bank."):]]
+            name = {**CHECKPOINT_KEYS, "taught": TAUGHT_KEY}[name[len("bank."):]]
         state_dict[prefix + name] = state_dict.pop(key)
 
 
 def nest_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, *args) -> None:
     """The inverse of :func:`flatten_model_keys` when a checkpoint is loaded."""
-    bank = {key: "bank." + name for name, key in CHECKPOINT_KEYS.items()}
+    bank = {key: "bank." + name for name, key in {**CHECKPOINT_KEYS, "taught": TAUGHT_KEY}.items()}
     for key in [k for k in state_dict if k.startswith(prefix) and not k.startswith((prefix + "stats.", prefix + "model."))]:
         name = key[len(prefix):]
         state_dict[prefix + "model." + bank.get(name, name)] = state_dict.pop(key)
     # saved before the training error was tracked: no reference (FitResult.error_ratio stays None), no warning
     state_dict.setdefault(prefix + "model.train_loss_dp", torch.tensor(float("nan")))
+    # saved before modes could be taught: none taught
+    state_dict.setdefault(prefix + "model.bank.taught", torch.zeros(0, module.config.latent_dim))
 
 
 def write_adaptation(steering: Any, directory: Path) -> bool:

@@ -368,7 +368,7 @@ def _checkpoint_config(checkpoint: Path):
 
 
 def add_teach_parser(sub: argparse._SubParsersAction) -> None:
-    from lerobot_pdp.teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS
+    from lerobot_pdp.teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LATENTS, TEACH_LR, TEACH_STEPS
 
     p = sub.add_parser(
         "teach",
@@ -392,6 +392,9 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=TEACH_LR, help=f"their Adam step size (default {TEACH_LR:g})")
     p.add_argument("--demo-share", type=float, default=TEACH_DEMO_SHARE,
                    help=f"the demonstration's share of each batch (default {TEACH_DEMO_SHARE:g})")
+    p.add_argument("--latent", choices=TEACH_LATENTS, default=TEACH_LATENT,
+                   help="the new mode's latent: the encoder's mean of the demonstration, or where the latent "
+                   f"geometry puts it against the training latents (default {TEACH_LATENT})")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device to fine-tune on (default cpu)")
     p.set_defaults(func=cmd_teach)
@@ -402,7 +405,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
 
     out, res = teach_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, training_data=args.data,
                                 steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
-                                name=args.name, device=args.device)
+                                latent=args.latent, name=args.name, device=args.device)
     print(f"wrote {out}: mode {res.mode}, latent {res.z.tolist()} ({res.nearest_spreads:.1f} spreads from the "
           f"nearest training latent), {res.steps} steps in {res.seconds:.0f} s; steer with --policy.steer_mode="
           f"{res.mode}")

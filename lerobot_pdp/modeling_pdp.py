@@ -52,7 +52,7 @@ from .outcome_scores import Score
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering
-from .teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS, TeachResult, teach_new_mode
+from .teaching import TeachResult, teach_new_mode
 
 logger = logging.getLogger(__name__)
 
@@ -289,13 +289,11 @@ class PDPPolicy(PreTrainedPolicy):
             self.steering.activate(result.latent, provenance=search_provenance(result))
         return result
 
-    def teach(self, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
-              demo_share: float = TEACH_DEMO_SHARE, seed: int = 0, name: str | None = None,
-              progress: bool = False) -> TeachResult:
+    def teach(self, episode: Episode, training_data: str | Path, **settings: Any) -> TeachResult:
         """Add one demonstration of a route no latent makes as a new mode (``result.mode``), rehearsing
-        ``training_data`` (the policy's training dataset): :func:`lerobot_pdp.teaching.teach_new_mode`."""
-        return teach_new_mode(self, episode, training_data, steps=steps, lr=lr, demo_share=demo_share, seed=seed,
-                              name=name, progress=progress)
+        ``training_data`` (the policy's training dataset); ``settings`` (steps, lr, demo_share, latent, seed, name,
+        progress): :func:`lerobot_pdp.teaching.teach_new_mode`."""
+        return teach_new_mode(self, episode, training_data, **settings)
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:
         """The (normalised) training-style windows of one demonstration, each tagged with its phase, what L_fit

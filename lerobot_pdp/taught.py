@@ -21,7 +21,7 @@ from .atomic import staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
-from .teaching import TEACH_DEMO_SHARE, TEACH_LR, TEACH_STEPS, TeachResult
+from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +47,8 @@ def training_data_of(checkpoint: str | Path) -> Path:
 
 def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, training_data: str | Path | None = None,
                      steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
-                     seed: int = 0, name: str | None = None, device: str = "cpu") -> tuple[Path, TeachResult]:
+                     seed: int = 0, name: str | None = None, latent: str = TEACH_LATENT,
+                     device: str = "cpu") -> tuple[Path, TeachResult]:
     """Teach ``base`` one demonstration as a new mode and write the taught checkpoint ``out`` (which must not
     exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names."""
     from .modeling_pdp import PDPPolicy
@@ -65,7 +66,7 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
     policy = PDPPolicy.from_pretrained(base, config=cfg)
     result = policy.teach(episode, data, steps=steps, lr=lr, demo_share=demo_share, seed=seed, name=name,
-                          progress=True)
+                          latent=latent, progress=True)
     policy.eval()
     info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""))
     with staging_dir(out, prefix=".pdp-teach-") as tmp:

@@ -47,6 +47,8 @@ TEACH_STEPS = 1000
 TEACH_LR = 1e-4
 TEACH_DEMO_SHARE = 0.25
 TEACH_BATCH_SIZE = 64
+TEACH_LATENTS = ("encoder", "geometry")
+TEACH_LATENT = "encoder"
 
 
 @dataclass
@@ -67,7 +69,7 @@ class TeachResult:
 
 def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
           demo_share: float = TEACH_DEMO_SHARE, batch_size: int = TEACH_BATCH_SIZE, seed: int = 0,
-          name: str | None = None, progress: bool = False) -> TeachResult:
+          name: str | None = None, latent: str = TEACH_LATENT, progress: bool = False) -> TeachResult:
     """Add one demonstration to ``policy`` (a ``PDPPolicy``, changed in place) as a new mode; see the module.
 
     Args:
@@ -76,9 +78,14 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
         steps, lr, batch_size: Adam steps on theta, their step size, windows per step.
         demo_share: the demonstration's share of each batch; the rest rehearses the training windows.
         name: the new mode's name (default: where the demonstration came from).
+        latent: where the new mode's latent goes: ``"encoder"``, the encoder's mean of the demonstration, or
+            ``"geometry"``, from there to where the geometry term the encoder was trained with puts it
+            against the fixed training latents (:func:`geometric_latent`).
     """
     model, cfg = policy.model, policy.config
     _check_settings(steps, lr, demo_share, batch_size)
+    if latent not in TEACH_LATENTS:
+        raise ValueError(f"teach: latent must be one of {TEACH_LATENTS}, got {latent!r}")
     if cfg.latent_type != "continuous":
         raise ValueError(f"teach needs a continuous latent; this policy's latent_type is {cfg.latent_type!r}")
     if bool((model.bank.mode == UNLABELED).any()):
@@ -93,19 +100,43 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     rehearsal, z_old = rehearsal_windows(policy, training_data)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
+    mode = model.bank.append(_traces(cfg, demo), demo.segments, name or _demo_name(episode), z_new)  # + delta^X
+    if latent == "geometry":
+        delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
+        z_new = geometric_latent(z_new, z_bank, delta, float(model.bank.kappa))
+        model.bank.place_taught(z_new)
     spread = float(z_bank.var(0).mean().sqrt()) if len(z_bank) > 1 else float("nan")  # as set_latent's warning
     nearest = float(torch.cdist(z_new, z_bank).min()) / spread
     losses = _finetune(model, cfg, demo_win, z_new[demo_win.segment], rehearsal, z_old, steps, lr, demo_share,
                        batch_size, seed, progress)
-    mode = model.bank.append(_traces(cfg, demo), demo.segments, name or _demo_name(episode))
     policy.steering.activate(None)
     result = TeachResult(mode, z_new, losses, steps, len(demo_win.actions), len(rehearsal.actions), nearest,
                          time.perf_counter() - t0, {"steps": steps, "lr": lr, "demo_share": demo_share,
-                                                    "batch_size": batch_size, "seed": seed})
+                                                    "batch_size": batch_size, "seed": seed, "latent": latent})
     logger.info("taught mode %d (%s) in %.1f s: latent %s, %.1f spreads from the nearest training latent; L_DP "
                 "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, z_new.tolist(), nearest,
                 _mean(losses[:20]), _mean(losses[-20:]))
     return result
+
+
+def geometric_latent(z0: Tensor, z_old: Tensor, delta: Tensor, kappa: float, steps: int = 500,
+                     lr: float = 0.05) -> Tensor:
+    """The latents [M, d_z] that best satisfy the geometry term the encoder was trained with,
+    ``sum_j (|z - z_j| - kappa * delta_j)^2``, against the fixed training latents ``z_old`` [N, d_z] (an
+    out-of-sample step of metric MDS), from ``z0``; ``delta`` [M, N]: the new traces' soft-DTW divergences to
+    the training traces. Why: an encoder trained on a few hundred traces extrapolates poorly to a route unlike
+    them, and may put it next to a training latent whose behaviour it does not share."""
+    target = kappa * delta.float()
+    with torch.inference_mode(False), torch.enable_grad():
+        z = z0.detach().clone().float().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=lr)
+        for _ in range(steps):
+            d = (z[:, None] - z_old[None].float()).pow(2).sum(-1).add(1e-12).sqrt()
+            loss = (d - target).pow(2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    return z.detach()
 
 
 def _check_settings(steps: int, lr: float, demo_share: float, batch_size: int) -> None:

@@ -156,3 +156,30 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     assert cli(["teach", str(tmp_path / "adapted"), *args[2:], "--out", str(tmp_path / "t")]) == 2
     assert "is an adapted checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
+
+
+def test_a_latent_placed_by_the_geometry_is_kept_with_the_checkpoint(synthetic_meta, tmp_path):
+    """``latent="geometry"``: the new mode's latent satisfies the encoder's geometry term against the fixed training
+    latents better than the encoder's own latent does; the bank keeps it (mode_latents, save / load)."""
+    from lerobot_pdp.teaching import geometric_latent
+
+    p = small_policy(synthetic_meta)
+    z_old = p.behavior_latents().detach()
+    demo = new_route()
+    res = p.teach(demo, synthetic_meta.root, steps=1, latent="geometry")
+    bank = p.model.bank
+    delta = bank.distances[-1:, :-1]
+
+    def stress(z):
+        return float(((torch.cdist(z, z_old) - bank.kappa * delta) ** 2).mean())
+
+    z_enc = p.encode(demo)[None]
+    assert stress(res.z) < stress(z_enc) and not torch.allclose(res.z, z_enc)
+    torch.testing.assert_close(p.mode_latents()[4], res.z[0])
+    torch.testing.assert_close(geometric_latent(z_enc, z_old, delta, float(bank.kappa)), res.z)
+    p.save_pretrained(tmp_path / "taught")
+    q = PDPPolicy.from_pretrained(tmp_path / "taught")
+    torch.testing.assert_close(q.mode_latents()[4], res.z[0])
+    torch.testing.assert_close(q.behavior_latents(), p.behavior_latents())
+    with pytest.raises(ValueError, match="latent must be one of"):
+        p.teach(demo, synthetic_meta.root, steps=1, latent="far")

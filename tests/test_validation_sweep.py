@@ -239,6 +239,7 @@ def test_teach_tiny(tmp_path, monkeypatch):
     from lerobot_pdp.benchmark import teaching
 
     monkeypatch.setattr(teaching, "TEACH_CANDIDATES", ({"steps": 3, "lr": 1e-4},))
+    monkeypatch.setattr(teaching, "TEACH_EXTRA", {})
     # BC is taught by the same function as DP (finetune_with_rehearsal): two methods keep the test short
     cfg = BenchmarkConfig(env="avoiding", out=tmp_path / "teach", seeds=[100], rollouts=2, methods=["pdp", "dp"],
                           steps=20, episodes_per_mode=1, scenes=(0, "val4"), split="validation", figures=False,
