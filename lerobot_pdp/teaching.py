@@ -43,7 +43,7 @@ from .latent_fitting import DemoWindows
 logger = logging.getLogger(__name__)
 
 # Defaults of teach_new_mode(), chosen on the validation scenes (docs/experiments.md, "Teaching a new mode").
-TEACH_STEPS = 1000
+TEACH_STEPS = 3000
 TEACH_LR = 1e-4
 TEACH_DEMO_SHARE = 0.25
 TEACH_BATCH_SIZE = 64

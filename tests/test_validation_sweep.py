@@ -259,3 +259,38 @@ def test_teach_tiny(tmp_path, monkeypatch):
         run_benchmark(replace(cfg, env="reach-around", scenes=split_scenes("reach-around", "validation")))
     with pytest.raises(ValueError, match=r"evaluate them too \(--scenes\)"):
         run_benchmark(replace(cfg, scenes=(0, "val1")))
+
+
+def test_teaching_is_chosen_for_the_new_route_among_settings_that_keep_scene_0():
+    from lerobot_pdp.benchmark.teaching import choose_teaching
+
+    def run(new: float, kept: float) -> dict:
+        return {"new_route": {"success": new}, "scene0": {"success": kept}}
+
+    base = {"success": 0.9}
+    runs = {"val4 steps=300 lr=0.0001": run(0.2, 0.9), "val4 steps=1000 lr=0.001": run(1.0, 0.8),
+            "val4 steps=3000 lr=0.0001": run(0.7, 0.86), "val4 steps=1000 lr=0.0001": run(0.7, 0.95)}
+    # 1000 at 1e-3 takes the route but loses 10 points of scene 0; of the two at 70 %, the first listed
+    assert choose_teaching(runs, base) == "steps=3000 lr=0.0001"
+    assert choose_teaching({"val4 steps=1": run(1.0, 0.5)}, base) is None
+
+
+def test_frozen_teaching_settings_are_what_the_committed_records_chose():
+    from pathlib import Path
+
+    from lerobot_pdp.benchmark import teaching
+
+    root = Path(__file__).resolve().parents[1]
+    assert set(settings.TEACH_FROZEN) == set(settings.TEACH_RECORDS)
+    for key, files in settings.TEACH_RECORDS.items():
+        chosen = {}
+        for rel in files:
+            record = json.loads((root / rel).read_text())
+            assert record["env"] == key[0] and record["split"] == "validation"
+            for name, seeds in record["runs"].items():
+                (res,) = seeds.values()
+                cand = next(c for c in teaching.TEACH_CANDIDATES + teaching.TEACH_EXTRA.get(name, ())
+                            if res["chosen"] == f"steps={c['steps']} lr={c['lr']:g}"
+                            + (f" latent={c['latent']}" if "latent" in c else ""))
+                chosen[name] = cand
+        assert settings.TEACH_FROZEN[key] == chosen

@@ -39,6 +39,12 @@ TEACH_SCENES: dict[str, dict[str, tuple[int | str, ...]]] = {
 }
 
 
+# What --teach chose per method on the validation split (benchmark/teaching.py: the best new route among the
+# settings that keep scene 0 within 5 points), frozen before a test run, per (env, budget), and the record.
+TEACH_FROZEN: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
+TEACH_RECORDS: dict[tuple[str, str], str] = {}
+
+
 def teach_scenes(env: str, split: str) -> tuple[int | str, ...]:
     """The zero-mode scenes of ``split`` on ``env`` that ``--teach`` teaches (an error if there are none)."""
     scenes = TEACH_SCENES.get(env, {}).get(split, ())

@@ -21,7 +21,7 @@ from ..episodes import read_episodes
 from .data import demo_episode
 from .evaluation import evaluate_scene0, summarize_rollouts
 from .rollouts import run_rollouts
-from .settings import BenchmarkConfig, Method, frozen_for, scene_seed_offset, teach_scenes
+from .settings import TEACH_FROZEN, BenchmarkConfig, Method, budget_key, scene_seed_offset, teach_scenes
 from .training import load_policy
 
 # The settings compared on the validation scenes, the same grid for every method (the same tuning budget):
@@ -106,17 +106,38 @@ def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, d
             print(f"[teach] {method.name} seed {seed} {key}: new route {runs[key]['new_route']['success']:.0%}, "
                   f"scene 0 {kept['success']:.0%} (base {base['success']:.0%}), {info['teach_seconds']:.0f} s")
             write_text_atomic(out, json.dumps(result, indent=1))
+    result["chosen"] = choose_teaching(runs, base)
+    write_text_atomic(out, json.dumps(result, indent=1))
     return result
 
 
+RETENTION_POINTS = 5.0  # scene-0 success may drop by at most this many points for a setting to be chosen
+
+
+def choose_teaching(runs: dict[str, dict[str, Any]], base: dict[str, Any]) -> str | None:
+    """The key of the chosen run: the best new-route success (mean over scenes of the same setting) among the
+    settings whose scene 0 stays within ``RETENTION_POINTS`` of the untaught checkpoint's on every scene; ties go
+    to the setting listed first. None when no setting keeps scene 0 (the record says so)."""
+    settings: dict[str, list[dict[str, Any]]] = {}
+    for key, run in runs.items():
+        settings.setdefault(key.split(" ", 1)[1], []).append(run)
+    best, best_score = None, -1.0
+    for setting, rows in settings.items():
+        kept = all(100 * (r["scene0"]["success"] - base["success"]) >= -RETENTION_POINTS for r in rows)
+        score = sum(r["new_route"]["success"] for r in rows) / len(rows)
+        if kept and score > best_score:
+            best, best_score = setting, score
+    return best
+
+
 def teach_candidates(env: str, cfg: BenchmarkConfig, method: str) -> tuple[dict[str, Any], ...]:
-    """Every candidate on the validation split; the frozen one (``FROZEN[...][method]["teach"]``) on the test split."""
+    """Every candidate on the validation split; the frozen one (``settings.TEACH_FROZEN``) on the test split."""
     if cfg.split == "validation":
         return TEACH_CANDIDATES + TEACH_EXTRA.get(method, ())
-    chosen = frozen_for(env, cfg.quick, method, cfg.obs).get("teach")
+    chosen = TEACH_FROZEN.get((env, budget_key(cfg.quick, cfg.obs)), {}).get(method)
     if chosen is None:
         raise ValueError(f"--teach on the test split: no teaching setting of {method} on {env} is frozen yet "
-                         "(settings.FROZEN[...][method]['teach']): choose it with --split validation --teach first")
+                         "(settings.TEACH_FROZEN): choose it with --split validation --teach first")
     return (chosen,)
 
 
@@ -163,4 +184,9 @@ def teach_markdown(record: dict[str, Any]) -> str:
                     f"{run['new_route']['success']:.1%} | {kept['success']:.1%} ({base['success']:.1%}) | "
                     f"{'-' if acc is None else f'{acc:.1%}'} | {kept['coverage']:.0%} | "
                     f"{run['teach_seconds']:.0f} |")
+    lines.append("")
+    for name, seeds in record["runs"].items():
+        for seed, res in seeds.items():
+            lines.append(f"Chosen for {name} (seed {seed}): {res.get('chosen') or 'none keeps scene 0'} (the best new "
+                         f"route among the settings whose scene 0 drops by at most {RETENTION_POINTS:g} points).")
     return "\n".join(lines) + "\n"
