@@ -4,9 +4,10 @@ Fitting z (``adaptation.py``) moves nothing but the latent, so it can only pick 
 denoiser already knows. When the fit's error ratio says the route is out of reach, :func:`teach_new_mode` adds the
 demonstration as a new mode instead:
 
-- **Its latent** is the frozen encoder's mean of its trace (one per phase for segmented policies): the encoder
-  and decoder (phi, psi) do not move, so every training behaviour keeps its latent, each old mode is selected
-  by the latent it had, and the new route lands where the soft-DTW geometry the encoder learned puts it.
+- **Its latent** is the frozen encoder's mean of its trace (one per phase for segmented policies), or with
+  ``latent="geometry"`` where the encoder's geometry term puts it against the training latents: the encoder
+  and decoder (phi, psi) do not move, so every training behaviour keeps its latent and each old mode is
+  selected by the latent it had. The bank keeps the new latent (``taught_latents`` in the checkpoint).
 - **It joins the behaviour bank** as mode ``max + 1`` (its trace, frame ranges, soft-DTW distances and name;
   ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
 - **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
@@ -42,7 +43,8 @@ from .latent_fitting import DemoWindows
 
 logger = logging.getLogger(__name__)
 
-# Defaults of teach_new_mode(), chosen on the validation scenes (docs/experiments.md, "Teaching a new mode").
+# Defaults of teach_new_mode(), chosen on avoiding's zero-mode validation scene (docs/experiments.md, "Teaching a
+# new mode where no latent reaches the route").
 TEACH_STEPS = 3000
 TEACH_LR = 1e-4
 TEACH_DEMO_SHARE = 0.25
