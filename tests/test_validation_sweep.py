@@ -271,8 +271,9 @@ def test_teaching_is_chosen_for_the_new_route_among_settings_that_keep_scene_0()
     runs = {"val4 steps=300 lr=0.0001": run(0.2, 0.9), "val4 steps=1000 lr=0.001": run(1.0, 0.8),
             "val4 steps=3000 lr=0.0001": run(0.7, 0.86), "val4 steps=1000 lr=0.0001": run(0.7, 0.95)}
     # 1000 at 1e-3 takes the route but loses 10 points of scene 0; of the two at 70 %, the first listed
-    assert choose_teaching(runs, base) == "steps=3000 lr=0.0001"
-    assert choose_teaching({"val4 steps=1": run(1.0, 0.5)}, base) is None
+    assert choose_teaching(runs, base) == ("steps=3000 lr=0.0001", True)
+    # none keeps scene 0: the best new route among all, said so
+    assert choose_teaching({"val4 steps=1": run(0.2, 0.5), "val4 steps=2": run(0.4, 0.1)}, base) == ("steps=2", False)
 
 
 def test_frozen_teaching_settings_are_what_the_committed_records_chose():

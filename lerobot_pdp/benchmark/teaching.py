@@ -106,7 +106,7 @@ def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, d
             print(f"[teach] {method.name} seed {seed} {key}: new route {runs[key]['new_route']['success']:.0%}, "
                   f"scene 0 {kept['success']:.0%} (base {base['success']:.0%}), {info['teach_seconds']:.0f} s")
             write_text_atomic(out, json.dumps(result, indent=1))
-    result["chosen"] = choose_teaching(runs, base)
+    result["chosen"], result["chosen_keeps_scene0"] = choose_teaching(runs, base)
     write_text_atomic(out, json.dumps(result, indent=1))
     return result
 
@@ -114,20 +114,19 @@ def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, d
 RETENTION_POINTS = 5.0  # scene-0 success may drop by at most this many points for a setting to be chosen
 
 
-def choose_teaching(runs: dict[str, dict[str, Any]], base: dict[str, Any]) -> str | None:
-    """The key of the chosen run: the best new-route success (mean over scenes of the same setting) among the
-    settings whose scene 0 stays within ``RETENTION_POINTS`` of the untaught checkpoint's on every scene; ties go
-    to the setting listed first. None when no setting keeps scene 0 (the record says so)."""
+def choose_teaching(runs: dict[str, dict[str, Any]], base: dict[str, Any]) -> tuple[str, bool]:
+    """The chosen setting (a run key without its scene) and whether it keeps scene 0: the best new-route success
+    (mean over the scenes of a setting) among the settings whose scene 0 stays within ``RETENTION_POINTS`` of the
+    untaught checkpoint's on every scene, or among all settings when none does; ties go to the one listed first."""
     settings: dict[str, list[dict[str, Any]]] = {}
     for key, run in runs.items():
         settings.setdefault(key.split(" ", 1)[1], []).append(run)
-    best, best_score = None, -1.0
-    for setting, rows in settings.items():
-        kept = all(100 * (r["scene0"]["success"] - base["success"]) >= -RETENTION_POINTS for r in rows)
-        score = sum(r["new_route"]["success"] for r in rows) / len(rows)
-        if kept and score > best_score:
-            best, best_score = setting, score
-    return best
+    kept = {s: all(100 * (r["scene0"]["success"] - base["success"]) >= -RETENTION_POINTS for r in rows)
+            for s, rows in settings.items()}
+    pool = [s for s in settings if kept[s]] or list(settings)
+    best = max(pool, key=lambda s: (sum(r["new_route"]["success"] for r in settings[s]) / len(settings[s]),
+                                    -list(settings).index(s)))
+    return best, kept[best]
 
 
 def teach_candidates(env: str, cfg: BenchmarkConfig, method: str) -> tuple[dict[str, Any], ...]:
@@ -187,6 +186,7 @@ def teach_markdown(record: dict[str, Any]) -> str:
     lines.append("")
     for name, seeds in record["runs"].items():
         for seed, res in seeds.items():
-            lines.append(f"Chosen for {name} (seed {seed}): {res.get('chosen') or 'none keeps scene 0'} (the best new "
-                         f"route among the settings whose scene 0 drops by at most {RETENTION_POINTS:g} points).")
+            kept = "" if res.get("chosen_keeps_scene0") else "; no setting keeps scene 0, so among all"
+            lines.append(f"Chosen for {name} (seed {seed}): {res.get('chosen')} (the best new route among the settings "
+                         f"whose scene 0 drops by at most {RETENTION_POINTS:g} points{kept}).")
     return "\n".join(lines) + "\n"
