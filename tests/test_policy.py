@@ -408,7 +408,7 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
 def test_checkpoint_keys_stay_the_first_release_keys():
     """The behavior bank is a submodule of the model, but checkpoints keep the first release's flat keys
     (``behavior_traces``, ``trace_distance_matrix``, ``geo_kappa``, ...): ``tests/data/pdp_checkpoint_v1`` loads
-    with every key matched, and the loaded policy's weights have the file's keys (and one added since)."""
+    with every key matched, and the loaded policy's weights have the file's keys (and two added since)."""
     from pathlib import Path
 
     from safetensors import safe_open
@@ -420,7 +420,9 @@ def test_checkpoint_keys_stay_the_first_release_keys():
         keys = set(f.keys())
     assert set(CHECKPOINT_KEYS.values()) <= keys
     p = PDPPolicy.from_pretrained(ckpt, strict=True)
-    assert set(p.state_dict()) == keys | {"train_loss_dp"}  # the training error, tracked since
+    # the training error and the latents of taught modes (none here), tracked since
+    assert set(p.state_dict()) == keys | {"train_loss_dp", "taught_latents"}
+    assert p.state_dict()["taught_latents"].shape == (0, p.config.latent_dim)
     assert len(p.model.bank.traces) == len(p.model.bank.distances) == 12
 
 
