@@ -220,6 +220,14 @@ def cmd_steer(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_demonstration_arguments(p: argparse.ArgumentParser, written: str) -> None:
+    """The checkpoint, the demonstration (dataset folder and episode) and the ``written`` checkpoint's folder."""
+    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
+    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+    p.add_argument("--out", required=True, type=Path, help=f"the {written} checkpoint folder to write (must not exist)")
+
+
 def add_adapt_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "adapt",
@@ -230,10 +238,7 @@ def add_adapt_parser(sub: argparse._SubParsersAction) -> None:
         "adaptation.json (the demonstration, fit settings, fit error and ratio, date). Use it as any checkpoint: "
         "lerobot-eval / lerobot-rollout --policy.path=OUT; --policy.use_adaptation=false acts as the base.",
     )
-    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
-    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
-    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
-    p.add_argument("--out", required=True, type=Path, help="the adapted checkpoint folder to write (must not exist)")
+    add_demonstration_arguments(p, "adapted")
     p.add_argument("--noise", choices=("none", "chunks"), default=None,
                    help="also fit one sampler noise per chunk (default: the checkpoint's fit_noise)")
     p.add_argument("--steps", type=int, default=None, help="gradient steps on z (default: fit_steps)")
@@ -380,10 +385,7 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
         "(config naming the new mode, weights, processors, teaching.json, model card); steer to the new mode with "
         "--policy.steer_mode=<id>.",
     )
-    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
-    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
-    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
-    p.add_argument("--out", required=True, type=Path, help="the taught checkpoint folder to write (must not exist)")
+    add_demonstration_arguments(p, "taught")
     p.add_argument("--data", type=Path, default=None,
                    help="the dataset the checkpoint was trained on, rehearsed while teaching (default: the one its "
                    "train_config.json names)")
