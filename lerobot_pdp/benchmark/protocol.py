@@ -134,7 +134,8 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     if cfg.teach:
         from .teaching import run_teaching
 
-        res["teach"] = run_teaching(suite, cfg, {n: all_methods[n] for n in names}, ckpts, dataset, demos, out)
+        res["teach"] = run_teaching(suite, cfg, {n: all_methods[n] for n in names}, ckpts, dataset, demos, out,
+                                    method_cfgs)
     if cfg.validate:
         from .validation import validate, validation_markdown
 

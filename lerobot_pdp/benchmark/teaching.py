@@ -75,26 +75,31 @@ def scene0_kept(suite: SuiteEnv, method: Method, policy, pre, post, n: int, seed
 
 def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, demos: dict[str | int, Path],
                       seed: int, out: Path, rollouts: int = 40, rollouts_scene0: int | None = None,
-                      candidates: tuple[dict[str, Any], ...] = TEACH_CANDIDATES) -> dict[str, Any]:
+                      candidates: tuple[dict[str, Any], ...] = TEACH_CANDIDATES,
+                      sampler: dict[str, Any] | None = None) -> dict[str, Any]:
     """Every candidate setting on every scene of ``demos`` for one trained (method, seed); cached in ``out``
-    (a JSON file written after each evaluation, so a run cut short goes on from there)."""
+    (a JSON file written after each evaluation, so a run cut short goes on from there). ``sampler``: keyword
+    arguments of ``load_policy`` (the method's frozen DDIM steps and grid, the device), as its evaluation uses."""
+    sampler = sampler or {}
     result: dict[str, Any] = json.loads(out.read_text()) if out.is_file() else {}
     result.update(method=method.name, seed=seed, rollouts=rollouts)
     rollouts_scene0 = rollouts_scene0 or rollouts
     base = result.setdefault("base_scene0", {})
     if not base:
-        policy, pre, post = load_policy(ckpt)
+        policy, pre, post = load_policy(ckpt, **sampler)
         base.update(scene0_kept(suite, method, policy, pre, post, rollouts_scene0, seed * 10_000))
         write_text_atomic(out, json.dumps(result, indent=1))
     rehearsal = None if method.policy_type == "pdp" else _rehearsal_episodes(data)
     runs = result.setdefault("runs", {})
+    keys = []
     for cand in candidates:
         for scene, demo_root in demos.items():
             key = f"{scene} steps={cand['steps']} lr={cand['lr']:g}" + (f" latent={cand['latent']}" if "latent" in cand
                                                                          else "")
+            keys.append(key)
             if key in runs:
                 continue
-            policy, pre, post = load_policy(ckpt)
+            policy, pre, post = load_policy(ckpt, **sampler)
             old_modes = sorted(policy.mode_latents()) if method.steerable else None
             offset = scene_seed_offset(scene)
             actor, info = teach_policy(method, policy, pre, demo_root, data, seed * 10_000 + offset, cand["steps"],
@@ -106,7 +111,7 @@ def evaluate_teaching(suite: SuiteEnv, method: Method, ckpt: Path, data: Path, d
             print(f"[teach] {method.name} seed {seed} {key}: new route {runs[key]['new_route']['success']:.0%}, "
                   f"scene 0 {kept['success']:.0%} (base {base['success']:.0%}), {info['teach_seconds']:.0f} s")
             write_text_atomic(out, json.dumps(result, indent=1))
-    result["chosen"], result["chosen_keeps_scene0"] = choose_teaching(runs, base)
+    result["chosen"], result["chosen_keeps_scene0"] = choose_teaching({k: runs[k] for k in keys}, base)
     write_text_atomic(out, json.dumps(result, indent=1))
     return result
 
@@ -141,7 +146,8 @@ def teach_candidates(env: str, cfg: BenchmarkConfig, method: str) -> tuple[dict[
 
 
 def run_teaching(suite: SuiteEnv, cfg: BenchmarkConfig, methods: dict[str, Method], ckpts: dict[tuple[str, int], Path],
-                 data: Path, demos: dict[int | str, Path], out: Path) -> dict[str, Any]:
+                 data: Path, demos: dict[int | str, Path], out: Path,
+                 method_cfgs: dict[str, BenchmarkConfig] | None = None) -> dict[str, Any]:
     """``benchmark --teach``: :func:`evaluate_teaching` for every (method, seed) that can be taught (PDP, DP, BC),
     on the split's zero-mode scenes; writes ``teach.json`` and ``teach.md`` in ``out``."""
     scenes = teach_scenes(suite.name, cfg.split)
@@ -152,9 +158,12 @@ def run_teaching(suite: SuiteEnv, cfg: BenchmarkConfig, methods: dict[str, Metho
         if name not in TAUGHT_METHODS:
             continue
         for seed in cfg.seeds:
+            mcfg = (method_cfgs or {}).get(name, cfg)  # the method's frozen sampler, as its evaluation samples
+            sampler = {"inference_steps": mcfg.inference_steps, "timestep_spacing": mcfg.timestep_spacing,
+                       "device": mcfg.device}
             res = evaluate_teaching(suite, method, ckpts[(name, seed)], data, {s: demos[s] for s in scenes}, seed,
                                     out / "runs" / name / f"seed{seed}" / "teach.json", cfg.rollouts, n0,
-                                    teach_candidates(suite.name, cfg, name))
+                                    teach_candidates(suite.name, cfg, name), sampler)
             record["runs"].setdefault(name, {})[str(seed)] = res
     write_text_atomic(out / "teach.json", json.dumps(record, indent=1))
     write_text_atomic(out / "teach.md", teach_markdown(record))
