@@ -37,12 +37,18 @@ logger = logging.getLogger(__name__)
 INITS = ("encoder", "random", "zero")
 
 
+def demonstration_traces(config: PDPConfig, demo: Demonstration) -> np.ndarray:
+    """The behaviour trace X(tau) of each segment of ``demo``, [M, L, d], as the training behaviours' are made."""
+    cfg = config
+    return np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
+                                cfg.trace_normalize) for a, b in demo.segments])
+
+
 def encode_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration) -> Tensor:
     """mu_phi of each segment's trace, [M, d_z] on the CPU (one-hot ablation: the nearest training behavior's
     mode code, as it has no encoder)."""
     cfg = config
-    traces = np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
-                                  cfg.trace_normalize) for a, b in demo.segments])
+    traces = demonstration_traces(cfg, demo)
     with torch.no_grad():
         if cfg.latent_type == "onehot":
             t = torch.as_tensor(traces, dtype=torch.float32, device=model.bank.traces.device)

@@ -33,10 +33,11 @@ import torch
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .behavior import UNLABELED, make_trace, read_episodes, read_training_behaviors
+from .adaptation import demonstration_traces, encode_demonstration
+from .behavior import UNLABELED, read_episodes, read_training_behaviors
 from .behavior_bank import TAUGHT_START
 from .configuration_pdp import PDPConfig
-from .demonstration import Demonstration, Episode, check_recording, read_demonstration
+from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
 from .episodes import read_episode_frames
 from .latent_fitting import DemoWindows
@@ -98,11 +99,11 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     t0 = time.perf_counter()
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
     demo_win = policy._demo_windows(demo)
-    z_new = _encode_segments(model, cfg, demo)
+    z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
     rehearsal, z_old = rehearsal_windows(policy, training_data)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
-    mode = model.bank.append(_traces(cfg, demo), demo.segments, name or _demo_name(episode), z_new)  # + delta^X
+    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name or _demo_name(episode), z_new)  # + delta^X
     if latent == "geometry":
         delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
         z_new = geometric_latent(z_new, z_bank, delta, float(model.bank.kappa))
@@ -164,18 +165,6 @@ def _demo_name(episode: Episode) -> str:
         root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
         return f"taught: episode {int(episode[1])} of {Path(str(root)).name}"
     return "taught"
-
-
-def _traces(cfg: PDPConfig, demo: Demonstration) -> np.ndarray:
-    return np.stack([make_trace(demo.arrays[cfg.trace_key][a:b], cfg.trace_dims, cfg.trace_length,
-                                cfg.trace_normalize) for a, b in demo.segments])
-
-
-def _encode_segments(model: Any, cfg: PDPConfig, demo: Demonstration) -> Tensor:
-    """The frozen encoder's latent of each phase of the demonstration, [M, d_z] on the CPU."""
-    with torch.no_grad():
-        t = torch.as_tensor(_traces(cfg, demo), dtype=torch.float32, device=model.device)
-        return model.vae.encode(t)[0].cpu()
 
 
 def check_training_data(policy: Any, root: str | Path) -> None:
