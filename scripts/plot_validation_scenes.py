@@ -1,5 +1,6 @@
-"""Draw each env's shifted scenes, test (1-3) next to validation (val1, ...), with the one demonstration the
-benchmark gives in each: the open training mode's scripted expert, or the scene's own way-points (black).
+"""Draw each env's shifted scenes, test (1-3, and the zero-mode test scenes of ``--teach``) next to validation
+(val1, ...), with the one demonstration the benchmark gives in each: the open training mode's scripted expert,
+or the scene's own way-points (black).
 
 Shows at a glance that the validation scenes open other modes than scenes 1-2 and that their new routes leave
 the training modes elsewhere than scene 3's. No policy, no training: scripted experts only (a few seconds).
@@ -20,7 +21,7 @@ import numpy as np  # noqa: E402
 
 import lerobot_pdp.envs  # noqa: E402,F401  (registers the suite)
 from lerobot_pdp.benchmark.data import feasible_training_modes  # noqa: E402
-from lerobot_pdp.benchmark.settings import VALIDATION_SCENES  # noqa: E402
+from lerobot_pdp.benchmark.settings import TEACH_SCENES, VALIDATION_SCENES  # noqa: E402
 from lerobot_pdp.envs.plotting import AXES, VIEW_TITLES, draw_scene, mode_color, scene_views  # noqa: E402
 from lerobot_pdp.envs.recording import run_expert_episode  # noqa: E402
 from lerobot_pdp.envs.scene import load_scene  # noqa: E402
@@ -40,7 +41,9 @@ def demonstration(suite: SuiteEnv, scene: int | str) -> tuple[np.ndarray, int | 
 
 def plot_env(env: str, out_dir: Path) -> Path:
     suite = get_suite_env(env)
-    scenes: list[int | str] = [1, 2, 3, *VALIDATION_SCENES[suite.name]]
+    # the test scenes, the zero-mode test scenes only `--teach` evaluates, then the validation scenes
+    teach_test = list(TEACH_SCENES.get(suite.name, {}).get("test", ()))
+    scenes: list[int | str] = [1, 2, 3, *teach_test, *VALIDATION_SCENES[suite.name]]
     views = scene_views(suite)
     fig, axes = plt.subplots(len(views), len(scenes), figsize=(3.2 * len(scenes), 3.2 * len(views)), squeeze=False)
     for c, scene in enumerate(scenes):
@@ -59,7 +62,8 @@ def plot_env(env: str, out_dir: Path) -> Path:
             if r == 0:
                 split = "validation" if isinstance(scene, str) else "test"
                 ax.set_title(f"{split} · {name[0].strip()}\n{name[-1].strip()}\ndemo: {what}", fontsize=8)
-    fig.suptitle(f"{suite.name}: test scenes 1-3 and validation scenes (barriers orange; the scene's one "
+    extra = f" (+ {', '.join(map(str, teach_test))}: zero-mode, --teach only)" if teach_test else ""
+    fig.suptitle(f"{suite.name}: test scenes 1-3{extra} and validation scenes (barriers orange; the scene's one "
                  "demonstration drawn, black = a route no training mode takes)", fontsize=10)
     fig.tight_layout()
     out_dir.mkdir(parents=True, exist_ok=True)

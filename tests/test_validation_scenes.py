@@ -16,6 +16,7 @@ from lerobot_pdp.benchmark.data import demo_root, ensure_demo, feasible_training
 from lerobot_pdp.benchmark.results import aggregate, merge_results, results_markdown
 from lerobot_pdp.benchmark.settings import (
     SCENES,
+    TEACH_SCENES,
     TEST_SEEDS,
     VALIDATION_SCENES,
     VALIDATION_SEEDS,
@@ -36,7 +37,7 @@ from lerobot_pdp.envs.suite import NOVEL, get_suite_env
 # the scene ships the way-points of a new route).
 EXPECTED: dict[str, dict[str, int | None]] = {
     "reach-around": {"val1": 4, "val2": 7, "val3": None, "val4": None},  # right-tight, under-wide
-    "avoiding": {"val1": 13, "val2": 8, "val3": None, "val4": None},  # R-L-2, L-R-1
+    "avoiding": {"val1": 13, "val2": 8, "val3": None, "val4": None, "val5": None},  # R-L-2, L-R-1
     "pick-place": {"val1": 46, "val2": 17, "val3": None, "val4": None},
     "kitchen-microwave": {"val1": 0, "val2": 4, "val3": None},  # front, high-right
 }
@@ -106,6 +107,30 @@ def test_new_routes_differ_from_scene_3(env: str):
             assert any(far), f"{env} {name}: every way-point lies on scene 3's route"
 
 
+TEACH_CASES = [(env, scene) for env, splits in TEACH_SCENES.items() for scenes in splits.values() for scene in scenes]
+
+
+@pytest.mark.parametrize(("env", "scene"), TEACH_CASES)
+def test_teaching_scenes_open_no_training_mode_and_ship_a_new_route(env: str, scene: int | str):
+    """``--teach``'s zero-mode scenes: every training mode's expert fails there, the shipped way-points succeed on
+    a route no training mode takes; a test one is outside the test split's adaptation scenes and has its own
+    seeds and name."""
+    suite = get_suite_env(env)
+    sc = load_scene(scene, suite.scene_key)
+    assert feasible_training_modes(suite, scene) == []
+    for seed in (0, 1, 2):
+        info, states, _ = run_expert_episode(suite, scene, waypoints=sc.waypoints, seed=seed)
+        assert info["is_success"] and not info["collided"]
+        assert suite.classify_mode(states) == NOVEL
+    if not isinstance(scene, str):
+        assert scene not in SCENES and sc.description.startswith("Zero-mode test scene.")
+        others = [*SCENES, *VALIDATION_SCENES[env]]
+        assert scene_seed_offset(scene) not in {scene_seed_offset(s) for s in others}
+        assert sc.name not in {load_scene(s, suite.scene_key).name for s in others}
+    else:
+        assert scene in VALIDATION_SCENES[env]
+
+
 def test_validation_names_never_collide_with_test_scenes():
     for env in VALIDATION_SCENES:
         key = get_suite_env(env).scene_key
@@ -129,7 +154,7 @@ def test_split_flag_sets_scenes_and_seeds():
     test = benchmark_config(_args())
     assert (test.split, test.scenes, test.seeds) == ("test", SCENES, [0, 1, 2])  # as before the split existed
     val = benchmark_config(_args("--split", "validation"))
-    assert val.split == "validation" and val.scenes == (0, "val1", "val2", "val3", "val4") == split_scenes(
+    assert val.split == "validation" and val.scenes == (0, "val1", "val2", "val3", "val4", "val5") == split_scenes(
         "avoiding", "validation")
     assert val.seeds == list(VALIDATION_SEEDS) == split_seeds("validation")
     assert benchmark_config(_args("--split", "validation", "--quick")).seeds == [VALIDATION_SEEDS[0]]

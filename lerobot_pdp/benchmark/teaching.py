@@ -150,7 +150,7 @@ def run_teaching(suite: SuiteEnv, cfg: BenchmarkConfig, methods: dict[str, Metho
                  method_cfgs: dict[str, BenchmarkConfig] | None = None) -> dict[str, Any]:
     """``benchmark --teach``: :func:`evaluate_teaching` for every (method, seed) that can be taught (PDP, DP, BC),
     on the split's zero-mode scenes; writes ``teach.json`` and ``teach.md`` in ``out``."""
-    scenes = teach_scenes(suite.name, cfg.split)
+    scenes = teach_scenes(suite.name, cfg.split, cfg.scenes)
     n0 = -(-cfg.rollouts // suite.n_modes) * suite.n_modes  # every old mode the same number of rollouts
     record: dict[str, Any] = {"env": suite.name, "split": cfg.split, "rollouts": cfg.rollouts, "rollouts_scene0": n0,
                               "batch_size": TEACH_BATCH, "demo_share": TEACH_SHARE, "runs": {}}
