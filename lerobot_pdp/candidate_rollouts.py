@@ -108,8 +108,8 @@ def check_env_features(config: Any, env: gym.Env) -> None:
 
 
 @contextlib.contextmanager
-def _quiet_rollout_bar(module: Any) -> Iterator[None]:
-    """LeRobot's rollout draws one progress bar per batch; a search draws its own."""
+def quiet_rollout_bar(module: Any) -> Iterator[None]:
+    """LeRobot's rollout draws one progress bar per batch; hundreds of them would drown the caller's own."""
     original = module.trange
     module.trange = lambda *a, **kw: original(*a, **{**kw, "disable": True})
     try:
@@ -196,7 +196,7 @@ class CandidateRollouts:
             venv = self._venv(len(group) * k)
             steering = PerEnvLatents(torch.stack(group).repeat_interleave(k, dim=0))
             with torch.random.fork_rng(devices=None if torch.cuda.is_available() else []), acting_under(self.policy, steering), \
-                    _quiet_rollout_bar(lerobot_eval):
+                    quiet_rollout_bar(lerobot_eval):
                 torch.manual_seed(self.seed * 100_003 + self.batches)
                 lerobot_eval.rollout(venv, self.policy, *self.env_processors, *self.processors,
                                      seeds=[self.seed + j for _ in group for j in range(k)])

@@ -1,14 +1,13 @@
 """Rollouts for the evaluation protocol, through LeRobot's own ``lerobot_eval.rollout``.
 
 Each batch of rollouts runs in a gymnasium ``SyncVectorEnv`` of suite envs, with the policy's saved pre/post
-processors and the env config's processors, exactly as ``lerobot-eval`` would. A thin wrapper records
-what ``rollout`` does not return: the first episode's final ``info`` (success, collision, clearance, mode)
-and its behavior trace for plots.
+processors and the env config's processors, exactly as ``lerobot-eval`` would. The package's
+``OutcomeRecorder`` (what a latent search scores) records what ``rollout`` does not return: the first episode's
+final ``info`` (success, collision, clearance, mode) and its states, whose trace dims the plots draw.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -18,36 +17,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from ..candidate_rollouts import OutcomeRecorder, quiet_rollout_bar
 from ..envs.suite import SuiteEnv
-
-
-class EpisodeRecorder(gym.Wrapper):
-    """Keeps the final info and the trace of the first episode after each new rollout."""
-
-    def __init__(self, env: gym.Env, trace_dims: tuple[int, ...]):
-        super().__init__(env)
-        self.trace_dims = list(trace_dims)
-        self.final_info: dict[str, Any] | None = None
-        self.trace: list[np.ndarray] = []
-        self._recording = False
-
-    def reset(self, *, seed=None, options=None):
-        obs, info = self.env.reset(seed=seed, options=options)
-        # LeRobot's rollout starts each rollout with this option; vector-env autoresets pass none, and the
-        # episodes they start are discarded by rollout, so they must not overwrite the recording.
-        new_rollout = bool((options or {}).get("lerobot_new_rollout"))
-        if new_rollout or (self.final_info is None and not self._recording):
-            self.final_info, self.trace, self._recording = None, [obs["agent_pos"][self.trace_dims].copy()], True
-        return obs, info
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if self._recording:
-            self.trace.append(obs["agent_pos"][self.trace_dims].copy())
-            if terminated or truncated:
-                self.final_info = dict(info)
-                self._recording = False
-        return obs, reward, terminated, truncated, info
 
 
 @dataclass
@@ -89,30 +60,16 @@ class RolloutBatch:
 
 
 def make_vector_env(suite: SuiteEnv, scene: Any, n_envs: int) -> gym.vector.SyncVectorEnv:
-    """``n_envs`` recorded suite envs of one scene (max episode length from the suite table)."""
+    """``n_envs`` suite envs of one scene (max episode length from the suite table), each recording its first
+    episode's states and final info."""
     import lerobot_pdp.envs  # noqa: F401  (registers gym ids)
 
     def make():
         env = gym.make(suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
                        disable_env_checker=True, **suite.camera_kwargs)
-        return EpisodeRecorder(env, suite.trace_dims)
+        return OutcomeRecorder(env)
 
     return gym.vector.SyncVectorEnv([make for _ in range(n_envs)])
-
-
-@contextlib.contextmanager
-def _quiet_rollout_bar(module):
-    """LeRobot's rollout draws a progress bar per batch; hundreds of them drown the benchmark's own."""
-    original = module.trange
-
-    def silent(*args, **kwargs):
-        return original(*args, **{**kwargs, "disable": True})
-
-    module.trange = silent
-    try:
-        yield
-    finally:
-        module.trange = original
 
 
 def run_rollouts(suite: SuiteEnv, scene: Any, policy, preprocessor, postprocessor, n: int, seed: int,
@@ -131,15 +88,15 @@ def run_rollouts(suite: SuiteEnv, scene: Any, policy, preprocessor, postprocesso
         venv = make_vector_env(suite, scene, b)
         try:
             torch.manual_seed(seed + done)
-            with _quiet_rollout_bar(lerobot_eval):
+            with quiet_rollout_bar(lerobot_eval):
                 lerobot_eval.rollout(venv, policy, env_processors[0], env_processors[1], preprocessor,
                                      postprocessor, seeds=list(range(seed + done, seed + done + b)))
             for sub in venv.envs:
-                info = sub.final_info or {}
+                info, states = sub.final_info or {}, np.asarray(sub.states)
                 out.results.append(RolloutResult(
                     success=bool(info.get("is_success", False)), collided=bool(info.get("collided", False)),
                     min_clearance=float(info.get("min_clearance", float("nan"))), mode=int(info.get("mode", -1)),
-                    trace=np.asarray(sub.trace), label=label,
+                    trace=states[:, list(suite.trace_dims)], label=label,
                 ))
         finally:
             venv.close()
