@@ -9,7 +9,9 @@ For a benchmark run with a 2-D, unsegmented latent, evaluates on an n x n grid o
   ``fit_objective="sample"`` loss, ``--noise-draws`` noises per window); with ``--objective decoder``, the
   trajectory VAE decoder's error on the demonstration's (standardised) behavior trace;
 - with ``--rollouts N``: the scene's success and collision rates with z held at that grid point (the
-  protocol's rollout seeds for that scene). ``--scene`` takes test (1-3) and validation (val1, ...) scenes.
+  protocol's rollout seeds for that scene). ``--scene`` takes test (1-3, and a zero-mode test scene such as
+  avoiding's 4, which a validation run never evaluates: then no fitted latent is marked) and validation
+  (val1, ...) scenes.
 
 Prints one JSON line per grid point and writes a PNG with both maps, the training modes' mean latents, the
 encoder's warm start and the latent the benchmark fitted (``eval.json``). If some grid latents succeed
@@ -80,8 +82,10 @@ def main() -> None:
     policy.eval()
     means = np.stack([m.numpy() for m in policy.mode_latents().values()])
     warm = policy.encode(demo).numpy()
-    fitted = np.asarray(meta["scenes"][str(args.scene)]["z"], dtype=np.float32)
-    pts = np.vstack([means, warm, fitted])
+    # a scene the run did not evaluate (a zero-mode test scene checked on a validation run) has no fitted latent
+    fit_record = meta["scenes"].get(str(args.scene))
+    fitted = None if fit_record is None else np.asarray(fit_record["z"], dtype=np.float32)
+    pts = np.vstack([means, warm] + ([] if fitted is None else [fitted]))
     lo, hi = pts.min(0), pts.max(0)
     lo, hi = lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo)
     r0 = args.z0 or (lo[0], hi[0])
@@ -127,10 +131,10 @@ def main() -> None:
                     success[i, j] = batch.success_rate
                     row |= {"success": batch.success_rate, "collision": batch.collision_rate}
                 print(json.dumps(row), flush=True)
-        marks = {"warm start": warm, "fitted (benchmark)": fitted}
+        marks = {"warm start": warm} | ({} if fitted is None else {"fitted (benchmark)": fitted})
         i_min, j_min = np.unravel_index(loss.argmin(), loss.shape)
-        print(json.dumps({"fitted": fitted.round(3).tolist(), "L_fit(fitted)": round(objective(fitted), 5),
-                          "warm": warm.round(3).tolist(), "L_fit(warm)": round(objective(warm), 5),
+        fit_row = {} if fitted is None else {"fitted": fitted.round(3).tolist(), "L_fit(fitted)": round(objective(fitted), 5)}
+        print(json.dumps({**fit_row, "warm": warm.round(3).tolist(), "L_fit(warm)": round(objective(warm), 5),
                           "grid argmin": [round(float(a_axis[i_min]), 3), round(float(b_axis[j_min]), 3)],
                           "L_fit(grid min)": round(float(loss.min()), 5)}))
     policy.set_latent(None)
@@ -150,7 +154,7 @@ def main() -> None:
                        **({"vmin": 0, "vmax": 1} if grid is success else {}))
         fig.colorbar(im, ax=ax)
         ax.scatter(means[:, 1], means[:, 0], c="k", marker="o", s=30, label="training mode means")
-        for (name, z), m in zip(marks.items(), ("s", "*"), strict=True):
+        for (name, z), m in zip(marks.items(), ("s", "*"), strict=False):
             ax.scatter([z[1]], [z[0]], c="w", edgecolors="k", marker=m, s=120, label=name)
         ax.set(title=title, xlabel="z[1]", ylabel="z[0]", xlim=xlim, ylim=ylim)
     axes[0][0].legend(loc="best", fontsize=7)

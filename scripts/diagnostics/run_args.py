@@ -27,10 +27,11 @@ def eval_record(ap: argparse.ArgumentParser, run: Path, needed_for: str) -> dict
 
 
 def scene_demo(ap: argparse.ArgumentParser, suite, run: Path, scene: int | str) -> dict[str, Any]:
-    """The demonstration the benchmark adapted to in ``scene`` (kept in the run's output folder)."""
-    from lerobot_pdp.benchmark.data import demo_episode, demo_root
+    """The demonstration the benchmark adapts to in ``scene``, kept in the run's output folder; made there as the
+    benchmark makes it (``ensure_demo``) when the run did not evaluate that scene."""
+    from lerobot_pdp.benchmark.data import demo_episode, ensure_demo
 
-    root = demo_root(suite, run.parents[2], scene)
-    if not root.is_dir():
-        ap.error(f"no scene-{scene} demonstration at {root}")
+    if not (run / "pretrained_model").is_dir():
+        ap.error(f"{run} is not a benchmark run directory (no pretrained_model/)")
+    root, _ = ensure_demo(suite, run.parents[2], scene)
     return demo_episode(root)
