@@ -293,9 +293,13 @@ def test_the_app_through_gradio_client(served, explorer, made, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_person_clicks_the_map_in_a_browser(served, explorer, tmp_path):
+def test_a_person_clicks_the_map_in_a_browser(made, tmp_path, monkeypatch):
     """Headless Chromium (Debian's chromium + chromium-driver) clicks a mode's point on the map; the rollout
-    plot appears. The screenshot is kept under pytest's tmp dir and copied to $PDP_TEST_ARTIFACTS when set."""
+    plot appears. The screenshot is kept under pytest's tmp dir and copied to $PDP_TEST_ARTIFACTS when set
+    (docs/figures/explorer/explorer.png is one)."""
+    from lerobot_pdp.explorer import Explorer
+    from lerobot_pdp.explorer_app import launch
+
     if BROWSER is None or DRIVER is None:
         pytest.skip("no chromium / chromedriver on PATH: install them with `apt-get install -y chromium "
                     "chromium-driver` (make install and make test do it as root)")
@@ -308,9 +312,15 @@ def test_a_person_clicks_the_map_in_a_browser(served, explorer, tmp_path):
     options.binary_location = BROWSER
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu", "--window-size=1400,1800"):
         options.add_argument(arg)
+    ckpt, data = made
+    monkeypatch.chdir(data.parent)  # the page shows the folders as given: relative ones, no machine's paths
+    explorer = Explorer(Path(ckpt.name), env="reach-around", scene="3", rollouts=4, max_steps=STEPS,
+                        cache_dir=tmp_path / "cache", dataset=Path(data.name))
+    port = _free_port()
+    app = launch(explorer, port=port, block=False)
     driver = webdriver.Chrome(service=webdriver.ChromeService(executable_path=DRIVER), options=options)
     try:
-        driver.get(served)
+        driver.get(f"http://127.0.0.1:{port}/")
         wait = WebDriverWait(driver, 120)
         img = wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#latent-map img"))
         wait.until(lambda d: d.execute_script("return arguments[0].complete && arguments[0].naturalWidth > 0", img))
@@ -338,6 +348,7 @@ def test_a_person_clicks_the_map_in_a_browser(served, explorer, tmp_path):
             shutil.copy(shot, dest / shot.name)
     finally:
         driver.quit()
+        app.close()
 
 
 def test_the_space_app_builds_the_same_app_from_environment_variables(made, monkeypatch):
