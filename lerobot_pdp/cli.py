@@ -439,8 +439,8 @@ def add_explore_parser(sub: argparse._SubParsersAction) -> None:
                    help="where success landscapes are cached (default $LEROBOT_PDP_CACHE/explorer, else "
                    "~/.cache/lerobot_pdp/explorer)")
     p.add_argument("--port", type=int, default=7860, help="local port (default 7860)")
-    p.add_argument("--share", type=lambda v: v.lower() in ("1", "true", "yes"), default=False,
-                   help="also a public Gradio share link: true / false (default false)")
+    p.add_argument("--share", choices=("true", "false"), default="false",
+                   help="also a public Gradio share link (default false)")
     p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
     p.set_defaults(func=cmd_explore)
 
@@ -456,7 +456,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     explorer = Explorer(args.checkpoint, env=args.env, scene=args.scene, rollouts=args.rollouts,
                         max_steps=args.max_steps, cache_dir=args.cache_dir, dataset=args.dataset, device=args.device)
     print(f"explorer on {args.checkpoint}: http://127.0.0.1:{args.port} (Ctrl-C stops it)")
-    launch(explorer, port=args.port, share=args.share)
+    launch(explorer, port=args.port, share=args.share == "true")
     return 0
 
 

@@ -25,20 +25,18 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from PIL import Image
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from .adapted import CARD_HEADING, load_base_policy, write_adapted_checkpoint  # noqa: E402
-from .atomic import write_text_atomic  # noqa: E402
-from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs  # noqa: E402
-from .checkpoint import ADAPTATION_INFO  # noqa: E402
-from .latent_map import LatentMap, latent_map_figure  # noqa: E402
-from .outcome_scores import Outcome  # noqa: E402
-from .steering_state import Steering  # noqa: E402
+from .adapted import CARD_HEADING, load_base_policy, write_adapted_checkpoint
+from .atomic import write_text_atomic
+from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
+from .checkpoint import ADAPTATION_INFO
+from .latent_map import LatentMap, latent_map_figure
+from .outcome_scores import Outcome
+from .steering_state import Steering
 
 GRADIO_HINT = 'the explorer needs Gradio: pip install "lerobot_policy_pdp[explore]" (in a clone: pip install -e ".[explore]")'
 MAP_DPI = 80  # the map's pixels: a click's coordinates are read in them
@@ -279,7 +277,8 @@ class Explorer:
         suite, scene = self.suite, self.scene
         modes = [suite.classify_mode(o.states, scene=scene) if len(o.states) else "novel" for o in outcomes]
         views = scene_views(suite)
-        fig, axes = plt.subplots(1, len(views), figsize=(4.6 * len(views), 4.6), squeeze=False)
+        fig = Figure(figsize=(4.6 * len(views), 4.6))
+        axes = fig.subplots(1, len(views), squeeze=False)
         view = RolloutView(np.zeros((1, 1, 3), np.uint8), outcomes, modes)
         for ax, plane in zip(axes[0], views, strict=True):
             draw_scene(ax, suite.name, scene, plane)
@@ -380,8 +379,8 @@ class Explorer:
             chunks = self.policy.stats.unnormalize(ACTION, chunks).cpu().numpy().reshape(len(at), samples, *chunks.shape[1:])
             recorded = self.policy.stats.unnormalize(ACTION, windows.actions[at]).cpu().numpy()
         dims = min(chunks.shape[-1], 4)
-        fig, axes = plt.subplots(dims, len(at), figsize=(2.6 * len(at), 1.7 * dims + 0.6), squeeze=False,
-                                 sharex=True)
+        fig = Figure(figsize=(2.6 * len(at), 1.7 * dims + 0.6))
+        axes = fig.subplots(dims, len(at), squeeze=False, sharex=True)
         for c, t in enumerate(at):
             for d in range(dims):
                 ax = axes[d][c]
@@ -448,7 +447,8 @@ class Explorer:
         """The success landscape as a heat map under the training latents (collisions hatched)."""
         proj, groups, colors = self.map.projection, self.map.groups, self.map.colors
         xy = proj.to_map(self.policy.behavior_table()["z"])
-        fig, ax = plt.subplots(figsize=(5.6, 4.6))
+        fig = Figure(figsize=(5.6, 4.6))
+        ax = fig.subplots()
         dx = (land.xs[1] - land.xs[0]) / 2 if len(land.xs) > 1 else 0.5
         dy = (land.ys[1] - land.ys[0]) / 2 if len(land.ys) > 1 else 0.5
         im = ax.imshow(land.success, origin="lower", cmap="RdYlGn", vmin=0, vmax=1, aspect="auto",
@@ -479,7 +479,7 @@ class Explorer:
         z = self.latent(selection.z)
         date = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         where = {"env": self.suite.name, "scene": self.scene.name} if self.has_env else {}
-        provenance = {"source": "explorer", **selection.provenance, "chosen": selection.source, **where,
+        provenance = {"source": "explorer", **selection.provenance, "chosen": selection.source, "via": "lerobot-pdp explore", **where,
                       "base_checkpoint": _origin(self.checkpoint), "date": selection.provenance.get("date", date)}
         steering = Steering(self.latent_dim)
         steering.activate(torch.as_tensor(z, dtype=torch.float32), provenance=provenance)
@@ -509,12 +509,12 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def _pixels(fig) -> np.ndarray:
+def _pixels(fig: Figure) -> np.ndarray:
+    """A figure's RGB pixels. Figures are made without pyplot: its global state is not for Gradio's threads."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
     buf.seek(0)
-    return (plt.imread(buf, format="png")[..., :3] * 255).round().astype(np.uint8)
+    return np.asarray(Image.open(buf).convert("RGB"))
 
 
 def _positive(name: str, value: Any) -> int:
