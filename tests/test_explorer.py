@@ -363,3 +363,28 @@ def test_the_space_app_builds_the_same_app_from_environment_variables(made, monk
     assert isinstance(app, gradio.Blocks)
     names = {d.api_name for d in app.fns.values() if d.api_name}
     assert {"pick", "select", "interpolate", "fit", "save"} <= names and "landscape" not in names  # no env
+
+
+def test_unlabelled_data_and_a_larger_latent_map_through_the_pca_plane(tmp_path):
+    """No mode labels (one instruction for every episode): the map colours discovered clusters and the modes to
+    interpolate between are those clusters; with latent_dim 3 a click maps back through the PCA plane."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from policies import small_policy
+
+    from lerobot_pdp.explorer import Explorer
+
+    from synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "data", episodes_per_mode=3, task="reach the goal")
+    policy = small_policy(LeRobotDatasetMetadata("local/synthetic", root=data), latent_dim=3, num_inference_steps=4)
+    policy.save_pretrained(tmp_path / "ckpt")
+    ex = Explorer(tmp_path / "ckpt", dataset=data)
+    assert ex.modes.discovered and ex.map.projection.pca is not None and "discovered" in ex.describe()
+    view = ex.render_map()
+    target = ex.map.projection.to_map(ex.mode_latent(ex.mode_choices()[0]))[0]
+    sel = ex.pick(view, *view.to_pixel(target))
+    assert len(sel.z) == 3
+    assert np.allclose(ex.map.projection.to_map(np.asarray(sel.z))[0], target, atol=0.05 * np.ptp(view.xlim))
+    mid, line = ex.interpolate(ex.mode_choices()[0], ex.mode_choices()[-1], 0.5)
+    assert len(mid.z) == 3 and len(line[0]) == 3
+    assert ex.decoder_view(sel.z, frames=2, samples=2).ndim == 3
