@@ -50,7 +50,7 @@ def build_app(explorer: Explorer) -> Any:
         latent = "" if selection is None else ", ".join(f"{v:.4g}" for v in selection.z)
         return view.image, image, summary, latent, state
 
-    with gr.Blocks(title=f"PDP explorer: {explorer.checkpoint.name}") as app:
+    with gr.Blocks(title=f"PDP explorer: {explorer.checkpoint.name}", analytics_enabled=False) as app:  # local: no telemetry
         state = gr.State(fresh())
         gr.Markdown(f"## PDP explorer\n{explorer.describe()}")
         with gr.Row():
