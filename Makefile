@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= outputs/demo
 
-.PHONY: install demo test test-fast test-numerics lint bench results clean
+.PHONY: install browser demo test test-fast test-numerics lint bench results clean
 
 $(STAMP): pyproject.toml requirements-dev.txt $(wildcard plugins/*/pyproject.toml)
 	@if [ -z "$(PY312)" ]; then echo "Python 3.12 is required (LeRobot >= 0.5 needs it); none found" >&2; exit 1; fi
@@ -17,7 +17,18 @@ $(STAMP): pyproject.toml requirements-dev.txt $(wildcard plugins/*/pyproject.tom
 	$(PY) -m pip install --quiet -r requirements-dev.txt
 	@touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) browser
+
+## Headless Chromium for the explorer's browser test (tests/test_explorer.py, slow): Debian's chromium and
+## chromium-driver, installed with apt-get when missing and we are root. Never fails the install: without the
+## browser that one test skips and says how to install it.
+browser:
+	@if command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+		echo "installing chromium and chromium-driver (apt-get) for the explorer's browser test"; \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
+			|| echo "could not install chromium chromium-driver: the explorer's browser test will skip" >&2; \
+	else echo "no chromium/chromedriver: the explorer's browser test skips (as root: apt-get install -y chromium chromium-driver)" >&2; fi
 
 ## Main job: generate a dataset, train PDP and a DP baseline with lerobot-train, steer in scenes 0-3, figures.
 demo: $(STAMP)
@@ -29,7 +40,7 @@ demo: $(STAMP)
 ## a session fixture is built once per worker that needs it.
 TEST_WORKERS ?= 2
 XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadgroup,)
-test: $(STAMP)
+test: $(STAMP) browser
 	HF_HUB_OFFLINE=1 $(VENV)/bin/pytest -q -p no:cacheprovider $(XDIST) --durations=15
 	@$(MAKE) --no-print-directory test-numerics
 

@@ -107,6 +107,16 @@ def check_env_features(config: Any, env: gym.Env) -> None:
         raise ValueError(f"{'; '.join(wrong)}: a checkpoint of another env? (the env provides {have})")
 
 
+def env_camera_kwargs(config: Any) -> dict[str, str]:
+    """The ``camera`` / ``image_size`` keywords of a suite env that observes as the checkpoint's cameras do
+    (``observation.images.<camera>`` of shape (3, H, W)); empty for a state-only checkpoint."""
+    cams = {k.removeprefix("observation.images."): tuple(f.shape) for k, f in config.input_features.items()
+            if k.startswith("observation.images.")}
+    if not cams:
+        return {}
+    return {"camera": ",".join(cams), "image_size": "x".join(map(str, next(iter(cams.values()))[1:]))}
+
+
 @contextlib.contextmanager
 def quiet_rollout_bar(module: Any) -> Iterator[None]:
     """LeRobot's rollout draws one progress bar per batch; hundreds of them would drown the caller's own."""

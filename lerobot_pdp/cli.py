@@ -307,6 +307,7 @@ def cmd_search(args: argparse.Namespace) -> int:
     import lerobot_pdp.envs as envs
     from lerobot_pdp.adapted import search_checkpoint
     from lerobot_pdp.atomic import write_text_atomic
+    from lerobot_pdp.candidate_rollouts import env_camera_kwargs
     from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
     from lerobot_pdp.envs.scene import load_scene
     from lerobot_pdp.latent_search import LatentSearchError
@@ -335,11 +336,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     else:
         score = SCORES[args.score]
     cfg = _checkpoint_config(args.checkpoint)
-    cams = {k.removeprefix("observation.images."): f.shape for k, f in cfg.input_features.items()
-            if k.startswith("observation.images.")}
-    camera = {} if not cams else {"camera": ",".join(cams), "image_size": "x".join(map(str, next(iter(cams.values()))[1:]))}
     factory = functools.partial(gym.make, suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
-                                disable_env_checker=True, **camera)
+                                disable_env_checker=True, **env_camera_kwargs(cfg))
     try:
         res = search_checkpoint(args.checkpoint, factory, score, out=args.out, init=args.init, device=args.device,
                                 provenance=objective, budget=args.budget, method=args.method, seed=args.seed,
@@ -411,6 +409,54 @@ def cmd_teach(args: argparse.Namespace) -> int:
     print(f"wrote {out}: mode {res.mode}, latent {res.z.tolist()} ({res.nearest_spreads:.1f} spreads from the "
           f"nearest training latent), {res.steps} steps in {res.seconds:.0f} s; steer with --policy.steer_mode="
           f"{res.mode}")
+    return 0
+
+
+# ---- explore --------------------------------------------------------------------------------------
+
+
+def add_explore_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "explore",
+        help="open a checkpoint in the explorer, a local web app: latent map, rollouts per clicked latent, ...",
+        description="Serve a local web app (Gradio; pip install the 'explore' extra) on a PDP checkpoint: its latent "
+        "map with the training behaviors; a click on it rolls the policy out from that latent in --scene (success, "
+        "collisions); interpolation between two modes; a demonstration fitted and marked on the map with its error "
+        "ratio; the success landscape over z (cached); the chosen latent saved as an adapted checkpoint. Without "
+        "--env (a real robot's checkpoint): the map and the decoder's view of a latent instead of rollouts.",
+    )
+    p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
+    p.add_argument("--env", default=None,
+                   help=f"suite env to roll out in, one of {', '.join(_env_names())} (default: none, no rollouts)")
+    p.add_argument("--scene", default="0",
+                   help="scene index 0-3, a validation scene (val1, ...) or a scene file (JSON/YAML); default 0")
+    p.add_argument("--rollouts", type=int, default=8, help="rollouts per selected latent (default 8)")
+    p.add_argument("--max-steps", type=int, default=None, help="steps per rollout (default: the env's time limit)")
+    p.add_argument("--dataset", type=Path, default=None,
+                   help="a LeRobotDataset for demonstrations and the decoder's view (default: the training dataset "
+                   "train_config.json names, when it is on this machine)")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="where success landscapes are cached (default $LEROBOT_PDP_CACHE/explorer, else "
+                   "~/.cache/lerobot_pdp/explorer)")
+    p.add_argument("--port", type=int, default=7860, help="local port (default 7860)")
+    p.add_argument("--share", choices=("true", "false"), default="false",
+                   help="also a public Gradio share link (default false)")
+    p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
+    p.set_defaults(func=cmd_explore)
+
+
+def cmd_explore(args: argparse.Namespace) -> int:
+    from lerobot_pdp.explorer import Explorer, import_gradio
+    from lerobot_pdp.explorer_app import launch
+
+    try:  # before loading anything: a missing optional dependency is the first thing said
+        import_gradio()
+    except ImportError as e:
+        raise RuntimeError(str(e)) from e
+    explorer = Explorer(args.checkpoint, env=args.env, scene=args.scene, rollouts=args.rollouts,
+                        max_steps=args.max_steps, cache_dir=args.cache_dir, dataset=args.dataset, device=args.device)
+    print(f"explorer on {args.checkpoint}: http://127.0.0.1:{args.port} (Ctrl-C stops it)")
+    launch(explorer, port=args.port, share=args.share == "true")
     return 0
 
 
@@ -592,6 +638,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_adapt_parser,
     add_search_parser,
     add_teach_parser,
+    add_explore_parser,
     add_benchmark_parser,
     add_merge_results_parser,
 ]

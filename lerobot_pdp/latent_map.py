@@ -8,7 +8,9 @@ works: the traces and labels are stored in it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -21,8 +23,64 @@ from .atomic import write_file_atomic  # noqa: E402
 MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
 
 
+@dataclass
+class MapProjection:
+    """The map's plane: the first two latent coordinates (one, padded with 0, for d_z = 1), or the training
+    latents' PCA plane for d_z > 2; a point clicked on the map goes back to a latent through it."""
+
+    dim: int
+    pca: Any = None  # sklearn PCA fitted on the training latents, when dim > 2
+
+    @classmethod
+    def fit(cls, z: np.ndarray) -> MapProjection:
+        if z.shape[1] <= 2:
+            return cls(z.shape[1])
+        from sklearn.decomposition import PCA
+
+        return cls(z.shape[1], PCA(2, random_state=0).fit(z))
+
+    @property
+    def axis_labels(self) -> tuple[str, str]:
+        return ("PC 1", "PC 2") if self.pca is not None else ("z[0]", "z[1]") if self.dim == 2 else ("z[0]", "")
+
+    def to_map(self, z: np.ndarray) -> np.ndarray:
+        """Map coordinates [N, 2] of latents [N, d_z]."""
+        z = np.asarray(z, dtype=float).reshape(-1, self.dim)
+        if self.pca is not None:
+            return self.pca.transform(z)
+        return z if self.dim == 2 else np.c_[z, np.zeros(len(z))]
+
+    def to_latent(self, xy: np.ndarray) -> np.ndarray:
+        """Latents [N, d_z] of map points [N, 2] (for d_z > 2: the point of the PCA plane)."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if self.pca is not None:
+            return self.pca.inverse_transform(xy)
+        return xy[:, : self.dim]
+
+
+@dataclass
+class LatentMap:
+    """A drawn latent map: the figure, its scatter's axes, the projection, and each behavior's group."""
+
+    figure: Any
+    axes: Any
+    projection: MapProjection
+    groups: np.ndarray  # per behavior: its mode label or discovered cluster
+    colors: dict[int, Any]
+
+
 def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: str | None = None) -> Path:
     """Draw ``policy``'s latent map into ``out_png``; ``k`` fixes the number of discovered clusters."""
+    fig = latent_map_figure(policy, k, title).figure
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
+    plt.close(fig)
+    return out_png
+
+
+def latent_map_figure(policy, k: int | None = None, title: str | None = None) -> LatentMap:
+    """``policy``'s latent map as a figure (the caller closes it); ``k`` fixes the number of discovered clusters."""
     table = policy.behavior_table()
     z, episode, mode = table["z"], table["episode"], table["mode"]
     if len(z) == 0:
@@ -34,12 +92,8 @@ def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: st
         found = policy.discover_modes(k=k)
         groups, what = np.array([found.labels[int(e)] for e in episode]), f"discovered cluster (k = {found.k})"
         names = {c: f"{int((groups == c).sum())} behaviors" for c in range(found.k)}
-    if z.shape[1] > 2:
-        from sklearn.decomposition import PCA
-
-        xy, axes_label = PCA(2, random_state=0).fit_transform(z), ("PC 1", "PC 2")
-    else:
-        xy, axes_label = (z, ("z[0]", "z[1]")) if z.shape[1] == 2 else (np.c_[z, np.zeros(len(z))], ("z[0]", ""))
+    projection = MapProjection.fit(z)
+    xy, axes_label = projection.to_map(z), projection.axis_labels
     ids = sorted(int(g) for g in np.unique(groups) if g >= 0)
     cmap = plt.get_cmap("tab20" if len(ids) > 10 else "tab10")
     color = {g: cmap(i % cmap.N) for i, g in enumerate(ids)}
@@ -74,8 +128,4 @@ def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: st
     more = f"; traces of the first {MAX_PANELS} of {len(ids)} shown" if len(ids) > MAX_PANELS else ""
     fig.suptitle(title or f"behaviors of the training data (traces: trace dims 0 and {j}{more})", fontsize=11)
     fig.tight_layout()
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
-    plt.close(fig)
-    return out_png
+    return LatentMap(fig, ax, projection, groups, color)

@@ -1,0 +1,169 @@
+"""The explorer's web page: :class:`~lerobot_pdp.explorer.Explorer`'s panels wired into a Gradio app.
+
+Only wiring lives here (what each control calls, what it updates); the work is in ``explorer.py``. Each event
+is also a named API endpoint (``/pick``, ``/select``, ``/interpolate``, ``/fit``, ``/landscape``, ``/save``), so
+the app can be driven by ``gradio_client`` as well as by a person. Per-visitor state (the selected latent, the
+fitted mark, the drawn path, the map's pixel geometry) is kept in ``gr.State``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict
+from typing import Any
+
+from .explorer import Explorer, FitMark, MapImage, Selection, import_gradio
+
+USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, RuntimeError)
+
+
+def build_app(explorer: Explorer) -> Any:
+    """The explorer as a ``gr.Blocks`` app, queued, not launched (``app.launch()``; a Space runs it as is)."""
+    gr = import_gradio()
+
+    def user_errors(fn):
+        """A bad input is a message on the page (and an error a client reads), not a server traceback."""
+        @functools.wraps(fn)
+        def wrapped(*args, **kwargs):
+            try:
+                return fn(*args, **kwargs)
+            except USER_ERRORS as e:
+                raise gr.Error(str(e.args[0] if isinstance(e, KeyError) and e.args else e)) from e
+        return wrapped
+
+    def fresh() -> dict:
+        return {"selection": None, "fit": None, "path": None, "view": None, "dataset": None, "episode": 0}
+
+    def show(state: dict, selection: Selection | None, act: bool = True) -> tuple:
+        """Redraw the map with the marks; with a selection, its rollouts (or the decoder's view)."""
+        state = {**state, "selection": None if selection is None else asdict(selection)}
+        fit = FitMark(**state["fit"]) if state["fit"] else None
+        view = explorer.render_map(selection, fit, state["path"])
+        state["view"] = {"box": view.box, "xlim": view.xlim, "ylim": view.ylim}
+        image, summary = None, "click a point of the map" if selection is None else f"**{selection.source}**"
+        if selection is not None and act:
+            if explorer.has_env:
+                run = explorer.rollout(selection.z)
+                image, summary = run.image, f"**{selection.source}**: {run.summary()}"
+            else:
+                image = explorer.decoder_view(selection.z, state.get("dataset"), state.get("episode", 0))
+        latent = "" if selection is None else ", ".join(f"{v:.4g}" for v in selection.z)
+        return view.image, image, summary, latent, state
+
+    with gr.Blocks(title=f"PDP explorer: {explorer.checkpoint.name}", analytics_enabled=False) as app:  # local: no telemetry
+        state = gr.State(fresh())
+        gr.Markdown(f"## PDP explorer\n{explorer.describe()}")
+        with gr.Row():
+            with gr.Column(scale=3):
+                map_img = gr.Image(label="latent map (click a point)", type="numpy", interactive=False,
+                                   elem_id="latent-map")
+            with gr.Column(scale=1):
+                latent_box = gr.Textbox(label="selected latent z", elem_id="latent")
+                go = gr.Button("act at this latent")
+                px = gr.Number(label="map pixel x", visible=False)
+                py = gr.Number(label="map pixel y", visible=False)
+        summary = gr.Markdown(elem_id="summary")
+        result_img = gr.Image(label="rollouts in the scene" if explorer.has_env else
+                              "decoder's view: action chunks sampled at z", type="numpy", interactive=False,
+                              elem_id="result")
+        with gr.Accordion("interpolate between two modes", open=True):
+            choices = explorer.mode_choices()
+            with gr.Row():
+                mode_a = gr.Dropdown(choices, value=choices[0], label="mode A")
+                mode_b = gr.Dropdown(choices, value=choices[-1], label="mode B")
+                path_kind = gr.Radio(["linear", "elliptical"], value="linear", label="path")
+            t_slider = gr.Slider(0, 1, value=0.5, step=0.05, label="t (0: mode A, 1: mode B)")
+        with gr.Accordion("fit a demonstration", open=True):
+            with gr.Row():
+                demo_box = gr.Textbox(value=str(explorer.dataset or ""), label="LeRobotDataset folder")
+                demo_episode = gr.Number(value=0, precision=0, label="episode index")
+                fit_steps = gr.Number(value=0, precision=0, label="fit steps (0: the checkpoint's fit_steps)")
+            fit_btn = gr.Button("fit z to this episode")
+        if explorer.has_env:
+            with gr.Accordion("success landscape over z", open=False):
+                with gr.Row():
+                    grid = gr.Number(value=5, precision=0, label="grid points per axis")
+                    land_rollouts = gr.Number(value=2, precision=0, label="rollouts per point")
+                land_btn = gr.Button("compute (cached per checkpoint, scene and grid)")
+                land_img = gr.Image(label="success landscape", type="numpy", interactive=False)
+                land_note = gr.Markdown()
+        with gr.Accordion("save the selected latent as an adapted checkpoint", open=True):
+            out_box = gr.Textbox(label="new checkpoint folder (must not exist)")
+            save_btn = gr.Button("save adapted checkpoint")
+            save_note = gr.Markdown(elem_id="save-note")
+
+        outputs = [map_img, result_img, summary, latent_box, state]
+
+        @user_errors
+        def start(state):
+            return show(fresh(), None)
+
+        @user_errors
+        def pick(x, y, state):
+            view = state.get("view")
+            if view is None:  # a client that never loaded the page: the map as it would show it
+                fit = FitMark(**state["fit"]) if state["fit"] else None
+                drawn = explorer.render_map(Selection(**state["selection"]) if state["selection"] else None, fit,
+                                            state["path"])
+                view = {"box": drawn.box, "xlim": drawn.xlim, "ylim": drawn.ylim}
+            selection = explorer.pick(MapImage(None, tuple(view["box"]), tuple(view["xlim"]), tuple(view["ylim"])),
+                                      float(x), float(y))
+            return show(state, selection)
+
+        def on_click(state, evt: gr.SelectData):
+            if evt.index is None:
+                raise gr.Error("click inside the picture")
+            return evt.index[0], evt.index[1]
+
+        on_click.__annotations__ = {"evt": gr.SelectData}  # Gradio reads the class; this module imports it lazily
+
+        @user_errors
+        def select(latent, state):
+            z = explorer.latent(latent)
+            return show(state, Selection(z.tolist(), "latent typed in", {"source": "explorer: latent typed in"}))
+
+        @user_errors
+        def interpolate(a, b, path, t, state):
+            selection, line = explorer.interpolate(a, b, t, path)
+            return show({**state, "path": line}, selection)
+
+        @user_errors
+        def fit(dataset, episode, steps, state):
+            selection, mark = explorer.fit(dataset, episode, int(steps) if steps not in (None, "") and steps > 0 else None)
+            return show({**state, "fit": asdict(mark), "dataset": str(dataset), "episode": int(episode)}, selection)
+
+        @user_errors
+        def landscape(grid_n, rollouts, progress=gr.Progress()):  # noqa: B008 (how Gradio asks for a progress bar)
+            land = explorer.landscape(int(grid_n), int(rollouts), progress=lambda f, d: progress(f, desc=d))
+            note = (f"{'read from the cache' if land.from_cache else 'computed and cached'}: `{land.cache.name}`; "
+                    f"mean success {land.success.mean():.0%}")
+            return explorer.landscape_image(land), note
+
+        @user_errors
+        def save(out, state):
+            if not state.get("selection"):
+                raise ValueError("select a latent first (click the map, interpolate or fit)")
+            path = explorer.save_adapted(Selection(**state["selection"]), out)
+            return f"wrote `{path}`: load it with `PDPPolicy.from_pretrained` or `--policy.path`"
+
+        app.load(start, [state], outputs, api_name=False)
+        map_img.select(on_click, [state], [px, py], api_name=False).then(pick, [px, py, state], outputs,
+                                                                         api_name=False)
+        gr.Button("pick", visible=False).click(pick, [px, py, state], outputs, api_name="pick")
+        go.click(select, [latent_box, state], outputs, api_name="select")
+        latent_box.submit(select, [latent_box, state], outputs, api_name=False)
+        t_slider.release(interpolate, [mode_a, mode_b, path_kind, t_slider, state], outputs, api_name="interpolate")
+        fit_btn.click(fit, [demo_box, demo_episode, fit_steps, state], outputs, api_name="fit")
+        if explorer.has_env:
+            land_btn.click(landscape, [grid, land_rollouts], [land_img, land_note], api_name="landscape")
+        save_btn.click(save, [out_box, state], [save_note], api_name="save")
+    app.queue(default_concurrency_limit=1)  # one policy: requests take turns
+    return app
+
+
+def launch(explorer: Explorer, port: int | None = None, share: bool = False, block: bool = True) -> Any:
+    """Build and serve the app on ``127.0.0.1:port`` (None: a free port); ``block=False`` returns at once."""
+    app = build_app(explorer)
+    app.launch(server_name="127.0.0.1", server_port=port, share=share, prevent_thread_lock=not block,
+               show_error=True, quiet=not block)
+    return app
