@@ -261,7 +261,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
         check_waypoints(suite, np.asarray(sc.waypoints, dtype=float), sc.source)
         waypoints = WaypointScore(sc.waypoints, radius, dims=suite.trace_dims)
     runs = {"pdp": Path(out) / "runs" / "pdp" / f"seed{seed}", "dp": Path(dp_out or out) / "runs" / "dp" / f"seed{seed}"}
-    for name in {"dp" if m == "dp_noise" else "pdp" for m in methods}:
+    for name in [n for n in ("pdp", "dp") if any((m == "dp_noise") == (n == "dp") for m in methods)]:
         if not (runs[name] / "pretrained_model" / "model.safetensors").is_file():
             raise FileNotFoundError(f"no trained {name} run at {runs[name]} (pretrained_model/model.safetensors): "
                                     f"give a benchmark output folder holding runs/{name}/seed{seed}")
@@ -411,8 +411,10 @@ def curves_markdown(book: dict[str, Any]) -> str:
     at each budget, and the search's wall time at its largest budget."""
     lines = ["# Search curves", "",
              "Success over the evaluation rollouts (the protocol's seeds for the scene) of each search's best "
-             "candidate after the first b rollouts; the search's own rollouts reset on other seeds. "
-             f"Wall time on {book.get('cpu', 'an unrecorded CPU')}, {book.get('threads', '?')} torch thread(s).", ""]
+             "candidate after the first b rollouts (in brackets, scored by way-points: their mean progress through "
+             "the way-points); the search's own rollouts reset on other seeds. search s: the search's wall time at "
+             "its largest budget; fit s: the gradient fit's (z_fit searches after it). Wall time on "
+             f"{book.get('cpu', 'an unrecorded CPU')}, {book.get('threads', '?')} torch thread(s).", ""]
     for (env, scene, seed, score), recs in _groups(book).items():
         budgets = sorted({p["budget"] for r in recs.values() for p in r["points"] if p["budget"] > 0})
         any_rec = next(iter(recs.values()))["settings"]
@@ -424,8 +426,8 @@ def curves_markdown(book: dict[str, Any]) -> str:
                   "|---" * (len(budgets) + 4) + "|"]
         for method, rec in recs.items():
             by_budget = {p["budget"]: p for p in rec["points"]}
-            cells = [f"{100 * by_budget[b]['success']:.1f} %" if b in by_budget else "" for b in [0, *budgets]]
-            search_s = f"{rec['search']['seconds']:.0f}" if "search" in rec else ""
+            cells = [_cell(by_budget[b]) if b in by_budget else "" for b in [0, *budgets]]
+            search_s = f"{rec['search']['seconds']:.1f}" if "search" in rec else ""
             fit_s = f"{rec['fit']['seconds']:.1f}" if "fit" in rec else ""
             lines.append(f"| {method} | " + " | ".join(cells) + f" | {search_s} | {fit_s} |")
         commands = sorted({r["command"] for r in recs.values() if r.get("command")})
@@ -435,6 +437,11 @@ def curves_markdown(book: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _cell(point: dict[str, Any]) -> str:
+    wp = point.get("waypoint_score")
+    return f"{100 * point['success']:.1f} %" + ("" if wp is None else f" ({wp:.2f})")
+
+
 def draw_curves(book: dict[str, Any], path: Path) -> None:
     """Success against rollouts used (log2), one line per search, the fit as a horizontal line; a panel per
     (env, scene, seed, score)."""
@@ -442,6 +449,7 @@ def draw_curves(book: dict[str, Any], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     groups = _groups(book)
     fig, axes = plt.subplots(1, max(1, len(groups)), figsize=(5.5 * max(1, len(groups)), 4.2), squeeze=False)
@@ -456,6 +464,7 @@ def draw_curves(book: dict[str, Any], path: Path) -> None:
             err = np.sqrt(y * (1 - y) / np.array([p["n"] for p in pts]))
             ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=2, label=LABELS[method])
         ax.set_xscale("log", base=2)
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
         ax.set_ylim(-0.03, 1.03)
         ax.set_xlabel("search rollouts used")
         ax.set_ylabel("success (evaluation rollouts)")
