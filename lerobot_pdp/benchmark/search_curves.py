@@ -9,7 +9,12 @@ Each search runs ONCE, at the largest budget; for every budget point b the best 
 rollouts (by the search's own score, as ``search_latent`` keeps its best) is then evaluated on the protocol's
 evaluation rollouts of the scene. The optimiser asks the same populations whatever the budget, so those
 candidates are the ones a search of budget b would try (only the sampler noise of a smaller last batch may
-differ): one search gives the whole curve.
+differ): one search gives the whole curve. ``z_modes`` scores every mode mean first (avoiding: 24 x 2 rollouts),
+so its points below that budget are the best of the first modes' means.
+
+The latent searches act under the sampler's own noise (``CandidateRollouts``' per-env latents carry no fitted
+chunk noises); where the frozen adaptation also fits one noise per chunk (``settings.FROZEN``), the ``fit`` point
+includes them and ``z_fit``'s first candidate, the fit's z alone, does not.
 
 Seeds. Evaluation: the protocol's own for (seed, scene), ``seed * 10_000 + scene_seed_offset(scene) + i`` for
 rollout i, as ``benchmark`` evaluates (the fit's point is the benchmark's number for that scene). Search: every
@@ -301,7 +306,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
             seconds = time.perf_counter() - t0
             batch = run_rollouts(suite, scene, actor, pre, post, rollouts, eval0, label=f"scene {scene}")
             policy.set_latent(None)
-            fitted.update(z=info["z"], seconds=seconds, fit_error_ratio=info.get("fit_error_ratio"),
+            fitted.update(z=info["z"], seconds=round(seconds, 2), fit_error_ratio=info.get("fit_error_ratio"),
                           evaluation=summarize(batch, waypoints))
         return fitted
 
