@@ -184,6 +184,13 @@ class CandidateRollouts:
                 [lambda env=env: FreezeAfterEpisodeEnd(OutcomeRecorder(env)) for env in made])
         return self._venvs[n]
 
+    @contextlib.contextmanager
+    def acting(self, per_env: Tensor) -> Iterator[Any]:
+        """The policy to roll out with env b under candidate ``per_env[b]``: here a latent ([B, M, d_z]) through
+        :class:`PerEnvLatents`. A subclass steers by something else (the benchmark's DP by its sampler noise)."""
+        with acting_under(self.policy, PerEnvLatents(per_env)):
+            yield self.policy
+
     def candidates_per_batch(self) -> int:
         return max(1, self.max_envs // self.rollouts)
 
@@ -204,11 +211,11 @@ class CandidateRollouts:
                     out.extend(self([z]))
                 continue
             venv = self._venv(len(group) * k)
-            steering = PerEnvLatents(torch.stack(group).repeat_interleave(k, dim=0))
-            with torch.random.fork_rng(devices=None if torch.cuda.is_available() else []), acting_under(self.policy, steering), \
-                    quiet_rollout_bar(lerobot_eval):
+            per_env = torch.stack(group).repeat_interleave(k, dim=0)
+            with torch.random.fork_rng(devices=None if torch.cuda.is_available() else []), \
+                    self.acting(per_env) as actor, quiet_rollout_bar(lerobot_eval):
                 torch.manual_seed(self.seed * 100_003 + self.batches)
-                lerobot_eval.rollout(venv, self.policy, *self.env_processors, *self.processors,
+                lerobot_eval.rollout(venv, actor, *self.env_processors, *self.processors,
                                      seeds=[self.seed + j for _ in group for j in range(k)])
             self.batches += 1
             outcomes = [sub.env.outcome() for sub in venv.envs]

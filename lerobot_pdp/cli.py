@@ -574,6 +574,63 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "search-curves",
+        help="success against search rollouts on one shifted scene of a trained benchmark run",
+        description="On a benchmark output folder's trained runs (runs/pdp/seed<k>, runs/dp/seed<k>): CMA-ES over "
+        "PDP's latent from the gradient fit (z_fit) and from the mode means (z_modes), the gradient fit alone (fit) "
+        "and CMA-ES over LeRobot diffusion's initial noise with the same budget (dp_noise). One search per method at "
+        "the largest budget; the best candidate so far at each budget is evaluated on the protocol's evaluation "
+        "rollouts of the scene (seeds the search never used). Writes search_curves.json / .md / .png in --out; "
+        "finished (method, scene, seed) records are reused.",
+    )
+    p.add_argument("results", type=Path, help="a benchmark output folder (runs/<method>/seed<k>/pretrained_model)")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--scene", required=True, help="a shifted scene: 1-3 (test) or val1, val2, ... (validation)")
+    p.add_argument("--seed", type=int, required=True, help="the training seed of the runs (e.g. 100)")
+    p.add_argument("--budgets", type=int, nargs="+", default=[16, 32, 64, 128, 256, 512],
+                   help="search rollouts at which the curve is read (default 16 32 64 128 256 512)")
+    p.add_argument("--rollouts", type=int, default=40, help="evaluation rollouts per point (default 40)")
+    p.add_argument("--rollouts-per-candidate", type=int, default=2,
+                   help="search rollouts scoring each candidate (default 2)")
+    p.add_argument("--score", choices=("success", "waypoints"), default="success",
+                   help="what the searches maximise: task success (default) or the scene's way-points passed in "
+                   "order (no demonstration: z_modes and dp_noise only)")
+    p.add_argument("--radius", type=float, default=0.05, help="with --score waypoints: pass radius (default 0.05)")
+    p.add_argument("--methods", nargs="+", default=None,
+                   help="any of z_fit z_modes fit dp_noise (default: all that --score allows)")
+    p.add_argument("--dp-results", type=Path, default=None,
+                   help="the benchmark output folder holding runs/dp/seed<k>, where not RESULTS")
+    p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
+    p.add_argument("--out", required=True, type=Path, help="folder for search_curves.json / .md / .png (reused)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    p.set_defaults(func=cmd_search_curves)
+
+
+def cmd_search_curves(args: argparse.Namespace) -> int:
+    from lerobot_pdp.benchmark.search_curves import RECORD, TABLE, run_search_curves
+
+    scene = int(args.scene) if args.scene.strip().isdigit() else args.scene.strip()
+    # the command as the record keeps it: a folder given by an absolute path by its name (records get committed)
+    argv = ["lerobot-pdp search-curves", args.results.name if args.results.is_absolute() else str(args.results), "--env", args.env, "--scene", str(scene), "--seed",
+            str(args.seed), "--budgets", *map(str, args.budgets), "--rollouts", str(args.rollouts),
+            "--rollouts-per-candidate", str(args.rollouts_per_candidate), "--score", args.score]
+    if args.score == "waypoints":
+        argv += ["--radius", f"{args.radius:g}"]
+    if args.methods:
+        argv += ["--methods", *args.methods]
+    if args.dp_results is not None:
+        argv += ["--dp-results", args.dp_results.name if args.dp_results.is_absolute() else str(args.dp_results)]
+    run_search_curves(args.results, args.env, scene, args.seed, args.out, budgets=args.budgets, rollouts=args.rollouts,
+                      score=args.score, methods=args.methods, radius=args.radius,
+                      rollouts_per_candidate=args.rollouts_per_candidate, dp_out=args.dp_results, device=args.device,
+                      progress=not args.no_progress, command=" ".join(argv))
+    print((args.out / TABLE).read_text())
+    print(f"wrote {args.out / RECORD}, {args.out / TABLE} and the curve search_curves.png")
+    return 0
+
+
 def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "merge-results",
@@ -640,6 +697,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_teach_parser,
     add_explore_parser,
     add_benchmark_parser,
+    add_search_curves_parser,
     add_merge_results_parser,
 ]
 

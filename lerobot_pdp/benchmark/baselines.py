@@ -326,6 +326,26 @@ class FixedNoisePolicy(nn.Module):
             return getattr(super().__getattr__("policy"), name)
 
 
+class PerEnvNoisePolicy(FixedNoisePolicy):
+    """A DP where env b of a vectorised rollout starts every chunk's sampler from its own noise ``noises[b]``
+    ([B, horizon, action_dim]): a population of candidate noises rolled out in one batch, as
+    :class:`~lerobot_pdp.candidate_rollouts.PerEnvLatents` rolls out PDP's candidate latents (a search over DP's
+    noise, ``benchmark/search_curves.py``). Everything else is :class:`FixedNoisePolicy`'s."""
+
+    def __init__(self, policy: nn.Module, noises: Tensor):
+        noises = torch.as_tensor(noises).detach().float()
+        if noises.dim() != 3:
+            raise ValueError(f"noises must have shape [B, horizon, action_dim] (one per env), got {tuple(noises.shape)}")
+        super().__init__(policy, noises[:1])
+        self.register_buffer("per_env", noises.to(_device(policy)), persistent=False)
+
+    def _noise_for(self, batch: Mapping[str, Tensor], advance: bool) -> Tensor:
+        b = batch[OBS_STATE].shape[0] if batch[OBS_STATE].dim() > 1 else 1
+        if b != len(self.per_env):
+            raise RuntimeError(f"rollout batch of {b} envs for {len(self.per_env)} candidate noises")
+        return self.per_env
+
+
 # ----------------------------------------------------------------------------- BC: weight fine-tuning
 
 

@@ -1,0 +1,489 @@
+"""Success against the rollouts a search spends (``lerobot-pdp search-curves``), on one shifted scene of a trained
+benchmark run: CMA-ES over PDP's latent started from the gradient fit (``z_fit``) or from the mode means
+(``z_modes``), the gradient fit alone (``fit``, no search rollouts), and a DSRL-style search over LeRobot
+``diffusion``'s initial noise with the same optimiser, population rule, rollouts per candidate and budget
+(``dp_noise``). With way-points instead of a demonstration (``score="waypoints"``) only the searches that need no
+demonstration run.
+
+Each search runs ONCE, at the largest budget; for every budget point b the best candidate of its first b
+rollouts (by the search's own score, as ``search_latent`` keeps its best) is then evaluated on the protocol's
+evaluation rollouts of the scene. The optimiser asks the same populations whatever the budget, so those
+candidates are the ones a search of budget b would try (only the sampler noise of a smaller last batch may
+differ): one search gives the whole curve. ``z_modes`` scores every mode mean first (avoiding: 24 x 2 rollouts),
+so its points below that budget are the best of the first modes' means.
+
+The latent searches act under the sampler's own noise (``CandidateRollouts``' per-env latents carry no fitted
+chunk noises); where the frozen adaptation also fits one noise per chunk (``settings.FROZEN``), the ``fit`` point
+includes them and ``z_fit``'s first candidate, the fit's z alone, does not.
+
+Seeds. Evaluation: the protocol's own for (seed, scene), ``seed * 10_000 + scene_seed_offset(scene) + i`` for
+rollout i, as ``benchmark`` evaluates (the fit's point is the benchmark's number for that scene). Search: every
+candidate's j-th rollout resets with ``seed * 10_000 + SEARCH_SEED_OFFSET + scene_seed_offset(scene) + j``, the same
+for every method of a (seed, scene) and never an evaluation seed of any scene: a point's success is measured on
+initial states its search never saw.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import math
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from ..atomic import write_file_atomic, write_text_atomic
+from ..candidate_rollouts import CandidateRollouts, EnvFactory
+from ..latent_search import Candidate, SearchResult, default_popsize, make_optimizer, search_latent
+from ..outcome_scores import Outcome, Score, WaypointScore, resolve_score, waypoint_progress
+from .machine import cpu_model
+from .rollouts import RolloutBatch, run_rollouts
+from .settings import Method, check_split, frozen_for, scene_seed_offset
+
+METHODS = ("z_fit", "z_modes", "fit", "dp_noise")
+NEEDS_DEMO = ("z_fit", "fit")  # the gradient fit needs a demonstration; way-points are not one
+SCORES = ("success", "waypoints")
+DEFAULT_BUDGETS = (16, 32, 64, 128, 256, 512)
+SEARCH_SEED_OFFSET = 5_000  # search seeds sit this far above the scene's evaluation seeds (docstring)
+MAX_EVAL_ROLLOUTS = 4_000  # evaluation seeds of every scene stay below the search seeds of every scene
+# DP's sampler starts from x_K ~ N(0, I): CMA-ES's first population around the zero noise with step 1 is a draw
+# of DP's own prior, so the search starts where DP samples and moves away only as far as the score pays.
+DP_NOISE_SIGMA = 1.0
+RECORD, TABLE, FIGURE = "search_curves.json", "search_curves.md", "search_curves.png"
+LABELS = {"z_fit": "z search from the fit", "z_modes": "z search from the mode means", "fit": "gradient fit",
+          "dp_noise": "DP noise search (DSRL-style)"}
+
+
+def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollouts: int, score: str,
+                  rollouts_per_candidate: int, scene: int | str) -> tuple[list[str], list[int]]:
+    """The methods (default: every one the score allows) and sorted budgets of a request; a ValueError naming the
+    value otherwise. Checked before anything is loaded."""
+    if score not in SCORES:
+        raise ValueError(f"score must be one of {SCORES}, got {score!r}")
+    if scene == 0 or scene == "0":
+        raise ValueError("scene 0 has no adaptation: give a shifted scene (1, 2, 3, 4 or val<k>)")
+    if methods is None:
+        methods = [m for m in METHODS if score == "success" or m not in NEEDS_DEMO]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
+    if score == "waypoints" and any(m in NEEDS_DEMO for m in methods):
+        raise ValueError(f"method(s) {[m for m in methods if m in NEEDS_DEMO]} fit a demonstration, which "
+                         "--score waypoints does not have: use z_modes and dp_noise")
+    k = rollouts_per_candidate
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 1_000:
+        raise ValueError(f"rollouts_per_candidate must be an integer in 1..1000, got {k!r}")
+    if not budgets:
+        raise ValueError("budgets: give at least one")
+    for b in budgets:
+        if isinstance(b, bool) or not isinstance(b, int) or b < k:
+            raise ValueError(f"budget {b!r} must be an integer >= rollouts_per_candidate ({k}), the price of one "
+                             "candidate")
+    if isinstance(rollouts, bool) or not isinstance(rollouts, int) or not 1 <= rollouts <= MAX_EVAL_ROLLOUTS:
+        raise ValueError(f"rollouts must be an integer in 1..{MAX_EVAL_ROLLOUTS} (evaluation seeds stay apart from "
+                         f"the search's), got {rollouts!r}")
+    return list(dict.fromkeys(methods)), sorted(set(budgets))
+
+
+def evaluation_seed(seed: int, scene: int | str) -> int:
+    """The protocol's first evaluation rollout seed of (training seed, scene)."""
+    return seed * 10_000 + scene_seed_offset(scene)
+
+
+def search_seed(seed: int, scene: int | str) -> int:
+    """The first env seed of every candidate of a search on (training seed, scene): no evaluation seed."""
+    return evaluation_seed(seed, scene) + SEARCH_SEED_OFFSET
+
+
+class TimedScore:
+    """A score that notes when each rollout was scored: the wall time of a search up to any candidate."""
+
+    def __init__(self, score: str | Score):
+        self.score, self.objective = resolve_score(score)
+        self.times: list[float] = []
+        self.__name__ = getattr(self.score, "__name__", type(self.score).__name__)
+
+    def __call__(self, outcome: Outcome) -> float:
+        self.times.append(time.perf_counter())
+        return self.score(outcome)
+
+    def describe(self) -> Any:
+        return self.objective
+
+
+# ----------------------------------------------------------------------------- DP: search over the initial noise
+
+
+class NoiseCandidateRollouts(CandidateRollouts):
+    """Candidate DP noises ([horizon, action_dim] each) rolled out together, env b starting every chunk's
+    sampler from its candidate's noise (:class:`~lerobot_pdp.benchmark.baselines.PerEnvNoisePolicy`)."""
+
+    @contextlib.contextmanager
+    def acting(self, per_env: Tensor) -> Iterator[Any]:
+        from .baselines import PerEnvNoisePolicy
+
+        training = self.policy.training
+        self.policy.eval()
+        try:
+            yield PerEnvNoisePolicy(self.policy, per_env)
+        finally:
+            self.policy.train(training)
+            self.policy.reset()
+
+
+def search_dp_noise(policy: Any, env_factory: EnvFactory, score: str | Score, budget: int, seed: int,
+                    rollouts_per_candidate: int, processors: tuple, max_envs: int = 16,
+                    progress: bool = True) -> SearchResult:
+    """CMA-ES over DP's initial noise x_K, one [horizon, action_dim] noise shared by every chunk, as
+    ``search_latent`` searches z: the same optimiser (``make_optimizer("cma")``, its default population
+    4 + 3 ln D), the starting point (the zero noise, the prior's mean) scored first, ``budget`` rollouts of
+    ``rollouts_per_candidate`` each per candidate, the best by (score, success). Candidates' ``latent``: their noise."""
+    score_fn, objective = resolve_score(score)
+    shape = (int(policy.config.horizon), int(policy.config.action_feature.shape[0]))
+    k = rollouts_per_candidate
+    n_candidates = budget // k
+    result = SearchResult(None, -math.inf, 0.0, [], "cma", seed, budget, k, objective)
+    t0 = time.perf_counter()
+    bar = tqdm(total=n_candidates * k, unit="rollout", desc="DP noise search (cma)", disable=not progress)
+    run = NoiseCandidateRollouts(policy, env_factory, k, seed, processors, None, max_envs)
+
+    def evaluate(noises: list[Tensor], generation: int) -> list[float]:
+        means = []
+        for x, outcomes in zip(noises, run(noises), strict=True):
+            values = [float(score_fn(o)) for o in outcomes]
+            cand = Candidate(x, float(np.mean(values)), float(np.mean([o.success for o in outcomes])), k,
+                             generation, values)
+            result.history.append(cand)
+            if (cand.score, cand.success) > (result.score, result.success):
+                result.latent, result.score, result.success = cand.latent, cand.score, cand.success
+            means.append(cand.score)
+            bar.update(k)
+            bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
+        return means
+
+    try:
+        evaluate([torch.zeros(shape)], 0)
+        opt = make_optimizer("cma", np.zeros(shape[0] * shape[1]), DP_NOISE_SIGMA, None, None, seed)
+        generation = 1
+        while len(result.history) < n_candidates:
+            x = opt.ask()
+            n = min(len(x), n_candidates - len(result.history))
+            means = evaluate([torch.as_tensor(v, dtype=torch.float32).reshape(shape) for v in x[:n]], generation)
+            if n == len(x):
+                opt.tell(x, np.asarray(means))
+            generation += 1
+    finally:
+        bar.close()
+        run.close()
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+# ----------------------------------------------------------------------------- budget points
+
+
+def best_so_far(history: Sequence[Candidate], budgets: Sequence[int], k: int) -> list[tuple[int, int, int]]:
+    """(budget, candidates within it, index of the best of them) per budget: the best by (score, success), the
+    first of equals, as the search itself keeps it."""
+    out = []
+    for b in budgets:
+        n = min(b // k, len(history))
+        best = max(range(n), key=lambda i: (history[i].score, history[i].success))
+        out.append((b, n, best))
+    return out
+
+
+def summarize(batch: RolloutBatch, waypoints: WaypointScore | None) -> dict[str, Any]:
+    """Success and collision over the evaluation rollouts (and, scored by way-points, their mean progress)."""
+    d: dict[str, Any] = {"success": batch.success_rate, "collision": batch.collision_rate, "n": len(batch.results)}
+    if waypoints is not None:
+        d["waypoint_score"] = float(np.mean([waypoint_progress(r.trace, waypoints.waypoints, waypoints.radius)
+                                             for r in batch.results]))
+    return d
+
+
+def _sha(path: Path) -> str:
+    """A checkpoint's fingerprint: a record is reused for these weights only."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def run_sampler(run_dir: Path) -> dict[str, Any]:
+    """The DDIM steps and grid a run was evaluated with (its ``eval.json``), else its checkpoint's own."""
+    from .evaluation import checkpoint_sampler
+
+    made = json.loads((run_dir / "eval.json").read_text()) if (run_dir / "eval.json").is_file() else {}
+    steps, spacing = checkpoint_sampler(run_dir / "pretrained_model")
+    return {"inference_steps": made.get("inference_steps") or steps, "timestep_spacing": made.get("timestep_spacing") or spacing}
+
+
+def _quick(out: Path) -> bool:
+    """Whether ``out`` is a --quick benchmark (its ``results.json``; full without one): which FROZEN row applies."""
+    res = out / "results.json"
+    return bool(json.loads(res.read_text()).get("quick", False)) if res.is_file() else False
+
+
+# ----------------------------------------------------------------------------- the measurement
+
+
+def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Path,
+                      budgets: Sequence[int] = DEFAULT_BUDGETS, rollouts: int = 40, score: str = "success",
+                      methods: Sequence[str] | None = None, radius: float = 0.05, rollouts_per_candidate: int = 2,
+                      dp_out: Path | None = None, device: str = "cpu", max_envs: int = 16,
+                      max_episode_steps: int | None = None, progress: bool = True,
+                      command: str | None = None) -> dict[str, Any]:
+    """Measure the curves of ``methods`` on ``scene`` for the benchmark run ``out/runs/<pdp|dp>/seed<seed>`` (DP's
+    under ``dp_out`` when given) and write ``dest``/search_curves.json, .md and .png. A record of the same (method,
+    scene, seed, score) made with the same settings and checkpoint is reused. ``max_episode_steps``: shorter
+    episodes than the env's (tests). Returns the whole record file."""
+    import dataclasses
+
+    import lerobot_pdp.envs  # noqa: F401  (registers the suite)
+
+    from ..envs.recording import check_waypoints
+    from ..envs.scene import load_scene
+    from ..envs.suite import get_suite_env
+
+    methods, budgets = check_request(methods, budgets, rollouts, score, rollouts_per_candidate, scene)
+    scene = int(scene) if isinstance(scene, str) and scene.isdigit() else scene
+    check_split("validation" if isinstance(scene, str) else "test", (scene,), [seed])
+    suite = get_suite_env(env)
+    if max_episode_steps is not None:
+        suite = dataclasses.replace(suite, max_episode_steps=int(max_episode_steps))
+    sc = load_scene(scene, suite.scene_key)
+    waypoints = None
+    if score == "waypoints":
+        if sc.waypoints is None:
+            raise ValueError(f"--score waypoints: {suite.name} scene {scene} ships no way-points (a scene with a "
+                             "feasible training mode); score it by success with its demonstration")
+        check_waypoints(suite, np.asarray(sc.waypoints, dtype=float), sc.source)
+        waypoints = WaypointScore(sc.waypoints, radius, dims=suite.trace_dims)
+    runs = {"pdp": Path(out) / "runs" / "pdp" / f"seed{seed}", "dp": Path(dp_out or out) / "runs" / "dp" / f"seed{seed}"}
+    for name in [n for n in ("pdp", "dp") if any((m == "dp_noise") == (n == "dp") for m in methods)]:
+        if not (runs[name] / "pretrained_model" / "model.safetensors").is_file():
+            raise FileNotFoundError(f"no trained {name} run at {runs[name]} (pretrained_model/model.safetensors): "
+                                    f"give a benchmark output folder holding runs/{name}/seed{seed}")
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    record_file = dest / RECORD
+    book: dict[str, Any] = json.loads(record_file.read_text()) if record_file.is_file() else {"records": {}}
+    book.update(cpu=cpu_model(), threads=torch.get_num_threads())
+    k, eval0, search0 = rollouts_per_candidate, evaluation_seed(seed, scene), search_seed(seed, scene)
+    adapt_kwargs = dict(frozen_for(suite.name, _quick(Path(out)), "pdp").get("adapt", {}))
+    common = {"budgets": budgets, "rollouts": rollouts, "rollouts_per_candidate": k, "max_envs": max_envs,
+              "evaluation_seeds": [eval0, eval0 + rollouts - 1], "search_seeds": [search0, search0 + k - 1],
+              "max_episode_steps": suite.max_episode_steps, "device": device,
+              "objective": "success" if waypoints is None else waypoints.describe()}
+    loaded: dict[str, Any] = {}
+
+    def policy_of(name: str):
+        if name not in loaded:
+            from .training import load_policy
+
+            s = run_sampler(runs[name])
+            loaded[name] = load_policy(runs[name] / "pretrained_model", s["inference_steps"], device, s["timestep_spacing"])
+        return loaded[name]
+
+    fitted: dict[str, Any] = {}
+
+    def fit() -> dict[str, Any]:
+        """The benchmark's adaptation of PDP to the scene's demonstration, evaluated as the benchmark does."""
+        if not fitted:
+            from .data import demo_episode, ensure_demo
+            from .evaluation import adapt
+
+            policy, pre, post = policy_of("pdp")
+            demo = demo_episode(ensure_demo(suite, Path(out), scene)[0])
+            t0 = time.perf_counter()
+            actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, seed, **adapt_kwargs)
+            seconds = time.perf_counter() - t0
+            batch = run_rollouts(suite, scene, actor, pre, post, rollouts, eval0, label=f"scene {scene}")
+            policy.set_latent(None)
+            fitted.update(z=info["z"], seconds=round(seconds, 2), fit_error_ratio=info.get("fit_error_ratio"),
+                          evaluation=summarize(batch, waypoints))
+        return fitted
+
+    def evaluate_latent(z: Tensor) -> dict[str, Any]:
+        policy, pre, post = policy_of("pdp")
+        policy.set_latent(z)
+        try:
+            return summarize(run_rollouts(suite, scene, policy, pre, post, rollouts, eval0), waypoints)
+        finally:
+            policy.set_latent(None)
+
+    def evaluate_noise(x: Tensor) -> dict[str, Any]:
+        from .baselines import FixedNoisePolicy
+
+        policy, pre, post = policy_of("dp")
+        return summarize(run_rollouts(suite, scene, FixedNoisePolicy(policy, x[None]), pre, post, rollouts, eval0),
+                         waypoints)
+
+    def measure(method: str) -> dict[str, Any]:
+        rec: dict[str, Any] = {}
+        if method == "fit":
+            f = fit()
+            rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
+            z = torch.as_tensor(f["z"])
+            rec["points"] = [{"budget": 0, "rollouts_used": 0, "seconds": round(f["seconds"], 2),
+                              "norm": float(z.norm()), "latent": f["z"], **f["evaluation"]}]
+            return rec
+        timed = TimedScore(waypoints if waypoints is not None else "success")
+        if method == "dp_noise":
+            policy, pre, post = policy_of("dp")
+            t0 = time.perf_counter()
+            res = search_dp_noise(policy, _factory(suite, scene), timed, max(budgets), search0, k, (pre, post),
+                                  max_envs, progress)
+            judge, key = evaluate_noise, "noise"
+        else:
+            policy, pre, post = policy_of("pdp")
+            init: Any = "modes"
+            if method == "z_fit":
+                f = fit()
+                rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
+                init = torch.as_tensor(f["z"])
+            t0 = time.perf_counter()
+            res = search_latent(policy, _factory(suite, scene), timed, budget=max(budgets), init=init, method="cma",
+                                seed=search0, rollouts_per_candidate=k, max_envs=max_envs, processors=(pre, post),
+                                progress=progress)
+            if res.interrupted:
+                raise KeyboardInterrupt
+            judge, key = evaluate_latent, "latent"
+        done = [timed.times[(i + 1) * k - 1] - t0 for i in range(len(res.history))]
+        rec["search"] = {"method": "cma", "seconds": round(res.seconds, 2), "candidates": len(res.history),
+                         "rollouts_used": res.rollouts_used,
+                         "popsize": default_popsize(res.history[0].latent.numel())}
+        judged: dict[int, dict[str, Any]] = {}
+        rec["points"] = []
+        for b, n, i in best_so_far(res.history, budgets, k):
+            if i not in judged:
+                judged[i] = judge(res.history[i].latent)
+            c = res.history[i]
+            rec["points"].append({"budget": b, "rollouts_used": n * k, "seconds": round(done[n - 1], 2),
+                                  "candidate": i, "generation": c.generation, "search_score": c.score,
+                                  "search_success": c.success, "norm": float(c.latent.norm()),
+                                  key: c.latent.tolist(), **judged[i]})
+        return rec
+
+    for method in tqdm(methods, desc=f"search curves {suite.name} {scene} seed {seed}", unit="method",
+                       disable=not progress):
+        name = "dp" if method == "dp_noise" else "pdp"
+        settings = {**common, "checkpoint": _sha(runs[name] / "pretrained_model" / "model.safetensors"),
+                    "sampler": run_sampler(runs[name])}
+        if method in NEEDS_DEMO:
+            settings["adapt"] = adapt_kwargs
+        key = f"{suite.name}/{scene}/seed{seed}/{score}/{method}"
+        old = book["records"].get(key)
+        if old is not None and old.get("settings") == json.loads(json.dumps(settings)):
+            continue
+        rec = {"env": suite.name, "scene": scene, "seed": seed, "score": score, "method": method,
+               "settings": settings, **measure(method)}
+        if command:
+            rec["command"] = command
+        book["records"][key] = rec
+        write_records(book, dest)
+    write_records(book, dest)
+    return book
+
+
+def _factory(suite: Any, scene: int | str) -> EnvFactory:
+    """One env of ``scene`` as the protocol's rollouts make it (``rollouts.make_vector_env``)."""
+    import gymnasium as gym
+
+    return functools.partial(gym.make, suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
+                             disable_env_checker=True, **suite.camera_kwargs)
+
+
+# ----------------------------------------------------------------------------- the table and the curve
+
+
+def _groups(book: dict[str, Any]) -> dict[tuple, dict[str, dict[str, Any]]]:
+    """Records per (env, scene, seed, score), each group's methods in :data:`METHODS` order."""
+    groups: dict[tuple, dict[str, dict[str, Any]]] = {}
+    for rec in book["records"].values():
+        groups.setdefault((rec["env"], str(rec["scene"]), rec["seed"], rec["score"]), {})[rec["method"]] = rec
+    return {g: {m: ms[m] for m in METHODS if m in ms} for g, ms in sorted(groups.items(), key=lambda kv: str(kv[0]))}
+
+
+def curves_markdown(book: dict[str, Any]) -> str:
+    """One table per (env, scene, seed, score): success over the evaluation rollouts of the best candidate so far
+    at each budget, and the search's wall time at its largest budget."""
+    lines = ["# Search curves", "",
+             "Success over the evaluation rollouts (the protocol's seeds for the scene) of each search's best "
+             "candidate after the first b rollouts (in brackets, scored by way-points: their mean progress through "
+             "the way-points); the search's own rollouts reset on other seeds. search s: the search's wall time at "
+             "its largest budget; fit s: the gradient fit's (z_fit searches after it). Wall time on "
+             f"{book.get('cpu', 'an unrecorded CPU')}, {book.get('threads', '?')} torch thread(s).", ""]
+    for (env, scene, seed, score), recs in _groups(book).items():
+        budgets = sorted({p["budget"] for r in recs.values() for p in r["points"] if p["budget"] > 0})
+        any_rec = next(iter(recs.values()))["settings"]
+        lines += [f"## {env} {scene}, seed {seed}, scored by {score}", "",
+                  f"{any_rec['rollouts']} evaluation rollouts (seeds {any_rec['evaluation_seeds'][0]}.."
+                  f"{any_rec['evaluation_seeds'][1]}); {any_rec['rollouts_per_candidate']} search rollouts per "
+                  f"candidate (seeds {any_rec['search_seeds'][0]}..{any_rec['search_seeds'][1]}).", "",
+                  "| method | " + " | ".join(["fit", *map(str, budgets)]) + " | search s | fit s |",
+                  "|---" * (len(budgets) + 4) + "|"]
+        for method, rec in recs.items():
+            by_budget = {p["budget"]: p for p in rec["points"]}
+            cells = [_cell(by_budget[b]) if b in by_budget else "" for b in [0, *budgets]]
+            search_s = f"{rec['search']['seconds']:.1f}" if "search" in rec else ""
+            fit_s = f"{rec['fit']['seconds']:.1f}" if "fit" in rec else ""
+            lines.append(f"| {method} | " + " | ".join(cells) + f" | {search_s} | {fit_s} |")
+        commands = sorted({r["command"] for r in recs.values() if r.get("command")})
+        if commands:
+            lines += ["", *[f"`{c}`" for c in commands]]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _cell(point: dict[str, Any]) -> str:
+    wp = point.get("waypoint_score")
+    return f"{100 * point['success']:.1f} %" + ("" if wp is None else f" ({wp:.2f})")
+
+
+def draw_curves(book: dict[str, Any], path: Path) -> None:
+    """Success against rollouts used (log2), one line per search, the fit as a horizontal line; a panel per
+    (env, scene, seed, score)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    groups = _groups(book)
+    fig, axes = plt.subplots(1, max(1, len(groups)), figsize=(5.5 * max(1, len(groups)), 4.2), squeeze=False)
+    for ax, ((env, scene, seed, score), recs) in zip(axes[0], groups.items(), strict=False):
+        for method, rec in recs.items():
+            pts = rec["points"]
+            if method == "fit":
+                ax.axhline(pts[0]["success"], color="black", ls="--", lw=1.2, label=LABELS[method])
+                continue
+            x = [max(p["rollouts_used"], 1) for p in pts]
+            y = np.array([p["success"] for p in pts])
+            err = np.sqrt(y * (1 - y) / np.array([p["n"] for p in pts]))
+            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=2, label=LABELS[method])
+        ax.set_xscale("log", base=2)
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel("search rollouts used")
+        ax.set_ylabel("success (evaluation rollouts)")
+        ax.set_title(f"{env} {scene}, seed {seed}, score {score}", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    write_file_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110))
+    plt.close(fig)
+
+
+def write_records(book: dict[str, Any], dest: Path) -> None:
+    """The record, its table and its figure, each whole or not at all (figure and table first: the record
+    names only what they show)."""
+    write_text_atomic(dest / TABLE, curves_markdown(book))
+    draw_curves(book, dest / FIGURE)
+    write_text_atomic(dest / RECORD, json.dumps(book, indent=1))

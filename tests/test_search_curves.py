@@ -1,0 +1,192 @@
+"""``lerobot-pdp search-curves``: every method and budget point recorded, best-so-far by the search's own score,
+DP's per-env noises, a finished record reused, bad input named.
+
+The runs are small and untrained (PDP with random FiLM layers, so that latents act differently; DP with random
+weights), on reach-around with episodes cut to 30 steps: the machinery, not the numbers (those need trained
+checkpoints, docs/benchmark.md).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_pdp.benchmark import search_curves as sc
+from lerobot_pdp.cli import main as cli
+from lerobot_pdp.latent_search import Candidate
+
+SEED = 100
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory) -> Path:
+    """A benchmark output folder holding a small PDP and a small DP run of seed 100, saved as lerobot-train saves
+    them (weights + processors)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    from lerobot_pdp import PDPConfig
+    from lerobot_pdp.benchmark.baselines import dp_config_kwargs
+    from lerobot_pdp.denoiser import LatentFiLM
+    from lerobot_pdp.envs.recording import make_dataset
+
+    out = tmp_path_factory.mktemp("curves") / "bench"
+    data = make_dataset("reach-around", out / "data" / "reach_around_scene0", scene=0, episodes_per_mode=1,
+                        progress=False)
+    meta = LeRobotDatasetMetadata("local/ra", root=data)
+    torch.manual_seed(0)
+    pdp_cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2],
+                        num_inference_steps=4, fit_steps=2)
+    dp_cfg = DiffusionConfig(device="cpu", push_to_hub=False,
+                             **dp_config_kwargs({"down_dims": (16, 32), "num_inference_steps": 4}))
+    for name, cfg in (("pdp", pdp_cfg), ("dp", dp_cfg)):
+        policy = make_policy(cfg, ds_meta=meta)
+        for m in policy.modules():
+            if isinstance(m, LatentFiLM):
+                torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
+        ckpt = out / "runs" / name / f"seed{SEED}" / "pretrained_model"
+        policy.save_pretrained(ckpt)
+        for proc in make_pre_post_processors(cfg, dataset_stats=meta.stats):
+            proc.save_pretrained(ckpt)
+    return out
+
+
+def measure(results: Path, dest: Path, scene: str = "val1", **kw):
+    return sc.run_search_curves(results, "reach-around", scene, SEED, dest, budgets=[8, 4], rollouts=2,
+                                rollouts_per_candidate=2, max_episode_steps=30, progress=False, **kw)
+
+
+def test_best_so_far_is_the_first_best_within_each_budget():
+    scores = [0.0, 0.5, 0.5, 0.2, 1.0]
+    hist = [Candidate(torch.zeros(2), s, s, 2, 0) for s in scores]
+    assert sc.best_so_far(hist, [2, 4, 6, 9, 100], 2) == [(2, 1, 0), (4, 2, 1), (6, 3, 1), (9, 4, 1), (100, 5, 4)]
+
+
+def test_curves_record_every_method_and_budget_and_a_rerun_reuses_them(results, tmp_path, monkeypatch):
+    dest = tmp_path / "curves"
+    book = measure(results, dest)
+    recs = book["records"]
+    assert sorted(recs) == sorted(f"reach-around/val1/seed{SEED}/success/{m}" for m in sc.METHODS)
+    for method, rec in ((r["method"], r) for r in recs.values()):
+        pts = rec["points"]
+        assert [p["budget"] for p in pts] == ([0] if method == "fit" else [4, 8])
+        assert all(p["n"] == 2 and 0 <= p["success"] <= 1 and 0 <= p["collision"] <= 1 for p in pts)
+        if method == "fit":
+            continue
+        assert [p["rollouts_used"] for p in pts] == [4, 8] and rec["search"]["rollouts_used"] == 8
+        # the best so far never gets worse by the search's own score, and its time only grows
+        assert pts[0]["search_score"] <= pts[1]["search_score"] and 0 < pts[0]["seconds"] <= pts[1]["seconds"]
+        assert pts[0]["candidate"] < 2 <= rec["search"]["candidates"] == 4
+        assert pts[0]["norm"] == pytest.approx(float(np.linalg.norm(pts[0]["noise" if method == "dp_noise" else "latent"])))
+    # z_fit starts from the fit; DP's noise from zero with CMA-ES's population rule in horizon x action_dim numbers
+    assert recs[f"reach-around/val1/seed{SEED}/success/z_fit"]["fit"]["z"] == recs[
+        f"reach-around/val1/seed{SEED}/success/fit"]["points"][0]["latent"]
+    dp = recs[f"reach-around/val1/seed{SEED}/success/dp_noise"]
+    assert np.asarray(dp["points"][0]["noise"]).shape == (16, 3) and dp["search"]["popsize"] == 4 + int(3 * np.log(48))
+    s = dp["settings"]
+    assert s["evaluation_seeds"] == [SEED * 10_000 + 101, SEED * 10_000 + 102]
+    assert s["search_seeds"] == [SEED * 10_000 + 5_101, SEED * 10_000 + 5_102] and "adapt" not in s
+    table = (dest / sc.TABLE).read_text()
+    assert "## reach-around val1, seed 100, scored by success" in table and "| dp_noise |" in table
+    assert (dest / sc.FIGURE).stat().st_size > 10_000
+
+    # a rerun with the same settings reuses every record: nothing is searched or rolled out again
+    def refuse(*a, **kw):
+        raise AssertionError("rolled out again")
+
+    for name in ("search_latent", "search_dp_noise", "run_rollouts"):
+        monkeypatch.setattr(sc, name, refuse)
+    assert measure(results, dest)["records"] == json.loads(json.dumps(recs))
+    # other settings (more evaluation rollouts) are measured anew
+    with pytest.raises(AssertionError, match="rolled out again"):
+        sc.run_search_curves(results, "reach-around", "val1", SEED, dest, budgets=[4, 8], rollouts=3,
+                             max_episode_steps=30, methods=["z_modes"], progress=False)
+
+
+def test_waypoint_curves_search_without_a_demonstration(results, tmp_path):
+    book = measure(results, tmp_path / "wp", scene="val3", score="waypoints", radius=0.08)
+    recs = book["records"]
+    assert sorted(r["method"] for r in recs.values()) == ["dp_noise", "z_modes"]
+    for rec in recs.values():
+        assert rec["score"] == "waypoints" and rec["settings"]["objective"]["radius"] == 0.08
+        assert len(rec["settings"]["objective"]["waypoints"]) == 4 and "adapt" not in rec["settings"]
+        assert all(0 <= p["waypoint_score"] <= 1 for p in rec["points"])
+    assert not (results / "data" / "reach_around_scene_val3_demo").exists()  # no demonstration made
+
+
+def test_per_env_noises_act_per_env(results):
+    """Two envs under different noises act differently; under equal noises, identically."""
+    import gymnasium as gym
+
+    from lerobot_pdp.benchmark.baselines import PerEnvNoisePolicy
+    from lerobot_pdp.benchmark.training import load_policy
+    from lerobot_pdp.envs import get_suite_env
+
+    policy, pre, post = load_policy(results / "runs" / "dp" / f"seed{SEED}" / "pretrained_model")
+    suite = get_suite_env("reach-around")
+
+    def factory():
+        return gym.make(suite.gym_id, scene=0, max_episode_steps=12, disable_env_checker=True)
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(16, 3, generator=g), torch.randn(16, 3, generator=g)
+    with sc.NoiseCandidateRollouts(policy, factory, 1, 7, (pre, post)) as run:
+        differ, same = run([a, b]), run([a, a])
+    assert not np.allclose(differ[0][0].states, differ[1][0].states)
+    assert np.array_equal(same[0][0].states, same[1][0].states)
+    assert np.array_equal(same[0][0].states, differ[0][0].states)  # a noise acts the same in any batch
+    with pytest.raises(RuntimeError, match="batch of 3 envs for 2 candidate noises"):
+        PerEnvNoisePolicy(policy, torch.stack([a, b])).select_action(
+            {"observation.state": torch.zeros(3, 6), "observation.environment_state": torch.zeros(3, 6)})
+    with pytest.raises(ValueError, match=r"shape \[B, horizon, action_dim\]"):
+        PerEnvNoisePolicy(policy, a)
+
+
+def test_bad_input_is_named(results, tmp_path, capsys):
+    base = ["search-curves", str(results), "--env", "reach-around", "--seed", str(SEED), "--out", str(tmp_path / "c"),
+            "--no-progress"]
+    cases = [
+        (["--scene", "val1", "--budgets", "0", "8"], r"budget 0 must be an integer >= rollouts_per_candidate \(2\)"),
+        (["--scene", "val1", "--methods", "z_fit", "adam"], r"unknown method\(s\) \['adam'\]"),
+        (["--scene", "val1", "--score", "waypoints"], "reach-around scene val1 ships no way-points"),
+        (["--scene", "val3", "--score", "waypoints", "--methods", "z_fit", "fit"],
+         r"\['z_fit', 'fit'\] fit a demonstration"),
+        (["--scene", "val1", "--rollouts", "0"], "rollouts must be an integer in 1..4000.*got 0"),
+        (["--scene", "0"], "scene 0 has no adaptation"),
+        (["--scene", "val9"], "ships no validation scene 'val9'"),
+        (["--scene", "1"], r"--split test got validation scene\(s\) \[\] / seed\(s\) \[100\]"),
+    ]
+    for extra, match in cases:
+        assert cli([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert __import__("re").search(match, err), (extra, err)
+    assert cli(["search-curves", str(tmp_path), "--env", "reach-around", "--scene", "val1", "--seed", str(SEED),
+                "--out", str(tmp_path / "c")]) == 2
+    assert f"no trained pdp run at {tmp_path}/runs/pdp/seed{SEED}" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+
+
+def test_cli_writes_the_record_with_its_command(results, tmp_path, capsys):
+    dest = tmp_path / "fit_only"
+    args = ["search-curves", str(results), "--env", "reach-around", "--scene", "val1", "--seed", str(SEED),
+            "--methods", "fit", "--rollouts", "1", "--out", str(dest), "--no-progress"]
+    assert cli(args) == 0
+    assert "| fit |" in capsys.readouterr().out
+    (rec,) = json.loads((dest / sc.RECORD).read_text())["records"].values()
+    assert rec["command"] == (f"lerobot-pdp search-curves {results.name} --env reach-around --scene val1 --seed 100 "
+                              "--budgets 16 32 64 128 256 512 --rollouts 1 --rollouts-per-candidate 2 --score success "
+                              "--methods fit")
+    assert rec["points"][0]["n"] == 1 and rec["settings"]["max_episode_steps"] == 200
