@@ -20,7 +20,7 @@ import contextlib
 import datetime
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -138,35 +138,12 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
     bar = tqdm(total=n_candidates * k, unit="rollout", desc=f"latent search ({method})", disable=not progress)
     run = CandidateRollouts(policy, env_factory, k, seed, processors, env_processors, max_envs)
 
-    def evaluate(latents: list[Tensor], generation: int) -> list[float]:
-        means = []
-        for z, outcomes in zip(latents, run(latents), strict=True):
-            values = [_score(score_fn, o, z, len(result.history)) for o in outcomes]
-            cand = Candidate(z, float(np.mean(values)), float(np.mean([o.success for o in outcomes])), k,
-                             generation, values)
-            result.history.append(cand)
-            if (cand.score, cand.success) > (result.score, result.success):
-                result.latent, result.score, result.success = cand.latent, cand.score, cand.success
-            means.append(cand.score)
-            bar.update(k)
-            bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
-        return means
+    def optimiser_at(best: Tensor) -> Any:  # from the best start, in its shape (one z per phase)
+        spread, bounds = latent_geometry(policy, best.reshape(-1).double().numpy(), best.shape)
+        return make_optimizer(method, best.reshape(-1).double().numpy(), sigma or 0.5 * spread, popsize, bounds, seed)
 
     try:
-        firsts = starts[:n_candidates]
-        evaluate(firsts, 0)
-        shape = result.latent.shape  # the best start: the search runs in its shape (one z per phase)
-        x0 = result.latent.reshape(-1).double().numpy()
-        spread, bounds = latent_geometry(policy, x0, shape)
-        opt = make_optimizer(method, x0, sigma or 0.5 * spread, popsize, bounds, seed)
-        generation = 1
-        while len(result.history) < n_candidates:
-            x = opt.ask()
-            n = min(len(x), n_candidates - len(result.history))
-            means = evaluate([torch.as_tensor(v, dtype=torch.float32).reshape(shape) for v in x[:n]], generation)
-            if n == len(x):
-                opt.tell(x, np.asarray(means))
-            generation += 1
+        optimise(result, run, starts, optimiser_at, lambda o, z, i: _score(score_fn, o, z, i), n_candidates, bar)
     except KeyboardInterrupt:
         if not result.history:
             raise
@@ -182,6 +159,42 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         run.close()
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def optimise(result: SearchResult, run: Callable[[list[Tensor]], list[list[Outcome]]], starts: list[Tensor],
+             optimiser_at: Callable[[Tensor], Any], score: Callable[[Outcome, Tensor, int], float], n_candidates: int,
+             bar: Any) -> None:
+    """The search loop, whatever is searched (a latent here, the benchmark's DP noise): score ``starts``, then
+    ask / tell the optimiser ``optimiser_at(best start)`` until ``n_candidates`` are tried, each candidate scored by
+    the mean of ``score(outcome, candidate, index)`` over its rollouts (``run``). Fills ``result`` as it goes, so
+    an interruption keeps what was tried."""
+    k = result.rollouts_per_candidate
+
+    def evaluate(xs: list[Tensor], generation: int) -> list[float]:
+        means = []
+        for x, outcomes in zip(xs, run(xs), strict=True):
+            values = [score(o, x, len(result.history)) for o in outcomes]
+            cand = Candidate(x, float(np.mean(values)), float(np.mean([o.success for o in outcomes])), k,
+                             generation, values)
+            result.history.append(cand)
+            if (cand.score, cand.success) > (result.score, result.success):
+                result.latent, result.score, result.success = cand.latent, cand.score, cand.success
+            means.append(cand.score)
+            bar.update(k)
+            bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
+        return means
+
+    evaluate(starts[:n_candidates], 0)
+    shape = result.latent.shape
+    opt = optimiser_at(result.latent)
+    generation = 1
+    while len(result.history) < n_candidates:
+        x = opt.ask()
+        n = min(len(x), n_candidates - len(result.history))
+        means = evaluate([torch.as_tensor(v, dtype=torch.float32).reshape(shape) for v in x[:n]], generation)
+        if n == len(x):
+            opt.tell(x, np.asarray(means))
+        generation += 1
 
 
 def _score(score_fn: Score, outcome: Outcome, z: Tensor, index: int) -> float:

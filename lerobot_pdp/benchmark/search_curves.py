@@ -42,7 +42,7 @@ from tqdm.auto import tqdm
 
 from ..atomic import write_file_atomic, write_text_atomic
 from ..candidate_rollouts import CandidateRollouts, EnvFactory
-from ..latent_search import Candidate, SearchResult, default_popsize, make_optimizer, search_latent
+from ..latent_search import Candidate, SearchResult, default_popsize, make_optimizer, optimise, search_latent
 from ..outcome_scores import Outcome, Score, WaypointScore, resolve_score, waypoint_progress
 from .machine import cpu_model
 from .rollouts import RolloutBatch, run_rollouts
@@ -155,31 +155,10 @@ def search_dp_noise(policy: Any, env_factory: EnvFactory, score: str | Score, bu
     bar = tqdm(total=n_candidates * k, unit="rollout", desc="DP noise search (cma)", disable=not progress)
     run = NoiseCandidateRollouts(policy, env_factory, k, seed, processors, None, max_envs)
 
-    def evaluate(noises: list[Tensor], generation: int) -> list[float]:
-        means = []
-        for x, outcomes in zip(noises, run(noises), strict=True):
-            values = [float(score_fn(o)) for o in outcomes]
-            cand = Candidate(x, float(np.mean(values)), float(np.mean([o.success for o in outcomes])), k,
-                             generation, values)
-            result.history.append(cand)
-            if (cand.score, cand.success) > (result.score, result.success):
-                result.latent, result.score, result.success = cand.latent, cand.score, cand.success
-            means.append(cand.score)
-            bar.update(k)
-            bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
-        return means
-
     try:
-        evaluate([torch.zeros(shape)], 0)
-        opt = make_optimizer("cma", np.zeros(shape[0] * shape[1]), DP_NOISE_SIGMA, None, None, seed)
-        generation = 1
-        while len(result.history) < n_candidates:
-            x = opt.ask()
-            n = min(len(x), n_candidates - len(result.history))
-            means = evaluate([torch.as_tensor(v, dtype=torch.float32).reshape(shape) for v in x[:n]], generation)
-            if n == len(x):
-                opt.tell(x, np.asarray(means))
-            generation += 1
+        optimise(result, run, [torch.zeros(shape)],
+                 lambda x0: make_optimizer("cma", x0.reshape(-1).double().numpy(), DP_NOISE_SIGMA, None, None, seed),
+                 lambda o, x, i: float(score_fn(o)), n_candidates, bar)
     finally:
         bar.close()
         run.close()
