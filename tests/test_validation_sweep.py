@@ -276,6 +276,21 @@ def test_teaching_is_chosen_for_the_new_route_among_settings_that_keep_scene_0()
     assert choose_teaching({"val4 steps=1": run(0.2, 0.5), "val4 steps=2": run(0.4, 0.1)}, base) == ("steps=2", False)
 
 
+def test_teaching_table_says_what_was_chosen_on_validation_and_frozen_on_test():
+    from lerobot_pdp.benchmark.teaching import teach_markdown
+
+    row = {"scene": 4, "steps": 3000, "lr": 1e-4, "teach_seconds": 1.0, "new_route": {"success": 0.5},
+           "scene0": {"success": 0.9, "coverage": 1.0, "steer_accuracy": 0.9}}
+    res = {"base_scene0": {"success": 0.9}, "runs": {"4 steps=3000 lr=0.0001": row}, "chosen": "steps=3000 lr=0.0001",
+           "chosen_keeps_scene0": True}
+    record = {"env": "avoiding", "split": "test", "rollouts": 2, "rollouts_scene0": 24, "batch_size": 64,
+              "demo_share": 0.25, "runs": {"pdp": {"6": res}}}
+    md = teach_markdown(record)
+    assert "| pdp | 6 | 4 | 3000 | 0.0001 |" in md and "with its frozen setting steps=3000 lr=0.0001" in md
+    assert "Chosen for" not in md
+    assert "Chosen for pdp (seed 6)" in teach_markdown({**record, "split": "validation"})
+
+
 def test_frozen_teaching_settings_are_what_the_committed_records_chose():
     from pathlib import Path
 

@@ -195,6 +195,10 @@ def teach_markdown(record: dict[str, Any]) -> str:
     lines.append("")
     for name, seeds in record["runs"].items():
         for seed, res in seeds.items():
+            if record["split"] == "test":  # one setting, frozen before: nothing is chosen here
+                lines.append(f"Taught {name} (seed {seed}) with its frozen setting {res.get('chosen')} "
+                             "(settings.TEACH_FROZEN, chosen on the validation split).")
+                continue
             kept = "" if res.get("chosen_keeps_scene0") else "; no setting keeps scene 0, so among all"
             lines.append(f"Chosen for {name} (seed {seed}): {res.get('chosen')} (the best new route among the settings "
                          f"whose scene 0 drops by at most {RETENTION_POINTS:g} points{kept}).")
