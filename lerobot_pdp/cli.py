@@ -613,7 +613,8 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
 
     scene = int(args.scene) if args.scene.strip().isdigit() else args.scene.strip()
     # the command as the record keeps it: a folder given by an absolute path by its name (records get committed)
-    argv = ["lerobot-pdp search-curves", args.results.name if args.results.is_absolute() else str(args.results), "--env", args.env, "--scene", str(scene), "--seed",
+    results = args.results.name if args.results.is_absolute() else str(args.results)
+    argv = ["lerobot-pdp search-curves", results, "--env", args.env, "--scene", str(scene), "--seed",
             str(args.seed), "--budgets", *map(str, args.budgets), "--rollouts", str(args.rollouts),
             "--rollouts-per-candidate", str(args.rollouts_per_candidate), "--score", args.score]
     if args.score == "waypoints":
