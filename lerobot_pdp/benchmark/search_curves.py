@@ -58,6 +58,7 @@ MAX_EVAL_ROLLOUTS = 4_000  # evaluation seeds of every scene stay below the sear
 # of DP's own prior, so the search starts where DP samples and moves away only as far as the score pays.
 DP_NOISE_SIGMA = 1.0
 RECORD, TABLE, FIGURE = "search_curves.json", "search_curves.md", "search_curves.png"
+COLORS = {"z_fit": "tab:blue", "z_modes": "tab:orange", "dp_noise": "tab:green"}  # one colour per method in every panel
 LABELS = {"z_fit": "z search from the fit", "z_modes": "z search from the mode means", "fit": "gradient fit",
           "dp_noise": "DP noise search (DSRL-style)"}
 
@@ -446,7 +447,7 @@ def draw_curves(book: dict[str, Any], path: Path) -> None:
             x = [max(p["rollouts_used"], 1) for p in pts]
             y = np.array([p["success"] for p in pts])
             err = np.sqrt(y * (1 - y) / np.array([p["n"] for p in pts]))
-            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=2, label=LABELS[method])
+            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=2, label=LABELS[method], color=COLORS.get(method))
         ax.set_xscale("log", base=2)
         ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
         ax.set_ylim(-0.03, 1.03)
