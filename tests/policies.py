@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot.utils.constants import ACTION
@@ -27,3 +29,31 @@ def training_batch(meta, policy, n: int = 8, seed: int = 0) -> dict:
     pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
     g = torch.Generator().manual_seed(seed)
     return pre(torch.utils.data.default_collate([ds[int(i)] for i in torch.randint(0, len(ds), (n,), generator=g)]))
+
+
+def saved_steerable_checkpoint(root: Path, camera: str | None = None) -> tuple[Path, Path]:
+    """A reach-around dataset (one demonstration per mode) and a small untrained PDP on it, with random FiLM
+    layers, saved as lerobot-train saves one (weights, processors, model card)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from lerobot_pdp.denoiser import LatentFiLM
+    from lerobot_pdp.envs.recording import make_dataset
+
+    data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=1, progress=False, camera=camera,
+                        image_size=32)
+    meta = LeRobotDatasetMetadata("local/ra", root=data)
+    extra = {"spatial_softmax_num_keypoints": 8} if camera else {}
+    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,
+                    fit_steps=2, **extra)
+    policy = make_policy(cfg, ds_meta=meta)
+    torch.manual_seed(0)
+    for m in policy.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
+    out = root / "ckpt"
+    policy.save_pretrained(out)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    (out / "README.md").write_text("# A model card\n")
+    return out, data

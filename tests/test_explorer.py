@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from policies import saved_steerable_checkpoint
 
-from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp import PDPPolicy
 from lerobot_pdp.checkpoint import ADAPTATION_INFO
 
 gradio = pytest.importorskip("gradio", reason='the explorer needs Gradio: pip install -e ".[explore]"')
@@ -29,38 +30,9 @@ BROWSER = shutil.which("chromium") or shutil.which("chromium-browser")  # Debian
 DRIVER = shutil.which("chromedriver")  # Debian's chromium-driver (no selenium-manager download: offline)
 
 
-def _tiny_checkpoint(root: Path, camera: str | None = None) -> tuple[Path, Path]:
-    """A reach-around dataset (one demonstration per mode) and a small untrained PDP on it, with random FiLM
-    layers, saved as lerobot-train saves one (weights, processors, model card)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-
-    from lerobot_pdp.denoiser import LatentFiLM
-    from lerobot_pdp.envs.recording import make_dataset
-
-    data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=1, progress=False, camera=camera,
-                        image_size=32)
-    meta = LeRobotDatasetMetadata("local/ra", root=data)
-    extra = {"spatial_softmax_num_keypoints": 8} if camera else {}
-    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,
-                    fit_steps=2, **extra)
-    policy = make_policy(cfg, ds_meta=meta)
-    torch.manual_seed(0)
-    for m in policy.modules():
-        if isinstance(m, LatentFiLM):
-            torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
-    out = root / "ckpt"
-    policy.save_pretrained(out)
-    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
-    (out / "README.md").write_text("# A model card\n")
-    return out, data
-
-
 @pytest.fixture(scope="module")
 def made(tmp_path_factory) -> tuple[Path, Path]:
-    return _tiny_checkpoint(tmp_path_factory.mktemp("explore"))
+    return saved_steerable_checkpoint(tmp_path_factory.mktemp("explore"))
 
 
 @pytest.fixture(scope="module")
@@ -208,7 +180,7 @@ def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
     from lerobot_pdp.explorer import Explorer
 
     monkeypatch.setenv("SVT_LOG", "1")  # the AV1 encoder's configuration log, per episode: errors only
-    ckpt, data = _tiny_checkpoint(tmp_path, camera="top")
+    ckpt, data = saved_steerable_checkpoint(tmp_path, camera="top")
     ex = Explorer(ckpt, env="reach-around", rollouts=1, max_steps=10, cache_dir=tmp_path / "cache", dataset=data)
     assert "observation.images.top" in ex.policy.config.input_features
     assert len(ex.rollout(ex.mode_latent(0)).outcomes) == 1

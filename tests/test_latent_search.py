@@ -17,8 +17,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from policies import saved_steerable_checkpoint
 
-from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp import PDPPolicy
 from lerobot_pdp.candidate_rollouts import CandidateRollouts, PerEnvLatents
 from lerobot_pdp.checkpoint import ADAPTATION_INFO
 from lerobot_pdp.cli import main as cli
@@ -32,29 +33,7 @@ SCENE3_WAYPOINTS = [[0.0, -0.30, 0.40], [0.19, -0.12, 0.59], [0.19, 0.12, 0.59],
 def checkpoint(tmp_path_factory) -> Path:
     """A small untrained PDP with reach-around's features and random FiLM layers, saved as lerobot-train saves
     one (weights + processors)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-
-    from lerobot_pdp.denoiser import LatentFiLM
-    from lerobot_pdp.envs.recording import make_dataset
-
-    tmp = tmp_path_factory.mktemp("search")
-    data = make_dataset("reach-around", tmp / "data", scene=0, episodes_per_mode=1, progress=False)
-    meta = LeRobotDatasetMetadata("local/ra", root=data)
-    cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,
-                    fit_steps=2)
-    policy = make_policy(cfg, ds_meta=meta)
-    torch.manual_seed(0)
-    for m in policy.modules():
-        if isinstance(m, LatentFiLM):
-            torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
-    out = tmp / "ckpt"
-    policy.save_pretrained(out)
-    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
-    (out / "README.md").write_text("# A model card\n")
-    return out
+    return saved_steerable_checkpoint(tmp_path_factory.mktemp("search"))[0]
 
 
 @pytest.fixture
