@@ -48,6 +48,18 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
     return proc
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny models, small batches: one intra-op thread for a module. With 2 threads on a 2-core machine that has
+    any other load, OpenMP barriers made the DP adaptation test ~170x slower here (229 s instead of 1.4 s)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def synthetic_dataset(tmp_path_factory) -> Path:
     """4-mode 2-D dataset, 10 episodes per mode (a real LeRobotDataset v3 on disk)."""

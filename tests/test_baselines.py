@@ -29,14 +29,7 @@ from lerobot_pdp.envs.recording import make_dataset
 KEYS = ["observation.state", "observation.environment_state", "action"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny models, small batches: one intra-op thread. With 2 threads on a 2-core machine that has any
-    other load, OpenMP barriers made the DP adaptation test ~170x slower here (229 s instead of 1.4 s)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
