@@ -31,10 +31,10 @@ VALIDATION_SEEDS = (100, 101, 102)
 VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never reported as test numbers
 
 
-# Scenes of each split where no latent of the trained PDP reaches the route (every grid latent 0 % on the validation
-# checkpoint; the fit and the chunk noises stay at 0 % too, except on val5, where the noises replay the turn in
-# part: 57.5 %): where `benchmark --teach` teaches the demonstration as a new mode. Test scene 4 is outside
-# SCENES: only `--teach --split test` evaluates it, once, with TEACH_FROZEN.
+# Scenes of each split where no latent of the trained PDP reaches the route (the fit and the chunk noises stay at
+# 0 %; avoiding's also checked on a grid of latents, all 0 %, on the validation checkpoint; on val5 the chunk noises
+# replay the turn in part, 57.5 %, though no latent alone does): where `benchmark --teach` teaches the demonstration
+# as a new mode. Test scene 4 is outside SCENES: only `--teach --split test` evaluates it, once, with TEACH_FROZEN.
 TEACH_SCENES: dict[str, dict[str, tuple[int | str, ...]]] = {
     "avoiding": {"validation": ("val4", "val5"), "test": (4,)},
     "pick-place": {"validation": ("val4",)},
