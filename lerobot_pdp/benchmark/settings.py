@@ -21,7 +21,7 @@ SCENES = (0, 1, 2, 3)  # the test split: scene 0 and the test scenes 1-3, evalua
 VALIDATION_SCENES: dict[str, tuple[str, ...]] = {
     "reach-around": ("val1", "val2", "val3", "val4"),
     "avoiding": ("val1", "val2", "val3", "val4", "val5"),
-    "pick-place": ("val1", "val2", "val3", "val4"),
+    "pick-place": ("val1", "val2", "val3", "val4", "val5"),
     "kitchen-microwave": ("val1", "val2", "val3"),  # one zero-mode scene so far: the arm sweeps a large volume
 }
 SPLITS = ("test", "validation")
@@ -37,7 +37,7 @@ VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never report
 # as a new mode. Test scene 4 is outside SCENES: only `--teach --split test` evaluates it, once, with TEACH_FROZEN.
 TEACH_SCENES: dict[str, dict[str, tuple[int | str, ...]]] = {
     "avoiding": {"validation": ("val4", "val5"), "test": (4,)},
-    "pick-place": {"validation": ("val4",)},
+    "pick-place": {"validation": ("val4", "val5")},
 }
 
 
