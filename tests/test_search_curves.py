@@ -96,6 +96,7 @@ def test_curves_record_every_method_and_budget_and_a_rerun_reuses_them(results, 
     assert s["search_seeds"] == [SEED * 10_000 + 5_101, SEED * 10_000 + 5_102] and "adapt" not in s
     table = (dest / sc.TABLE).read_text()
     assert "## reach-around val1, seed 100, scored by success" in table and "| dp_noise |" in table
+    assert sc._scene_name(3) == "scene 3" and sc._scene_name("val1") == "val1"
     assert (dest / sc.FIGURE).stat().st_size > 10_000
 
     # a rerun with the same settings reuses every record: nothing is searched or rolled out again

@@ -181,6 +181,11 @@ def best_so_far(history: Sequence[Candidate], budgets: Sequence[int], k: int) ->
     return out
 
 
+def _scene_name(scene: int | str) -> str:
+    """How headings name a scene: "scene 3" for a test scene, "val3" for a validation scene."""
+    return f"scene {scene}" if str(scene).isdigit() else str(scene)
+
+
 def summarize(batch: RolloutBatch, waypoints: WaypointScore | None) -> dict[str, Any]:
     """Success and collision over the evaluation rollouts (and, scored by way-points, their mean progress)."""
     d: dict[str, Any] = {"success": batch.success_rate, "collision": batch.collision_rate, "n": len(batch.results)}
@@ -403,7 +408,7 @@ def curves_markdown(book: dict[str, Any]) -> str:
     for (env, scene, seed, score), recs in _groups(book).items():
         budgets = sorted({p["budget"] for r in recs.values() for p in r["points"] if p["budget"] > 0})
         any_rec = next(iter(recs.values()))["settings"]
-        lines += [f"## {env} {scene}, seed {seed}, scored by {score}", "",
+        lines += [f"## {env} {_scene_name(scene)}, seed {seed}, scored by {score}", "",
                   f"{any_rec['rollouts']} evaluation rollouts (seeds {any_rec['evaluation_seeds'][0]}.."
                   f"{any_rec['evaluation_seeds'][1]}); {any_rec['rollouts_per_candidate']} search rollouts per "
                   f"candidate (seeds {any_rec['search_seeds'][0]}..{any_rec['search_seeds'][1]}).", "",
@@ -453,7 +458,7 @@ def draw_curves(book: dict[str, Any], path: Path) -> None:
         ax.set_ylim(-0.03, 1.03)
         ax.set_xlabel("search rollouts used")
         ax.set_ylabel("success (evaluation rollouts)")
-        ax.set_title(f"{env} {scene}, seed {seed}, score {score}", fontsize=10)
+        ax.set_title(f"{env} {_scene_name(scene)}, seed {seed}, score {score}", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
