@@ -26,6 +26,7 @@ from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, read_adaptation, wr
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .latent_search import SearchResult
+from .model_card import checkpoint_card
 from .outcome_scores import Score
 
 logger = logging.getLogger(__name__)
@@ -108,12 +109,10 @@ def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: s
                 continue
             (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
         write_adaptation(policy.steering, tmp)
-        card = tmp / "README.md"
-        if card.is_file():
-            text = card.read_text()
-            if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
-                text = text.split(f"\n{CARD_HEADING}\n")[0]
-            card.write_text(text.rstrip() + "\n\n" + card_section)
+        text = checkpoint_card(base)
+        if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
+            text = text.split(f"\n{CARD_HEADING}\n")[0]
+        (tmp / "README.md").write_text(text.rstrip() + "\n\n" + card_section)
         os.replace(tmp, out)
 
 

@@ -4,6 +4,8 @@ cards can be written and tested with ``HF_HUB_OFFLINE=1``."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 MODEL_CARD_PDP = """
@@ -54,3 +56,23 @@ def pdp_model_card(config: Any, dataset_repo_id: str, model_type: str, license: 
     if not HF_HUB_OFFLINE:
         card.validate()
     return card
+
+
+def checkpoint_card(folder: Path, config: Any = None) -> str:
+    """The model card of checkpoint ``folder``: its README.md, else (a local ``lerobot-train`` checkpoint has none:
+    LeRobot writes the card when it pushes) PDP's card from ``config`` (default: the folder's) and the dataset its
+    train_config.json names, so that an adapted or taught checkpoint always carries one."""
+    card = Path(folder) / "README.md"
+    if card.is_file():
+        return card.read_text()
+    if config is None:
+        from .configuration_pdp import PDPConfig
+
+        config = PDPConfig.from_pretrained(folder)
+    repo_id = "unknown"
+    try:
+        repo_id = json.loads((Path(folder) / "train_config.json").read_text())["dataset"]["repo_id"] or repo_id
+    except (OSError, ValueError, KeyError, TypeError):
+        pass  # no train_config.json (a checkpoint saved from Python): the card names no dataset
+    return str(pdp_model_card(config, repo_id, config.type, getattr(config, "license", None),
+                              getattr(config, "tags", None)))

@@ -21,6 +21,7 @@ from .atomic import staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
+from .model_card import checkpoint_card
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult
 
 logger = logging.getLogger(__name__)
@@ -75,9 +76,7 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
                 (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
         policy.save_pretrained(tmp)
         (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
-        card = base / "README.md"
-        if card.is_file():
-            (tmp / "README.md").write_text(card.read_text().rstrip() + "\n\n" + _card_section(info))
+        (tmp / "README.md").write_text(checkpoint_card(base, policy.config).rstrip() + "\n\n" + _card_section(info))
         os.replace(tmp, out)
     return out, result
 

@@ -119,3 +119,8 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     assert cli(["adapt", str(out), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "twice")]) == 2
     assert f"{out} is already an adapted checkpoint (adaptation.json): adapt its base checkpoint {base.resolve()}" \
         in capsys.readouterr().err and not (tmp_path / "twice").exists()
+    # a base without a model card (lerobot-train writes one only when it pushes) gets PDP's card with the section
+    (base / "README.md").unlink()
+    assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--steps", "1", "--out", str(tmp_path / "c")]) == 0
+    card = (tmp_path / "c" / "README.md").read_text()
+    assert "Parameterized Diffusion Policy" in card and card.count("## Adaptation") == 1

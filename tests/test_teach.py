@@ -94,6 +94,8 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     info = json.loads((tmp_path / "taught" / TEACHING_INFO).read_text())
     assert info["mode"] == 4 and info["settings"]["steps"] == 2 and info["demonstration"]["episode"] == 0
     assert info["training_data"] == str(synthetic_meta.root.resolve())
+    card = (tmp_path / "taught" / "README.md").read_text()  # the base had no card (as lerobot-train leaves it)
+    assert "Parameterized Diffusion Policy" in card and "## Taught mode" in card and "far right" in card
 
     q = PDPPolicy.from_pretrained(tmp_path / "taught")
     assert sorted(q.mode_latents()) == [0, 1, 2, 3, 4] and q.config.mode_names["4"] == "far right"
