@@ -49,8 +49,8 @@ Shipped scenes (``scenes/pick_place_scene{0..4}.json``):
   Only mode 7*8+4 = 60 ("reach under-wide / carry right-tight") is feasible.
 - 3: a wall at y = 0.25 around B with one 0.12 x 0.12 window centred at (+0.19, +0.19) (x, z) off B's centre;
   no training carry route fits, the shipped way-points carry the object diagonally through the window.
-- 4 (a zero-mode test scene for teaching, outside the benchmark's scenes 1-3): a wall at y = -0.25 around A with
-  one window 0.38 m above A's centre, higher than over-wide; the shipped way-points climb through it.
+- 4 (a zero-mode test scene for teaching, outside the benchmark's scenes 1-3): a wall at y = 0.25 around B with
+  one window 0.38 m above B's centre, higher than over-wide; the shipped way-points carry the object up through it.
 
 Way-points for :func:`expert_from_waypoints` (JSON-friendly), either
 - a dict ``{"reach": [[x, y, z], ...], "carry": [[x, y, z], ...]}`` of via-points only: the expert appends
