@@ -269,11 +269,11 @@ class Explorer:
     def rollout(self, z: Any, n: int | None = None) -> RolloutView:
         """``n`` rollouts (default the explorer's) under latent ``z`` in the scene, drawn over it: one trace per
         rollout coloured by the route it took, its end marked green (success) or red (collision)."""
-        from lerobot_pdp.envs.plotting import VIEW_TITLES, draw_scene, plot_trajectories, scene_views
+        from lerobot_pdp.envs.plotting import VIEW_TITLES, scene_views
 
         self._need_env("rollouts")
         z = self.latent(z)
-        outcomes = self._run([z], n or self.rollouts)[0]
+        outcomes = self.run_latents([z], n or self.rollouts)[0]
         suite, scene = self.suite, self.scene
         modes = [suite.classify_mode(o.states, scene=scene) if len(o.states) else "novel" for o in outcomes]
         views = scene_views(suite)
@@ -281,15 +281,7 @@ class Explorer:
         axes = fig.subplots(1, len(views), squeeze=False)
         view = RolloutView(np.zeros((1, 1, 3), np.uint8), outcomes, modes)
         for ax, plane in zip(axes[0], views, strict=True):
-            draw_scene(ax, suite.name, scene, plane)
-            handles = plot_trajectories(ax, [o.states for o in outcomes], modes, suite.mode_names, plane,
-                                        suite.trace_dims, alpha=0.85, lw=1.4)
-            i, j = ("xyz".index(plane[0]), "xyz".index(plane[1]))
-            for o in outcomes:
-                end = o.states[-1, [suite.trace_dims[i], suite.trace_dims[j]]]
-                if o.info.get("collided"):
-                    ax.plot(*end, "x", color="red", ms=9, mew=2, zorder=6)
-                ax.plot(*end, "o", color="green" if o.success else "grey", ms=5, zorder=6)
+            handles = self.draw_rollouts(ax, outcomes, modes, plane)
             ax.set_title(VIEW_TITLES.get(plane, plane), fontsize=9)
         axes[0][-1].legend(handles=handles, fontsize=7, title="route", loc="best")
         fig.suptitle(f"z = {np.round(z, 3).tolist()}: {view.summary()}", fontsize=10)
@@ -297,7 +289,27 @@ class Explorer:
         view.image = _pixels(fig)
         return view
 
-    def _run(self, latents: list[np.ndarray], n: int, progress: Progress | None = None) -> list[list[Outcome]]:
+    def draw_rollouts(self, ax: Any, outcomes: list[Outcome], modes: list[int | str], plane: str) -> list:
+        """``outcomes`` over the scene on ``plane``: one trace per rollout coloured by the route it took (``modes``),
+        its end marked green (success) or grey, a red x for a collision. Returns the legend handles."""
+        from lerobot_pdp.envs.plotting import draw_scene, plot_trajectories
+
+        suite = self.suite
+        draw_scene(ax, suite.name, self.scene, plane)
+        handles = plot_trajectories(ax, [o.states for o in outcomes], modes, suite.mode_names, plane,
+                                    suite.trace_dims, alpha=0.85, lw=1.4)
+        i, j = ("xyz".index(plane[0]), "xyz".index(plane[1]))
+        for o in outcomes:
+            end = o.states[-1, [suite.trace_dims[i], suite.trace_dims[j]]]
+            if o.info.get("collided"):
+                ax.plot(*end, "x", color="red", ms=9, mew=2, zorder=6)
+            ax.plot(*end, "o", color="green" if o.success else "grey", ms=5, zorder=6)
+        return handles
+
+    def run_latents(self, latents: list[np.ndarray], n: int, progress: Progress | None = None
+                    ) -> list[list[Outcome]]:
+        """``n`` rollouts under each latent (one per phase for segmented policies) in the scene, on the
+        explorer's seeds: one list of outcomes per latent."""
         out: list[list[Outcome]] = []
         with self._lock, CandidateRollouts(self.policy, self.env_factory, n, self.seed, self.processors) as run:
             per = run.candidates_per_batch()
@@ -434,7 +446,7 @@ class Explorer:
                 pass  # a damaged cache file is run again and replaced
         points = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)  # row-major: y outer, x inner
         latents = list(self.map.projection.to_latent(points))
-        outcomes = self._run(latents, rollouts, progress)
+        outcomes = self.run_latents(latents, rollouts, progress)
         success = np.array([np.mean([o.success for o in os_]) for os_ in outcomes]).reshape(grid, grid)
         collision = np.array([np.mean([bool(o.info.get("collided")) for o in os_]) for os_ in outcomes]).reshape(grid, grid)
         if progress is not None:

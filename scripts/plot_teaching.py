@@ -5,7 +5,7 @@ checkpoint's rollouts under the latent fitted to it (z alone: the denoiser has n
 demonstration is dashed purple; (2) the *taught*
 checkpoint steered to its new mode in that scene; (3) the taught checkpoint in scene 0, steered to each old mode
 by its latent (the routes it kept). Each trace is coloured by the route the env's classifier says it took; a red x
-marks a collision, a green dot a success.
+marks a collision, a green dot a success (the explorer's drawing, `Explorer.draw_rollouts`).
 
 Usage (the taught checkpoint from ``lerobot-pdp teach BASE --demo DEMO --out TAUGHT``)::
 
@@ -24,43 +24,25 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
-def rollouts(explorer, latents: list[np.ndarray], n: int) -> list:
+def rollouts(explorer, latents: list, n: int) -> list:
     """``n`` rollouts per latent in the explorer's scene (the explorer's seeds), flattened."""
-    from lerobot_pdp.candidate_rollouts import CandidateRollouts
-
-    out = []
-    with CandidateRollouts(explorer.policy, explorer.env_factory, n, explorer.seed, explorer.processors) as run:
-        per = run.candidates_per_batch()
-        for i in range(0, len(latents), per):
-            for batch in run([torch.as_tensor(z, dtype=torch.float32) for z in latents[i:i + per]]):
-                out.extend(batch)
-    return out
+    return [o for per_latent in explorer.run_latents(latents, n) for o in per_latent]
 
 
 def draw(ax, explorer, outcomes: list, plane: str, title: str, demo: np.ndarray | None = None) -> None:
-    from lerobot_pdp.envs.plotting import draw_scene, plot_trajectories
-
-    suite, scene = explorer.suite, explorer.scene
-    modes = [suite.classify_mode(o.states, scene=scene) if len(o.states) else "novel" for o in outcomes]
-    draw_scene(ax, suite.name, scene, plane)
-    plot_trajectories(ax, [o.states for o in outcomes], modes, suite.mode_names, plane, suite.trace_dims,
-                      alpha=0.8, lw=1.2)
-    i, j = ("xyz".index(plane[0]), "xyz".index(plane[1]))
-    cols = [suite.trace_dims[i], suite.trace_dims[j]]
+    """The explorer's drawing of ``outcomes`` (routes coloured by the env's classifier), the demonstration dashed."""
+    modes = [explorer.suite.classify_mode(o.states, scene=explorer.scene) if len(o.states) else "novel"
+             for o in outcomes]
+    explorer.draw_rollouts(ax, outcomes, modes, plane)
     if demo is not None:
+        i, j = ("xyz".index(plane[0]), "xyz".index(plane[1]))
+        cols = [explorer.suite.trace_dims[i], explorer.suite.trace_dims[j]]
         ax.plot(demo[:, cols[0]], demo[:, cols[1]], "--", color="tab:purple", lw=2.5, zorder=7, label="demonstration")
         ax.legend(fontsize=8, loc="lower left")
-    for o in outcomes:
-        end = o.states[-1, cols]
-        if o.info.get("collided"):
-            ax.plot(*end, "x", color="red", ms=8, mew=2, zorder=8)
-        elif o.success:
-            ax.plot(*end, "o", color="green", ms=5, zorder=8)
     wins = sum(o.success for o in outcomes)
     ax.set_title(f"{title}\nsuccess {wins}/{len(outcomes)}", fontsize=9)
 

@@ -134,7 +134,7 @@ def test_the_success_landscape_is_cached_per_checkpoint_scene_and_grid(explorer,
     def no_rollouts(*a, **kw):
         raise AssertionError("a cached landscape must not roll out again")
 
-    monkeypatch.setattr(explorer, "_run", no_rollouts)
+    monkeypatch.setattr(explorer, "run_latents", no_rollouts)
     again = explorer.landscape(grid=2, rollouts=1)
     assert again.from_cache and np.array_equal(again.success, land.success) and again.cache == land.cache
     assert explorer.landscape_image(again).ndim == 3

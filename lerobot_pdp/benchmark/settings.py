@@ -34,7 +34,7 @@ VALIDATION_SEED_MIN = 100  # seeds >= this are validation seeds and never report
 # Scenes of each split where no latent of the trained PDP reaches the route (the fit and the chunk noises stay at
 # 0 %; avoiding's also checked on a grid of latents, all 0 %, on the validation checkpoint; on val5 the chunk noises
 # replay the turn in part, 57.5 %, though no latent alone does; pick-place's val5 and val6 are no teaching scenes:
-# no latent reaches them but the chunk noises do, 100 %, as two drafts of a pick-place test scene 4): where
+# no latent reaches them but the chunk noises do, 100 %, as on a draft pick-place test scene, not shipped): where
 # `benchmark --teach` teaches the demonstration as a new mode. Test scene 4 is outside SCENES: only `--teach --split
 # test` evaluates it, once, with TEACH_FROZEN.
 TEACH_SCENES: dict[str, dict[str, tuple[int | str, ...]]] = {
