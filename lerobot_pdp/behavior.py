@@ -272,13 +272,22 @@ class TrajectoryVAE(nn.Module):
         return total, {"embed_rec": rec.detach(), "embed_kl": kl.detach(), "embed_geo": geo.detach()}
 
 
-def read_training_behaviors(config, root: str | Path, features: dict) -> BehaviorTraces:
+def training_behavior_keys(config, features: dict) -> list[str]:
+    """The columns :func:`read_training_behaviors` reads from a dataset with ``features``."""
+    return [k for k in ("observation.state", "observation.environment_state", "action", config.trace_key)
+            if k in features and k not in config.image_features]
+
+
+def read_training_behaviors(config, root: str | Path, features: dict,
+                            episodes: dict[int, dict] | None = None) -> BehaviorTraces:
     """Every whole episode of the local training dataset at ``root`` as behavior traces (LeRobot's loader
-    yields windows; the encoder needs whole demonstrations). ``config``: the policy's ``PDPConfig``."""
+    yields windows; the encoder needs whole demonstrations). ``config``: the policy's ``PDPConfig``;
+    ``episodes``: the dataset's episodes already read (``read_episodes``, with at least
+    :func:`training_behavior_keys`), so a caller that needs them too reads the files once."""
     cfg = config
-    keys = [k for k in ("observation.state", "observation.environment_state", "action", cfg.trace_key)
-            if k in features and k not in cfg.image_features]
-    episodes = read_episodes(root, keys)
+    keys = training_behavior_keys(cfg, features)
+    if episodes is None:
+        episodes = read_episodes(root, keys)
     for ep, item in episodes.items():
         for k in keys:
             check_finite(k, item[k], f"episode {ep}")

@@ -34,7 +34,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import demonstration_traces, encode_demonstration
-from .behavior import UNLABELED, read_episodes, read_training_behaviors
+from .behavior import UNLABELED, read_episodes, read_training_behaviors, training_behavior_keys
 from .behavior_bank import TAUGHT_START
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode, check_recording, read_demonstration
@@ -95,12 +95,12 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
         raise ValueError("teach needs mode-labelled training episodes (meta/mode_labels.json or task strings "
                          "'mode <id>: <name>'): without labels the modes are discovered clusters, which a taught "
                          "mode cannot join; label the training dataset (lerobot-pdp latent-map shows the clusters)")
-    check_training_data(policy, training_data)
+    episodes = check_training_data(policy, training_data)
     t0 = time.perf_counter()
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
     demo_win = policy._demo_windows(demo)
     z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
-    rehearsal, z_old = rehearsal_windows(policy, training_data)
+    rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
     mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name or _demo_name(episode), z_new)  # + delta^X
@@ -167,9 +167,10 @@ def _demo_name(episode: Episode) -> str:
     return "taught"
 
 
-def check_training_data(policy: Any, root: str | Path) -> None:
+def check_training_data(policy: Any, root: str | Path) -> dict[int, dict]:
     """Refuse a dataset that is not the one ``policy`` was trained on: its behaviour traces (one per episode, or
-    per phase) must be the ones the checkpoint's behaviour bank holds."""
+    per phase) must be the ones the checkpoint's behaviour bank holds. Returns its episodes as read (the columns
+    the traces and the rehearsal windows need), so that teaching reads the files once."""
     root = Path(root)
     if not (root / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset folder (no meta/info.json): give the dataset the "
@@ -177,7 +178,8 @@ def check_training_data(policy: Any, root: str | Path) -> None:
     model, cfg = policy.model, policy.config
     check_recording(root, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
     features = json.loads((root / "meta" / "info.json").read_text()).get("features", {})
-    found = read_training_behaviors(cfg, root, features)
+    episodes = read_episodes(root, list(dict.fromkeys([*training_behavior_keys(cfg, features), *_rehearsal_keys(cfg)])))
+    found = read_training_behaviors(cfg, root, features, episodes)
     bank = model.bank.traces.detach().cpu().numpy()
     taught = model.bank.global_start.detach().cpu().numpy() == TAUGHT_START
     n_bank = int((~taught).sum())
@@ -190,19 +192,27 @@ def check_training_data(policy: Any, root: str | Path) -> None:
         ep = int(found.episode_index[int(np.argmax(diff > 1e-4))])
         raise ValueError(f"{root} is not the policy's training dataset: episode {ep}'s behaviour trace differs from "
                          f"the one in the checkpoint's behaviour bank (by up to {float(diff.max()):.3g})")
+    return episodes
 
 
 def _span(episodes: np.ndarray) -> str:
     return f"{int(episodes.min())}..{int(episodes.max())}" if len(episodes) else "(none)"
 
 
-def rehearsal_windows(policy: Any, root: str | Path) -> tuple[DemoWindows, Tensor]:
+def _rehearsal_keys(cfg: PDPConfig) -> list[str]:
+    """The non-camera columns a rehearsal window needs (cameras are read per episode as frames)."""
+    return [k for k in dict.fromkeys([*cfg.condition_features, ACTION, cfg.trace_key]) if k not in cfg.image_features]
+
+
+def rehearsal_windows(policy: Any, root: str | Path,
+                      episodes: dict[int, dict] | None = None) -> tuple[DemoWindows, Tensor]:
     """Every training-style window of the training dataset at ``root`` (normalised, split into the phases the
-    behaviour bank holds), and the latent of the behaviour each window belongs to, [N, d_z]."""
+    behaviour bank holds), and the latent of the behaviour each window belongs to, [N, d_z]. ``episodes``: the
+    dataset's episodes already read (:func:`check_training_data` returns them)."""
     model, cfg = policy.model, policy.config
     cameras = [k for k in cfg.condition_features if k in cfg.image_features]
-    keys = [k for k in dict.fromkeys([*cfg.condition_features, ACTION, cfg.trace_key]) if k not in cameras]
-    episodes = read_episodes(root, keys)
+    if episodes is None:
+        episodes = read_episodes(root, _rehearsal_keys(cfg))
     with torch.no_grad():
         z_bank = model.behavior_latents().detach().cpu()
     bank_ep = model.bank.episode.cpu().numpy()
