@@ -38,7 +38,7 @@ from lerobot_pdp.envs.suite import NOVEL, get_suite_env
 EXPECTED: dict[str, dict[str, int | None]] = {
     "reach-around": {"val1": 4, "val2": 7, "val3": None, "val4": None},  # right-tight, under-wide
     "avoiding": {"val1": 13, "val2": 8, "val3": None, "val4": None, "val5": None},  # R-L-2, L-R-1
-    "pick-place": {"val1": 46, "val2": 17, "val3": None, "val4": None, "val5": None, "val6": None},
+    "pick-place": {"val1": 46, "val2": 17, "val3": None, "val4": None, "val5": None, "val6": None, "val7": None},
     "kitchen-microwave": {"val1": 0, "val2": 4, "val3": None},  # front, high-right
 }
 CASES = [(env, name) for env, scenes in EXPECTED.items() for name in scenes]
