@@ -47,7 +47,9 @@ def main() -> None:
     policy, pre, post = load_run(args.run)
     policy.eval()
     demo = scene_demo(ap, suite, args.run, args.scene)
-    kwargs = dict(frozen_for(suite.name, False, "pdp").get("adapt", {}))  # the benchmark's adaptation
+    results = args.run.parents[2] / "results.json"  # a --quick benchmark adapts with its own frozen row
+    quick = bool(json.loads(results.read_text()).get("quick", False)) if results.is_file() else False
+    kwargs = dict(frozen_for(suite.name, quick, "pdp").get("adapt", {}))
     actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, seed, **kwargs)
     batch = run_rollouts(suite, args.scene, actor, pre, post, args.rollouts, evaluation_seed(seed, args.scene))
     dims = list(suite.trace_dims)[:3]
