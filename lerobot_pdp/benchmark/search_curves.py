@@ -209,7 +209,7 @@ def run_sampler(run_dir: Path) -> dict[str, Any]:
     return {"inference_steps": made.get("inference_steps") or steps, "timestep_spacing": made.get("timestep_spacing") or spacing}
 
 
-def _quick(out: Path) -> bool:
+def is_quick_run(out: Path) -> bool:
     """Whether ``out`` is a --quick benchmark (its ``results.json``; full without one): which FROZEN row applies."""
     res = out / "results.json"
     return bool(json.loads(res.read_text()).get("quick", False)) if res.is_file() else False
@@ -261,7 +261,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     book: dict[str, Any] = json.loads(record_file.read_text()) if record_file.is_file() else {"records": {}}
     book.update(cpu=cpu_model(), threads=torch.get_num_threads())
     k, eval0, search0 = rollouts_per_candidate, evaluation_seed(seed, scene), search_seed(seed, scene)
-    adapt_kwargs = dict(frozen_for(suite.name, _quick(Path(out)), "pdp").get("adapt", {}))
+    adapt_kwargs = dict(frozen_for(suite.name, is_quick_run(Path(out)), "pdp").get("adapt", {}))
     common = {"budgets": budgets, "rollouts": rollouts, "rollouts_per_candidate": k, "max_envs": max_envs,
               "evaluation_seeds": [eval0, eval0 + rollouts - 1], "search_seeds": [search0, search0 + k - 1],
               "max_episode_steps": suite.max_episode_steps, "device": device,

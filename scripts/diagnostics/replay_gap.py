@@ -29,7 +29,7 @@ def main() -> None:
 
     from lerobot_pdp.benchmark.evaluation import adapt
     from lerobot_pdp.benchmark.rollouts import run_rollouts
-    from lerobot_pdp.benchmark.search_curves import evaluation_seed
+    from lerobot_pdp.benchmark.search_curves import evaluation_seed, is_quick_run
     from lerobot_pdp.benchmark.settings import Method, frozen_for
     from lerobot_pdp.benchmark.training import load_run
     from lerobot_pdp.envs.suite import get_suite_env
@@ -47,9 +47,7 @@ def main() -> None:
     policy, pre, post = load_run(args.run)
     policy.eval()
     demo = scene_demo(ap, suite, args.run, args.scene)
-    results = args.run.parents[2] / "results.json"  # a --quick benchmark adapts with its own frozen row
-    quick = bool(json.loads(results.read_text()).get("quick", False)) if results.is_file() else False
-    kwargs = dict(frozen_for(suite.name, quick, "pdp").get("adapt", {}))
+    kwargs = dict(frozen_for(suite.name, is_quick_run(args.run.parents[2]), "pdp").get("adapt", {}))
     actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, seed, **kwargs)
     batch = run_rollouts(suite, args.scene, actor, pre, post, args.rollouts, evaluation_seed(seed, args.scene))
     dims = list(suite.trace_dims)[:3]
