@@ -39,7 +39,7 @@ pixels on every machine): floor, obstacles, barriers, target marker, object and 
 Success: the object was grasped, then released (gripper open) with its centre within 0.03 m of the
 target, without any collision.
 
-Shipped scenes (``scenes/pick_place_scene{0..3}.json``):
+Shipped scenes (``scenes/pick_place_scene{0..4}.json``):
 - 0: original, all 64 modes feasible.
 - 1: slabs left/right/under A and a ceiling slab above A (blocks over-wide) -> reach only over-tight;
   slabs right/over/under B and a thin fin on B's left face (blocks left-tight) -> carry only left-wide.
@@ -49,6 +49,9 @@ Shipped scenes (``scenes/pick_place_scene{0..3}.json``):
   Only mode 7*8+4 = 60 ("reach under-wide / carry right-tight") is feasible.
 - 3: a wall at y = 0.25 around B with one 0.12 x 0.12 window centred at (+0.19, +0.19) (x, z) off B's centre;
   no training carry route fits, the shipped way-points carry the object diagonally through the window.
+- 4 (a zero-mode test scene for teaching, outside the benchmark's scenes 1-3): a wall at y = 0.25 around B filling
+  the workspace, with one window 0.51 m up and left of B's centre (the widest carry routes pass at 0.25 m); the
+  shipped way-points carry the object up and left through it.
 
 Way-points for :func:`expert_from_waypoints` (JSON-friendly), either
 - a dict ``{"reach": [[x, y, z], ...], "carry": [[x, y, z], ...]}`` of via-points only: the expert appends
