@@ -191,24 +191,25 @@ class CandidateRollouts:
         with acting_under(self.policy, PerEnvLatents(per_env)):
             yield self.policy
 
-    def candidates_per_batch(self) -> int:
-        return max(1, self.max_envs // self.rollouts)
+    def candidates_per_batch(self, rollouts: int | None = None) -> int:
+        return max(1, self.max_envs // (rollouts or self.rollouts))
 
-    def __call__(self, latents: Sequence[Tensor]) -> list[list[Outcome]]:
-        """Each latent's ``rollouts`` outcomes, in order. Every candidate meets the same env seeds (its j-th
-        rollout resets with seed ``seed + j``), so candidates differ by their latent, not by their luck with
-        the scene; the sampler's noise is seeded per batch."""
+    def __call__(self, latents: Sequence[Tensor], first: int = 0, count: int | None = None) -> list[list[Outcome]]:
+        """Each latent's outcomes, in order: ``count`` rollouts (default ``rollouts``) from its ``first``-th on.
+        Every candidate meets the same env seeds (its j-th rollout resets with seed ``seed + j``), so candidates
+        differ by their latent, not by their luck with the scene, and a candidate rolled out again on more seeds
+        (``first`` = the rollouts it had) meets new ones; the sampler's noise is seeded per batch."""
         from lerobot.scripts import lerobot_eval
 
         out: list[list[Outcome]] = []
-        per = self.candidates_per_batch()
-        k = self.rollouts
+        k = count or self.rollouts
+        per = self.candidates_per_batch(k)
         for i in range(0, len(latents), per):
             group = [torch.as_tensor(z, dtype=torch.float32) for z in latents[i:i + per]]
             group = [z[None] if z.dim() == 1 else z for z in group]
             if len({tuple(z.shape) for z in group}) > 1:  # different phase counts: one batch per shape
                 for z in group:
-                    out.extend(self([z]))
+                    out.extend(self([z], first, k))
                 continue
             venv = self._venv(len(group) * k)
             per_env = torch.stack(group).repeat_interleave(k, dim=0)
@@ -216,7 +217,7 @@ class CandidateRollouts:
                     self.acting(per_env) as actor, quiet_rollout_bar(lerobot_eval):
                 torch.manual_seed(self.seed * 100_003 + self.batches)
                 lerobot_eval.rollout(venv, actor, *self.env_processors, *self.processors,
-                                     seeds=[self.seed + j for _ in group for j in range(k)])
+                                     seeds=[self.seed + first + j for _ in group for j in range(k)])
             self.batches += 1
             outcomes = [sub.env.outcome() for sub in venv.envs]
             out.extend(outcomes[c * k:(c + 1) * k] for c in range(len(group)))

@@ -284,6 +284,9 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
                    help="without --waypoints: task success (default) or the summed reward")
     p.add_argument("--budget", type=int, default=200, help="rollouts in all (default 200)")
     p.add_argument("--rollouts-per-candidate", type=int, default=2, help="rollouts scoring each latent (default 2)")
+    p.add_argument("--confirm-rollouts", type=int, default=None,
+                   help="a latent that beats the best so far is rolled out again up to this many rollouts in all and "
+                   "replaces it only if still better; 0 for none (default: latent_search.CONFIRM_ROLLOUTS)")
     p.add_argument("--method", choices=("cma", "cem"), default="cma", help="CMA-ES (default) or the cross-entropy method")
     p.add_argument("--init", choices=("modes", "adaptation"), default="modes",
                    help="start from every mode's mean latent (default), or from the latent CHECKPOINT carries (an "
@@ -341,7 +344,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     try:
         res = search_checkpoint(args.checkpoint, factory, score, out=args.out, init=args.init, device=args.device,
                                 provenance=objective, budget=args.budget, method=args.method, seed=args.seed,
-                                rollouts_per_candidate=args.rollouts_per_candidate, progress=not args.no_progress)
+                                rollouts_per_candidate=args.rollouts_per_candidate, progress=not args.no_progress,
+                                **({} if args.confirm_rollouts is None else {"confirm_rollouts": args.confirm_rollouts}))
     except LatentSearchError as e:  # the candidates so far are kept where asked
         if args.history is not None:
             write_text_atomic(args.history, json.dumps(e.result.to_dict(), indent=1))
@@ -350,7 +354,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     if args.history is not None:
         write_text_atomic(args.history, json.dumps(res.to_dict(), indent=1))
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
-          f"success {100 * res.success:.0f} % of its {res.rollouts_per_candidate} rollouts; {len(res.history)} "
+          f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
+          f"{len(res.history)} "
           f"candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
     print(f"wrote {args.out}" if args.out is not None else "no --out: no checkpoint written")
     return 0
@@ -594,6 +599,9 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rollouts", type=int, default=40, help="evaluation rollouts per point (default 40)")
     p.add_argument("--rollouts-per-candidate", type=int, default=2,
                    help="search rollouts scoring each candidate (default 2)")
+    p.add_argument("--confirm-rollouts", type=int, default=None,
+                   help="rollouts in all before a candidate replaces the search's best, 0 for none (default: the "
+                   "search's own, latent_search.CONFIRM_ROLLOUTS); with confirmation each budget runs its own search")
     p.add_argument("--score", choices=("success", "waypoints"), default="success",
                    help="what the searches maximise: task success (default) or the scene's way-points passed in "
                    "order (no demonstration: z_modes and dp_noise only)")
@@ -610,6 +618,7 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_search_curves(args: argparse.Namespace) -> int:
     from lerobot_pdp.benchmark.search_curves import RECORD, TABLE, run_search_curves
+    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS
 
     scene = int(args.scene) if args.scene.strip().isdigit() else args.scene.strip()
     # the command as the record keeps it: a folder given by an absolute path by its name (records get committed)
@@ -617,6 +626,9 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
     argv = ["lerobot-pdp search-curves", results, "--env", args.env, "--scene", str(scene), "--seed",
             str(args.seed), "--budgets", *map(str, args.budgets), "--rollouts", str(args.rollouts),
             "--rollouts-per-candidate", str(args.rollouts_per_candidate), "--score", args.score]
+    confirm = CONFIRM_ROLLOUTS if args.confirm_rollouts is None else args.confirm_rollouts
+    if confirm:
+        argv += ["--confirm-rollouts", str(confirm)]
     if args.score == "waypoints":
         argv += ["--radius", f"{args.radius:g}"]
     if args.methods:
@@ -626,7 +638,7 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
     run_search_curves(args.results, args.env, scene, args.seed, args.out, budgets=args.budgets, rollouts=args.rollouts,
                       score=args.score, methods=args.methods, radius=args.radius,
                       rollouts_per_candidate=args.rollouts_per_candidate, dp_out=args.dp_results, device=args.device,
-                      progress=not args.no_progress, command=" ".join(argv))
+                      confirm_rollouts=confirm, progress=not args.no_progress, command=" ".join(argv))
     print((args.out / TABLE).read_text())
     print(f"wrote {args.out / RECORD}, {args.out / TABLE} and the curve search_curves.png")
     return 0

@@ -36,6 +36,7 @@ from .steering_state import as_latent_tensor
 METHODS = ("cma", "cem")
 CEM_ELITE_FRACTION = 0.25
 CEM_SMOOTHING = 0.7  # share of the elites' statistics in each CEM update (the rest: the previous ones)
+CONFIRM_ROLLOUTS = 0  # rollouts in all before a candidate replaces the best (0: none; docs/experiments.md)
 
 
 @dataclass
@@ -48,10 +49,12 @@ class Candidate:
     rollouts: int
     generation: int  # 0: a starting point; 1, 2, ...: the optimiser's populations
     scores: list[float] = field(default_factory=list)  # per rollout
+    successes: list[float] = field(default_factory=list)  # per rollout, 0 or 1
 
     def to_dict(self) -> dict[str, Any]:
         return {"latent": self.latent.tolist(), "score": self.score, "success": self.success,
-                "rollouts": self.rollouts, "generation": self.generation, "scores": self.scores}
+                "rollouts": self.rollouts, "generation": self.generation, "scores": self.scores,
+                "successes": self.successes}
 
 
 @dataclass
@@ -69,6 +72,10 @@ class SearchResult:
     objective: Any  # the score's name, or its settings (way-points, radius)
     interrupted: bool = False
     seconds: float = 0.0
+    confirm_rollouts: int = 0
+    # (rollouts used, index into history of the best so far) each time the best changed: what the search would
+    # have returned had its budget ended there
+    best_trace: list[tuple[int, int]] = field(default_factory=list)
 
     @property
     def rollouts_used(self) -> int:
@@ -77,9 +84,19 @@ class SearchResult:
     def to_dict(self) -> dict[str, Any]:
         return {"latent": None if self.latent is None else self.latent.tolist(), "score": self.score,
                 "success": self.success, "method": self.method, "seed": self.seed, "budget": self.budget,
-                "rollouts_per_candidate": self.rollouts_per_candidate, "rollouts_used": self.rollouts_used,
-                "objective": self.objective, "interrupted": self.interrupted, "seconds": round(self.seconds, 1),
+                "rollouts_per_candidate": self.rollouts_per_candidate, "confirm_rollouts": self.confirm_rollouts,
+                "rollouts_used": self.rollouts_used, "objective": self.objective, "interrupted": self.interrupted,
+                "seconds": round(self.seconds, 1), "best_trace": [list(t) for t in self.best_trace],
                 "history": [c.to_dict() for c in self.history]}
+
+    def best_at(self, rollouts: int) -> int | None:
+        """Index into ``history`` of what the search would have returned after its first ``rollouts`` rollouts."""
+        best = None
+        for used, i in self.best_trace:
+            if used > rollouts:
+                break
+            best = i
+        return best
 
 
 class LatentSearchError(RuntimeError):
@@ -94,7 +111,7 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
                   init: Any = "modes", method: str = "cma", seed: int = 0, rollouts_per_candidate: int = 2,
                   sigma: float | None = None, popsize: int | None = None, max_envs: int = 16,
                   processors: tuple | None = None, env_processors: tuple | None = None,
-                  progress: bool = True) -> SearchResult:
+                  confirm_rollouts: int = CONFIRM_ROLLOUTS, progress: bool = True) -> SearchResult:
     """Search ``policy``'s latent for the best mean ``score`` over rollouts in envs made by ``env_factory``.
 
     Args:
@@ -112,11 +129,14 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         processors: the policy's (pre, post) processors (default: built from the policy's own statistics, as
             ``lerobot-train`` saves them).
         env_processors: LeRobot's env (pre, post) processors (default: none).
+        confirm_rollouts: a candidate that beats the best so far is rolled out again up to this many rollouts in
+            all, and replaces it only if still better (0: no confirmation, the best of ``rollouts_per_candidate``).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     for name, value, low in (("budget", budget, 1), ("rollouts_per_candidate", rollouts_per_candidate, 1),
-                             ("max_envs", max_envs, 1), ("popsize", 2 if popsize is None else popsize, 2)):
+                             ("max_envs", max_envs, 1), ("popsize", 2 if popsize is None else popsize, 2),
+                             ("confirm_rollouts", confirm_rollouts, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if budget < rollouts_per_candidate:
@@ -132,10 +152,10 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         processors = make_pdp_pre_post_processors(policy.config, policy.stats.as_dict())
 
     k = rollouts_per_candidate
-    n_candidates = budget // k
-    result = SearchResult(None, -math.inf, 0.0, [], method, seed, budget, k, objective)
+    result = SearchResult(None, -math.inf, 0.0, [], method, seed, budget, k, objective,
+                          confirm_rollouts=confirm_rollouts)
     t0 = time.perf_counter()
-    bar = tqdm(total=n_candidates * k, unit="rollout", desc=f"latent search ({method})", disable=not progress)
+    bar = tqdm(total=budget // k * k, unit="rollout", desc=f"latent search ({method})", disable=not progress)
     run = CandidateRollouts(policy, env_factory, k, seed, processors, env_processors, max_envs)
 
     def optimiser_at(best: Tensor) -> Any:  # from the best start, in its shape (one z per phase)
@@ -143,11 +163,16 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         return make_optimizer(method, best.reshape(-1).double().numpy(), sigma or 0.5 * spread, popsize, bounds, seed)
 
     try:
-        optimise(result, run, starts, optimiser_at, lambda o, z, i: _score(score_fn, o, z, i), n_candidates, bar)
+        optimise(result, run, starts, optimiser_at, lambda o, z, i: _score(score_fn, o, z, i), budget, bar)
     except KeyboardInterrupt:
         if not result.history:
             raise
         result.interrupted = True
+        if result.latent is None:  # stopped before any best was confirmed: the best scored so far
+            result.best_trace.append((result.rollouts_used, max(range(len(result.history)), key=lambda i: (
+                result.history[i].score, result.history[i].success, -i))))
+            c = result.history[result.best_trace[-1][1]]
+            result.latent, result.score, result.success = c.latent, c.score, c.success
     except Exception as e:
         if not result.history:  # nothing to keep: the error as it is (e.g. an env that does not fit the policy)
             raise
@@ -161,36 +186,79 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
     return result
 
 
-def optimise(result: SearchResult, run: Callable[[list[Tensor]], list[list[Outcome]]], starts: list[Tensor],
-             optimiser_at: Callable[[Tensor], Any], score: Callable[[Outcome, Tensor, int], float], n_candidates: int,
+def optimise(result: SearchResult, run: Callable[..., list[list[Outcome]]], starts: list[Tensor],
+             optimiser_at: Callable[[Tensor], Any], score: Callable[[Outcome, Tensor, int], float], budget: int,
              bar: Any) -> None:
     """The search loop, whatever is searched (a latent here, the benchmark's DP noise): score ``starts``, then
-    ask / tell the optimiser ``optimiser_at(best start)`` until ``n_candidates`` are tried, each candidate scored by
-    the mean of ``score(outcome, candidate, index)`` over its rollouts (``run``). Fills ``result`` as it goes, so
-    an interruption keeps what was tried."""
+    ask / tell the optimiser ``optimiser_at(best start)`` while ``budget`` rollouts pay for a candidate, each
+    candidate scored by the mean of ``score(outcome, candidate, index)`` over its rollouts (``run(xs, first,
+    count)``). With ``result.confirm_rollouts`` C > ``rollouts_per_candidate`` k, a candidate that beats the best
+    on its k rollouts is rolled out on C - k more seeds and replaces it only if it is still better over all C
+    (a best picked from k noisy rollouts is mostly luck); the budget pays for those too. Fills ``result`` as it
+    goes, so an interruption keeps what was tried."""
     k = result.rollouts_per_candidate
+    extra = max(result.confirm_rollouts - k, 0)
+
+    def key(c: Candidate) -> tuple[float, float]:
+        return c.score, c.success
+
+    def best() -> Candidate | None:
+        return result.history[result.best_trace[-1][1]] if result.best_trace else None
+
+    def promote(i: int, used: int) -> None:
+        c = result.history[i]
+        result.latent, result.score, result.success = c.latent, c.score, c.success
+        result.best_trace.append((used, i))
+        bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
+
+    def confirm(i: int) -> None:
+        """Roll candidate ``i`` out on ``extra`` more seeds: its score and success become the means of all."""
+        c = result.history[i]
+        (outcomes,) = run([c.latent], k, extra)
+        c.scores += [score(o, c.latent, i) for o in outcomes]
+        c.successes += [float(o.success) for o in outcomes]
+        c.score, c.success, c.rollouts = float(np.mean(c.scores)), float(np.mean(c.successes)), len(c.scores)
+        bar.update(extra)
 
     def evaluate(xs: list[Tensor], generation: int) -> list[float]:
-        means = []
+        first = len(result.history)
         for x, outcomes in zip(xs, run(xs), strict=True):
             values = [score(o, x, len(result.history)) for o in outcomes]
-            cand = Candidate(x, float(np.mean(values)), float(np.mean([o.success for o in outcomes])), k,
-                             generation, values)
-            result.history.append(cand)
-            if (cand.score, cand.success) > (result.score, result.success):
-                result.latent, result.score, result.success = cand.latent, cand.score, cand.success
-            means.append(cand.score)
+            successes = [float(o.success) for o in outcomes]
+            result.history.append(Candidate(x, float(np.mean(values)), float(np.mean(successes)), k, generation,
+                                            values, successes))
             bar.update(k)
-            bar.set_postfix(best=f"{result.score:.3g}", success=f"{result.success:.0%}")
+            b = best()
+            if not extra and (b is None or key(result.history[-1]) > key(b)):  # in order: what a budget ending
+                promote(len(result.history) - 1, result.rollouts_used)  # after this candidate returns
+        new = list(range(first, len(result.history)))
+        means = [result.history[i].score for i in new]  # what the optimiser is told: every candidate on k rollouts
+        if not extra:
+            return means
+        pending = list(new)
+        while pending:  # the most promising challenger first; each one promoted raises the bar for the rest
+            b = best()
+            pending = [i for i in pending if b is None or key(result.history[i]) > key(b)]
+            if not pending:
+                break
+            i = max(pending, key=lambda j: (key(result.history[j]), -j))  # the best, the first of equals
+            pending.remove(i)
+            if result.rollouts_used + extra <= budget:
+                confirm(i)
+            elif b is not None:
+                continue  # the budget cannot confirm it: the confirmed best stays
+            if b is None or key(result.history[i]) > key(b):
+                promote(i, result.rollouts_used)
         return means
 
-    evaluate(starts[:n_candidates], 0)
+    evaluate(starts[:budget // k], 0)
     shape = result.latent.shape
     opt = optimiser_at(result.latent)
     generation = 1
-    while len(result.history) < n_candidates:
+    # with confirmation, a candidate the budget cannot confirm cannot replace the best: no rollouts spent on it
+    while budget - result.rollouts_used >= k + extra:
         x = opt.ask()
-        n = min(len(x), n_candidates - len(result.history))
+        n = min(len(x), (budget - result.rollouts_used) // k)
         means = evaluate([torch.as_tensor(v, dtype=torch.float32).reshape(shape) for v in x[:n]], generation)
         if n == len(x):
             opt.tell(x, np.asarray(means))

@@ -23,7 +23,7 @@ from lerobot_pdp import PDPPolicy
 from lerobot_pdp.candidate_rollouts import CandidateRollouts, PerEnvLatents
 from lerobot_pdp.checkpoint import ADAPTATION_INFO
 from lerobot_pdp.cli import main as cli
-from lerobot_pdp.latent_search import LatentSearchError, make_optimizer, search_latent
+from lerobot_pdp.latent_search import LatentSearchError, SearchResult, make_optimizer, optimise, search_latent
 from lerobot_pdp.outcome_scores import Outcome, WaypointScore, waypoint_progress
 
 SCENE3_WAYPOINTS = [[0.0, -0.30, 0.40], [0.19, -0.12, 0.59], [0.19, 0.12, 0.59], [0.0, 0.30, 0.40]]
@@ -166,6 +166,53 @@ def test_search_is_deterministic_within_budget_and_keeps_every_candidate(policy,
     assert json.loads(json.dumps(a.to_dict()))["rollouts_used"] == 20
 
 
+class _Bar:
+    def update(self, n):
+        pass
+
+    def set_postfix(self, **kw):
+        pass
+
+
+def _lucky_and_steady(confirm: int) -> SearchResult:
+    """Two starts: "lucky" succeeds on its first two seeds only, "steady" on three seeds in four."""
+    def run(xs, first=0, count=2):
+        out = []
+        for x in xs:
+            lucky = bool(x[0] == 0)
+            out.append([Outcome(success=(j < 2) if lucky else (j % 4 != 3), reward=0.0, states=np.zeros((0, 0)),
+                                info={}) for j in range(first, first + count)])
+        return out
+
+    budget = 12 if confirm else 4  # the two starts (and their confirmation): no optimiser step
+    res = SearchResult(None, -np.inf, 0.0, [], "cma", 0, budget, 2, "success", confirm_rollouts=confirm)
+    optimise(res, run, [torch.zeros(1), torch.ones(1)], lambda x0: None, lambda o, x, i: float(o.success), budget,
+             _Bar())
+    return res
+
+
+def test_confirmation_keeps_a_lucky_candidate_from_becoming_the_best():
+    plain = _lucky_and_steady(0)  # on two rollouts each, both score 1.0: the first of equals wins
+    assert plain.latent.tolist() == [0.0] and plain.best_trace == [(2, 0)] and plain.rollouts_used == 4
+    confirmed = _lucky_and_steady(6)  # each re-rolled to six seeds: lucky 2/6, steady 5/6
+    assert confirmed.latent.tolist() == [1.0] and confirmed.success == pytest.approx(5 / 6)
+    assert [c.rollouts for c in confirmed.history] == [6, 6] and confirmed.rollouts_used == 12
+    assert confirmed.history[0].scores == [1, 1, 0, 0, 0, 0] and confirmed.best_trace == [(8, 0), (12, 1)]
+    assert confirmed.best_at(7) is None and confirmed.best_at(8) == 0 and confirmed.best_at(100) == 1
+
+
+def test_confirmed_search_is_deterministic_and_its_best_the_best_confirmed(policy):
+    score = WaypointScore(SCENE3_WAYPOINTS, 0.05)
+    kw = {"budget": 30, "rollouts_per_candidate": 2, "confirm_rollouts": 4, "max_envs": 8, "progress": False}
+    a = search_latent(policy, short_env(scene=3), score, seed=4, **kw)
+    assert a.rollouts_used <= 30 and {c.rollouts for c in a.history} <= {2, 4}
+    confirmed = [c for c in a.history if c.rollouts == 4]
+    assert confirmed and all(a.history[i].rollouts == 4 for _, i in a.best_trace)
+    assert a.score == max(c.score for c in confirmed) and len(a.history[a.best_trace[-1][1]].scores) == 4
+    assert history(a) == history(search_latent(policy, short_env(scene=3), score, seed=4, **kw))
+    assert json.loads(json.dumps(a.to_dict()))["confirm_rollouts"] == 4
+
+
 def test_search_from_a_latent_or_a_fit(policy, checkpoint):
     z0 = torch.tensor([0.3, -0.2])
     res = search_latent(policy, short_env(), "reward", budget=6, init=z0, rollouts_per_candidate=2, progress=False)
@@ -214,6 +261,7 @@ def test_bad_search_arguments_are_named(policy):
     env = short_env()
     for kw, match in (({"budget": 0}, "budget must be an integer >= 1, got 0"),
                       ({"budget": 3, "rollouts_per_candidate": 4}, "budget 3 rollouts cannot pay"),
+                      ({"confirm_rollouts": -1}, "confirm_rollouts must be an integer >= 0, got -1"),
                       ({"method": "adam"}, "method must be one of"),
                       ({"init": "encoder"}, "init must be 'modes'"),
                       ({"init": torch.zeros(3)}, r"init latent must have shape \[2\]"),

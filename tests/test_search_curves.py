@@ -17,7 +17,7 @@ import torch
 
 from lerobot_pdp.benchmark import search_curves as sc
 from lerobot_pdp.cli import main as cli
-from lerobot_pdp.latent_search import Candidate
+from lerobot_pdp.latent_search import Candidate, SearchResult
 
 SEED = 100
 
@@ -66,8 +66,9 @@ def measure(results: Path, dest: Path, scene: str = "val1", **kw):
 
 def test_best_so_far_is_the_first_best_within_each_budget():
     scores = [0.0, 0.5, 0.5, 0.2, 1.0]
-    hist = [Candidate(torch.zeros(2), s, s, 2, 0) for s in scores]
-    assert sc.best_so_far(hist, [2, 4, 6, 9, 100], 2) == [(2, 1, 0), (4, 2, 1), (6, 3, 1), (9, 4, 1), (100, 5, 4)]
+    res = SearchResult(None, 0.0, 0.0, [Candidate(torch.zeros(2), s, s, 2, 0) for s in scores], "cma", 0, 10, 2, "success",
+                       best_trace=[(2, 0), (4, 1), (10, 4)])  # as the search records it: strictly better only
+    assert sc.best_so_far(res, [2, 4, 6, 9, 100]) == [(2, 2, 0), (4, 4, 1), (6, 6, 1), (9, 8, 1), (100, 10, 4)]
 
 
 def test_curves_record_every_method_and_budget_and_a_rerun_reuses_them(results, tmp_path, monkeypatch):
@@ -121,6 +122,22 @@ def test_waypoint_curves_search_without_a_demonstration(results, tmp_path):
         assert len(rec["settings"]["objective"]["waypoints"]) == 4 and "adapt" not in rec["settings"]
         assert all(0 <= p["waypoint_score"] <= 1 for p in rec["points"])
     assert not (results / "data" / "reach_around_scene_val3_demo").exists()  # no demonstration made
+
+
+def test_confirmed_curves_run_one_search_per_budget(results, tmp_path):
+    """With confirmation a budget's best is what a search of that budget returns: one search per budget, every
+    point's best confirmed on its extra seeds, the setting and the seeds it used in the record."""
+    book = sc.run_search_curves(results, "reach-around", "val1", SEED, tmp_path / "c", budgets=[20, 24], rollouts=2,
+                                rollouts_per_candidate=2, confirm_rollouts=4, max_episode_steps=30,
+                                methods=["z_modes", "dp_noise"], progress=False)
+    for rec in book["records"].values():
+        assert rec["settings"]["confirm_rollouts"] == 4
+        assert rec["settings"]["search_seeds"] == [SEED * 10_000 + 5_101, SEED * 10_000 + 5_104]
+        # z_modes: the 8 mode means (16 rollouts), the best confirmed (2 more), then what the budget still pays
+        assert [p["budget"] for p in rec["points"]] == [20, 24] and rec["search"]["rollouts_used"] <= 24
+        assert all(p["search_rollouts"] == 4 and p["rollouts_used"] <= p["budget"] for p in rec["points"])
+    with pytest.raises(ValueError, match=r"confirm_rollouts must be 0 \(off\) or an integer in 3..4000"):
+        sc.run_search_curves(results, "reach-around", "val1", SEED, tmp_path / "c", budgets=[8], confirm_rollouts=2)
 
 
 def test_per_env_noises_act_per_env(results):

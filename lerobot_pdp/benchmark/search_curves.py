@@ -42,7 +42,14 @@ from tqdm.auto import tqdm
 
 from ..atomic import write_file_atomic, write_text_atomic
 from ..candidate_rollouts import CandidateRollouts, EnvFactory
-from ..latent_search import Candidate, SearchResult, default_popsize, make_optimizer, optimise, search_latent
+from ..latent_search import (
+    CONFIRM_ROLLOUTS,
+    SearchResult,
+    default_popsize,
+    make_optimizer,
+    optimise,
+    search_latent,
+)
 from ..outcome_scores import Outcome, Score, WaypointScore, resolve_score, waypoint_progress
 from .machine import cpu_model
 from .rollouts import RolloutBatch, run_rollouts
@@ -64,7 +71,8 @@ LABELS = {"z_fit": "z search from the fit", "z_modes": "z search from the mode m
 
 
 def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollouts: int, score: str,
-                  rollouts_per_candidate: int, scene: int | str) -> tuple[list[str], list[int]]:
+                  rollouts_per_candidate: int, scene: int | str,
+                  confirm_rollouts: int = 0) -> tuple[list[str], list[int]]:
     """The methods (default: every one the score allows) and sorted budgets of a request; a ValueError naming the
     value otherwise. Checked before anything is loaded."""
     if score not in SCORES:
@@ -82,6 +90,10 @@ def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollout
     k = rollouts_per_candidate
     if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 1_000:
         raise ValueError(f"rollouts_per_candidate must be an integer in 1..1000, got {k!r}")
+    c = confirm_rollouts
+    if isinstance(c, bool) or not isinstance(c, int) or not (c == 0 or k < c <= MAX_EVAL_ROLLOUTS):
+        raise ValueError(f"confirm_rollouts must be 0 (off) or an integer in {k + 1}..{MAX_EVAL_ROLLOUTS} (more than "
+                         f"rollouts_per_candidate, {k}), got {c!r}")
     if not budgets:
         raise ValueError("budgets: give at least one")
     for b in budgets:
@@ -141,25 +153,26 @@ class NoiseCandidateRollouts(CandidateRollouts):
 
 
 def search_dp_noise(policy: Any, env_factory: EnvFactory, score: str | Score, budget: int, seed: int,
-                    rollouts_per_candidate: int, processors: tuple, max_envs: int = 16,
+                    rollouts_per_candidate: int, processors: tuple, max_envs: int = 16, confirm_rollouts: int = 0,
                     progress: bool = True) -> SearchResult:
     """CMA-ES over DP's initial noise x_K, one [horizon, action_dim] noise shared by every chunk, as
     ``search_latent`` searches z: the same optimiser (``make_optimizer("cma")``, its default population
     4 + 3 ln D), the starting point (the zero noise, the prior's mean) scored first, ``budget`` rollouts of
-    ``rollouts_per_candidate`` each per candidate, the best by (score, success). Candidates' ``latent``: their noise."""
+    ``rollouts_per_candidate`` each per candidate, the best by (score, success), confirmed as ``search_latent``
+    confirms it (``confirm_rollouts``). Candidates' ``latent``: their noise."""
     score_fn, objective = resolve_score(score)
     shape = (int(policy.config.horizon), int(policy.config.action_feature.shape[0]))
     k = rollouts_per_candidate
-    n_candidates = budget // k
-    result = SearchResult(None, -math.inf, 0.0, [], "cma", seed, budget, k, objective)
+    result = SearchResult(None, -math.inf, 0.0, [], "cma", seed, budget, k, objective,
+                          confirm_rollouts=confirm_rollouts)
     t0 = time.perf_counter()
-    bar = tqdm(total=n_candidates * k, unit="rollout", desc="DP noise search (cma)", disable=not progress)
+    bar = tqdm(total=budget // k * k, unit="rollout", desc="DP noise search (cma)", disable=not progress)
     run = NoiseCandidateRollouts(policy, env_factory, k, seed, processors, None, max_envs)
 
     try:
         optimise(result, run, [torch.zeros(shape)],
                  lambda x0: make_optimizer("cma", x0.reshape(-1).double().numpy(), DP_NOISE_SIGMA, None, None, seed),
-                 lambda o, x, i: float(score_fn(o)), n_candidates, bar)
+                 lambda o, x, i: float(score_fn(o)), budget, bar)
     finally:
         bar.close()
         run.close()
@@ -170,14 +183,15 @@ def search_dp_noise(policy: Any, env_factory: EnvFactory, score: str | Score, bu
 # ----------------------------------------------------------------------------- budget points
 
 
-def best_so_far(history: Sequence[Candidate], budgets: Sequence[int], k: int) -> list[tuple[int, int, int]]:
-    """(budget, candidates within it, index of the best of them) per budget: the best by (score, success), the
-    first of equals, as the search itself keeps it."""
+def best_so_far(result: SearchResult, budgets: Sequence[int]) -> list[tuple[int, int, int]]:
+    """(budget, rollouts the search had used within it, index of its best then) per budget, for a search without
+    confirmation (every candidate ``rollouts_per_candidate`` rollouts): the best by (score, success) of the
+    candidates within the budget, the first of equals, as ``SearchResult.best_at`` reads the search's record."""
+    k = result.rollouts_per_candidate
     out = []
     for b in budgets:
-        n = min(b // k, len(history))
-        best = max(range(n), key=lambda i: (history[i].score, history[i].success))
-        out.append((b, n, best))
+        used = min(b // k, len(result.history)) * k
+        out.append((b, used, result.best_at(used)))
     return out
 
 
@@ -222,7 +236,8 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
                       budgets: Sequence[int] = DEFAULT_BUDGETS, rollouts: int = 40, score: str = "success",
                       methods: Sequence[str] | None = None, radius: float = 0.05, rollouts_per_candidate: int = 2,
                       dp_out: Path | None = None, device: str = "cpu", max_envs: int = 16,
-                      max_episode_steps: int | None = None, progress: bool = True,
+                      max_episode_steps: int | None = None, confirm_rollouts: int = CONFIRM_ROLLOUTS,
+                      progress: bool = True,
                       command: str | None = None) -> dict[str, Any]:
     """Measure the curves of ``methods`` on ``scene`` for the benchmark run ``out/runs/<pdp|dp>/seed<seed>`` (DP's
     under ``dp_out`` when given) and write ``dest``/search_curves.json, .md and .png. A record of the same (method,
@@ -236,7 +251,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     from ..envs.scene import load_scene
     from ..envs.suite import get_suite_env
 
-    methods, budgets = check_request(methods, budgets, rollouts, score, rollouts_per_candidate, scene)
+    methods, budgets = check_request(methods, budgets, rollouts, score, rollouts_per_candidate, scene, confirm_rollouts)
     scene = int(scene) if isinstance(scene, str) and scene.isdigit() else scene
     check_split("validation" if isinstance(scene, str) else "test", (scene,), [seed])
     suite = get_suite_env(env)
@@ -319,41 +334,54 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
             rec["points"] = [{"budget": 0, "rollouts_used": 0, "seconds": round(f["seconds"], 2),
                               "norm": float(z.norm()), "latent": f["z"], **f["evaluation"]}]
             return rec
-        timed = TimedScore(waypoints if waypoints is not None else "success")
-        if method == "dp_noise":
-            policy, pre, post = policy_of("dp")
+        init: Any = "modes"
+        if method == "z_fit":
+            f = fit()
+            rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
+            init = torch.as_tensor(f["z"])
+        name = "dp" if method == "dp_noise" else "pdp"
+        judge, key = (evaluate_noise, "noise") if name == "dp" else (evaluate_latent, "latent")
+
+        def search(budget: int) -> tuple[SearchResult, list[float]]:
+            """One search of ``budget`` rollouts and the wall time after each of its rollouts."""
+            timed = TimedScore(waypoints if waypoints is not None else "success")
+            policy, pre, post = policy_of(name)
             t0 = time.perf_counter()
-            res = search_dp_noise(policy, _factory(suite, scene), timed, max(budgets), search0, k, (pre, post),
-                                  max_envs, progress)
-            judge, key = evaluate_noise, "noise"
-        else:
-            policy, pre, post = policy_of("pdp")
-            init: Any = "modes"
-            if method == "z_fit":
-                f = fit()
-                rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
-                init = torch.as_tensor(f["z"])
-            t0 = time.perf_counter()
-            res = search_latent(policy, _factory(suite, scene), timed, budget=max(budgets), init=init, method="cma",
-                                seed=search0, rollouts_per_candidate=k, max_envs=max_envs, processors=(pre, post),
-                                progress=progress)
+            if name == "dp":
+                res = search_dp_noise(policy, _factory(suite, scene), timed, budget, search0, k, (pre, post),
+                                      max_envs, confirm_rollouts, progress)
+            else:
+                res = search_latent(policy, _factory(suite, scene), timed, budget=budget, init=init, method="cma",
+                                    seed=search0, rollouts_per_candidate=k, max_envs=max_envs,
+                                    processors=(pre, post), confirm_rollouts=confirm_rollouts, progress=progress)
             if res.interrupted:
                 raise KeyboardInterrupt
-            judge, key = evaluate_latent, "latent"
-        done = [timed.times[(i + 1) * k - 1] - t0 for i in range(len(res.history))]
+            return res, [t - t0 for t in timed.times]
+
+        # Without confirmation a search's first b rollouts are what a search of budget b spends (one search gives
+        # the curve); with it, a smaller budget confirms fewer challengers, so each budget runs its own search.
+        if confirm_rollouts:
+            picks = []
+            for b in budgets:
+                res, times = search(b)
+                picks.append((b, res, res.best_trace[-1][1], res.rollouts_used, res.seconds))
+        else:
+            res, times = search(max(budgets))
+            picks = [(b, res, i, n, times[n - 1]) for b, n, i in best_so_far(res, budgets)]
         rec["search"] = {"method": "cma", "seconds": round(res.seconds, 2), "candidates": len(res.history),
                          "rollouts_used": res.rollouts_used,
                          "popsize": default_popsize(res.history[0].latent.numel())}
-        judged: dict[int, dict[str, Any]] = {}
+        judged: dict[tuple, dict[str, Any]] = {}
         rec["points"] = []
-        for b, n, i in best_so_far(res.history, budgets, k):
-            if i not in judged:
-                judged[i] = judge(res.history[i].latent)
-            c = res.history[i]
-            rec["points"].append({"budget": b, "rollouts_used": n * k, "seconds": round(done[n - 1], 2),
+        for b, res_b, i, n, seconds in picks:
+            c = res_b.history[i]
+            x = tuple(c.latent.reshape(-1).tolist())
+            if x not in judged:
+                judged[x] = judge(c.latent)
+            rec["points"].append({"budget": b, "rollouts_used": n, "seconds": round(seconds, 2),
                                   "candidate": i, "generation": c.generation, "search_score": c.score,
-                                  "search_success": c.success, "norm": float(c.latent.norm()),
-                                  key: c.latent.tolist(), **judged[i]})
+                                  "search_success": c.success, "search_rollouts": c.rollouts,
+                                  "norm": float(c.latent.norm()), key: c.latent.tolist(), **judged[x]})
         return rec
 
     for method in tqdm(methods, desc=f"search curves {suite.name} {scene} seed {seed}", unit="method",
@@ -363,6 +391,9 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
                     "sampler": run_sampler(runs[name])}
         if method in NEEDS_DEMO:
             settings["adapt"] = adapt_kwargs
+        if confirm_rollouts:  # absent when off: the records made before confirmation existed still match
+            settings["confirm_rollouts"] = confirm_rollouts
+            settings["search_seeds"] = [search0, search0 + confirm_rollouts - 1]
         key = f"{suite.name}/{scene}/seed{seed}/{score}/{method}"
         old = book["records"].get(key)
         if old is not None and old.get("settings") == json.loads(json.dumps(settings)):
