@@ -314,7 +314,8 @@ def search_provenance(result: SearchResult) -> dict[str, Any]:
     """Where a searched latent came from, as an adapted checkpoint keeps it (``adaptation.json``)."""
     return {"source": "search", "method": result.method, "objective": result.objective, "score": result.score,
             "success": result.success, "budget": result.budget, "rollouts_used": result.rollouts_used,
-            "rollouts_per_candidate": result.rollouts_per_candidate, "candidates": len(result.history),
+            "rollouts_per_candidate": result.rollouts_per_candidate, "confirm_rollouts": result.confirm_rollouts,
+            "candidates": len(result.history),
             "seed": result.seed, "interrupted": result.interrupted,
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
 
