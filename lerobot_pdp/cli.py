@@ -627,8 +627,7 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
             str(args.seed), "--budgets", *map(str, args.budgets), "--rollouts", str(args.rollouts),
             "--rollouts-per-candidate", str(args.rollouts_per_candidate), "--score", args.score]
     confirm = CONFIRM_ROLLOUTS if args.confirm_rollouts is None else args.confirm_rollouts
-    if confirm:
-        argv += ["--confirm-rollouts", str(confirm)]
+    argv += ["--confirm-rollouts", str(confirm)]
     if args.score == "waypoints":
         argv += ["--radius", f"{args.radius:g}"]
     if args.methods:

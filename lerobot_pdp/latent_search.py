@@ -36,7 +36,8 @@ from .steering_state import as_latent_tensor
 METHODS = ("cma", "cem")
 CEM_ELITE_FRACTION = 0.25
 CEM_SMOOTHING = 0.7  # share of the elites' statistics in each CEM update (the rest: the previous ones)
-CONFIRM_ROLLOUTS = 0  # rollouts in all before a candidate replaces the best (0: none; docs/experiments.md)
+CONFIRM_ROLLOUTS = 6  # rollouts in all before a candidate replaces the best (0: none; chosen on validation:
+# docs/experiments.md, "Confirming the search's best")
 
 
 @dataclass

@@ -150,7 +150,8 @@ def test_per_phase_latents_follow_each_envs_phase():
 @pytest.mark.parametrize("method", ["cma", "cem"])
 def test_search_is_deterministic_within_budget_and_keeps_every_candidate(policy, method):
     score = WaypointScore(SCENE3_WAYPOINTS, 0.05)
-    kw = {"budget": 21, "rollouts_per_candidate": 2, "method": method, "max_envs": 8, "progress": False}
+    kw = {"budget": 21, "rollouts_per_candidate": 2, "method": method, "max_envs": 8, "progress": False,
+          "confirm_rollouts": 0}
     a = search_latent(policy, short_env(scene=3), score, seed=4, **kw)
     assert len(a.history) == 10 and a.rollouts_used == 20 <= a.budget  # a last odd rollout buys no candidate
     assert [c.generation for c in a.history] == [0] * 8 + [1, 1]  # the 8 mode means first
@@ -215,13 +216,14 @@ def test_confirmed_search_is_deterministic_and_its_best_the_best_confirmed(polic
 
 def test_search_from_a_latent_or_a_fit(policy, checkpoint):
     z0 = torch.tensor([0.3, -0.2])
-    res = search_latent(policy, short_env(), "reward", budget=6, init=z0, rollouts_per_candidate=2, progress=False)
+    res = search_latent(policy, short_env(), "reward", budget=6, init=z0, rollouts_per_candidate=2, confirm_rollouts=0,
+                        progress=False)
     assert torch.equal(res.history[0].latent, z0) and [c.generation for c in res.history] == [0, 1, 1]
     assert res.objective == "reward"
     data = checkpoint.parent / "data"
     fit = policy.fit_latent((data, 0), steps=1, activate=False)
     res = search_latent(policy, short_env(), "success", budget=2, init=fit, rollouts_per_candidate=1,
-                        progress=False)
+                        confirm_rollouts=0, progress=False)
     assert torch.equal(res.history[0].latent, fit.z) and res.rollouts_used == 2
 
 
@@ -234,7 +236,8 @@ def test_ctrl_c_returns_the_best_so_far_marked_interrupted(policy):
             raise KeyboardInterrupt
         return float(len(calls) == 3)  # the second candidate's first rollout
 
-    res = search_latent(policy, short_env(), score, budget=40, rollouts_per_candidate=2, max_envs=4, progress=False)
+    res = search_latent(policy, short_env(), score, budget=40, rollouts_per_candidate=2, max_envs=4, confirm_rollouts=0,
+                        progress=False)
     assert res.interrupted and len(res.history) == 3 and res.rollouts_used == 6
     assert torch.equal(res.latent, res.history[1].latent) and res.score == 0.5
 
@@ -250,7 +253,8 @@ def test_a_failing_score_keeps_the_search_so_far(policy):
 
     with pytest.raises(LatentSearchError, match="after 2 candidates.*score flaky raised RuntimeError: lost the "
                        r"tracker \(candidate 2") as e:
-        search_latent(policy, short_env(), flaky, budget=20, rollouts_per_candidate=2, max_envs=4, progress=False)
+        search_latent(policy, short_env(), flaky, budget=20, rollouts_per_candidate=2, max_envs=4, confirm_rollouts=0,
+                      progress=False)
     assert len(e.value.result.history) == 2 and e.value.result.rollouts_used == 4
     with pytest.raises(ValueError, match="returned nan for candidate 0"):
         search_latent(policy, short_env(), lambda o: float("nan"), budget=2, rollouts_per_candidate=1,
@@ -278,6 +282,7 @@ def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(po
     res = policy.search_latent(short_env(), "reward", budget=4, rollouts_per_candidate=1, progress=False)
     assert torch.equal(policy.active_latent[0], res.latent)
     assert policy.steering.provenance["source"] == "search" and policy.steering.provenance["budget"] == 4
+    assert policy.steering.provenance["confirm_rollouts"] == 6  # the default: a best is confirmed before it counts
     policy.save_pretrained(tmp_path / "searched")
     info = json.loads((tmp_path / "searched" / ADAPTATION_INFO).read_text())
     assert info["source"] == "search" and info["rollouts_used"] == 4 and info["objective"] == "reward"
@@ -292,7 +297,7 @@ def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoin
     wps.write_text(json.dumps(SCENE3_WAYPOINTS))
     out, hist = tmp_path / "searched", tmp_path / "history.json"
     args = ["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--waypoints", str(wps), "--budget",
-            "3", "--rollouts-per-candidate", "1", "--radius", "0.08", "--no-progress"]
+            "3", "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--radius", "0.08", "--no-progress"]
     assert cli([*args, "--out", str(out), "--history", str(hist)]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
     record = json.loads(hist.read_text())

@@ -60,6 +60,7 @@ def results(tmp_path_factory) -> Path:
 
 
 def measure(results: Path, dest: Path, scene: str = "val1", **kw):
+    kw = {"confirm_rollouts": 0, **kw}  # one search read at every budget (confirmation: its own test below)
     return sc.run_search_curves(results, "reach-around", scene, SEED, dest, budgets=[8, 4], rollouts=2,
                                 rollouts_per_candidate=2, max_episode_steps=30, progress=False, **kw)
 
@@ -110,7 +111,7 @@ def test_curves_record_every_method_and_budget_and_a_rerun_reuses_them(results, 
     # other settings (more evaluation rollouts) are measured anew
     with pytest.raises(AssertionError, match="rolled out again"):
         sc.run_search_curves(results, "reach-around", "val1", SEED, dest, budgets=[4, 8], rollouts=3,
-                             max_episode_steps=30, methods=["z_modes"], progress=False)
+                             max_episode_steps=30, methods=["z_modes"], confirm_rollouts=0, progress=False)
 
 
 def test_waypoint_curves_search_without_a_demonstration(results, tmp_path):
@@ -201,5 +202,5 @@ def test_cli_writes_the_record_with_its_command(results, tmp_path, capsys):
     (rec,) = json.loads((dest / sc.RECORD).read_text())["records"].values()
     assert rec["command"] == (f"lerobot-pdp search-curves {results.name} --env reach-around --scene val1 --seed 100 "
                               "--budgets 16 32 64 128 256 512 --rollouts 1 --rollouts-per-candidate 2 --score success "
-                              "--methods fit")
+                              "--confirm-rollouts 6 --methods fit")
     assert rec["points"][0]["n"] == 1 and rec["settings"]["max_episode_steps"] == 200
