@@ -216,8 +216,8 @@ def optimise(result: SearchResult, run: Callable[..., list[list[Outcome]]], star
         """Roll candidate ``i`` out on ``extra`` more seeds: its score and success become the means of all."""
         c = result.history[i]
         (outcomes,) = run([c.latent], k, extra)
-        c.scores += [score(o, c.latent, i) for o in outcomes]
-        c.successes += [float(o.success) for o in outcomes]
+        values = [score(o, c.latent, i) for o in outcomes]  # all scored before any is kept: an interruption
+        c.scores, c.successes = c.scores + values, c.successes + [float(o.success) for o in outcomes]  # keeps k
         c.score, c.success, c.rollouts = float(np.mean(c.scores)), float(np.mean(c.successes)), len(c.scores)
         bar.update(extra)
 
