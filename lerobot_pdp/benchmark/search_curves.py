@@ -5,12 +5,14 @@ benchmark run: CMA-ES over PDP's latent started from the gradient fit (``z_fit``
 (``dp_noise``). With way-points instead of a demonstration (``score="waypoints"``) only the searches that need no
 demonstration run.
 
-Each search runs ONCE, at the largest budget; for every budget point b the best candidate of its first b
-rollouts (by the search's own score, as ``search_latent`` keeps its best) is then evaluated on the protocol's
-evaluation rollouts of the scene. The optimiser asks the same populations whatever the budget, so those
-candidates are the ones a search of budget b would try (only the sampler noise of a smaller last batch may
-differ): one search gives the whole curve. ``z_modes`` scores every mode mean first (avoiding: 24 x 2 rollouts),
-so its points below that budget are the best of the first modes' means.
+With the search's confirmation of a new best (``confirm_rollouts``, the default) every budget point b runs its own
+search of b rollouts, and its best is evaluated on the protocol's evaluation rollouts of the scene: a shorter search
+confirms fewer challengers, so it is not the start of a longer one. Without confirmation each search runs ONCE, at
+the largest budget, and for every b the best candidate of its first b rollouts (by the search's own score, as
+``search_latent`` keeps its best) is evaluated: the optimiser asks the same populations whatever the budget, so
+those candidates are the ones a search of budget b would try (only the sampler noise of a smaller last batch may
+differ). ``z_modes`` scores every mode mean first (avoiding: 24 x 2 rollouts), so its points below that budget
+are the best of the first modes' means.
 
 The latent searches act under the sampler's own noise (``CandidateRollouts``' per-env latents carry no fitted
 chunk noises); where the frozen adaptation also fits one noise per chunk (``settings.FROZEN``), the ``fit`` point
