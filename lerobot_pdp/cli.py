@@ -313,7 +313,7 @@ def cmd_search(args: argparse.Namespace) -> int:
     from lerobot_pdp.candidate_rollouts import env_camera_kwargs
     from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
     from lerobot_pdp.envs.scene import load_scene
-    from lerobot_pdp.latent_search import LatentSearchError
+    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS, LatentSearchError
     from lerobot_pdp.outcome_scores import SCORES, WaypointScore
 
     for path, flag in ((args.out, "--out"), (args.history, "--history")):
@@ -345,7 +345,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         res = search_checkpoint(args.checkpoint, factory, score, out=args.out, init=args.init, device=args.device,
                                 provenance=objective, budget=args.budget, method=args.method, seed=args.seed,
                                 rollouts_per_candidate=args.rollouts_per_candidate, progress=not args.no_progress,
-                                **({} if args.confirm_rollouts is None else {"confirm_rollouts": args.confirm_rollouts}))
+                                confirm_rollouts=CONFIRM_ROLLOUTS if args.confirm_rollouts is None else args.confirm_rollouts)
     except LatentSearchError as e:  # the candidates so far are kept where asked
         if args.history is not None:
             write_text_atomic(args.history, json.dumps(e.result.to_dict(), indent=1))
@@ -355,8 +355,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         write_text_atomic(args.history, json.dumps(res.to_dict(), indent=1))
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
-          f"{len(res.history)} "
-          f"candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
+          f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
     print(f"wrote {args.out}" if args.out is not None else "no --out: no checkpoint written")
     return 0
 

@@ -143,6 +143,9 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
     if budget < rollouts_per_candidate:
         raise ValueError(f"budget {budget} rollouts cannot pay for one candidate of {rollouts_per_candidate} "
                          "rollouts (rollouts_per_candidate)")
+    if 0 < confirm_rollouts <= rollouts_per_candidate:
+        raise ValueError(f"confirm_rollouts must be 0 (off) or more than rollouts_per_candidate "
+                         f"({rollouts_per_candidate}), got {confirm_rollouts}")
     if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a finite number > 0, got {sigma!r}")
     score_fn, objective = resolve_score(score)

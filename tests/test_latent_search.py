@@ -266,6 +266,8 @@ def test_bad_search_arguments_are_named(policy):
     for kw, match in (({"budget": 0}, "budget must be an integer >= 1, got 0"),
                       ({"budget": 3, "rollouts_per_candidate": 4}, "budget 3 rollouts cannot pay"),
                       ({"confirm_rollouts": -1}, "confirm_rollouts must be an integer >= 0, got -1"),
+                      ({"confirm_rollouts": 2}, r"confirm_rollouts must be 0 \(off\) or more than rollouts_per_candidate "
+                       r"\(2\), got 2"),
                       ({"method": "adam"}, "method must be one of"),
                       ({"init": "encoder"}, "init must be 'modes'"),
                       ({"init": torch.zeros(3)}, r"init latent must have shape \[2\]"),
