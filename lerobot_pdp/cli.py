@@ -647,9 +647,9 @@ def add_merge_results_parser(sub: argparse._SubParsersAction) -> None:
         "merge-results",
         help="one results table from benchmark runs of different seeds",
         description="Merge the results.json of benchmark runs that used the same env and settings but different "
-        "seeds (or methods), e.g. seeds run on several machines. Writes OUT/results.json and OUT/results.md; "
-        "validation runs (--split validation --validate, one method per folder) also get one merged "
-        "OUT/validation.json / validation.md.",
+        "seeds (or methods), e.g. seeds run on several machines. Writes OUT/results.json and OUT/results.md; runs "
+        "with --teach also get one OUT/teach.json / teach.md; validation runs (--split validation --validate, one "
+        "method per folder) also get one merged OUT/validation.json / validation.md.",
     )
     p.add_argument("results", type=Path, nargs="+", help="benchmark output folders or their results.json files")
     p.add_argument("--out", required=True, type=Path, help="folder for the merged results.json / results.md")
@@ -688,6 +688,12 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(target, json.dumps(res, indent=1))
     write_text_atomic(args.out / "results.md", results_markdown(res))
+    if "teach" in res:  # runs with --teach: their teaching records as one teach.json / teach.md
+        from lerobot_pdp.benchmark.teaching import teach_markdown
+
+        write_text_atomic(args.out / "teach.json", json.dumps(res["teach"], indent=1))
+        write_text_atomic(args.out / "teach.md", teach_markdown(res["teach"]))
+        print(f"teaching record: {args.out / 'teach.json'} ({', '.join(res['teach']['runs'])})")
     if merged_validation is not None:
         write_text_atomic(args.out / "validation.json", json.dumps(merged_validation, indent=1))
         write_text_atomic(args.out / "validation.md", validation_markdown(merged_validation))

@@ -349,3 +349,42 @@ def test_merging_validation_records_compares_only_the_candidate_lists_their_meth
     merged = merge_validation_records([("camera/validation.json", camera),
                                        ("pdp/validation.json", {**new_pdp, "observation": camera["observation"]})])
     assert merged["observation"] == camera["observation"]
+
+
+def _taught(method: str, seed: int, new_route: float, **protocol) -> dict:
+    """A --teach record as benchmark.teaching writes it: one (method, seed) taught one frozen setting."""
+    scene0 = {"success": 1.0, "collision": 0.0, "n": 8, "coverage": 1.0}
+    run = {"scene": "4", "steps": 300, "lr": 1e-4, "new_route": {"success": new_route, "collision": 0.0, "n": 4},
+           "scene0": scene0, "teach_seconds": 12.0}
+    return {"env": "reach-around", "split": "test", "rollouts": 4, "rollouts_scene0": 8, "batch_size": 64,
+            "demo_share": 0.25, **protocol,
+            "runs": {method: {str(seed): {"method": method, "seed": seed, "rollouts": 4, "base_scene0": scene0,
+                                          "runs": {"4 steps=300 lr=0.0001": run}, "chosen": "steps=300 lr=0.0001"}}}}
+
+
+def test_merge_results_merges_the_teaching_records_of_runs_made_method_by_method(tmp_path, capsys):
+    """BC and DP taught by two benchmark runs side by side: merge-results writes one teach.json / teach.md beside
+    the merged table, and refuses a (method, seed) taught twice or another teaching protocol, naming the run."""
+    from lerobot_pdp.benchmark.results import merge_results
+    from lerobot_pdp.cli import main
+
+    for method, rate in (("bc", 0.0), ("dp", 0.75)):
+        d = tmp_path / method
+        d.mkdir()
+        res = _results([6], {method: {6: [1.0, 0.5, 1.0, 1.0]}}) | {"teach": _taught(method, 6, rate)}
+        (d / "results.json").write_text(json.dumps(res))
+    assert main(["merge-results", str(tmp_path / "bc"), str(tmp_path / "dp"), "--out", str(tmp_path / "all")]) == 0
+    teach = json.loads((tmp_path / "all" / "teach.json").read_text())
+    assert sorted(teach["runs"]) == ["bc", "dp"] and teach["rollouts_scene0"] == 8
+    assert teach == json.loads((tmp_path / "all" / "results.json").read_text())["teach"]
+    md = (tmp_path / "all" / "teach.md").read_text()
+    assert "| bc | 6 | 4 | 300 | 0.0001 | - | 0.0% | 100.0% (100.0%) |" in md
+    assert "| dp | 6 | 4 | 300 | 0.0001 | - | 75.0% | 100.0% (100.0%) |" in md
+    assert "teaching record" in capsys.readouterr().out
+    one = _results([6], {"bc": {6: [1.0] * 4}})
+    again = _results([7], {"dp": {7: [1.0] * 4}})
+    with pytest.raises(ValueError, match="bc seed 6 is taught in two of the merged runs"):
+        merge_results([("a", one | {"teach": _taught("bc", 6, 0.0)}), ("b", again | {"teach": _taught("bc", 6, 0.0)})])
+    with pytest.raises(ValueError, match="b: teaching demo_share is 0.5 but a has 0.25"):
+        merge_results([("a", one | {"teach": _taught("bc", 6, 0.0)}),
+                       ("b", again | {"teach": _taught("dp", 7, 0.0, demo_share=0.5)})])

@@ -222,6 +222,11 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             merged["timestep_spacing"] = sorted({s for _, _, e, _ in per_seed for s in e.get("timestep_spacing", [])})
         merged["eval_devices"] = sorted({d for _, _, e, _ in per_seed for d in e.get("eval_devices", ["unrecorded"])})
         out["methods"][method] = merged
+    taught = [(name, res["teach"]) for name, res in results if "teach" in res]
+    if taught:  # runs with --teach: one record of every (method, seed) they taught
+        from .teaching import merge_teach_records
+
+        out["teach"] = merge_teach_records(taught)
     abl = [res["init_ablation"] for _, res in results if "init_ablation" in res]
     if abl:
         keys = abl[0].keys()

@@ -170,6 +170,25 @@ def run_teaching(suite: SuiteEnv, cfg: BenchmarkConfig, methods: dict[str, Metho
     return record
 
 
+def merge_teach_records(records: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """One ``--teach`` record from runs of the same protocol that taught different (method, seed)s, e.g. BC and DP
+    run as two benchmarks side by side. ``records`` is ``[(name, record), ...]``; names go into errors."""
+    first_name, first = records[0]
+    protocol = [k for k in first if k != "runs"]
+    runs: dict[str, dict[str, Any]] = {}
+    for name, rec in records:
+        for key in protocol:
+            if rec.get(key) != first[key]:
+                raise ValueError(f"{name}: teaching {key} is {rec.get(key)!r} but {first_name} has {first[key]!r}; "
+                                 "only runs of the same protocol can be merged")
+        for method, seeds in rec["runs"].items():
+            for seed, res in seeds.items():
+                if seed in runs.get(method, {}):
+                    raise ValueError(f"{method} seed {seed} is taught in two of the merged runs ({name} is one)")
+                runs.setdefault(method, {})[seed] = res
+    return {**{k: first[k] for k in protocol}, "runs": runs}
+
+
 def teach_markdown(record: dict[str, Any]) -> str:
     """One row per (method, seed, scene, setting): new-route success, scene 0 kept against the untaught checkpoint."""
     lines = [f"# Teaching a new route: {record['env']}, {record['split']} split",
