@@ -388,3 +388,6 @@ def test_merge_results_merges_the_teaching_records_of_runs_made_method_by_method
     with pytest.raises(ValueError, match="b: teaching demo_share is 0.5 but a has 0.25"):
         merge_results([("a", one | {"teach": _taught("bc", 6, 0.0)}),
                        ("b", again | {"teach": _taught("dp", 7, 0.0, demo_share=0.5)})])
+    with pytest.raises(ValueError, match="b: teaching budget is 'quick' but a has None"):  # a key only one has
+        merge_results([("a", one | {"teach": _taught("bc", 6, 0.0)}),
+                       ("b", again | {"teach": _taught("dp", 7, 0.0, budget="quick")})])

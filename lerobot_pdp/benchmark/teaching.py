@@ -177,10 +177,10 @@ def merge_teach_records(records: list[tuple[str, dict[str, Any]]]) -> dict[str, 
     protocol = [k for k in first if k != "runs"]
     runs: dict[str, dict[str, Any]] = {}
     for name, rec in records:
-        for key in protocol:
-            if rec.get(key) != first[key]:
-                raise ValueError(f"{name}: teaching {key} is {rec.get(key)!r} but {first_name} has {first[key]!r}; "
-                                 "only runs of the same protocol can be merged")
+        for key in sorted(set(protocol) | set(rec) - {"runs"}):  # a key either record lacks differs too
+            if rec.get(key) != first.get(key):
+                raise ValueError(f"{name}: teaching {key} is {rec.get(key)!r} but {first_name} has "
+                                 f"{first.get(key)!r}; only runs of the same protocol can be merged")
         for method, seeds in rec["runs"].items():
             for seed, res in seeds.items():
                 if seed in runs.get(method, {}):
