@@ -159,9 +159,10 @@ def test_per_env_noises_act_per_env(results):
     a, b = torch.randn(16, 3, generator=g), torch.randn(16, 3, generator=g)
     with sc.NoiseCandidateRollouts(policy, factory, 1, 7, (pre, post)) as run:
         differ, same = run([a, b]), run([a, a])
-    assert not np.allclose(differ[0][0].states, differ[1][0].states)
-    assert np.array_equal(same[0][0].states, same[1][0].states)
-    assert np.array_equal(same[0][0].states, differ[0][0].states)  # a noise acts the same in any batch
+    # Equal up to float32 rounding: a row's kernel path (and so its last bits) may depend on its batch position.
+    np.testing.assert_allclose(same[0][0].states, same[1][0].states, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(same[0][0].states, differ[0][0].states, rtol=0, atol=1e-5)  # same in any batch
+    assert np.abs(differ[0][0].states - differ[1][0].states).max() > 1e-3
     with pytest.raises(RuntimeError, match="batch of 3 envs for 2 candidate noises"):
         PerEnvNoisePolicy(policy, torch.stack([a, b])).select_action(
             {"observation.state": torch.zeros(3, 6), "observation.environment_state": torch.zeros(3, 6)})
