@@ -194,6 +194,23 @@ def test_bad_input_is_named(results, tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
+def test_a_second_search_into_a_held_folder_is_refused(results, tmp_path, capsys):
+    """Two searches into one --out would lose each other's records (each rewrites the record file)."""
+    from test_folder_lock import holder
+
+    dest = tmp_path / "curves"
+    proc = holder(dest)
+    try:
+        assert cli(["search-curves", str(results), "--env", "reach-around", "--scene", "val1", "--seed", str(SEED),
+                    "--methods", "fit", "--rollouts", "1", "--out", str(dest), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert f"{dest} is being written by another process (pid {proc.pid}, benchmark since" in err, err
+        assert not (dest / sc.RECORD).exists()
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def test_cli_writes_the_record_with_its_command(results, tmp_path, capsys):
     dest = tmp_path / "fit_only"
     args = ["search-curves", str(results), "--env", "reach-around", "--scene", "val1", "--seed", str(SEED),

@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from ..atomic import write_text_atomic
-from ..envs.suite import get_suite_env
+from ..envs.suite import SuiteEnv, get_suite_env
+from ..folder_lock import hold_folder
 from .data import ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, frozen_record, results_markdown
@@ -93,8 +94,6 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
                          f"got {cfg.inference_steps}")
     check_device(cfg.device)
     frozen = frozen_record(suite.name, cfg)  # what this run samples and adapts with, whatever changes meanwhile
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     all_methods = methods_for(suite, cfg.film)
     names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
     unknown = [n for n in names if n not in all_methods]
@@ -103,6 +102,15 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
                else " (vqbet needs --obs images: LeRobot's vqbet takes exactly one camera)" if "vqbet" in unknown
                else "")
         raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(all_methods)}{why}")
+    with hold_folder(cfg.out, "benchmark"):  # a second run into the same folder is refused, naming this one
+        return _train_and_evaluate(cfg, suite, all_methods, names, settings, steps, frozen, user_sampler)
+
+
+def _train_and_evaluate(cfg: BenchmarkConfig, suite: SuiteEnv, all_methods: dict[str, Any], names: list[str],
+                        settings: TrainSettings, steps: int, frozen: dict[str, Any],
+                        user_sampler: bool) -> dict[str, Any]:
+    """``run_benchmark`` once its request is checked and its output folder held."""
+    out = Path(cfg.out)
     dataset = ensure_dataset(suite, out, settings)
     demos = {s: ensure_demo(suite, out, s)[0] for s in cfg.scenes if s != 0}
     per_run: dict[str, dict[int, dict]] = {}
