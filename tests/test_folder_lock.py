@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -35,13 +34,11 @@ def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
             with hold_folder(out, "search-curves"):
                 pass
         # the CLI refuses before generating data or training anything, in one line with the holder's pid
-        t0 = time.perf_counter()
         r = subprocess.run([LERO_PDP, "benchmark", "--env", "reach-around", "--quick", "--no-figures",
                             "--out", str(out)], capture_output=True, text=True, timeout=300,
                            env={**os.environ, "OMP_NUM_THREADS": "1"})
         assert r.returncode == 2 and f"pid {proc.pid}" in r.stderr and "Traceback" not in r.stderr, r.stderr
         assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME], "nothing written beside the holder's run"
-        assert time.perf_counter() - t0 < 120
     finally:
         proc.kill()
         proc.wait()
