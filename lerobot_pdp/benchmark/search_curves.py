@@ -276,140 +276,163 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     with hold_folder(dest, "search-curves"):  # one writer: the records are read, extended and rewritten
-        record_file = dest / RECORD
-        book: dict[str, Any] = json.loads(record_file.read_text()) if record_file.is_file() else {"records": {}}
-        book.update(cpu=cpu_model(), threads=torch.get_num_threads())
-        k, eval0, search0 = rollouts_per_candidate, evaluation_seed(seed, scene), search_seed(seed, scene)
-        adapt_kwargs = dict(frozen_for(suite.name, is_quick_run(Path(out)), "pdp").get("adapt", {}))
-        common = {"budgets": budgets, "rollouts": rollouts, "rollouts_per_candidate": k, "max_envs": max_envs,
-                  "evaluation_seeds": [eval0, eval0 + rollouts - 1], "search_seeds": [search0, search0 + k - 1],
-                  "max_episode_steps": suite.max_episode_steps, "device": device,
-                  "objective": "success" if waypoints is None else waypoints.describe()}
-        loaded: dict[str, Any] = {}
+        curves = _Curves(suite, scene, seed, Path(out), runs, waypoints, rollouts, rollouts_per_candidate, max_envs,
+                         confirm_rollouts, device, progress)
+        return _record_curves(curves, methods, budgets, score, dest, command)
 
-        def policy_of(name: str):
-            if name not in loaded:
-                from .training import load_policy
 
-                s = run_sampler(runs[name])
-                loaded[name] = load_policy(runs[name] / "pretrained_model", s["inference_steps"], device, s["timestep_spacing"])
-            return loaded[name]
-
-        fitted: dict[str, Any] = {}
-
-        def fit() -> dict[str, Any]:
-            """The benchmark's adaptation of PDP to the scene's demonstration, evaluated as the benchmark does."""
-            if not fitted:
-                from .data import demo_episode, ensure_demo
-                from .evaluation import adapt
-
-                policy, pre, post = policy_of("pdp")
-                demo = demo_episode(ensure_demo(suite, Path(out), scene)[0])
-                t0 = time.perf_counter()
-                actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, seed, **adapt_kwargs)
-                seconds = time.perf_counter() - t0
-                batch = run_rollouts(suite, scene, actor, pre, post, rollouts, eval0, label=f"scene {scene}")
-                policy.set_latent(None)
-                fitted.update(z=info["z"], seconds=round(seconds, 2), fit_error_ratio=info.get("fit_error_ratio"),
-                              evaluation=summarize(batch, waypoints))
-            return fitted
-
-        def evaluate_latent(z: Tensor) -> dict[str, Any]:
-            policy, pre, post = policy_of("pdp")
-            policy.set_latent(z)
-            try:
-                return summarize(run_rollouts(suite, scene, policy, pre, post, rollouts, eval0), waypoints)
-            finally:
-                policy.set_latent(None)
-
-        def evaluate_noise(x: Tensor) -> dict[str, Any]:
-            from .baselines import FixedNoisePolicy
-
-            policy, pre, post = policy_of("dp")
-            return summarize(run_rollouts(suite, scene, FixedNoisePolicy(policy, x[None]), pre, post, rollouts, eval0),
-                             waypoints)
-
-        def measure(method: str) -> dict[str, Any]:
-            rec: dict[str, Any] = {}
-            if method == "fit":
-                f = fit()
-                rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
-                z = torch.as_tensor(f["z"])
-                rec["points"] = [{"budget": 0, "rollouts_used": 0, "seconds": round(f["seconds"], 2),
-                                  "norm": float(z.norm()), "latent": f["z"], **f["evaluation"]}]
-                return rec
-            init: Any = "modes"
-            if method == "z_fit":
-                f = fit()
-                rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
-                init = torch.as_tensor(f["z"])
-            name = "dp" if method == "dp_noise" else "pdp"
-            judge, key = (evaluate_noise, "noise") if name == "dp" else (evaluate_latent, "latent")
-
-            def search(budget: int) -> tuple[SearchResult, list[float]]:
-                """One search of ``budget`` rollouts and the wall time after each of its rollouts."""
-                timed = TimedScore(waypoints if waypoints is not None else "success")
-                policy, pre, post = policy_of(name)
-                t0 = time.perf_counter()
-                if name == "dp":
-                    res = search_dp_noise(policy, _factory(suite, scene), timed, budget, search0, k, (pre, post),
-                                          max_envs, confirm_rollouts, progress)
-                else:
-                    res = search_latent(policy, _factory(suite, scene), timed, budget=budget, init=init, method="cma",
-                                        seed=search0, rollouts_per_candidate=k, max_envs=max_envs,
-                                        processors=(pre, post), confirm_rollouts=confirm_rollouts, progress=progress)
-                if res.interrupted:
-                    raise KeyboardInterrupt
-                return res, [t - t0 for t in timed.times]
-
-            # Without confirmation a search's first b rollouts are what a search of budget b spends (one search gives
-            # the curve); with it, a smaller budget confirms fewer challengers, so each budget runs its own search.
-            if confirm_rollouts:
-                picks = []
-                for b in budgets:
-                    res, times = search(b)
-                    picks.append((b, res, res.best_trace[-1][1], res.rollouts_used, res.seconds))
-            else:
-                res, times = search(max(budgets))
-                picks = [(b, res, i, n, times[n - 1]) for b, n, i in best_so_far(res, budgets)]
-            rec["search"] = {"method": "cma", "seconds": round(res.seconds, 2), "candidates": len(res.history),
-                             "rollouts_used": res.rollouts_used,
-                             "popsize": default_popsize(res.history[0].latent.numel())}
-            judged: dict[tuple, dict[str, Any]] = {}
-            rec["points"] = []
-            for b, res_b, i, n, seconds in picks:
-                c = res_b.history[i]
-                x = tuple(c.latent.reshape(-1).tolist())
-                if x not in judged:
-                    judged[x] = judge(c.latent)
-                rec["points"].append({"budget": b, "rollouts_used": n, "seconds": round(seconds, 2),
-                                      "candidate": i, "generation": c.generation, "search_score": c.score,
-                                      "search_success": c.success, "search_rollouts": c.rollouts,
-                                      "norm": float(c.latent.norm()), key: c.latent.tolist(), **judged[x]})
-            return rec
-
-        for method in tqdm(methods, desc=f"search curves {suite.name} {scene} seed {seed}", unit="method",
-                           disable=not progress):
-            name = "dp" if method == "dp_noise" else "pdp"
-            settings = {**common, "checkpoint": _sha(runs[name] / "pretrained_model" / "model.safetensors"),
-                        "sampler": run_sampler(runs[name])}
-            if method in NEEDS_DEMO:
-                settings["adapt"] = adapt_kwargs
-            if confirm_rollouts:  # absent when off: the records made before confirmation existed still match
-                settings["confirm_rollouts"] = confirm_rollouts
-                settings["search_seeds"] = [search0, search0 + confirm_rollouts - 1]
-            key = f"{suite.name}/{scene}/seed{seed}/{score}/{method}"
-            old = book["records"].get(key)
-            if old is not None and old.get("settings") == json.loads(json.dumps(settings)):
-                continue
-            rec = {"env": suite.name, "scene": scene, "seed": seed, "score": score, "method": method,
-                   "settings": settings, **measure(method)}
-            if command:
-                rec["command"] = command
-            book["records"][key] = rec
-            write_records(book, dest)
+def _record_curves(curves: _Curves, methods: list[str], budgets: list[int], score: str, dest: Path,
+                   command: str | None) -> dict[str, Any]:
+    """Measure each method not yet recorded in ``dest`` with these settings; the record file is rewritten after
+    each method, so an interrupted run keeps what it measured."""
+    record_file = dest / RECORD
+    book: dict[str, Any] = json.loads(record_file.read_text()) if record_file.is_file() else {"records": {}}
+    book.update(cpu=cpu_model(), threads=torch.get_num_threads())
+    c = curves
+    common = {"budgets": budgets, "rollouts": c.rollouts, "rollouts_per_candidate": c.k, "max_envs": c.max_envs,
+              "evaluation_seeds": [c.eval0, c.eval0 + c.rollouts - 1], "search_seeds": [c.search0, c.search0 + c.k - 1],
+              "max_episode_steps": c.suite.max_episode_steps, "device": c.device,
+              "objective": "success" if c.waypoints is None else c.waypoints.describe()}
+    for method in tqdm(methods, desc=f"search curves {c.suite.name} {c.scene} seed {c.seed}", unit="method",
+                       disable=not c.progress):
+        name = "dp" if method == "dp_noise" else "pdp"
+        settings = {**common, "checkpoint": _sha(c.runs[name] / "pretrained_model" / "model.safetensors"),
+                    "sampler": run_sampler(c.runs[name])}
+        if method in NEEDS_DEMO:
+            settings["adapt"] = c.adapt_kwargs
+        if c.confirm_rollouts:  # absent when off: the records made before confirmation existed still match
+            settings["confirm_rollouts"] = c.confirm_rollouts
+            settings["search_seeds"] = [c.search0, c.search0 + c.confirm_rollouts - 1]
+        key = f"{c.suite.name}/{c.scene}/seed{c.seed}/{score}/{method}"
+        old = book["records"].get(key)
+        if old is not None and old.get("settings") == json.loads(json.dumps(settings)):
+            continue
+        rec = {"env": c.suite.name, "scene": c.scene, "seed": c.seed, "score": score, "method": method,
+               "settings": settings, **c.measure(method, budgets)}
+        if command:
+            rec["command"] = command
+        book["records"][key] = rec
         write_records(book, dest)
-        return book
+    write_records(book, dest)
+    return book
+
+
+class _Curves:
+    """The measurements of one (benchmark run, scene, training seed, score): the policies loaded once, the
+    gradient fit made once, every point evaluated on the protocol's evaluation rollouts of the scene."""
+
+    def __init__(self, suite: Any, scene: int | str, seed: int, out: Path, runs: dict[str, Path],
+                 waypoints: WaypointScore | None, rollouts: int, rollouts_per_candidate: int, max_envs: int,
+                 confirm_rollouts: int, device: str, progress: bool):
+        self.suite, self.scene, self.seed, self.out, self.runs = suite, scene, seed, out, runs
+        self.waypoints, self.rollouts, self.k, self.max_envs = waypoints, rollouts, rollouts_per_candidate, max_envs
+        self.confirm_rollouts, self.device, self.progress = confirm_rollouts, device, progress
+        self.eval0, self.search0 = evaluation_seed(seed, scene), search_seed(seed, scene)
+        self.adapt_kwargs = dict(frozen_for(suite.name, is_quick_run(out), "pdp").get("adapt", {}))
+        self._loaded: dict[str, Any] = {}
+        self._fitted: dict[str, Any] = {}
+
+    def policy_of(self, name: str) -> tuple[Any, Any, Any]:
+        """(policy, preprocessor, postprocessor) of the run ``name`` ("pdp" or "dp"), with its evaluation sampler."""
+        if name not in self._loaded:
+            from .training import load_policy
+
+            s = run_sampler(self.runs[name])
+            self._loaded[name] = load_policy(self.runs[name] / "pretrained_model", s["inference_steps"], self.device,
+                                             s["timestep_spacing"])
+        return self._loaded[name]
+
+    def fit(self) -> dict[str, Any]:
+        """The benchmark's adaptation of PDP to the scene's demonstration, evaluated as the benchmark does."""
+        if not self._fitted:
+            from .data import demo_episode, ensure_demo
+            from .evaluation import adapt
+
+            policy, pre, post = self.policy_of("pdp")
+            demo = demo_episode(ensure_demo(self.suite, self.out, self.scene)[0])
+            t0 = time.perf_counter()
+            actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, self.seed, **self.adapt_kwargs)
+            seconds = time.perf_counter() - t0
+            batch = run_rollouts(self.suite, self.scene, actor, pre, post, self.rollouts, self.eval0,
+                                 label=f"scene {self.scene}")
+            policy.set_latent(None)
+            self._fitted.update(z=info["z"], seconds=round(seconds, 2), fit_error_ratio=info.get("fit_error_ratio"),
+                                evaluation=summarize(batch, self.waypoints))
+        return self._fitted
+
+    def evaluate_latent(self, z: Tensor) -> dict[str, Any]:
+        policy, pre, post = self.policy_of("pdp")
+        policy.set_latent(z)
+        try:
+            return summarize(run_rollouts(self.suite, self.scene, policy, pre, post, self.rollouts, self.eval0),
+                             self.waypoints)
+        finally:
+            policy.set_latent(None)
+
+    def evaluate_noise(self, x: Tensor) -> dict[str, Any]:
+        from .baselines import FixedNoisePolicy
+
+        policy, pre, post = self.policy_of("dp")
+        return summarize(run_rollouts(self.suite, self.scene, FixedNoisePolicy(policy, x[None]), pre, post,
+                                      self.rollouts, self.eval0), self.waypoints)
+
+    def search(self, method: str, budget: int, init: Any) -> tuple[SearchResult, list[float]]:
+        """One search of ``budget`` rollouts and the wall time after each of its rollouts."""
+        timed = TimedScore(self.waypoints if self.waypoints is not None else "success")
+        policy, pre, post = self.policy_of("dp" if method == "dp_noise" else "pdp")
+        factory = _factory(self.suite, self.scene)
+        t0 = time.perf_counter()
+        if method == "dp_noise":
+            res = search_dp_noise(policy, factory, timed, budget, self.search0, self.k, (pre, post), self.max_envs,
+                                  self.confirm_rollouts, self.progress)
+        else:
+            res = search_latent(policy, factory, timed, budget=budget, init=init, method="cma", seed=self.search0,
+                                rollouts_per_candidate=self.k, max_envs=self.max_envs, processors=(pre, post),
+                                confirm_rollouts=self.confirm_rollouts, progress=self.progress)
+        if res.interrupted:
+            raise KeyboardInterrupt
+        return res, [t - t0 for t in timed.times]
+
+    def measure(self, method: str, budgets: list[int]) -> dict[str, Any]:
+        """One method's record: its points (budget, rollouts used, seconds, the candidate and its evaluation)."""
+        rec: dict[str, Any] = {}
+        if method == "fit":
+            f = self.fit()
+            rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
+            z = torch.as_tensor(f["z"])
+            rec["points"] = [{"budget": 0, "rollouts_used": 0, "seconds": round(f["seconds"], 2),
+                              "norm": float(z.norm()), "latent": f["z"], **f["evaluation"]}]
+            return rec
+        init: Any = "modes"
+        if method == "z_fit":
+            f = self.fit()
+            rec["fit"] = {k2: v for k2, v in f.items() if k2 != "evaluation"}
+            init = torch.as_tensor(f["z"])
+        judge, key = (self.evaluate_noise, "noise") if method == "dp_noise" else (self.evaluate_latent, "latent")
+        # Without confirmation a search's first b rollouts are what a search of budget b spends (one search gives
+        # the curve); with it, a smaller budget confirms fewer challengers, so each budget runs its own search.
+        if self.confirm_rollouts:
+            picks = []
+            for b in budgets:
+                res, times = self.search(method, b, init)
+                picks.append((b, res, res.best_trace[-1][1], res.rollouts_used, res.seconds))
+        else:
+            res, times = self.search(method, max(budgets), init)
+            picks = [(b, res, i, n, times[n - 1]) for b, n, i in best_so_far(res, budgets)]
+        rec["search"] = {"method": "cma", "seconds": round(res.seconds, 2), "candidates": len(res.history),
+                         "rollouts_used": res.rollouts_used, "popsize": default_popsize(res.history[0].latent.numel())}
+        judged: dict[tuple, dict[str, Any]] = {}
+        rec["points"] = []
+        for b, res_b, i, n, seconds in picks:
+            c = res_b.history[i]
+            x = tuple(c.latent.reshape(-1).tolist())
+            if x not in judged:
+                judged[x] = judge(c.latent)
+            rec["points"].append({"budget": b, "rollouts_used": n, "seconds": round(seconds, 2),
+                                  "candidate": i, "generation": c.generation, "search_score": c.score,
+                                  "search_success": c.success, "search_rollouts": c.rollouts,
+                                  "norm": float(c.latent.norm()), key: c.latent.tolist(), **judged[x]})
+        return rec
 
 
 def _factory(suite: Any, scene: int | str) -> EnvFactory:
