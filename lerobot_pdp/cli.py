@@ -282,6 +282,9 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
                    "(metres, default 0.05)")
     p.add_argument("--score", choices=("success", "reward"), default="success",
                    help="without --waypoints: task success (default) or the summed reward")
+    p.add_argument("--finish", action="store_true",
+                   help="with --waypoints: a rollout that passes every way-point scores 1 more if it then succeeds "
+                   "(the task's own success): the route, and the task done at its end")
     p.add_argument("--budget", type=int, default=200, help="rollouts in all (default 200)")
     p.add_argument("--rollouts-per-candidate", type=int, default=2, help="rollouts scoring each latent (default 2)")
     p.add_argument("--confirm-rollouts", type=int, default=None,
@@ -322,6 +325,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     for flag, value in (("--budget", args.budget), ("--rollouts-per-candidate", args.rollouts_per_candidate)):
         if value < 1:
             raise ValueError(f"{flag} must be >= 1, got {value}")
+    if args.finish and args.waypoints is None:
+        raise ValueError("--finish adds the task's success to the way-point score: give --waypoints too")
     if args.budget < args.rollouts_per_candidate:
         raise ValueError(f"--budget {args.budget} rollouts pays for no candidate of --rollouts-per-candidate "
                          f"{args.rollouts_per_candidate} rollouts")
@@ -334,7 +339,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         source = f"way-points of {scene.source}" if args.waypoints == "scene" else args.waypoints
         points = resolve_waypoints(args.waypoints, scene, suite)
         check_waypoints(suite, points, source)
-        score = WaypointScore(points, args.radius, dims=suite.trace_dims)
+        score = WaypointScore(points, args.radius, dims=suite.trace_dims, finish=args.finish)
         objective["waypoints_from"] = str(source)
     else:
         score = SCORES[args.score]
@@ -601,10 +606,11 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--confirm-rollouts", type=int, default=None,
                    help="rollouts in all before a candidate replaces the search's best, 0 for none (default: the "
                    "search's own, latent_search.CONFIRM_ROLLOUTS); with confirmation each budget runs its own search")
-    p.add_argument("--score", choices=("success", "waypoints"), default="success",
-                   help="what the searches maximise: task success (default) or the scene's way-points passed in "
-                   "order (no demonstration: z_modes and dp_noise only)")
-    p.add_argument("--radius", type=float, default=0.05, help="with --score waypoints: pass radius (default 0.05)")
+    p.add_argument("--score", choices=("success", "waypoints", "waypoints_finish"), default="success",
+                   help="what the searches maximise: task success (default), the scene's way-points passed in "
+                   "order, or those way-points and then the task's success (waypoints_finish); no demonstration "
+                   "with way-points: z_modes and dp_noise only")
+    p.add_argument("--radius", type=float, default=0.05, help="with way-points: pass radius (default 0.05)")
     p.add_argument("--methods", nargs="+", default=None,
                    help="any of z_fit z_modes fit dp_noise (default: all that --score allows)")
     p.add_argument("--dp-results", type=Path, default=None,
@@ -627,7 +633,7 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
             "--rollouts-per-candidate", str(args.rollouts_per_candidate), "--score", args.score]
     confirm = CONFIRM_ROLLOUTS if args.confirm_rollouts is None else args.confirm_rollouts
     argv += ["--confirm-rollouts", str(confirm)]
-    if args.score == "waypoints":
+    if args.score != "success":
         argv += ["--radius", f"{args.radius:g}"]
     if args.methods:
         argv += ["--methods", *args.methods]

@@ -71,10 +71,14 @@ def waypoint_progress(path: np.ndarray, waypoints: np.ndarray, radius: float) ->
 
 class WaypointScore:
     """Score a rollout by :func:`waypoint_progress` of its path: the ``dims`` of ``agent_pos`` (default the
-    first D, D = the way-points' width; positions come first in every suite env)."""
+    first D, D = the way-points' width; positions come first in every suite env).
+
+    ``finish``: a rollout that passes every way-point and then succeeds (the env's own success) scores 2, one
+    that passes them all and fails 1: way-point progress ranks routes, not whether they end in the task done, and
+    a search by progress alone can trade a finishing route for one that passes the points and stops short."""
 
     def __init__(self, waypoints: Sequence[Sequence[float]] | np.ndarray, radius: float,
-                 dims: Sequence[int] | None = None):
+                 dims: Sequence[int] | None = None, finish: bool = False):
         w = np.asarray(waypoints, dtype=float)
         if w.ndim != 2 or len(w) == 0 or not np.all(np.isfinite(w)):
             raise ValueError(f"way-points must be a non-empty list of finite points of one size, got {waypoints!r}")
@@ -84,17 +88,21 @@ class WaypointScore:
         if len(self.dims) != w.shape[1]:
             raise ValueError(f"way-points have {w.shape[1]} coordinates but the path has {len(self.dims)} "
                              f"(dims {self.dims})")
-        self.waypoints, self.radius = w, float(radius)
+        self.waypoints, self.radius, self.finish = w, float(radius), bool(finish)
 
     def __call__(self, outcome: Outcome) -> float:
         s = outcome.states
         if s.ndim != 2 or len(s) == 0 or s.shape[1] <= max(self.dims):
             raise ValueError(f"the way-point score reads the agent's positions (dims {self.dims} of the env's "
                              f"'agent_pos'); this env's rollout recorded states of shape {s.shape}")
-        return waypoint_progress(s[:, self.dims], self.waypoints, self.radius)
+        progress = waypoint_progress(s[:, self.dims], self.waypoints, self.radius)
+        return progress + float(self.finish and progress >= 1.0 and bool(outcome.success))
 
     def describe(self) -> dict[str, Any]:
-        return {"waypoints": self.waypoints.tolist(), "radius": self.radius, "dims": self.dims}
+        d: dict[str, Any] = {"waypoints": self.waypoints.tolist(), "radius": self.radius, "dims": self.dims}
+        if self.finish:  # absent otherwise: searches recorded before the option existed keep their provenance
+            d["finish"] = True
+        return d
 
 
 def resolve_score(score: str | Score) -> tuple[Score, Any]:

@@ -2,8 +2,9 @@
 benchmark run: CMA-ES over PDP's latent started from the gradient fit (``z_fit``) or from the mode means
 (``z_modes``), the gradient fit alone (``fit``, no search rollouts), and a DSRL-style search over LeRobot
 ``diffusion``'s initial noise with the same optimiser, population rule, rollouts per candidate and budget
-(``dp_noise``). With way-points instead of a demonstration (``score="waypoints"``) only the searches that need no
-demonstration run.
+(``dp_noise``). With way-points instead of a demonstration (``score="waypoints"``, or ``"waypoints_finish"``: the
+way-points, then the task's success, ``WaypointScore(finish=True)``) only the searches that need no demonstration
+run.
 
 With the search's confirmation of a new best (``confirm_rollouts``, the default) every budget point b runs its own
 search of b rollouts, and its best is evaluated on the protocol's evaluation rollouts of the scene: a shorter search
@@ -60,7 +61,7 @@ from .settings import Method, check_split, frozen_for, scene_seed_offset
 
 METHODS = ("z_fit", "z_modes", "fit", "dp_noise")
 NEEDS_DEMO = ("z_fit", "fit")  # the gradient fit needs a demonstration; way-points are not one
-SCORES = ("success", "waypoints")
+SCORES = ("success", "waypoints", "waypoints_finish")
 DEFAULT_BUDGETS = (16, 32, 64, 128, 256, 512)
 SEARCH_SEED_OFFSET = 5_000  # search seeds sit this far above the scene's evaluation seeds (docstring)
 MAX_EVAL_ROLLOUTS = 4_000  # evaluation seeds of every scene stay below the search seeds of every scene
@@ -87,9 +88,9 @@ def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollout
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
-    if score == "waypoints" and any(m in NEEDS_DEMO for m in methods):
+    if score != "success" and any(m in NEEDS_DEMO for m in methods):
         raise ValueError(f"method(s) {[m for m in methods if m in NEEDS_DEMO]} fit a demonstration, which "
-                         "--score waypoints does not have: use z_modes and dp_noise")
+                         f"--score {score} does not have: use z_modes and dp_noise")
     k = rollouts_per_candidate
     if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 1_000:
         raise ValueError(f"rollouts_per_candidate must be an integer in 1..1000, got {k!r}")
@@ -262,12 +263,12 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
         suite = dataclasses.replace(suite, max_episode_steps=int(max_episode_steps))
     sc = load_scene(scene, suite.scene_key)
     waypoints = None
-    if score == "waypoints":
+    if score != "success":
         if sc.waypoints is None:
-            raise ValueError(f"--score waypoints: {suite.name} scene {scene} ships no way-points (a scene with a "
+            raise ValueError(f"--score {score}: {suite.name} scene {scene} ships no way-points (a scene with a "
                              "feasible training mode); score it by success with its demonstration")
         check_waypoints(suite, np.asarray(sc.waypoints, dtype=float), sc.source)
-        waypoints = WaypointScore(sc.waypoints, radius, dims=suite.trace_dims)
+        waypoints = WaypointScore(sc.waypoints, radius, dims=suite.trace_dims, finish=score == "waypoints_finish")
     runs = {"pdp": Path(out) / "runs" / "pdp" / f"seed{seed}", "dp": Path(dp_out or out) / "runs" / "dp" / f"seed{seed}"}
     for name in [n for n in ("pdp", "dp") if any((m == "dp_noise") == (n == "dp") for m in methods)]:
         if not (runs[name] / "pretrained_model" / "model.safetensors").is_file():
