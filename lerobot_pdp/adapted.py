@@ -145,6 +145,7 @@ def _card_section(provenance: dict, result) -> str:
 def _search_card_section(provenance: dict, result: SearchResult) -> str:
     objective = provenance.get("objective")
     what = (f"passing {len(objective['waypoints'])} way-points in order within {objective['radius']:g} m"
+            + (", then succeeding" if objective.get("finish") else "")
             if isinstance(objective, dict) and "waypoints" in objective else f"its score `{objective}`")
     where = "".join(f", {k} `{provenance[k]}`" for k in ("env", "scene") if k in provenance)
     return (f"{CARD_HEADING}\n\nThis checkpoint acts under a latent found by searching for an outcome, without a "

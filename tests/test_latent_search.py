@@ -87,10 +87,25 @@ def test_waypoint_score_reads_the_agents_positions():
     assert WaypointScore([[1.0, 1.0]], 0.02, dims=[3, 4])(Outcome(False, 0.0, states)) == 1.0  # the velocity dims
     with pytest.raises(ValueError, match="agent_pos"):
         score(Outcome(False, 0.0, np.zeros((0, 0))))
+    assert "finish" not in score.describe()  # the provenance of searches made before the option is unchanged
     for bad, match in ((([[0.0, np.nan, 0.0]], 0.05), "finite"), (([[0.0, 0.0, 0.0]], -1.0), "radius"),
                        (([], 0.05), "non-empty")):
         with pytest.raises(ValueError, match=match):
             WaypointScore(*bad)
+
+
+def test_the_finish_score_adds_the_tasks_success_only_after_every_way_point():
+    """waypoints then success: 2 = passed all and succeeded, 1 = passed all and failed; a success that skipped a
+    way-point earns nothing more than its progress (the route is what the user asked for)."""
+    states = np.c_[np.linspace([0.0, -0.3, 0.4], [0.0, 0.3, 0.4], 20), np.ones((20, 3))]
+    points = [[0.0, -0.3, 0.4], [0.0, 0.3, 0.4]]
+    finish = WaypointScore(points, radius=0.02, finish=True)
+    assert finish(Outcome(True, 0.0, states)) == 2.0
+    assert finish(Outcome(False, 0.0, states)) == 1.0
+    short = states[:10]  # stops half way: the second way-point is 0.3 m off
+    assert finish(Outcome(True, 0.0, short)) == WaypointScore(points, radius=0.02)(Outcome(True, 0.0, short)) < 1.0
+    assert WaypointScore(points, radius=0.02)(Outcome(True, 0.0, states)) == 1.0  # without finish: progress only
+    assert finish.describe()["finish"] is True
 
 
 @pytest.mark.parametrize("method", ["cma", "cem"])
@@ -327,6 +342,22 @@ def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoin
     assert info2["base_checkpoint"] == str(checkpoint.resolve())
     card = (again / "README.md").read_text()
     assert card.count("## Adaptation") == 1 and "its score `success`" in card and "way-points" not in card
+
+
+def test_cli_search_with_finish_scores_the_tasks_success_after_the_way_points(checkpoint, tmp_path, capsys):
+    out, hist = tmp_path / "searched", tmp_path / "history.json"
+    assert cli(["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--waypoints", "scene", "--finish",
+                "--budget", "2", "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--no-progress",
+                "--out", str(out), "--history", str(hist)]) == 0
+    capsys.readouterr()
+    record = json.loads(hist.read_text())
+    assert record["objective"]["finish"] is True and len(record["history"]) == 2
+    for c in record["history"]:  # a score above 1 only with every way-point passed and the task done
+        assert 0 <= c["score"] <= 2 and (c["score"] <= 1 or c["success"] > 0)
+    assert json.loads((out / ADAPTATION_INFO).read_text())["objective"]["finish"] is True
+    assert "then succeeding" in (out / "README.md").read_text()
+    assert cli(["search", str(checkpoint), "--env", "reach-around", "--finish", "--no-progress"]) == 2
+    assert "--finish adds the task's success to the way-point score: give --waypoints too" in capsys.readouterr().err
 
 
 def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):

@@ -125,6 +125,20 @@ def test_waypoint_curves_search_without_a_demonstration(results, tmp_path):
     assert not (results / "data" / "reach_around_scene_val3_demo").exists()  # no demonstration made
 
 
+def test_waypoints_then_success_is_a_score_of_its_own(results, tmp_path):
+    """--score waypoints_finish: its own records beside the way-point ones, the objective saying so."""
+    dest = tmp_path / "wp"
+    measure(results, dest, scene="val3", score="waypoints", radius=0.08, methods=["z_modes"])
+    book = measure(results, dest, scene="val3", score="waypoints_finish", radius=0.08, methods=["z_modes"])
+    recs = {r["score"]: r for r in book["records"].values()}
+    assert sorted(recs) == ["waypoints", "waypoints_finish"]
+    assert recs["waypoints_finish"]["settings"]["objective"]["finish"] is True
+    assert "finish" not in recs["waypoints"]["settings"]["objective"]
+    for p in recs["waypoints_finish"]["points"]:  # the search's score may pass 1, the reported progress may not
+        assert 0 <= p["waypoint_score"] <= 1 and 0 <= p["search_score"] <= 2
+    assert "scored by waypoints_finish" in (dest / sc.TABLE).read_text()
+
+
 def test_confirmed_curves_run_one_search_per_budget(results, tmp_path):
     """With confirmation a budget's best is what a search of that budget returns: one search per budget, every
     point's best confirmed on its extra seeds, the setting and the seeds it used in the record."""
