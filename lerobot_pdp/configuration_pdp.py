@@ -11,6 +11,7 @@ import sys
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
+from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_pdp.checkpoint_files import check_checkpoint_source
@@ -265,6 +266,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # With no steering set: "episode" = a random training behavior's latent per reset (multimodal, like
     # DP); "prior" = a draw from N(0, I); "zero" = the prior mean.
     inference_latent: str = "episode"
+    # Real-time chunking: lerobot-rollout --inference.type=rtc sets it from --inference.rtc.* (how a new chunk's first
+    # actions continue the previous chunk's unexecuted ones: lerobot_pdp/realtime_chunking.py); None elsewhere.
+    rtc_config: RTCConfig | None = None
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----

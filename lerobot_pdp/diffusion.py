@@ -73,7 +73,10 @@ class NoiseSchedule(nn.Module):
         """The diffusion steps the sampler visits, noisiest first."""
         return [k for k, _ in self.steps(num_inference_steps)]
 
-    def ddim_step(self, eps_pred: Tensor, k: int, k_prev: int | None, x: Tensor) -> Tensor:
+    def ddim_step(self, eps_pred: Tensor, k: int, k_prev: int | None, x: Tensor,
+                  guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
+        """One DDIM step from ``x`` at step k; ``guide`` edits the predicted clean chunk before the step is
+        taken (the noise is then re-derived from it, so the step moves towards the edited chunk)."""
         a = self._alphas[k]  # Python floats: each tensor op costs microseconds at batch size 1
         a_prev = self._alphas[k_prev] if k_prev is not None else 1.0
         x0 = (x - math.sqrt(1 - a) * eps_pred) * (1 / math.sqrt(a))
@@ -81,17 +84,21 @@ class NoiseSchedule(nn.Module):
             x0 = x0.clamp(-self.clip_sample_range, self.clip_sample_range)
             if self.use_clipped_model_output:
                 eps_pred = (x - math.sqrt(a) * x0) * (1 / math.sqrt(1 - a))
+        if guide is not None:
+            x0 = guide(x0)
+            eps_pred = (x - math.sqrt(a) * x0) * (1 / math.sqrt(1 - a))
         return torch.add(math.sqrt(a_prev) * x0, eps_pred, alpha=math.sqrt(1 - a_prev))
 
     def sample(self, denoise: Callable[[Tensor, int, int], Tensor], noise: Tensor,
-               num_inference_steps: int) -> Tensor:
+               num_inference_steps: int, guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """Denoise ``noise`` in ``num_inference_steps`` DDIM steps.
 
-        ``denoise(x, i, k)`` predicts the noise in ``x`` at the i-th sampler step, diffusion step k.
+        ``denoise(x, i, k)`` predicts the noise in ``x`` at the i-th sampler step, diffusion step k; ``guide``
+        (optional) edits each step's predicted clean chunk (real-time chunking's prefix, ``realtime_chunking.py``).
         """
         x = noise
         for i, (k, k_prev) in enumerate(self.steps(num_inference_steps)):
-            x = self.ddim_step(denoise(x, i, k), k, k_prev, x)
+            x = self.ddim_step(denoise(x, i, k), k, k_prev, x, guide)
         return x
 
 

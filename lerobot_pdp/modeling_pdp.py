@@ -50,6 +50,7 @@ from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
 from .outcome_scores import Score
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
+from .realtime_chunking import check_rtc_steering, rtc_chunk
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering
 from .teaching import TeachResult, teach_new_mode
@@ -125,13 +126,8 @@ class PDPPolicy(PreTrainedPolicy):
         """Sampler noises fitted with ``noise="chunks"`` [C, horizon, A], one per new chunk, in order."""
         return self.steering.noises.noise
 
-    @property
-    def phases(self):
-        return self.steering.phases
-
-    @phases.setter
-    def phases(self, tracker) -> None:
-        self.steering.phases = tracker
+    phases = property(lambda self: self.steering.phases,  # each env's PhaseTracker
+                      lambda self, tracker: setattr(self.steering, "phases", tracker))
 
     # ------------------------------------------------------------------ LeRobot contract
 
@@ -163,7 +159,10 @@ class PDPPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
-        """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent."""
+        """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent (from
+        lerobot-rollout's RTC engine, with ``inference_delay`` / ``prev_chunk_left_over``: :func:`rtc_chunk`)."""
+        if "inference_delay" in kwargs or "prev_chunk_left_over" in kwargs:
+            return rtc_chunk(self, batch, noise=noise, **kwargs)
         if any(len(q) for k, q in self._queues.items() if k != ACTION):  # online: the observation history
             batch = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         if self._steer_file is not None:  # live steering: a changed file sets z before this chunk
@@ -188,6 +187,11 @@ class PDPPolicy(PreTrainedPolicy):
         action = self._queues[ACTION].popleft()
         self._advance_phase(action)
         return action
+
+    def supports_rtc(self) -> bool:  # lerobot-rollout --inference.type=rtc: lerobot_pdp/realtime_chunking.py
+        return True
+
+    init_rtc_processor = check_rtc_steering  # lerobot-rollout calls it once config.rtc_config is set
 
     def _advance_phase(self, action: Tensor) -> None:
         """With one latent per phase, move each env to its next latent when its gripper command flips
@@ -290,9 +294,8 @@ class PDPPolicy(PreTrainedPolicy):
         return result
 
     def teach(self, episode: Episode, training_data: str | Path, **settings: Any) -> TeachResult:
-        """Add one demonstration of a route no latent makes as a new mode (``result.mode``), rehearsing
-        ``training_data`` (the policy's training dataset); ``settings`` (steps, lr, demo_share, latent, seed, name,
-        progress): :func:`lerobot_pdp.teaching.teach_new_mode`."""
+        """Add one demonstration of a route no latent makes as a new mode (``result.mode``), rehearsing ``training_data``
+        (the policy's training dataset); ``settings``: :func:`lerobot_pdp.teaching.teach_new_mode`."""
         return teach_new_mode(self, episode, training_data, **settings)
 
     def demo_windows(self, episode: Episode, segments: list[tuple[int, int]] | str | None = "auto") -> DemoWindows:

@@ -221,13 +221,16 @@ class PDPModel(nn.Module):
 
     @torch.no_grad()
     def generate(self, obs_cond: Tensor, z: Tensor, noise: Tensor | None = None,
-                 generator: torch.Generator | None = None) -> Tensor:
-        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z]."""
+                 generator: torch.Generator | None = None, guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
+        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z];
+        ``guide`` edits each step's predicted clean chunk (:meth:`NoiseSchedule.sample`; eager kernels then)."""
         b = obs_cond.shape[0]
         if noise is None:
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
         n = self.config.num_inference_steps
+        if guide is not None:
+            return self._sample(obs_cond, z, noise, n, guide)
         if obs_cond.device.type == "cuda" and self._cuda_graphs:
             try:
                 return self._generate_graphed(obs_cond, z.to(obs_cond), noise.to(obs_cond), n)
@@ -237,14 +240,15 @@ class PDPModel(nn.Module):
                 self._graphs.clear()
         return self._sample(obs_cond, z, noise, n)
 
-    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
+    def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int,
+                guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         steps = self.noise_schedule.timesteps(n)
         fast = self.fast_denoiser
-        if self.config.compile_model:
+        if self.config.compile_model and guide is None:
             mod = fast.sample_modulation(obs_cond, z, steps)
             return self.compiled("sample")(noise, mod, n)
         context = fast.contexts(obs_cond, z, steps)
-        return self.noise_schedule.sample(lambda x, i, k: fast.run(x, context[i]), noise, n)
+        return self.noise_schedule.sample(lambda x, i, k: fast.run(x, context[i]), noise, n, guide)
 
     def _denoise(self, noise: Tensor, mod: Tensor, n: int) -> Tensor:
         """The whole sampler given its steps' modulation rows (``sample_modulation``); what ``compiled("sample")``

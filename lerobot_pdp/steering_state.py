@@ -82,6 +82,7 @@ class Steering(nn.Module):
         self.phases = PhaseTracker()  # which phase latent each env of a rollout is in
         self.episode_latent: Tensor | None = None  # the default latent drawn for this episode
         self.provenance: dict | None = None  # where the active latent came from (kept with an adapted checkpoint)
+        self.resets = 0  # episodes started (a chunk generated across a reset is stale: realtime_chunking.py)
 
     @property
     def active(self) -> bool:
@@ -118,6 +119,7 @@ class Steering(nn.Module):
         self.phases.reset()
         self.noises.reset()
         self.episode_latent = None
+        self.resets += 1
 
     def latent_for(self, batch_size: int, device: torch.device | str,
                    default: Callable[[int], Tensor]) -> Tensor:

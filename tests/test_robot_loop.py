@@ -67,7 +67,7 @@ def untrained_reach_around(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def run_rollout(ckpt: Path, robot: PDPSimConfig, before_run=None, fps: float = 50, duration: float = 60,
-                strategy=None, dataset=None, **policy_fields):
+                strategy=None, dataset=None, inference=None, **policy_fields):
     """What ``lerobot-rollout`` does (``--strategy.type=base`` unless ``strategy``), in this process; returns
     the rollout context."""
     from lerobot.configs import PreTrainedConfig
@@ -80,7 +80,7 @@ def run_rollout(ckpt: Path, robot: PDPSimConfig, before_run=None, fps: float = 5
         setattr(pcfg, k, v)
     cfg = RolloutConfig(robot=robot, policy=pcfg, fps=fps, duration=duration, play_sounds=False,
                         return_to_initial_position=False, strategy=strategy or BaseStrategyConfig(),
-                        dataset=dataset)
+                        dataset=dataset, **({"inference": inference} if inference is not None else {}))
     ctx = build_rollout_context(cfg, Event())
     strategy = create_strategy(cfg.strategy)
     strategy.setup(ctx)
@@ -170,6 +170,36 @@ def test_live_steering_through_a_file_on_a_running_robot(untrained_reach_around,
     means = ctx.policy.policy.mode_latents()
     assert torch.allclose(used[0], means[0]) and torch.allclose(used[-1], means[2])
     assert len(_outcomes(outcomes)) == 2
+
+
+def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path):
+    """``--inference.type=rtc``: LeRobot's engine generates PDP's chunks in its own thread from the observations
+    pdp_sim gives (state and environment state split, as trained), each after the first with the previous chunk's
+    unexecuted actions; episodes reset the policy and the run ends itself. A fitted start-up latent steers it."""
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference import RTCInferenceConfig
+
+    ckpt, data = untrained_reach_around
+    outcomes = tmp_path / "o.jsonl"
+    calls: list[dict] = []
+
+    def spy(ctx):
+        policy = ctx.policy.policy
+        predict = policy.predict_action_chunk
+        policy.predict_action_chunk = lambda batch, **k: (calls.append({**k, "keys": sorted(batch)}),
+                                                          predict(batch, **k))[1]
+
+    ctx = run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes), episodes=2,
+                                         calibration_dir=tmp_path), before_run=spy,
+                      inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=8)),
+                      steer_dataset_root=str(data), steer_episode_index=0)
+    policy = ctx.policy.policy
+    assert policy.config.rtc_config.execution_horizon == 8 and len(policy.active_latent) == 1
+    lines = _outcomes(outcomes)
+    assert [d["episode"] for d in lines] == [0, 1] and all(d["steps"] > 1 for d in lines)
+    assert calls and all({"observation.environment_state", "observation.state"} <= set(c["keys"]) for c in calls)
+    assert any(c["prev_chunk_left_over"] is not None for c in calls)
+    assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
 def test_episodic_rollout_records_one_dataset_episode_per_env_episode(untrained_reach_around, tmp_path):

@@ -11,7 +11,8 @@ way to end the run. For a ``pdp_sim`` robot built by ``build_rollout_context``, 
   and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on;
 * ``create_inference_engine`` is wrapped to hand the robot the engine and the run's shutdown event, so it
   resets the policy when it resets its scene (a new episode) and ends the run after ``--robot.episodes``;
-  a policy whose inputs the robot does not give fails there, before the first action;
+  a policy whose inputs the robot does not give fails there, before the first action; the features the RTC
+  engine (``--inference.type=rtc``) builds its observations from are split as above;
 * the episodic strategy's ``init_keyboard_listener`` is wrapped to hand the robot its flags, so a recorded
   episode ends with its env episode (``--strategy.type=episodic``: one dataset episode per env episode).
 
@@ -25,7 +26,7 @@ import logging
 import sys
 from typing import Any
 
-from .hooks import splitting_features, wrap_once
+from .hooks import split_environment_state, splitting_features, wrap_once
 from .live import LIVE
 
 logger = logging.getLogger(__name__)
@@ -79,6 +80,9 @@ def _wrap_create_engine(original):
         policy = kwargs.get("policy")
         if ours and policy is not None:  # before the first action: a policy for another env fails here, clearly
             check_policy_inputs(getattr(policy, "config", None), kwargs.get("dataset_features") or {}, ours[0])
+            if kwargs.get("hw_features"):  # what the RTC engine builds observations from: the same split
+                kwargs["hw_features"] = split_environment_state(kwargs["hw_features"], ours[0].state_keys,
+                                                                ours[0].env_state_keys)
         engine = original(*args, **kwargs)
         for live in ours:
             live.attach_rollout(engine, kwargs.get("shutdown_event"))

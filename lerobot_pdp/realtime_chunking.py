@@ -1,0 +1,120 @@
+"""Real-time chunking: PDP under ``lerobot-rollout --inference.type=rtc``.
+
+LeRobot's RTC engine (``lerobot.rollout.inference.rtc``) generates chunks in a background thread while the
+control loop keeps its pace; each new chunk replaces the queue, less the actions executed while it was being
+generated (``inference_delay``). To keep the new chunk continuous with what the robot is executing, the
+engine passes the previous chunk's unexecuted actions (``prev_chunk_left_over``) and LeRobot's flow-matching
+policies guide their sampler towards them (Black et al., "Real-Time Execution of Action Chunking Flow
+Policies"). PDP samples with DDIM, so the same prefix is imposed on the *predicted clean chunk* of every DDIM
+step: ``x0 <- x0 + w * (prefix - x0)`` with LeRobot's prefix weights ``w`` (1 over the delay, then decaying to 0
+at ``execution_horizon``), and the step goes towards the edited chunk. The denoiser sees the prefix in every
+noisy chunk after that, so the free actions are denoised to continue it. No backward pass: a guided chunk
+costs what a plain one does.
+
+What differs from ``select_action``:
+
+- the engine passes one observation per chunk, not the control loop's history: the observation history is
+  filled with that observation (as at an episode's first chunk);
+- the whole predicted future is returned (``horizon - n_obs_steps + 1`` actions, not ``n_action_steps``), so
+  the engine's queue has slack while the next chunk is generated;
+- per-phase latents advance on the gripper commands ``select_action`` sees, and fitted chunk noises replay one
+  per ``n_action_steps`` chunk: neither has a meaning when the engine replans at its own pace, so both are
+  refused with a message (``--inference.type=sync`` runs them);
+- a chunk whose generation overlapped a ``reset()`` (a new episode) is returned empty: its observation
+  belongs to the episode that ended.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from lerobot.policies.rtc.modeling_rtc import RTCProcessor
+from torch import Tensor
+
+from .pdp_model import check_finite_actions
+
+if TYPE_CHECKING:
+    from .modeling_pdp import PDPPolicy
+
+
+def check_rtc_steering(policy: PDPPolicy) -> None:
+    """Refuse steering the RTC engine cannot honour (see the module docstring), naming the way out."""
+    steering = policy.steering
+    if steering.per_phase:
+        raise ValueError(
+            f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
+            "commands the robot executes; lerobot-rollout's RTC engine replans at its own pace, so phases cannot "
+            "follow. Use --inference.type=sync, or steer with one latent (a mode or a latent of one phase)")
+    if len(steering.noises.noise):
+        raise ValueError(
+            f"the active adaptation carries {len(steering.noises.noise)} fitted chunk noises, one per "
+            f"{policy.config.n_action_steps}-action chunk of select_action; lerobot-rollout's RTC engine replans at "
+            "its own pace, so they cannot be replayed in order. Use --inference.type=sync, or an adaptation fitted "
+            "without noises (fit_noise=none)")
+
+
+def prefix_guide(policy: PDPPolicy, left_over: Tensor, inference_delay: int, batch_size: int):
+    """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
+
+    ``left_over`` [T, A] or [B, T, A], normalised, first row = the action executed next; the engine pads it with
+    zero rows up to ``execution_horizon``, so trailing all-zero rows are dropped (an exact 0.0 in every action
+    dimension is the engine's padding, not a policy output)."""
+    cfg = policy.config
+    rtc = cfg.rtc_config
+    prefix = left_over if left_over.dim() == 3 else left_over[None]
+    nonzero = (prefix != 0).any(dim=-1).any(dim=0).nonzero()
+    length = int(nonzero[-1]) + 1 if len(nonzero) else 0
+    start = cfg.n_obs_steps - 1  # the chunk's action at the current observation
+    length = min(length, cfg.horizon - start)
+    if length == 0 or rtc.execution_horizon <= 0:
+        return None
+    weights = RTCProcessor(rtc).get_prefix_weights(max(0, inference_delay), min(rtc.execution_horizon, length),
+                                                   cfg.horizon - start)
+    device = policy.model.device
+    w = torch.zeros(1, cfg.horizon, 1, device=device)
+    w[0, start:, 0] = weights.to(device)
+    target = torch.zeros(batch_size, cfg.horizon, policy.action_dim, device=device)
+    target[:, start : start + length] = prefix[:, :length].to(device=device, dtype=target.dtype)
+
+    def guide(x0: Tensor) -> Tensor:
+        return torch.lerp(x0, target, w)
+
+    return guide
+
+
+@torch.no_grad()
+def rtc_chunk(policy: PDPPolicy, batch: dict[str, Tensor], inference_delay: int | None = None,
+              prev_chunk_left_over: Tensor | None = None, noise: Tensor | None = None, **_: object) -> Tensor:
+    """The predicted future [B, horizon - n_obs_steps + 1, A] (normalised) from one observation, its first
+    actions guided towards ``prev_chunk_left_over`` when the rollout's RTC config is enabled."""
+    cfg = policy.config
+    resets = policy.steering.resets
+    if policy._steer_file is not None:  # live steering: a changed file sets z before this chunk
+        policy._steer_file.poll(policy)
+    check_rtc_steering(policy)
+    history = {k: _history(batch, k, len(ft.shape), cfg.n_obs_steps) for k, ft in cfg.condition_features.items()}
+    obs_cond = policy.model.obs_cond(history)
+    b = obs_cond.shape[0]
+    z = policy.current_latent(b, obs_cond.device)
+    rtc = getattr(cfg, "rtc_config", None)
+    guide = None
+    if rtc is not None and rtc.enabled and prev_chunk_left_over is not None:
+        guide = prefix_guide(policy, prev_chunk_left_over, inference_delay or 0, b)
+    chunk = policy.model.generate(obs_cond, z, noise, guide=guide)
+    check_finite_actions(chunk, z, obs_cond)
+    future = chunk[:, cfg.n_obs_steps - 1 :]
+    if policy.steering.resets != resets:  # an episode ended while this chunk was generated
+        return future[:, :0]
+    return future
+
+
+def _history(batch: dict[str, Tensor], key: str, frame_dims: int, n_obs_steps: int) -> Tensor:
+    """``batch[key]`` as [B, n_obs_steps, *frame]: one frame [B, *frame] (what the engine passes) repeated, a
+    history [B, n_obs_steps, *frame] kept."""
+    if key not in batch:
+        raise KeyError(f"PDP conditions on {key!r}, which the observation lacks; it has {sorted(batch)}")
+    x = batch[key]
+    if x.dim() == frame_dims + 2:
+        return x
+    return x.unsqueeze(1).expand(-1, n_obs_steps, *x.shape[1:])
