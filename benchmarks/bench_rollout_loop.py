@@ -1,14 +1,22 @@
 """``lerobot-rollout`` on the simulated robot: does the control loop keep its ``--fps`` from the start, with and
-without an adaptation at start-up, on a quiet machine and beside one other CPU job?
+without an adaptation at start-up, with LeRobot's synchronous and real-time chunking engines, on a quiet machine
+and beside one other CPU job? And does a trained PDP act as well under each engine?
 
-A PDP checkpoint with reach-around's features (default network, untrained: timing does not depend on the
-weights) drives ``pdp_sim`` in scene 0 for ``--episodes`` episodes at ``--fps``. With ``--policy.steer_dataset_root``
-PDP fits z to a recorded episode when the policy is built, before LeRobot's loop starts. The robot's outcome
-lines give each episode's pace (actions per second, the longest pause between two actions); the start-up is
-the time from the process's start to its first action. The other job is a ``lerobot-train`` of PDP as a user
-runs it (no thread variable, LeRobot's loader workers), already stepping.
+By default a PDP checkpoint with reach-around's features (default network, untrained: timing does not depend on
+the weights) drives ``pdp_sim`` in scene 0 for ``--episodes`` episodes at ``--fps``. With
+``--policy.steer_dataset_root`` PDP fits z to a recorded episode when the policy is built, before LeRobot's loop
+starts. ``--inference sync rtc`` runs each variant under ``--inference.type=sync`` (a chunk inside the step that
+needs it) and ``--inference.type=rtc`` (chunks generated in a background thread, LeRobot's RTC defaults). The
+robot's outcome lines give each episode's pace (actions per second, the longest pause between two actions) and
+its outcome (success, collision, the mode driven); the start-up is the time from the process's start to its first
+action. The other job is a ``lerobot-train`` of PDP as a user runs it (no thread variable, LeRobot's loader
+workers), already stepping.
 
-    .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--out DIR]
+``--checkpoint`` takes a trained checkpoint instead (``--env``, ``--scene``, ``--dataset`` for the fit variant);
+``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
+
+    .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
+        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--modes 0 1 2]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -16,6 +24,7 @@ One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -53,12 +62,13 @@ def make_checkpoint(work: Path) -> tuple[Path, Path]:
     return out, data
 
 
-def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: list[str]) -> dict:
+def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: list[str], env: str = "reach-around",
+            scene: str = "0") -> dict:
     outcomes = work / f"{tag}.jsonl"
     cmd = [str(BIN / "lerobot-rollout"), "--strategy.type=base", f"--policy.path={ckpt}", "--policy.device=cpu",
-           *steer, "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=0",
+           *steer, "--robot.type=pdp_sim", f"--robot.env={env}", f"--robot.scene={scene}",
            f"--robot.episodes={episodes}", f"--robot.outcomes={outcomes}", f"--robot.calibration_dir={work / 'cal'}",
-           f"--fps={fps}", "--duration=600", "--return_to_initial_position=false", "--play_sounds=false"]
+           f"--fps={fps}", "--duration=1800", "--return_to_initial_position=false", "--play_sounds=false"]
     t0 = time.time()
     log = open(work / f"{tag}.log", "w")
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_env())
@@ -67,13 +77,21 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
         if first_line_at is None and outcomes.is_file() and outcomes.read_text().strip():
             first_line_at = time.time()
         time.sleep(0.02)
-    if proc.returncode != 0:
-        raise RuntimeError(f"lerobot-rollout failed ({proc.returncode}); see {work / f'{tag}.log'}")
-    lines = [json.loads(x) for x in outcomes.read_text().splitlines()]
+    lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.is_file() else []
+    if proc.returncode != 0 or len(lines) < episodes:  # LeRobot's RTC engine exits 0 after its thread failed
+        raise RuntimeError(f"lerobot-rollout failed ({proc.returncode}, {len(lines)} of {episodes} episodes); "
+                           f"see {work / f'{tag}.log'}")
     first = lines[0]
     first_action = (first_line_at or time.time()) - t0 - (first["steps"] - 1) / first["actions_per_s"]
+    n = len(lines)
     return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s")} for d in lines],
-            "startup_s": round(first_action, 1), "wall_s": round(time.time() - t0, 1)}
+            "actions_per_s": round(sum(d["actions_per_s"] for d in lines) / n, 2),
+            "max_gap_s": max(d["max_gap_s"] for d in lines),
+            "success": sum(d["success"] for d in lines) / n, "collided": sum(d["collided"] for d in lines) / n,
+            "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(time.time() - t0, 1)}
+
+
+ENGINES = {"sync": [], "rtc": ["--inference.type=rtc"]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,6 +99,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=50)
     ap.add_argument("--episodes", type=int, default=2)
     ap.add_argument("--noise", action="store_true", help="also a start-up fit with one sampler noise per chunk")
+    ap.add_argument("--inference", nargs="+", choices=sorted(ENGINES), default=["sync"])
+    ap.add_argument("--rtc-queue-threshold", type=int, default=None,
+                    help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30)")
+    ap.add_argument("--checkpoint", type=Path, default=None, help="a trained checkpoint (default: an untrained one)")
+    ap.add_argument("--env", default="reach-around")
+    ap.add_argument("--scene", default="0")
+    ap.add_argument("--dataset", type=Path, default=None, help="with --checkpoint: the fit variant's recording")
+    ap.add_argument("--modes", type=int, nargs="*", default=[], help="steered modes, quiet only")
+    ap.add_argument("--no-beside", action="store_true", help="skip the runs beside a training")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -93,17 +120,33 @@ def main(argv: list[str] | None = None) -> int:
     console.install()
     tmp = tempfile.TemporaryDirectory(prefix="bench-rollout-")
     work = Path(tmp.name)
-    ckpt, data = make_checkpoint(work)
-    variants = {"no adaptation": [],
-                "fit at start-up": [f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0"]}
-    if args.noise:
-        variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
-    other_cmd = [a for a in train_args(methods_for(get_suite_env("reach-around"))["pdp"], data, 0,
-                                       TrainSettings(steps=10**6), 10**6) if not a.startswith("--num_workers")]
+    if args.checkpoint is None:
+        ckpt, data = make_checkpoint(work)
+        args.env, args.scene = "reach-around", "0"
+    else:
+        ckpt, data = args.checkpoint, args.dataset
+    variants = {"no adaptation": []}
+    if data is not None:
+        variants["fit at start-up"] = [f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0"]
+        if args.noise:
+            variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
+    engines = {e: [*ENGINES[e], *([f"--inference.queue_threshold={args.rtc_queue_threshold}"]
+                                   if e == "rtc" and args.rtc_queue_threshold is not None else [])]
+               for e in args.inference}
+    weights_sha = hashlib.sha256((Path(ckpt) / "model.safetensors").read_bytes()).hexdigest()[:16]
+    steered = {f"mode {m}": [f"--policy.steer_mode={m}"] for m in args.modes}
+    other_data = data if args.checkpoint is None else None
     records = []
-    for beside in (False, True):
+    for beside in (False,) if args.no_beside else (False, True):
         other = None
         if beside:
+            if other_data is None:
+                from lerobot_pdp.envs.recording import make_dataset
+
+                other_data = make_dataset("reach-around", work / "other_data", scene=0, episodes_per_mode=2, seed=0,
+                                          progress=False)
+            other_cmd = [a for a in train_args(methods_for(get_suite_env("reach-around"))["pdp"], other_data, 0,
+                                               TrainSettings(steps=10**6), 10**6) if not a.startswith("--num_workers")]
             other_log = work / "other.log"
             other = subprocess.Popen([*other_cmd, f"--output_dir={work / 'other'}", "--log_freq=5"],
                                      stdout=open(other_log, "w"), stderr=subprocess.STDOUT, env=_env())
@@ -112,19 +155,24 @@ def main(argv: list[str] | None = None) -> int:
                     raise RuntimeError(f"the other job failed; see {other_log}")
                 time.sleep(1)
         try:
-            for name, steer in variants.items():
-                tag = f"{name.replace(' ', '_').replace('+', '')}_{'beside' if beside else 'quiet'}"
-                rec = {"bench": "rollout_loop", "adaptation": name, "beside_other_job": beside, "fps": args.fps,
-                       **rollout(ckpt, work, tag, args.fps, args.episodes, steer), "cpu": cpu_model()}
-                records.append(rec)
-                print(json.dumps(rec), flush=True)
+            for name, steer in {**variants, **({} if beside else steered)}.items():
+                for engine, engine_args in engines.items():
+                    tag = f"{name.replace(' ', '_').replace('+', '')}_{engine}_{'beside' if beside else 'quiet'}"
+                    rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine, "inference_args": engine_args,
+                           "beside_other_job": beside,
+                           "fps": args.fps, "env": args.env, "scene": args.scene,
+                           "checkpoint": "untrained" if args.checkpoint is None else weights_sha,
+                           **rollout(ckpt, work, tag, args.fps, args.episodes, [*steer, *engine_args], args.env,
+                                     args.scene), "cpu": cpu_model()}
+                    records.append(rec)
+                    print(json.dumps(rec), flush=True)
+                    if args.out:  # every finished run kept, in case a later one fails
+                        args.out.mkdir(parents=True, exist_ok=True)
+                        (args.out / "rollout_loop.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
         finally:
             if other is not None:
                 other.kill()
                 other.wait()
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "rollout_loop.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
     tmp.cleanup()
     return 0
 

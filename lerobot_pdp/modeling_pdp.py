@@ -50,7 +50,7 @@ from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
 from .outcome_scores import Score
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
-from .realtime_chunking import check_rtc_steering, rtc_chunk
+from .realtime_chunking import prepare_rtc, rtc_chunk
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering
 from .teaching import TeachResult, teach_new_mode
@@ -191,7 +191,7 @@ class PDPPolicy(PreTrainedPolicy):
     def supports_rtc(self) -> bool:  # lerobot-rollout --inference.type=rtc: lerobot_pdp/realtime_chunking.py
         return True
 
-    init_rtc_processor = check_rtc_steering  # lerobot-rollout calls it once config.rtc_config is set
+    init_rtc_processor = prepare_rtc  # lerobot-rollout calls it once config.rtc_config is set
 
     def _advance_phase(self, action: Tensor) -> None:
         """With one latent per phase, move each env to its next latent when its gripper command flips

@@ -22,13 +22,23 @@ What differs from ``select_action``:
   refused with a message (``--inference.type=sync`` runs them);
 - a chunk whose generation overlapped a ``reset()`` (a new episode) is returned empty: its observation
   belongs to the episode that ended.
+
+LeRobot's queue (0.6.1) replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, one more than
+the robot consumed at most replans. PDP's chunks are short and replanned every few actions, so the robot would
+run one action ahead of its plan most of the time (avoiding, scene 0: 72.5 % success against 95 % without the
+shift, docs/performance.md). With ``rtc_consumed_delay`` (the default) PDP has the engine use
+:class:`ConsumedDelayQueue`, which drops the actions consumed; only runs with a PDP policy under RTC are affected.
+On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
 """
 
 from __future__ import annotations
 
+import logging
+import sys
 from typing import TYPE_CHECKING
 
 import torch
+from lerobot.policies.rtc.action_queue import ActionQueue
 from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from torch import Tensor
 
@@ -36,6 +46,38 @@ from .pdp_model import check_finite_actions
 
 if TYPE_CHECKING:
     from .modeling_pdp import PDPPolicy
+
+logger = logging.getLogger(__name__)
+ENGINE_MODULE = "lerobot.rollout.inference.rtc"
+
+
+class ConsumedDelayQueue(ActionQueue):
+    """LeRobot's RTC action queue, except that a new chunk replaces the queue less the actions consumed while it
+    was generated (LeRobot's drops ``ceil(latency * fps)``, see the module docstring)."""
+
+    def _check_and_resolve_delays(self, real_delay: int, action_index_before_inference: int | None = None) -> int:
+        if action_index_before_inference is None:
+            return max(0, real_delay)
+        return max(0, self.last_index - action_index_before_inference)
+
+
+def prepare_rtc(policy: PDPPolicy) -> None:
+    """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
+    engine starts: refuse steering RTC cannot honour; with ``rtc_consumed_delay`` have the engine build its queue
+    as :class:`ConsumedDelayQueue`."""
+    check_rtc_steering(policy)
+    if not policy.config.rtc_consumed_delay:
+        return
+    engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy
+    if engine is None or engine.ActionQueue is ConsumedDelayQueue:
+        return
+    if engine.ActionQueue is not ActionQueue or not hasattr(ActionQueue, "_check_and_resolve_delays"):
+        logger.warning("PDP: this LeRobot's RTC engine has another action queue (%s); its delay rule is kept",
+                       engine.ActionQueue)
+        return
+    engine.ActionQueue = ConsumedDelayQueue
+    logger.info("PDP under RTC: a new chunk replaces the queue less the actions consumed while it was generated "
+                "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps))")
 
 
 def check_rtc_steering(policy: PDPPolicy) -> None:

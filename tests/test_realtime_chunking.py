@@ -10,9 +10,11 @@ from policies import small_policy
 OBS = {"observation.state": torch.tensor([[0.3, -0.2]]), "observation.environment_state": torch.tensor([[0.1, 0.4]])}
 
 
-def _rtc_policy(meta, horizon: int = 5, enabled: bool = True):
+def _rtc_policy(meta, horizon: int = 5, enabled: bool = True, seed: int = 0):
+    torch.manual_seed(seed)  # the weights
     p = small_policy(meta)
     p.eval()
+    p.set_latent(p.mode_latents()[1])  # not a latent drawn per episode
     p.config.rtc_config = RTCConfig(execution_horizon=horizon, enabled=enabled)  # what lerobot-rollout sets
     p.init_rtc_processor()
     return p
@@ -40,16 +42,18 @@ def test_lerobot_accepts_pdp_for_its_rtc_engine_and_gets_the_whole_predicted_fut
 
 def test_a_new_chunk_continues_the_unexecuted_actions_over_the_delay_and_fades_to_free(synthetic_meta):
     p = _rtc_policy(synthetic_meta, horizon=6)
-    noise, delay = _noise(p), 2
+    b, delay = 32, 2
+    obs = {k: v.expand(b, -1) for k, v in OBS.items()}
+    noise = torch.randn(b, p.config.horizon, p.action_dim, generator=torch.Generator().manual_seed(0))
     prefix = p.predict_action_chunk(OBS, noise=_noise(p, 1), inference_delay=0, prev_chunk_left_over=None)[0, :6]
-    free = p.predict_action_chunk(OBS, noise=noise, inference_delay=delay, prev_chunk_left_over=None)[0]
-    guided = p.predict_action_chunk(OBS, noise=noise, inference_delay=delay, prev_chunk_left_over=prefix)[0]
+    free = p.predict_action_chunk(obs, noise=noise, inference_delay=delay, prev_chunk_left_over=None)
+    guided = p.predict_action_chunk(obs, noise=noise, inference_delay=delay, prev_chunk_left_over=prefix)
     # weight 1 over the delay: exactly the actions the robot executes while the chunk is generated
-    torch.testing.assert_close(guided[:delay], prefix[:delay])
-    # decaying weights up to the execution horizon: closer to the prefix than the free chunk
-    gap_guided = (guided[delay:6] - prefix[delay:6]).norm()
-    gap_free = (free[delay:6] - prefix[delay:6]).norm()
-    assert gap_guided < 0.8 * gap_free
+    torch.testing.assert_close(guided[:, :delay], prefix[:delay].expand(b, -1, -1))
+    # decaying weights up to the execution horizon: closer to the prefix than free chunks, on average
+    gap_guided = (guided[:, delay:6] - prefix[delay:6]).norm(dim=-1).mean()
+    gap_free = (free[:, delay:6] - prefix[delay:6]).norm(dim=-1).mean()
+    assert gap_guided < 0.85 * gap_free
     assert torch.isfinite(guided).all()
 
 
@@ -110,3 +114,39 @@ def test_a_chunk_generated_across_a_reset_is_dropped(synthetic_meta):
     assert p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None).shape == (1, 0, p.action_dim)
     p.model.generate = generate
     assert p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None).shape[1] > 0
+
+
+def test_the_queue_drops_the_actions_consumed_while_a_chunk_was_generated():
+    """LeRobot's queue drops ceil(latency * fps) actions, one more than consumed at most replans; PDP's drops
+    the consumed ones, so the robot stays aligned with the new chunk."""
+    from lerobot.policies.rtc.action_queue import ActionQueue
+
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    first, new = torch.arange(10.0)[:, None], 100 + torch.arange(15.0)[:, None]
+    heads = {}
+    for cls in (ActionQueue, ConsumedDelayQueue):
+        q = cls(RTCConfig())
+        q.merge(first, first, 0)
+        before = q.get_action_index()
+        q.get(), q.get()  # two actions executed while the next chunk was generated (latency 2.2 steps)
+        q.merge(new, new, 3, before)  # ceil(2.2) = 3
+        heads[cls] = float(q.get()[0])
+    assert heads[ActionQueue] == 103.0  # the action for one step later than now
+    assert heads[ConsumedDelayQueue] == 102.0
+
+
+def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch):
+    import lerobot.rollout.inference.rtc as engine
+    from lerobot.policies.rtc.action_queue import ActionQueue
+
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    monkeypatch.setattr(engine, "ActionQueue", ActionQueue)  # undone after the test
+    p = small_policy(synthetic_meta, rtc_consumed_delay=False)
+    p.config.rtc_config = RTCConfig()
+    p.init_rtc_processor()
+    assert engine.ActionQueue is ActionQueue
+    p.config.rtc_consumed_delay = True
+    p.init_rtc_processor()
+    assert engine.ActionQueue is ConsumedDelayQueue
