@@ -6,7 +6,8 @@ By default a PDP checkpoint with reach-around's features (default network, untra
 the weights) drives ``pdp_sim`` in scene 0 for ``--episodes`` episodes at ``--fps``. With
 ``--policy.steer_dataset_root`` PDP fits z to a recorded episode when the policy is built, before LeRobot's loop
 starts. ``--inference sync rtc`` runs each variant under ``--inference.type=sync`` (a chunk inside the step that
-needs it) and ``--inference.type=rtc`` (chunks generated in a background thread, LeRobot's RTC defaults). The
+needs it) and ``--inference.type=rtc`` (chunks generated in a background thread, LeRobot's RTC defaults;
+``rtc_lerobot_queue``: with LeRobot's own rule for the actions a new chunk drops). The
 robot's outcome lines give each episode's pace (actions per second, the longest pause between two actions) and
 its outcome (success, collision, the mode driven); the start-up is the time from the process's start to its first
 action. The other job is a ``lerobot-train`` of PDP as a user runs it (no thread variable, LeRobot's loader
@@ -16,7 +17,7 @@ workers), already stepping.
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
     .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
-        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--modes 0 1 2]] [--no-beside] [--out DIR]
+        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -91,7 +92,9 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
             "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(time.time() - t0, 1)}
 
 
-ENGINES = {"sync": [], "rtc": ["--inference.type=rtc"]}
+# rtc_lerobot_queue: LeRobot's own queue rule (drops ceil(latency * fps) actions per new chunk), for comparison
+ENGINES = {"sync": [], "rtc": ["--inference.type=rtc"],
+           "rtc_lerobot_queue": ["--inference.type=rtc", "--policy.rtc_consumed_delay=false"]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="0")
     ap.add_argument("--dataset", type=Path, default=None, help="with --checkpoint: the fit variant's recording")
     ap.add_argument("--modes", type=int, nargs="*", default=[], help="steered modes, quiet only")
+    ap.add_argument("--only-modes", action="store_true", help="run the steered modes only")
     ap.add_argument("--no-beside", action="store_true", help="skip the runs beside a training")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -131,10 +135,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.noise:
             variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
     engines = {e: [*ENGINES[e], *([f"--inference.queue_threshold={args.rtc_queue_threshold}"]
-                                   if e == "rtc" and args.rtc_queue_threshold is not None else [])]
+                                   if e.startswith("rtc") and args.rtc_queue_threshold is not None else [])]
                for e in args.inference}
     weights_sha = hashlib.sha256((Path(ckpt) / "model.safetensors").read_bytes()).hexdigest()[:16]
     steered = {f"mode {m}": [f"--policy.steer_mode={m}"] for m in args.modes}
+    if args.only_modes:
+        variants, args.no_beside = {}, True
     other_data = data if args.checkpoint is None else None
     records = []
     for beside in (False,) if args.no_beside else (False, True):
