@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from lerobot.policies.rtc.action_queue import ActionQueue
@@ -43,9 +43,6 @@ from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from torch import Tensor
 
 from .pdp_model import check_finite_actions
-
-if TYPE_CHECKING:
-    from .modeling_pdp import PDPPolicy
 
 logger = logging.getLogger(__name__)
 ENGINE_MODULE = "lerobot.rollout.inference.rtc"
@@ -61,7 +58,7 @@ class ConsumedDelayQueue(ActionQueue):
         return max(0, self.last_index - action_index_before_inference)
 
 
-def prepare_rtc(policy: PDPPolicy) -> None:
+def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
     engine starts: refuse steering RTC cannot honour; with ``rtc_consumed_delay`` have the engine build its queue
     as :class:`ConsumedDelayQueue`."""
@@ -80,7 +77,7 @@ def prepare_rtc(policy: PDPPolicy) -> None:
                 "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps))")
 
 
-def check_rtc_steering(policy: PDPPolicy) -> None:
+def check_rtc_steering(policy: Any) -> None:
     """Refuse steering the RTC engine cannot honour (see the module docstring), naming the way out."""
     steering = policy.steering
     if steering.per_phase:
@@ -96,7 +93,7 @@ def check_rtc_steering(policy: PDPPolicy) -> None:
             "without noises (fit_noise=none)")
 
 
-def prefix_guide(policy: PDPPolicy, left_over: Tensor, inference_delay: int, batch_size: int):
+def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_size: int):
     """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
 
     ``left_over`` [T, A] or [B, T, A], normalised, first row = the action executed next; the engine pads it with
@@ -126,7 +123,7 @@ def prefix_guide(policy: PDPPolicy, left_over: Tensor, inference_delay: int, bat
 
 
 @torch.no_grad()
-def rtc_chunk(policy: PDPPolicy, batch: dict[str, Tensor], inference_delay: int | None = None,
+def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None = None,
               prev_chunk_left_over: Tensor | None = None, noise: Tensor | None = None, **_: object) -> Tensor:
     """The predicted future [B, horizon - n_obs_steps + 1, A] (normalised) from one observation, its first
     actions guided towards ``prev_chunk_left_over`` when the rollout's RTC config is enabled."""
