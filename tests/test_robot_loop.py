@@ -474,21 +474,22 @@ def _record(tmp: Path, root: Path, episodes: int, *extra: str, **popen) -> list[
 CLI_ENV = {"DISPLAY": "", "WAYLAND_DISPLAY": ""}
 
 
-def record_fit_deploy(ckpt: Path, tmp: Path, episodes: int) -> list[dict]:
+def record_fit_deploy(ckpt: Path, tmp: Path, episodes: int, *rollout_args: str) -> tuple[list[dict], str]:
     """One demonstration in reach-around scene 3 (the scene's way-points) by ``lerobot-record``, then
-    ``lerobot-rollout`` in that scene fitting z to it at start-up; the robot's outcome lines."""
+    ``lerobot-rollout`` in that scene fitting z to it at start-up; the robot's outcome lines and the rollout's log."""
     from conftest import lerobot_cli, run_cli
 
     demo, outcomes = tmp / "demo", tmp / "rollout.jsonl"
     env = {**CLI_ENV, "HF_LEROBOT_HOME": str(tmp / "home")}
     run_cli(_record(tmp, demo, 1, "--robot.scene=3", "--teleop.waypoints=scene"), timeout=300, env=env)
-    run_cli([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={ckpt}",
-             f"--policy.steer_dataset_root={demo}", "--policy.steer_episode_index=0", "--policy.device=cpu",
-             "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=3", f"--robot.episodes={episodes}",
-             f"--robot.outcomes={outcomes}", f"--robot.calibration_dir={tmp / 'cal'}", "--fps=50",
-             f"--duration={30 * episodes}", "--return_to_initial_position=false", "--play_sounds=false"],
-            timeout=120 + 30 * episodes, env=env)
-    return _outcomes(outcomes)
+    proc = run_cli([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={ckpt}",
+                    f"--policy.steer_dataset_root={demo}", "--policy.steer_episode_index=0", "--policy.device=cpu",
+                    "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=3",
+                    f"--robot.episodes={episodes}", f"--robot.outcomes={outcomes}",
+                    f"--robot.calibration_dir={tmp / 'cal'}", "--fps=50", f"--duration={30 * episodes}",
+                    "--return_to_initial_position=false", "--play_sounds=false", *rollout_args],
+                   timeout=120 + 30 * episodes, env=env)
+    return _outcomes(outcomes), proc.stdout + proc.stderr
 
 
 @pytest.mark.slow
@@ -500,9 +501,20 @@ def test_record_fit_deploy_reaches_the_goal_in_a_shifted_scene(reach_around_pdp,
     depends on the fitting seed at that budget), so 3 of 5 leaves room for that spread while a deployment
     that ignores the recording (the training modes collide with the wall) fails it.
     """
-    lines = record_fit_deploy(reach_around_pdp, tmp_path, episodes=5)
+    lines, _ = record_fit_deploy(reach_around_pdp, tmp_path, episodes=5)
     assert len(lines) == 5, lines  # --robot.episodes ended the run, no cut episode
     assert sum(d["success"] for d in lines) >= 3, lines
+
+
+@pytest.mark.slow
+def test_record_fit_deploy_with_real_time_chunking(reach_around_pdp, tmp_path):
+    """The same with ``--inference.type=rtc``: chunks from LeRobot's background thread, each continuing the
+    actions still queued, into PDP's queue (LeRobot's engine exits 0 even when its thread failed, so the five
+    outcome lines are the check that it ran); the same bar as the synchronous engine."""
+    lines, log = record_fit_deploy(reach_around_pdp, tmp_path, 5, "--inference.type=rtc")
+    assert len(lines) == 5, lines
+    assert sum(d["success"] for d in lines) >= 3, lines
+    assert "RTC inference error" not in log and "PDP under RTC" in log
 
 
 @pytest.mark.slow
