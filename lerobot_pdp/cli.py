@@ -610,6 +610,9 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
                    help="what the searches maximise: task success (default), the scene's way-points passed in "
                    "order, or those way-points and then the task's success (waypoints_finish); no demonstration "
                    "with way-points: z_modes and dp_noise only")
+    p.add_argument("--finish", action="store_true",
+                   help="with --score waypoints: the way-points and then the task's success, as `lerobot-pdp search "
+                   "--finish` (the same as --score waypoints_finish)")
     p.add_argument("--radius", type=float, default=0.05, help="with way-points: pass radius (default 0.05)")
     p.add_argument("--methods", nargs="+", default=None,
                    help="any of z_fit z_modes fit dp_noise (default: all that --score allows)")
@@ -625,6 +628,11 @@ def cmd_search_curves(args: argparse.Namespace) -> int:
     from lerobot_pdp.benchmark.search_curves import RECORD, TABLE, run_search_curves
     from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS
 
+    if args.finish:  # one spelling with `lerobot-pdp search --finish`; records keep the score's name
+        if args.score not in ("waypoints", "waypoints_finish"):
+            raise ValueError(f"--finish adds the task's success to the way-point score: use it with --score waypoints, "
+                             f"not --score {args.score}")
+        args.score = "waypoints_finish"
     scene = int(args.scene) if args.scene.strip().isdigit() else args.scene.strip()
     # the command as the record keeps it: a folder given by an absolute path by its name (records get committed)
     results = args.results.name if args.results.is_absolute() else str(args.results)

@@ -236,3 +236,16 @@ def test_cli_writes_the_record_with_its_command(results, tmp_path, capsys):
                               "--budgets 16 32 64 128 256 512 --rollouts 1 --rollouts-per-candidate 2 --score success "
                               "--confirm-rollouts 6 --methods fit")
     assert rec["points"][0]["n"] == 1 and rec["settings"]["max_episode_steps"] == 200
+
+
+def test_cli_finish_is_the_same_score_as_lerobot_pdp_search_finish(results, tmp_path, capsys):
+    """``--score waypoints --finish`` (the spelling of ``lerobot-pdp search``) records ``waypoints_finish``."""
+    dest = tmp_path / "finish"
+    base = ["search-curves", str(results), "--env", "reach-around", "--scene", "val3", "--seed", str(SEED),
+            "--methods", "z_modes", "--budgets", "4", "--rollouts", "1", "--radius", "0.08", "--out", str(dest),
+            "--no-progress"]
+    assert cli([*base, "--finish"]) == 2
+    assert "use it with --score waypoints, not --score success" in capsys.readouterr().err
+    assert cli([*base, "--score", "waypoints", "--finish"]) == 0
+    (rec,) = json.loads((dest / sc.RECORD).read_text())["records"].values()
+    assert "--score waypoints_finish" in rec["command"] and rec["settings"]["objective"]["finish"] is True
