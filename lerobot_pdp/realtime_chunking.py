@@ -19,13 +19,14 @@ What differs from ``select_action``:
   the engine's queue has slack while the next chunk is generated;
 - per-phase latents advance on the gripper commands ``select_action`` sees, and fitted chunk noises replay one
   per ``n_action_steps`` chunk: neither has a meaning when the engine replans at its own pace, so both are
-  refused with a message (``--inference.type=sync`` runs them);
+  refused with a message (``--inference.type=sync`` runs them): at start-up, and as live requests (the robot
+  keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode) is returned empty: its observation
   belongs to the episode that ended.
 
 LeRobot's queue (0.6.1) replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, one more than
 the robot consumed at most replans. PDP's chunks are short and replanned every few actions, so the robot would
-run one action ahead of its plan most of the time (avoiding, scene 0: 72.5 % success against 95 % without the
+run one action ahead of its plan most of the time (avoiding, scene 0: 62.5 % success against 97.5 % without the
 shift, docs/performance.md). With ``rtc_consumed_delay`` (the default) PDP has the engine use
 :class:`ConsumedDelayQueue`, which drops the actions consumed; only runs with a PDP policy under RTC are affected.
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
@@ -60,9 +61,11 @@ class ConsumedDelayQueue(ActionQueue):
 
 def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
-    engine starts: refuse steering RTC cannot honour; with ``rtc_consumed_delay`` have the engine build its queue
-    as :class:`ConsumedDelayQueue`."""
+    engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); with
+    ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue`."""
     check_rtc_steering(policy)
+    if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
+        policy._steer_file.check = check_rtc_steering
     if not policy.config.rtc_consumed_delay:
         return
     engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy

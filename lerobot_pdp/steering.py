@@ -29,6 +29,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -269,6 +270,9 @@ class SteerFile:
         self.path = Path(path)
         self._seen: tuple[tuple[int, int, int], bytes] | None = None
         self.fit: BackgroundFit | None = None  # the fit of the newest request, while it is not applied
+        # raises ValueError for a steering state the running engine cannot act under (realtime_chunking.py): the
+        # request is then refused like a bad one, and the previous state kept
+        self.check: Callable[[Any], None] | None = None
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the running fit (if any) is done; True when none is left running."""
@@ -296,13 +300,27 @@ class SteerFile:
                 logger.info("steering file %s: fitting z to %s episode %d in the background; acting on the "
                             "current latent until it is ready", self.path, root, episode)
                 return changed
-            z = apply_steering(policy, request, base=self.path.parent)
+            z = self._checked(policy, lambda: apply_steering(policy, request, base=self.path.parent))
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
             logger.error("steering file %s: %s; keeping the current latent", self.path, e)
             return changed
         logger.info("steering file %s: %s -> latent %s", self.path, request,
                     z.tolist() if hasattr(z, "tolist") else z)
         return True
+
+    def _checked(self, policy: Any, apply: Callable[[], Any]) -> Any:
+        """``apply()``, undone when :attr:`check` refuses the steering state it leaves."""
+        if self.check is None:
+            return apply()
+        st = policy.steering
+        saved = (st.latent.clone(), st.noises.noise.clone(), st.provenance)
+        out = apply()
+        try:
+            self.check(policy)
+        except ValueError:
+            st.activate(saved[0] if len(saved[0]) else None, saved[1] if len(saved[1]) else None, saved[2])
+            raise
+        return out
 
     def _finish_fit(self, policy: Any) -> bool:
         """Activate the background fit's latent (and noises) if it is done; True when it was."""
@@ -315,8 +333,12 @@ class SteerFile:
                          self.path, fit.root, fit.episode, fit.error)
             return False
         result = fit.result
-        policy.steering.activate(result.z, result.noise, fit_provenance((fit.root, fit.episode), result,
-                                                                        policy.config, steps=fit.steps))
+        try:
+            self._checked(policy, lambda: policy.steering.activate(
+                result.z, result.noise, fit_provenance((fit.root, fit.episode), result, policy.config, steps=fit.steps)))
+        except ValueError as e:
+            logger.error("steering file %s: %s; keeping the current latent", self.path, e)
+            return False
         logger.info("steering file %s: latent %s fitted to %s episode %d in %.1f s, active from this chunk",
                     self.path, result.z.tolist(), fit.root, fit.episode, fit.seconds)
         return True

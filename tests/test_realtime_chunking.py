@@ -150,3 +150,28 @@ def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_
     p.config.rtc_consumed_delay = True
     p.init_rtc_processor()
     assert engine.ActionQueue is ConsumedDelayQueue
+
+
+def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(synthetic_meta, tmp_path, caplog):
+    """Under RTC a steering file asking for one latent per phase is refused like a bad request: logged, the robot
+    acting on its current latent; a request it can follow still applies."""
+    import json
+
+    steer = tmp_path / "steer.json"
+    steer.write_text(json.dumps({"mode": 1}))
+    torch.manual_seed(0)
+    p = small_policy(synthetic_meta, steer_file=str(steer))
+    p.eval()
+    p.config.rtc_config = RTCConfig()
+    p.init_rtc_processor()
+    means = p.mode_latents()
+    p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None)
+    torch.testing.assert_close(p.active_latent, means[1][None])
+    steer.write_text(json.dumps({"latent": [means[2].tolist(), means[3].tolist()]}))
+    with caplog.at_level("ERROR"):
+        chunk = p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None)
+    assert chunk.shape[1] > 0 and "one latent per phase" in caplog.text and "keeping the current latent" in caplog.text
+    torch.testing.assert_close(p.active_latent, means[1][None])
+    steer.write_text(json.dumps({"mode": 3}))
+    p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None)
+    torch.testing.assert_close(p.active_latent, means[3][None])
