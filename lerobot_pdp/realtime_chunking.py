@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -96,7 +97,8 @@ def check_rtc_steering(policy: Any) -> None:
             "without noises (fit_noise=none)")
 
 
-def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_size: int):
+def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int,
+                 batch_size: int) -> Callable[[Tensor], Tensor] | None:
     """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
 
     ``left_over`` [T, A] or [B, T, A], normalised, first row = the action executed next; the engine pads it with
@@ -139,7 +141,7 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
     obs_cond = policy.model.obs_cond(history)
     b = obs_cond.shape[0]
     z = policy.current_latent(b, obs_cond.device)
-    rtc = getattr(cfg, "rtc_config", None)
+    rtc = cfg.rtc_config
     guide = None
     if rtc is not None and rtc.enabled and prev_chunk_left_over is not None:
         guide = prefix_guide(policy, prev_chunk_left_over, inference_delay or 0, b)
