@@ -17,7 +17,7 @@ workers), already stepping.
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
     .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
-        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
+        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -109,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--env", default="reach-around")
     ap.add_argument("--scene", default="0")
     ap.add_argument("--dataset", type=Path, default=None, help="with --checkpoint: the fit variant's recording")
+    ap.add_argument("--policy-flag", action="append", default=[],
+                    help="a --policy.* flag added to every run (repeatable), e.g. --policy-flag=--policy.fit_objective=sample")
     ap.add_argument("--modes", type=int, nargs="*", default=[], help="steered modes, quiet only")
     ap.add_argument("--only-modes", action="store_true", help="run the steered modes only")
     ap.add_argument("--no-beside", action="store_true", help="skip the runs beside a training")
@@ -164,11 +166,11 @@ def main(argv: list[str] | None = None) -> int:
             for name, steer in {**variants, **({} if beside else steered)}.items():
                 for engine, engine_args in engines.items():
                     tag = f"{name.replace(' ', '_').replace('+', '')}_{engine}_{'beside' if beside else 'quiet'}"
-                    rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine, "inference_args": engine_args,
+                    rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine, "inference_args": engine_args, "policy_flags": args.policy_flag,
                            "beside_other_job": beside,
                            "fps": args.fps, "env": args.env, "scene": args.scene,
                            "checkpoint": "untrained" if args.checkpoint is None else weights_sha,
-                           **rollout(ckpt, work, tag, args.fps, args.episodes, [*steer, *engine_args], args.env,
+                           **rollout(ckpt, work, tag, args.fps, args.episodes, [*args.policy_flag, *steer, *engine_args], args.env,
                                      args.scene), "cpu": cpu_model()}
                     records.append(rec)
                     print(json.dumps(rec), flush=True)
