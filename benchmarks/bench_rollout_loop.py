@@ -166,12 +166,13 @@ def main(argv: list[str] | None = None) -> int:
             for name, steer in {**variants, **({} if beside else steered)}.items():
                 for engine, engine_args in engines.items():
                     tag = f"{name.replace(' ', '_').replace('+', '')}_{engine}_{'beside' if beside else 'quiet'}"
-                    rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine, "inference_args": engine_args, "policy_flags": args.policy_flag,
-                           "beside_other_job": beside,
-                           "fps": args.fps, "env": args.env, "scene": args.scene,
+                    rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine,
+                           "inference_args": engine_args, "policy_flags": args.policy_flag,
+                           "beside_other_job": beside, "fps": args.fps, "env": args.env, "scene": args.scene,
                            "checkpoint": "untrained" if args.checkpoint is None else weights_sha,
-                           **rollout(ckpt, work, tag, args.fps, args.episodes, [*args.policy_flag, *steer, *engine_args], args.env,
-                                     args.scene), "cpu": cpu_model()}
+                           **rollout(ckpt, work, tag, args.fps, args.episodes,
+                                     [*args.policy_flag, *steer, *engine_args], args.env, args.scene),
+                           "cpu": cpu_model()}
                     records.append(rec)
                     print(json.dumps(rec), flush=True)
                     if args.out:  # every finished run kept, in case a later one fails
