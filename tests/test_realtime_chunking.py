@@ -7,6 +7,15 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.rollout.inference.rtc import supports_rtc_inference
 from policies import small_policy
 
+
+@pytest.fixture(autouse=True)
+def _lerobots_queue_back(monkeypatch):
+    """init_rtc_processor gives LeRobot's loaded RTC engine PDP's queue class; each test leaves LeRobot's."""
+    import lerobot.rollout.inference.rtc as engine
+
+    monkeypatch.setattr(engine, "ActionQueue", engine.ActionQueue)
+
+
 OBS = {"observation.state": torch.tensor([[0.3, -0.2]]), "observation.environment_state": torch.tensor([[0.1, 0.4]])}
 
 
