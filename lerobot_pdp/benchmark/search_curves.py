@@ -420,12 +420,11 @@ class _Curves:
         else:
             res, times = self.search(method, max(budgets), init)
             picks = [(b, res, i, n, times[n - 1]) for b, n, i in best_so_far(res, budgets)]
-        # the search of the largest budget (the only one without confirmation); with it, every budget's own search
-        # is summed too
+        # the search of the largest budget (the only one without confirmation); with it (settings' confirm_rollouts)
+        # every budget's own search is summed too
         rec["search"] = {"method": "cma", "budget": max(budgets), "seconds": round(res.seconds, 2),
                          "candidates": len(res.history), "rollouts_used": res.rollouts_used,
-                         "popsize": default_popsize(res.history[0].latent.numel()),
-                         "one_search_per_budget": bool(self.confirm_rollouts)}
+                         "popsize": default_popsize(res.history[0].latent.numel())}
         if self.confirm_rollouts:
             rec["search"]["seconds_all_budgets"] = round(sum(p[1].seconds for p in picks), 2)
         judged: dict[tuple, dict[str, Any]] = {}
