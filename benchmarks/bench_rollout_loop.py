@@ -10,14 +10,15 @@ needs it) and ``--inference.type=rtc`` (chunks generated in a background thread,
 ``rtc_lerobot_queue``: with LeRobot's own rule for the actions a new chunk drops). The
 robot's outcome lines give each episode's pace (actions per second, the longest pause between two actions) and
 its outcome (success, collision, the mode driven); the start-up is the time from the process's start to its first
-action. The other job is a ``lerobot-train`` of PDP as a user runs it (no thread variable, LeRobot's loader
+action; ``cpu_s`` is the CPU time the ``lerobot-rollout`` process used, start-up included (``cores_busy``: per
+second of its wall time). The other job is a ``lerobot-train`` of PDP as a user runs it (no thread variable, LeRobot's loader
 workers), already stepping.
 
 ``--checkpoint`` takes a trained checkpoint instead (``--env``, ``--scene``, ``--dataset`` for the fit variant);
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
     .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
-        [--rtc-queue-threshold N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
+        [--rtc-queue-threshold N [N ...]] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -28,6 +29,7 @@ import argparse
 import hashlib
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -71,6 +73,7 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
            f"--robot.episodes={episodes}", f"--robot.outcomes={outcomes}", f"--robot.calibration_dir={work / 'cal'}",
            f"--fps={fps}", "--duration=1800", "--return_to_initial_position=false", "--play_sounds=false"]
     t0 = time.time()
+    cpu0 = _children_cpu_s()
     log = open(work / f"{tag}.log", "w")
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_env())
     first_line_at = None
@@ -78,6 +81,7 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
         if first_line_at is None and outcomes.is_file() and outcomes.read_text().strip():
             first_line_at = time.time()
         time.sleep(0.02)
+    wall, cpu = time.time() - t0, _children_cpu_s() - cpu0  # the other job is reaped later: this process only
     lines = [json.loads(x) for x in outcomes.read_text().splitlines()] if outcomes.is_file() else []
     if proc.returncode != 0 or len(lines) < episodes:  # LeRobot's RTC engine exits 0 after its thread failed
         raise RuntimeError(f"lerobot-rollout failed ({proc.returncode}, {len(lines)} of {episodes} episodes); "
@@ -89,7 +93,14 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
             "actions_per_s": round(sum(d["actions_per_s"] for d in lines) / n, 2),
             "max_gap_s": max(d["max_gap_s"] for d in lines),
             "success": sum(d["success"] for d in lines) / n, "collided": sum(d["collided"] for d in lines) / n,
-            "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(time.time() - t0, 1)}
+            "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(wall, 1),
+            "cpu_s": round(cpu, 1), "cores_busy": round(cpu / wall, 2)}
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's waited-for children."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 # rtc_lerobot_queue: LeRobot's own queue rule (drops ceil(latency * fps) actions per new chunk), for comparison
@@ -103,8 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=2)
     ap.add_argument("--noise", action="store_true", help="also a start-up fit with one sampler noise per chunk")
     ap.add_argument("--inference", nargs="+", choices=sorted(ENGINES), default=["sync"])
-    ap.add_argument("--rtc-queue-threshold", type=int, default=None,
-                    help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30)")
+    ap.add_argument("--rtc-queue-threshold", type=int, nargs="+", default=None,
+                    help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30); "
+                         "several values run one variant each, interleaved")
     ap.add_argument("--checkpoint", type=Path, default=None, help="a trained checkpoint (default: an untrained one)")
     ap.add_argument("--env", default="reach-around")
     ap.add_argument("--scene", default="0")
@@ -136,9 +148,14 @@ def main(argv: list[str] | None = None) -> int:
         variants["fit at start-up"] = [f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0"]
         if args.noise:
             variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
-    engines = {e: [*ENGINES[e], *([f"--inference.queue_threshold={args.rtc_queue_threshold}"]
-                                   if e.startswith("rtc") and args.rtc_queue_threshold is not None else [])]
-               for e in args.inference}
+    engines: dict[str, tuple[list[str], int | None]] = {}  # name: (flags, queue threshold; None = LeRobot's)
+    for e in args.inference:
+        if not e.startswith("rtc") or args.rtc_queue_threshold is None:
+            engines[e] = (ENGINES[e], None)
+            continue
+        for t in args.rtc_queue_threshold:
+            name = e if len(args.rtc_queue_threshold) == 1 else f"{e}_t{t}"
+            engines[name] = ([*ENGINES[e], f"--inference.queue_threshold={t}"], t)
     weights_sha = hashlib.sha256((Path(ckpt) / "model.safetensors").read_bytes()).hexdigest()[:16]
     steered = {f"mode {m}": [f"--policy.steer_mode={m}"] for m in args.modes}
     if args.only_modes:
@@ -164,10 +181,11 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(1)
         try:
             for name, steer in {**variants, **({} if beside else steered)}.items():
-                for engine, engine_args in engines.items():
+                for engine, (engine_args, threshold) in engines.items():
                     tag = f"{name.replace(' ', '_').replace('+', '')}_{engine}_{'beside' if beside else 'quiet'}"
                     rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine,
-                           "inference_args": engine_args, "policy_flags": args.policy_flag,
+                           "inference_args": engine_args, "queue_threshold": threshold,
+                           "policy_flags": args.policy_flag,
                            "beside_other_job": beside, "fps": args.fps, "env": args.env, "scene": args.scene,
                            "checkpoint": "untrained" if args.checkpoint is None else weights_sha,
                            **rollout(ckpt, work, tag, args.fps, args.episodes,
