@@ -269,8 +269,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Real-time chunking: lerobot-rollout --inference.type=rtc sets it from --inference.rtc.* (how a new chunk's first
     # actions continue the previous chunk's unexecuted ones: lerobot_pdp/realtime_chunking.py); None elsewhere.
     rtc_config: RTCConfig | None = None
-    # Under RTC, a new chunk replaces the engine's queue less the actions the robot consumed while it was generated;
-    # false: LeRobot's rule, ceil(latency * fps), which runs PDP's short chunks one action ahead (realtime_chunking.py).
+    # Under RTC, a new chunk replaces the engine's queue less the actions the robot executed since the chunk's
+    # observation, continuing the previous chunk from that step; false: LeRobot's rule, ceil(latency * fps), with the
+    # prefix from the engine's read, a step off for PDP's short chunks (realtime_chunking.py).
     rtc_consumed_delay: bool = True
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;

@@ -24,11 +24,15 @@ What differs from ``select_action``:
 - a chunk whose generation overlapped a ``reset()`` (a new episode) is returned empty: its observation
   belongs to the episode that ended.
 
-LeRobot's queue (0.6.1) replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, one more than
-the robot consumed at most replans. PDP's chunks are short and replanned every few actions, so the robot would
-run one action ahead of its plan most of the time (avoiding, scene 0: 62.5 % success against 97.5 % without the
-shift, docs/performance.md). With ``rtc_consumed_delay`` (the default) PDP has the engine use
-:class:`ConsumedDelayQueue`, which drops the actions consumed; only runs with a PDP policy under RTC are affected.
+A new chunk must continue from the step of the observation it was generated from. LeRobot's queue (0.6.1)
+replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, and takes the prefix from the
+actions not yet executed when the engine starts the chunk. The loop publishes an observation and then executes
+that step's action, so the engine usually reads an observation whose step's action is already executed: its
+prefix starts one step late, and the number dropped is off by one either way. PDP's chunks are short and
+replanned every few actions, so that misalignment recurs (avoiding, pick-place: docs/performance.md). With
+``rtc_consumed_delay`` (the default) PDP has the engine use :class:`ConsumedDelayQueue`, which counts the
+actions executed since the observation (the engine's ``notify_observation`` announces each one); only runs with
+a PDP policy under RTC are affected.
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
 """
 
@@ -41,6 +45,7 @@ from typing import Any
 
 import torch
 from lerobot.policies.rtc.action_queue import ActionQueue
+from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from torch import Tensor
 
@@ -51,13 +56,62 @@ ENGINE_MODULE = "lerobot.rollout.inference.rtc"
 
 
 class ConsumedDelayQueue(ActionQueue):
-    """LeRobot's RTC action queue, except that a new chunk replaces the queue less the actions consumed while it
-    was generated (LeRobot's drops ``ceil(latency * fps)``, see the module docstring)."""
+    """LeRobot's RTC action queue, aligned with the observation each chunk comes from: a new chunk replaces the
+    queue less the actions executed since that observation, and the prefix it continues starts at that
+    observation's step (see the module docstring).
+
+    The loop publishes an observation, then executes that step's action; the engine's thread reads the latest
+    observation at any time in between, usually after that action. So the queue counts the actions executed
+    (``executed``, never reset: ``last_index`` restarts with every chunk) and notes the count at each observation
+    (:meth:`observed`, from the engine's ``notify_observation``); the thread asks for the action index right
+    after reading the observation, which pins the chunk to it. Without ``observed`` calls the count starts at
+    that read instead."""
+
+    def __init__(self, cfg: RTCConfig) -> None:
+        super().__init__(cfg)
+        self.executed = 0
+        self.executed_at_observation: int | None = None  # None: no observation announced
+        self._chunk_from: int | None = None  # ``executed`` at the observation the pending chunk comes from
+        self._last_original: Tensor | None = None  # the last executed action, normalised
+
+    def observed(self) -> None:
+        """The loop published an observation (before executing that step's action)."""
+        with self.lock:
+            self.executed_at_observation = self.executed
+
+    def get(self) -> Tensor | None:
+        with self.lock:  # LeRobot's get, counting what it hands out
+            if self.queue is None or self.last_index >= len(self.queue):
+                return None
+            self._last_original = self.original_queue[self.last_index]
+            self.last_index += 1
+            self.executed += 1
+            return self.queue[self.last_index - 1].clone()
+
+    def get_action_index(self) -> int:
+        with self.lock:  # the engine's thread, as it starts a chunk from the observation it just read
+            seen = self.executed_at_observation
+            self._chunk_from = self.executed if seen is None else seen
+            return self.last_index
+
+    def get_left_over(self) -> Tensor | None:
+        """The previous chunk's actions from the chunk's observation on (at most one step back: the loop
+        executes one action per observation)."""
+        with self.lock:
+            if self.original_queue is None:
+                return None
+            behind = 0 if self._chunk_from is None else self.executed - self._chunk_from
+            start = self.last_index - behind
+            if start >= 0:
+                return self.original_queue[start:].clone()
+            if start == -1 and self._last_original is not None:  # that action came from the chunk before
+                return torch.cat([self._last_original[None], self.original_queue]).clone()
+            return self.original_queue.clone()
 
     def _check_and_resolve_delays(self, real_delay: int, action_index_before_inference: int | None = None) -> int:
-        if action_index_before_inference is None:
+        if action_index_before_inference is None or self._chunk_from is None:
             return max(0, real_delay)
-        return max(0, self.last_index - action_index_before_inference)
+        return max(0, self.executed - self._chunk_from)  # merge holds the lock
 
 
 def prepare_rtc(policy: Any) -> None:
@@ -77,8 +131,32 @@ def prepare_rtc(policy: Any) -> None:
                        engine.ActionQueue)
         return
     engine.ActionQueue = ConsumedDelayQueue
-    logger.info("PDP under RTC: a new chunk replaces the queue less the actions consumed while it was generated "
-                "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps))")
+    announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
+    if announce is None:
+        logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; chunks are aligned with the "
+                       "moment the engine reads an observation, which may be one step late")
+    elif not getattr(announce, "announces_to_pdp_queue", False):
+        engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+    logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
+                "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps)). PDP plans %d actions ahead, so "
+                "LeRobot's default --inference.queue_threshold=30 generates chunks back to back, one core busy; "
+                "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
+                policy.config.horizon - policy.config.n_obs_steps + 1,
+                policy.config.horizon - policy.config.n_obs_steps + 1 - policy.config.n_action_steps,
+                policy.config.n_action_steps)
+
+
+def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
+    """The engine's ``notify_observation``, first telling PDP's queue that an observation was published."""
+
+    def notify_observation(engine: Any, obs: dict) -> None:
+        queue = getattr(engine, "_action_queue", None)
+        if isinstance(queue, ConsumedDelayQueue):
+            queue.observed()
+        notify(engine, obs)
+
+    notify_observation.announces_to_pdp_queue = True
+    return notify_observation
 
 
 def check_rtc_steering(policy: Any) -> None:

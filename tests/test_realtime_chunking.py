@@ -1,6 +1,8 @@
 """PDP under LeRobot's real-time chunking engine (``lerobot-rollout --inference.type=rtc``): the call shape the
 engine checks, the prefix imposed on a new chunk, the engine's zero padding, what is refused."""
 
+import threading
+
 import pytest
 import torch
 from lerobot.policies.rtc.configuration_rtc import RTCConfig
@@ -14,6 +16,7 @@ def _lerobots_queue_back(monkeypatch):
     import lerobot.rollout.inference.rtc as engine
 
     monkeypatch.setattr(engine, "ActionQueue", engine.ActionQueue)
+    monkeypatch.setattr(engine.RTCInferenceEngine, "notify_observation", engine.RTCInferenceEngine.notify_observation)
 
 
 OBS = {"observation.state": torch.tensor([[0.3, -0.2]]), "observation.environment_state": torch.tensor([[0.1, 0.4]])}
@@ -125,24 +128,73 @@ def test_a_chunk_generated_across_a_reset_is_dropped(synthetic_meta):
     assert p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None).shape[1] > 0
 
 
-def test_the_queue_drops_the_actions_consumed_while_a_chunk_was_generated():
-    """LeRobot's queue drops ceil(latency * fps) actions, one more than consumed at most replans; PDP's drops
-    the consumed ones, so the robot stays aligned with the new chunk."""
+def _loop_step(q) -> float:
+    """One step of lerobot-rollout's loop: publish an observation, then execute the step's action."""
+    q.observed()
+    return float(q.get()[0])
+
+
+@pytest.mark.parametrize("read_before_the_steps_action", [False, True])
+def test_a_new_chunk_continues_from_its_observations_step(read_before_the_steps_action):
+    """The chunk from the observation of step 1 plans steps 1, 2, ...: after two more steps executed while it was
+    generated, the robot's next action (step 4) is its fourth, whether the engine read that observation before or
+    (as usual) after the loop executed step 1's action; its prefix starts at step 1's action."""
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    q = ConsumedDelayQueue(RTCConfig())
+    first, new = torch.arange(10.0)[:, None], 100 + torch.arange(15.0)[:, None]  # action i: step i; new j: 1 + j
+    q.merge(first, first, 0)
+    assert _loop_step(q) == 0.0
+    q.observed()  # step 1's observation
+    if not read_before_the_steps_action:
+        assert float(q.get()[0]) == 1.0
+    index, prefix = q.get_action_index(), q.get_left_over()  # the engine starts a chunk from that observation
+    if read_before_the_steps_action:
+        assert float(q.get()[0]) == 1.0
+    assert prefix[:, 0].tolist() == list(range(1, 10))
+    assert [_loop_step(q), _loop_step(q)] == [2.0, 3.0]  # executed while the chunk was generated
+    q.merge(new, new, 2, index)
+    assert float(q.get()[0]) == 103.0  # step 4
+
+
+def test_the_prefix_reaches_into_the_chunk_before_when_a_new_chunk_landed_after_the_observation():
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    q = ConsumedDelayQueue(RTCConfig())
+    q.merge(torch.arange(3.0)[:, None], torch.arange(3.0)[:, None], 0)
+    q.observed()
+    assert float(q.get()[0]) == 0.0  # step 0's action, from the first chunk
+    q.merge(10 + torch.arange(5.0)[:, None], 10 + torch.arange(5.0)[:, None], 0)  # replanned meanwhile (step 1 on)
+    q.get_action_index()  # a chunk from step 0's observation
+    assert q.get_left_over()[:, 0].tolist() == [0.0, 10.0, 11.0, 12.0, 13.0, 14.0]
+
+
+def test_lerobots_queue_rule_misaligns_a_new_chunk():
+    """LeRobot's queue drops ceil(latency * fps) actions and takes the prefix from the engine's read: with the
+    usual read (after the step's action), the prefix starts one step late."""
     from lerobot.policies.rtc.action_queue import ActionQueue
+
+    q = ActionQueue(RTCConfig())
+    q.merge(torch.arange(10.0)[:, None], torch.arange(10.0)[:, None], 0)
+    q.get(), q.get()  # steps 0 and 1; the engine then reads step 1's observation
+    assert float(q.get_left_over()[0, 0]) == 2.0
+
+
+def test_the_engine_announces_observations_to_pdps_queue(synthetic_meta):
+    import lerobot.rollout.inference.rtc as engine
 
     from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
 
-    first, new = torch.arange(10.0)[:, None], 100 + torch.arange(15.0)[:, None]
-    heads = {}
-    for cls in (ActionQueue, ConsumedDelayQueue):
-        q = cls(RTCConfig())
-        q.merge(first, first, 0)
-        before = q.get_action_index()
-        q.get(), q.get()  # two actions executed while the next chunk was generated (latency 2.2 steps)
-        q.merge(new, new, 3, before)  # ceil(2.2) = 3
-        heads[cls] = float(q.get()[0])
-    assert heads[ActionQueue] == 103.0  # the action for one step later than now
-    assert heads[ConsumedDelayQueue] == 102.0
+    p = small_policy(synthetic_meta)
+    p.config.rtc_config = RTCConfig()
+    p.init_rtc_processor()
+    e = engine.RTCInferenceEngine.__new__(engine.RTCInferenceEngine)  # the two attributes notify_observation uses
+    e._obs_lock, e._obs_holder = threading.Lock(), {}
+    e._action_queue = q = ConsumedDelayQueue(RTCConfig())
+    q.merge(torch.zeros(4, 1), torch.zeros(4, 1), 0)
+    q.get()
+    e.notify_observation({"x": 1})
+    assert q.executed_at_observation == 1 and e._obs_holder["obs"] == {"x": 1}
 
 
 def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch):
