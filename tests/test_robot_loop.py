@@ -175,7 +175,7 @@ def test_live_steering_through_a_file_on_a_running_robot(untrained_reach_around,
 def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monkeypatch):
     """``--inference.type=rtc``: LeRobot's engine generates PDP's chunks in its own thread from the observations
     pdp_sim gives (state and environment state split, as trained), each after the first with the previous chunk's
-    unexecuted actions, into a queue that drops the actions consumed meanwhile; episodes reset the policy and the
+    unexecuted actions, into a queue that drops the actions executed since the chunk's observation; episodes reset the policy and the
     run ends itself. A fitted start-up latent steers it."""
     import lerobot.rollout.inference.rtc as engine_module
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
@@ -184,6 +184,8 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
 
     monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
+    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
+                        engine_module.RTCInferenceEngine.notify_observation)
     ckpt, data = untrained_reach_around
     outcomes = tmp_path / "o.jsonl"
     calls: list[dict] = []
@@ -204,7 +206,8 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     assert [d["episode"] for d in lines] == [0, 1] and all(d["steps"] > 1 for d in lines)
     assert calls and all({"observation.environment_state", "observation.state"} <= set(c["keys"]) for c in calls)
     assert any(c["prev_chunk_left_over"] is not None for c in calls)
-    assert type(ctx.policy.inference.action_queue) is ConsumedDelayQueue
+    queue = ctx.policy.inference.action_queue
+    assert type(queue) is ConsumedDelayQueue and queue.executed_at_observation is not None  # observations announced
     assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
