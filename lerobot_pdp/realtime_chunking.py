@@ -64,8 +64,8 @@ class ConsumedDelayQueue(ActionQueue):
     observation at any time in between, usually after that action. So the queue counts the actions executed
     (``executed``, never reset: ``last_index`` restarts with every chunk) and notes the count at each observation
     (:meth:`observed`, from the engine's ``notify_observation``); the thread asks for the action index right
-    after reading the observation, which pins the chunk to it. Without ``observed`` calls the count starts at
-    that read instead."""
+    after reading the observation, which pins the chunk to it (an observation published in the microseconds
+    between the two would shift it by one step). Without ``observed`` calls the count starts at that read."""
 
     def __init__(self, cfg: RTCConfig) -> None:
         super().__init__(cfg)
@@ -87,6 +87,11 @@ class ConsumedDelayQueue(ActionQueue):
             self.last_index += 1
             self.executed += 1
             return self.queue[self.last_index - 1].clone()
+
+    def clear(self) -> None:
+        super().clear()
+        with self.lock:  # a new episode: nothing executed belongs to its chunks
+            self._last_original = None
 
     def get_action_index(self) -> int:
         with self.lock:  # the engine's thread, as it starts a chunk from the observation it just read
