@@ -18,7 +18,7 @@ workers), already stepping.
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
     .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
-        [--rtc-queue-threshold N [N ...]] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
+        [--rtc-queue-threshold N [N ...]] [--rtc-execution-horizon N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -117,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rtc-queue-threshold", type=int, nargs="+", default=None,
                     help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30); "
                          "several values run one variant each, interleaved")
+    ap.add_argument("--rtc-execution-horizon", type=int, default=None,
+                    help="rtc: how far the previous chunk's actions guide a new one (LeRobot's default: 10)")
     ap.add_argument("--checkpoint", type=Path, default=None, help="a trained checkpoint (default: an untrained one)")
     ap.add_argument("--env", default="reach-around")
     ap.add_argument("--scene", default="0")
@@ -156,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
         for t in args.rtc_queue_threshold:
             name = e if len(args.rtc_queue_threshold) == 1 else f"{e}_t{t}"
             engines[name] = ([*ENGINES[e], f"--inference.queue_threshold={t}"], t)
+    if args.rtc_execution_horizon is not None:
+        engines = {k: ([*f, f"--inference.rtc.execution_horizon={args.rtc_execution_horizon}"] if k.startswith("rtc")
+                       else f, t) for k, (f, t) in engines.items()}
     weights_sha = hashlib.sha256((Path(ckpt) / "model.safetensors").read_bytes()).hexdigest()[:16]
     steered = {f"mode {m}": [f"--policy.steer_mode={m}"] for m in args.modes}
     if args.only_modes:
