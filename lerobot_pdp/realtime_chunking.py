@@ -107,11 +107,9 @@ class ConsumedDelayQueue(ActionQueue):
                 return None
             behind = 0 if self._chunk_from is None else self.executed - self._chunk_from
             start = self.last_index - behind
-            if start >= 0:
-                return self.original_queue[start:].clone()
-            if start == -1 and self._last_original is not None:  # that action came from the chunk before
-                return torch.cat([self._last_original[None], self.original_queue]).clone()
-            return self.original_queue.clone()
+            if start < 0 and self._last_original is not None:  # that action came from the chunk before
+                return torch.cat([self._last_original[None], self.original_queue])
+            return self.original_queue[max(start, 0):].clone()
 
     def _check_and_resolve_delays(self, real_delay: int, action_index_before_inference: int | None = None) -> int:
         if action_index_before_inference is None or self._chunk_from is None:
@@ -142,13 +140,13 @@ def prepare_rtc(policy: Any) -> None:
                        "moment the engine reads an observation, which may be one step late")
     elif not getattr(announce, "announces_to_pdp_queue", False):
         engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+    cfg = policy.config
+    future = cfg.horizon - cfg.n_obs_steps + 1  # what rtc_chunk returns
     logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
                 "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps)). PDP plans %d actions ahead, so "
                 "LeRobot's default --inference.queue_threshold=30 generates chunks back to back, one core busy; "
                 "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
-                policy.config.horizon - policy.config.n_obs_steps + 1,
-                policy.config.horizon - policy.config.n_obs_steps + 1 - policy.config.n_action_steps,
-                policy.config.n_action_steps)
+                future, future - cfg.n_action_steps, cfg.n_action_steps)
 
 
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
@@ -184,7 +182,8 @@ def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int,
                  batch_size: int) -> Callable[[Tensor], Tensor] | None:
     """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
 
-    ``left_over`` [T, A] or [B, T, A], normalised, first row = the action executed next; the engine pads it with
+    ``left_over`` [T, A] or [B, T, A], normalised, first row = the action for the chunk's observation step (with
+    LeRobot's own queue: the next action to execute); the engine pads it with
     zero rows up to ``execution_horizon``, so trailing all-zero rows are dropped (an exact 0.0 in every action
     dimension is the engine's padding, not a policy output)."""
     cfg = policy.config
