@@ -9,7 +9,9 @@ starts. ``--inference sync rtc`` runs each variant under ``--inference.type=sync
 needs it) and ``--inference.type=rtc`` (chunks generated in a background thread, LeRobot's RTC defaults;
 ``rtc_lerobot_queue``: with LeRobot's own rule for the actions a new chunk drops). The
 robot's outcome lines give each episode's pace (actions per second, the longest pause between two actions) and
-its outcome (success, collision, the mode driven); the start-up is the time from the process's start to its first
+its outcome (success, collision, the mode driven) and how smoothly chunks hand over (``action_step_median``,
+``action_step_p90``, ``action_step_max``: the median over episodes of each episode's median, 90th percentile and
+largest step of the commanded action, the gripper left out); the start-up is the time from the process's start to its first
 action; ``cpu_s`` is the CPU time the ``lerobot-rollout`` process used, start-up included (``cores_busy``: per
 second of its wall time). The other job is a ``lerobot-train`` of PDP as a user runs it (no thread variable, LeRobot's loader
 workers), already stepping.
@@ -18,7 +20,7 @@ workers), already stepping.
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
     .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
-        [--rtc-queue-threshold N [N ...]] [--rtc-execution-horizon N] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
+        [--rtc-queue-threshold N [N ...]] [--rtc-execution-horizon N [N ...]] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
 """
@@ -35,6 +37,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from statistics import median
 
 BIN = Path(sys.executable).parent
 
@@ -89,12 +92,15 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
     first = lines[0]
     first_action = (first_line_at or time.time()) - t0 - (first["steps"] - 1) / first["actions_per_s"]
     n = len(lines)
-    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s")} for d in lines],
+    steps = ("action_step_median", "action_step_p90", "action_step_max")
+    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s", *steps) if k in d}
+                         for d in lines],
             "actions_per_s": round(sum(d["actions_per_s"] for d in lines) / n, 2),
             "max_gap_s": max(d["max_gap_s"] for d in lines),
             "success": sum(d["success"] for d in lines) / n, "collided": sum(d["collided"] for d in lines) / n,
             "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(wall, 1),
-            "cpu_s": round(cpu, 1), "cores_busy": round(cpu / wall, 2)}
+            "cpu_s": round(cpu, 1), "cores_busy": round(cpu / wall, 2),
+            **{k: round(median(d[k] for d in lines), 5) for k in steps if all(k in d for d in lines)}}
 
 
 def _children_cpu_s() -> float:
@@ -117,8 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rtc-queue-threshold", type=int, nargs="+", default=None,
                     help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30); "
                          "several values run one variant each, interleaved")
-    ap.add_argument("--rtc-execution-horizon", type=int, default=None,
-                    help="rtc: how far the previous chunk's actions guide a new one (LeRobot's default: 10)")
+    ap.add_argument("--rtc-execution-horizon", type=int, nargs="+", default=None,
+                    help="rtc: how far the previous chunk's actions guide a new one (LeRobot's default: 10; 0: not "
+                         "at all, the queue still replaced); several values run one variant each, interleaved")
     ap.add_argument("--checkpoint", type=Path, default=None, help="a trained checkpoint (default: an untrained one)")
     ap.add_argument("--env", default="reach-around")
     ap.add_argument("--scene", default="0")
@@ -150,17 +157,22 @@ def main(argv: list[str] | None = None) -> int:
         variants["fit at start-up"] = [f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0"]
         if args.noise:
             variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
-    engines: dict[str, tuple[list[str], int | None]] = {}  # name: (flags, queue threshold; None = LeRobot's)
+    # name: (flags, queue threshold, execution horizon; None = LeRobot's)
+    engines: dict[str, tuple[list[str], int | None, int | None]] = {}
     for e in args.inference:
-        if not e.startswith("rtc") or args.rtc_queue_threshold is None:
-            engines[e] = (ENGINES[e], None)
+        if not e.startswith("rtc"):
+            engines[e] = (ENGINES[e], None, None)
             continue
-        for t in args.rtc_queue_threshold:
-            name = e if len(args.rtc_queue_threshold) == 1 else f"{e}_t{t}"
-            engines[name] = ([*ENGINES[e], f"--inference.queue_threshold={t}"], t)
-    if args.rtc_execution_horizon is not None:
-        engines = {k: ([*f, f"--inference.rtc.execution_horizon={args.rtc_execution_horizon}"] if k.startswith("rtc")
-                       else f, t) for k, (f, t) in engines.items()}
+        for t in args.rtc_queue_threshold or [None]:
+            for h in args.rtc_execution_horizon or [None]:
+                name = e
+                if t is not None and len(args.rtc_queue_threshold) > 1:
+                    name += f"_t{t}"
+                if h is not None and len(args.rtc_execution_horizon) > 1:
+                    name += f"_h{h}"
+                flags = [*ENGINES[e], *([] if t is None else [f"--inference.queue_threshold={t}"]),
+                         *([] if h is None else [f"--inference.rtc.execution_horizon={h}"])]
+                engines[name] = (flags, t, h)
     weights_sha = hashlib.sha256((Path(ckpt) / "model.safetensors").read_bytes()).hexdigest()[:16]
     steered = {f"mode {m}": [f"--policy.steer_mode={m}"] for m in args.modes}
     if args.only_modes:
@@ -186,10 +198,11 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(1)
         try:
             for name, steer in {**variants, **({} if beside else steered)}.items():
-                for engine, (engine_args, threshold) in engines.items():
+                for engine, (engine_args, threshold, horizon) in engines.items():
                     tag = f"{name.replace(' ', '_').replace('+', '')}_{engine}_{'beside' if beside else 'quiet'}"
                     rec = {"bench": "rollout_loop", "adaptation": name, "inference": engine,
                            "inference_args": engine_args, "queue_threshold": threshold,
+                           "execution_horizon": horizon,
                            "policy_flags": args.policy_flag,
                            "beside_other_job": beside, "fps": args.fps, "env": args.env, "scene": args.scene,
                            "checkpoint": "untrained" if args.checkpoint is None else weights_sha,

@@ -28,8 +28,8 @@ From the command line: `lerobot-eval --policy.path=<this> --policy.steer_mode=3 
 `--policy.steer_dataset_root=DIR --policy.steer_episode_index=0` to fit `z` to a demonstration at start-up.
 The same flags work with `lerobot-rollout` on a robot; add `--policy.steer_file=FILE` to change `z` while it
 runs (`lerobot-pdp steer FILE --mode 3`, `--latent ..`, or `--dataset DIR` to fit a new recording), and
-`--inference.type=rtc --inference.queue_threshold=7` to generate chunks in the background while the robot keeps
-its rate (check a task under it first: docs/deploy.md).
+`--inference.type=rtc --inference.queue_threshold=7 --inference.rtc.execution_horizon=3` to generate chunks in the
+background while the robot keeps its rate (check a task under it first: docs/deploy.md).
 Requires `pip install lerobot_policy_pdp`.
 """
 

@@ -53,6 +53,9 @@ from .pdp_model import check_finite_actions
 
 logger = logging.getLogger(__name__)
 ENGINE_MODULE = "lerobot.rollout.inference.rtc"
+# How many actions a new chunk is held to the last one, chosen on validation checkpoints at 50 fps on a CPU
+# (docs/performance.md, "How long a new chunk is held to the last one")
+RECOMMENDED_EXECUTION_HORIZON = 3
 
 
 class ConsumedDelayQueue(ActionQueue):
@@ -145,8 +148,12 @@ def prepare_rtc(policy: Any) -> None:
     logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
                 "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps)). PDP plans %d actions ahead, so "
                 "LeRobot's default --inference.queue_threshold=30 generates chunks back to back, one core busy; "
-                "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
-                future, future - cfg.n_action_steps, cfg.n_action_steps)
+                "--inference.queue_threshold=%d replans every ~%d actions as sync does. This run holds each new "
+                "chunk to the last one over its first %d actions (--inference.rtc.execution_horizon); "
+                "--inference.rtc.execution_horizon=%d is recommended: LeRobot's default 10 cost pick-place about 20 "
+                "points against sync (docs/deploy.md)",
+                future, future - cfg.n_action_steps, cfg.n_action_steps, cfg.rtc_config.execution_horizon,
+                RECOMMENDED_EXECUTION_HORIZON)
 
 
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:

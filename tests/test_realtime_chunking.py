@@ -197,7 +197,8 @@ def test_the_engine_announces_observations_to_pdps_queue(synthetic_meta):
     assert q.executed_at_observation == 1 and e._obs_holder["obs"] == {"x": 1}
 
 
-def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch):
+def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch,
+                                                                                       caplog):
     import lerobot.rollout.inference.rtc as engine
     from lerobot.policies.rtc.action_queue import ActionQueue
 
@@ -209,8 +210,13 @@ def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_
     p.init_rtc_processor()
     assert engine.ActionQueue is ActionQueue
     p.config.rtc_consumed_delay = True
-    p.init_rtc_processor()
+    p.config.rtc_config = RTCConfig(execution_horizon=10)
+    with caplog.at_level("INFO", logger="lerobot_pdp.realtime_chunking"):
+        p.init_rtc_processor()
     assert engine.ActionQueue is ConsumedDelayQueue
+    # the info line names the settings chosen on validation for this chunk size, and the run's own prefix length
+    assert "--inference.queue_threshold=7 " in caplog.text and "over its first 10 actions" in caplog.text
+    assert "--inference.rtc.execution_horizon=3 " in caplog.text
 
 
 def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(synthetic_meta, tmp_path, caplog):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from lerobot.robots.utils import make_robot_from_config
 from lerobot.teleoperators.utils import make_teleoperator_from_config
@@ -31,12 +32,14 @@ def test_robot_and_teleop_step_with_named_values_and_reset_themselves(tmp_path):
         assert list(obs) == list(robot.observation_features) == robot.state_names + robot.env_state_names
         assert all(isinstance(v, float) for v in obs.values())
         steps = 0
+        sent: dict[int, list] = {0: [], 1: []}
         while True:
             robot.get_observation()  # after an episode ends, this resets the scene
             if robot.episode == 2:  # two whole episodes done
                 break
             action = teleop.get_action()
             assert set(action) == set(robot.action_names)
+            sent[robot.episode].append([action[n] for n in robot.action_names])
             assert robot.send_action(action) == action
             steps += 1
             assert steps < 2 * robot.suite.max_episode_steps + 2
@@ -48,6 +51,10 @@ def test_robot_and_teleop_step_with_named_values_and_reset_themselves(tmp_path):
     for d in lines:
         assert d["success"] is True and d["collided"] is False and d["mode"] == 2 and d["ended_by"] == "success"
         assert d["actions_per_s"] > 0 and 0 < d["median_gap_s"] <= d["max_gap_s"]  # the loop's pace
+        moved = np.linalg.norm(np.diff(np.asarray(sent[d["episode"]], dtype=np.float32), axis=0), axis=1)
+        assert d["action_step_median"] == pytest.approx(np.median(moved), abs=1e-5)  # how smoothly it moved
+        assert d["action_step_p90"] == pytest.approx(np.percentile(moved, 90), abs=1e-5)
+        assert d["action_step_max"] == pytest.approx(moved.max(), abs=1e-5) and moved.max() > 0
     assert sum(d["steps"] for d in lines) == steps
 
 
@@ -84,6 +91,22 @@ def test_an_unfinished_episode_is_logged_as_ended_by_time_on_disconnect(tmp_path
     robot.disconnect()
     (line,) = [json.loads(s) for s in outcomes.read_text().splitlines()]
     assert line["steps"] == 3 and line["success"] is False and line["ended_by"] == "time"
+
+
+def test_the_action_step_leaves_the_gripper_command_out(tmp_path):
+    """The gripper switches by design: a steady velocity command with the gripper toggling has not moved."""
+    outcomes = tmp_path / "o.jsonl"
+    robot = make_robot_from_config(PDPSimConfig(env="pick-place", scene="0", outcomes=str(outcomes),
+                                                calibration_dir=tmp_path))
+    robot.connect()
+    robot.get_observation()
+    gripper = robot.action_names[robot.suite.segment_on_gripper]
+    hold = dict.fromkeys(robot.action_names, 0.1)
+    for closed in (0.0, 1.0, 0.0, 1.0):
+        robot.send_action({**hold, gripper: closed})
+    robot.disconnect()
+    (line,) = [json.loads(s) for s in outcomes.read_text().splitlines()]
+    assert line["steps"] == 4 and line["action_step_max"] == 0.0
 
 
 def test_bad_input_gets_a_clear_error(tmp_path):

@@ -169,6 +169,7 @@ class PDPSim(Robot):
         self.obs, _, terminated, truncated, info = self.env.step(vec)
         self._steps += 1
         self._action_times.append(time.perf_counter())
+        self._actions.append(vec)
         self._states.append(np.asarray(self.obs["agent_pos"], dtype=float))
         if terminated or truncated:
             self._finish_episode(info, cut=False)
@@ -198,6 +199,7 @@ class PDPSim(Robot):
         self._states = [np.asarray(self.obs["agent_pos"], dtype=float)]
         self._steps = 0
         self._action_times: list[float] = []  # when each action of this episode was applied (loop timing)
+        self._actions: list[np.ndarray] = []  # the actions applied (how smoothly one chunk hands over to the next)
         self._pending_reset = False
         self.last_label: int | str | None = None
 
@@ -215,6 +217,7 @@ class PDPSim(Robot):
             "ended_by": "time" if cut else ("success" if info.get("is_success") else
                                             "collision" if info.get("collided") else "time_limit"),
             **self._loop_timing(),
+            **self._action_steps(),
         }
         if self.config.outcomes:
             path = Path(self.config.outcomes)
@@ -239,6 +242,20 @@ class PDPSim(Robot):
         gaps = np.diff(t)
         return {"actions_per_s": round((len(t) - 1) / (t[-1] - t[0]), 2),
                 "median_gap_s": round(float(np.median(gaps)), 4), "max_gap_s": round(float(gaps.max()), 4)}
+
+    def _action_steps(self) -> dict[str, float]:
+        """How far the commanded action moved between two steps (Euclidean, the gripper command left out: it
+        switches by design): the median step, the 90th percentile and the largest. Chunks handed over every
+        few steps without continuing the one before raise the 90th percentile well above the median."""
+        if len(self._actions) < 2:
+            return {}
+        a = np.stack(self._actions)
+        if self.suite.segment_on_gripper is not None:
+            a = np.delete(a, self.suite.segment_on_gripper, axis=1)
+        steps = np.linalg.norm(np.diff(a, axis=0), axis=1)
+        median, p90 = np.percentile(steps, [50, 90])
+        return {"action_step_median": round(float(median), 5), "action_step_p90": round(float(p90), 5),
+                "action_step_max": round(float(steps.max()), 5)}
 
     # ---- lerobot-record phases (called by record_hooks) ----
     def begin_phase(self, events: dict, recording: bool, dataset: Any = None) -> None:
