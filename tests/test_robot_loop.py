@@ -513,11 +513,13 @@ def test_record_fit_deploy_reaches_the_goal_in_a_shifted_scene(reach_around_pdp,
 def test_record_fit_deploy_with_real_time_chunking(reach_around_pdp, tmp_path):
     """The same with ``--inference.type=rtc``: chunks from LeRobot's background thread, each continuing the
     actions still queued, into PDP's queue (LeRobot's engine exits 0 even when its thread failed, so the five
-    outcome lines are the check that it ran); the same bar as the synchronous engine."""
-    lines, log = record_fit_deploy(reach_around_pdp, tmp_path, 5, "--inference.type=rtc")
+    outcome lines are the check that it ran), with the settings docs/deploy.md recommends; the same bar as the
+    synchronous engine."""
+    lines, log = record_fit_deploy(reach_around_pdp, tmp_path, 5, "--inference.type=rtc",
+                                   "--inference.queue_threshold=7", "--inference.rtc.execution_horizon=3")
     assert len(lines) == 5, lines
     assert sum(d["success"] for d in lines) >= 3, lines
-    assert "RTC inference error" not in log and "PDP under RTC" in log
+    assert "RTC inference error" not in log and "over its first 3 actions" in log
 
 
 @pytest.mark.slow
