@@ -92,15 +92,16 @@ def rollout(ckpt: Path, work: Path, tag: str, fps: float, episodes: int, steer: 
     first = lines[0]
     first_action = (first_line_at or time.time()) - t0 - (first["steps"] - 1) / first["actions_per_s"]
     n = len(lines)
-    steps = ("action_step_median", "action_step_p90", "action_step_max")
-    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s", *steps) if k in d}
+    step_keys = ("action_step_median", "action_step_p90", "action_step_max")
+    return {"episodes": [{k: d[k] for k in ("steps", "actions_per_s", "median_gap_s", "max_gap_s", *step_keys)
+                          if k in d}
                          for d in lines],
             "actions_per_s": round(sum(d["actions_per_s"] for d in lines) / n, 2),
             "max_gap_s": max(d["max_gap_s"] for d in lines),
             "success": sum(d["success"] for d in lines) / n, "collided": sum(d["collided"] for d in lines) / n,
             "modes": [d["mode"] for d in lines], "startup_s": round(first_action, 1), "wall_s": round(wall, 1),
             "cpu_s": round(cpu, 1), "cores_busy": round(cpu / wall, 2),
-            **{k: round(median(d[k] for d in lines), 5) for k in steps if all(k in d for d in lines)}}
+            **{k: round(median(d[k] for d in lines), 5) for k in step_keys if all(k in d for d in lines)}}
 
 
 def _children_cpu_s() -> float:

@@ -93,6 +93,16 @@ def test_rtc_disabled_appends_chunks_without_a_prefix(synthetic_meta):
         p.predict_action_chunk(OBS, noise=noise, inference_delay=2, prev_chunk_left_over=None))
 
 
+def test_execution_horizon_0_holds_nothing(synthetic_meta):
+    """``--inference.rtc.execution_horizon=0``: the engine cuts the left-over to no rows; the chunk is free (the
+    queue still replaces its actions)."""
+    p = _rtc_policy(synthetic_meta, horizon=0)
+    noise = _noise(p)
+    torch.testing.assert_close(
+        p.predict_action_chunk(OBS, noise=noise, inference_delay=2, prev_chunk_left_over=torch.ones(0, p.action_dim)),
+        p.predict_action_chunk(OBS, noise=noise, inference_delay=2, prev_chunk_left_over=None))
+
+
 def test_steering_the_engine_cannot_follow_is_refused_with_the_way_out(synthetic_meta):
     p = _rtc_policy(synthetic_meta)
     means = p.mode_latents()

@@ -245,8 +245,8 @@ class PDPSim(Robot):
 
     def _action_steps(self) -> dict[str, float]:
         """How far the commanded action moved between two steps (Euclidean, the gripper command left out: it
-        switches by design): the median step, the 90th percentile and the largest. Chunks handed over every
-        few steps without continuing the one before raise the 90th percentile well above the median."""
+        switches by design): the median step, the 90th percentile and the largest; how smoothly one chunk hands
+        over to the next shows in the upper ones."""
         if len(self._actions) < 2:
             return {}
         a = np.stack(self._actions)
