@@ -122,11 +122,16 @@ class ConsumedDelayQueue(ActionQueue):
 
 def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
-    engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); with
-    ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue`."""
+    engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); name the run's
+    prefix length against the recommended one; with ``rtc_consumed_delay`` have the engine build its queue as
+    :class:`ConsumedDelayQueue`."""
     check_rtc_steering(policy)
     if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
         policy._steer_file.check = check_rtc_steering
+    logger.info("PDP under RTC: this run holds each new chunk to the last one over its first %d actions "
+                "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place about "
+                "20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
+                RECOMMENDED_EXECUTION_HORIZON)
     if not policy.config.rtc_consumed_delay:
         return
     engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy
@@ -148,12 +153,8 @@ def prepare_rtc(policy: Any) -> None:
     logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
                 "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps)). PDP plans %d actions ahead, so "
                 "LeRobot's default --inference.queue_threshold=30 generates chunks back to back, one core busy; "
-                "--inference.queue_threshold=%d replans every ~%d actions as sync does. This run holds each new "
-                "chunk to the last one over its first %d actions (--inference.rtc.execution_horizon); "
-                "--inference.rtc.execution_horizon=%d is recommended: LeRobot's default 10 cost pick-place about 20 "
-                "points against sync (docs/deploy.md)",
-                future, future - cfg.n_action_steps, cfg.n_action_steps, cfg.rtc_config.execution_horizon,
-                RECOMMENDED_EXECUTION_HORIZON)
+                "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
+                future, future - cfg.n_action_steps, cfg.n_action_steps)
 
 
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:

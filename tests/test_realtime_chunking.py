@@ -217,8 +217,11 @@ def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_
     monkeypatch.setattr(engine, "ActionQueue", ActionQueue)  # undone after the test
     p = small_policy(synthetic_meta, rtc_consumed_delay=False)
     p.config.rtc_config = RTCConfig()
-    p.init_rtc_processor()
+    with caplog.at_level("INFO", logger="lerobot_pdp.realtime_chunking"):
+        p.init_rtc_processor()
     assert engine.ActionQueue is ActionQueue
+    assert "over its first 10 actions" in caplog.text  # the prefix advice, whichever queue
+    caplog.clear()
     p.config.rtc_consumed_delay = True
     p.config.rtc_config = RTCConfig(execution_horizon=10)
     with caplog.at_level("INFO", logger="lerobot_pdp.realtime_chunking"):
@@ -226,7 +229,7 @@ def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_
     assert engine.ActionQueue is ConsumedDelayQueue
     # the info line names the settings chosen on validation for this chunk size, and the run's own prefix length
     assert "--inference.queue_threshold=7 " in caplog.text and "over its first 10 actions" in caplog.text
-    assert "--inference.rtc.execution_horizon=3 " in caplog.text
+    assert "3 is recommended" in caplog.text
 
 
 def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(synthetic_meta, tmp_path, caplog):
