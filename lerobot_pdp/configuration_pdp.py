@@ -273,6 +273,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # observation, continuing the previous chunk from that step; false: LeRobot's rule, ceil(latency * fps), with the
     # prefix from the engine's read, a step off for PDP's short chunks (realtime_chunking.py).
     rtc_consumed_delay: bool = True
+    # Under RTC, each chunk is conditioned on the last n_obs_steps observations the control loop published up to the
+    # chunk's own (the history select_action keeps); false: on the chunk's observation repeated (the engine passes
+    # only that one), what PDP was not trained on (realtime_chunking.py; docs/performance.md).
+    rtc_observation_history: bool = True
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----

@@ -13,8 +13,11 @@ costs what a plain one does.
 
 What differs from ``select_action``:
 
-- the engine passes one observation per chunk, not the control loop's history: the observation history is
-  filled with that observation (as at an episode's first chunk);
+- the engine passes one observation per chunk, not the control loop's history. With ``rtc_observation_history``
+  (the default) PDP keeps the observations the loop publishes (:class:`PublishedObservations`, fed by the
+  engine's ``notify_observation``) and conditions the chunk on the ``n_obs_steps`` up to the chunk's own, as
+  ``select_action`` does; otherwise (or before the loop has published enough) the history is filled with the
+  chunk's observation, as at an episode's first chunk;
 - the whole predicted future is returned (``horizon - n_obs_steps + 1`` actions, not ``n_action_steps``), so
   the engine's queue has slack while the next chunk is generated;
 - per-phase latents advance on the gripper commands ``select_action`` sees, and fitted chunk noises replay one
@@ -40,6 +43,8 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -120,11 +125,84 @@ class ConsumedDelayQueue(ActionQueue):
         return max(0, self.executed - self._chunk_from)  # merge holds the lock
 
 
+class PublishedObservations:
+    """The raw observations the control loop published to LeRobot's RTC engine, newest last, so a chunk can be
+    conditioned on the history ``select_action`` keeps: the engine passes a chunk only the one it read.
+
+    The engine's thread reads the latest observation, preprocesses it and asks for a chunk; the loop may publish
+    another meanwhile, so the chunk's own observation is found among the last few by comparing it, preprocessed
+    as the engine does, with the chunk's. The frames before it are preprocessed the same way (the engine's
+    pipeline; PDP's is stateless). Frames from before an episode's start (the policy's ``reset()``) are not
+    its history."""
+
+    def __init__(self, n_obs_steps: int) -> None:
+        self.n_obs_steps = n_obs_steps
+        self._frames: deque[tuple[int, dict]] = deque(maxlen=n_obs_steps + 8)  # (policy resets, raw observation)
+        self._engine: Any = None
+        self._lock = threading.Lock()
+        self.matched = 0  # chunks conditioned on the published history
+        self.unmatched = 0  # chunks whose observation was not among the frames kept (conditioned on it repeated)
+
+    def published(self, engine: Any, obs: dict) -> None:
+        """The loop published ``obs`` (the control loop's thread)."""
+        resets = engine._policy.steering.resets
+        with self._lock:
+            self._engine = engine
+            self._frames.append((resets, obs))
+
+    def history(self, policy: Any, batch: dict[str, Tensor]) -> dict[str, Tensor] | None:
+        """``batch``'s condition features as [1, n_obs_steps, *frame], the earlier frames from the observations
+        published before the chunk's in its episode (the earliest repeated when fewer exist); None: not found, or
+        the chunk's observation is from an episode that has ended (the chunk is dropped)."""
+        with self._lock:
+            engine, frames = self._engine, list(self._frames)
+        features = policy.config.condition_features
+        keys = list(features)
+        if engine is None or not frames or any(k not in batch or batch[k].shape != (1, *features[k].shape)
+                                                 for k in keys):
+            return None  # nothing published, or not one frame of the engine's (a history passed: kept)
+        for i in range(len(frames) - 1, -1, -1):  # newest first: usually the chunk's own
+            if _same_frame(_preprocess(engine, frames[i][1]), batch, keys):
+                break
+        else:
+            self.unmatched += 1
+            if self.unmatched == 1:
+                logger.warning("PDP under RTC: a chunk's observation was not among the last %d the loop published; it "
+                               "is conditioned on that observation repeated (and any other chunk like it)",
+                               len(frames))
+            return None
+        episode = frames[i][0]
+        if episode != policy.steering.resets:
+            return None
+        self.matched += 1
+        earlier = [_preprocess(engine, obs) for resets, obs in frames[max(0, i - self.n_obs_steps + 1) : i]
+                   if resets == episode]
+        earlier = [earlier[0] if earlier else batch] * (self.n_obs_steps - 1 - len(earlier)) + earlier
+        return {k: torch.stack([f[k] for f in [*earlier, batch]], dim=1) for k in keys}
+
+
+def _preprocess(engine: Any, obs: dict) -> dict[str, Tensor]:
+    """``obs`` as the engine's thread turns a raw observation into the policy's input (lerobot.rollout.inference.rtc,
+    ``_rtc_loop``; its helpers are LeRobot's own)."""
+    from lerobot.policies.utils import prepare_observation_for_inference
+    from lerobot.utils.feature_utils import build_dataset_frame
+
+    frame = build_dataset_frame(engine._hw_features, obs, prefix="observation")
+    frame = prepare_observation_for_inference(frame, torch.device(engine._device), engine._task,
+                                              engine._robot.robot_type)
+    frame["task"] = [engine._task]
+    return engine._preprocessor(frame)
+
+
+def _same_frame(a: dict[str, Tensor], b: dict[str, Tensor], keys: list[str]) -> bool:
+    return all(torch.equal(a[k], b[k].to(a[k].device)) for k in keys)
+
+
 def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
     engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); name the run's
-    prefix length against the recommended one; with ``rtc_consumed_delay`` have the engine build its queue as
-    :class:`ConsumedDelayQueue`."""
+    prefix length against the recommended one; with ``rtc_observation_history`` keep the observations the loop
+    publishes; with ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue`."""
     check_rtc_steering(policy)
     if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
         policy._steer_file.check = check_rtc_steering
@@ -132,23 +210,27 @@ def prepare_rtc(policy: Any) -> None:
                 "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place about "
                 "20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
                 RECOMMENDED_EXECUTION_HORIZON)
-    if not policy.config.rtc_consumed_delay:
-        return
+    cfg = policy.config
+    keep_history = cfg.rtc_observation_history and cfg.n_obs_steps > 1
+    policy._rtc_observations = PublishedObservations(cfg.n_obs_steps) if keep_history else None
     engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy
-    if engine is None or engine.ActionQueue is ConsumedDelayQueue:
+    if engine is None:
+        return
+    if keep_history or cfg.rtc_consumed_delay:
+        announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
+        if announce is None:
+            logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; each chunk is conditioned on "
+                           "its observation repeated, and aligned with the moment the engine reads it (it may be "
+                           "one step late)")
+        elif not getattr(announce, "announces_to_pdp", False):
+            engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+    if not cfg.rtc_consumed_delay or engine.ActionQueue is ConsumedDelayQueue:
         return
     if engine.ActionQueue is not ActionQueue or not hasattr(ActionQueue, "_check_and_resolve_delays"):
         logger.warning("PDP: this LeRobot's RTC engine has another action queue (%s); its delay rule is kept",
                        engine.ActionQueue)
         return
     engine.ActionQueue = ConsumedDelayQueue
-    announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
-    if announce is None:
-        logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; chunks are aligned with the "
-                       "moment the engine reads an observation, which may be one step late")
-    elif not getattr(announce, "announces_to_pdp_queue", False):
-        engine.RTCInferenceEngine.notify_observation = _announcing(announce)
-    cfg = policy.config
     future = cfg.horizon - cfg.n_obs_steps + 1  # what rtc_chunk returns
     logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
                 "(--policy.rtc_consumed_delay=false: LeRobot's ceil(latency * fps)). PDP plans %d actions ahead, so "
@@ -158,15 +240,19 @@ def prepare_rtc(policy: Any) -> None:
 
 
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
-    """The engine's ``notify_observation``, first telling PDP's queue that an observation was published."""
+    """The engine's ``notify_observation``, first telling PDP's queue and observation history that an observation
+    was published."""
 
     def notify_observation(engine: Any, obs: dict) -> None:
         queue = getattr(engine, "_action_queue", None)
         if isinstance(queue, ConsumedDelayQueue):
             queue.observed()
+        published = getattr(getattr(engine, "_policy", None), "_rtc_observations", None)
+        if published is not None:
+            published.published(engine, obs)
         notify(engine, obs)
 
-    notify_observation.announces_to_pdp_queue = True
+    notify_observation.announces_to_pdp = True
     return notify_observation
 
 
@@ -227,7 +313,10 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
     if policy._steer_file is not None:  # live steering: a changed file sets z before this chunk
         policy._steer_file.poll(policy)
     check_rtc_steering(policy)
-    history = {k: _history(batch, k, len(ft.shape), cfg.n_obs_steps) for k, ft in cfg.condition_features.items()}
+    published = getattr(policy, "_rtc_observations", None)
+    history = published.history(policy, batch) if published is not None else None
+    if history is None:
+        history = {k: _history(batch, k, len(ft.shape), cfg.n_obs_steps) for k, ft in cfg.condition_features.items()}
     obs_cond = policy.model.obs_cond(history)
     b = obs_cond.shape[0]
     z = policy.current_latent(b, obs_cond.device)

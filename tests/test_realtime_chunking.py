@@ -207,6 +207,66 @@ def test_the_engine_announces_observations_to_pdps_queue(synthetic_meta):
     assert q.executed_at_observation == 1 and e._obs_holder["obs"] == {"x": 1}
 
 
+def _engine_for(policy, meta):
+    """LeRobot's RTC engine with what its thread uses to turn a raw observation into the policy's input."""
+    import types
+
+    import lerobot.rollout.inference.rtc as engine
+    from lerobot.policies.factory import make_pre_post_processors
+
+    e = engine.RTCInferenceEngine.__new__(engine.RTCInferenceEngine)
+    e._obs_lock, e._obs_holder, e._action_queue, e._policy = threading.Lock(), {}, None, policy
+    e._hw_features = {k: {"dtype": "float32", "shape": (2,), "names": [f"{k}.{i}" for i in range(2)]}
+                      for k in OBS}
+    e._device, e._task, e._robot = "cpu", "", types.SimpleNamespace(robot_type="test")
+    e._preprocessor, _ = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
+    return e
+
+
+def _raw(k: int) -> dict:
+    return {f"{key}.{i}": 0.1 * k + 0.05 * i + j for j, key in enumerate(OBS) for i in range(2)}
+
+
+def _preprocessed(e, obs: dict) -> dict:
+    from lerobot_pdp.realtime_chunking import _preprocess
+
+    return {k: v for k, v in _preprocess(e, obs).items() if k in OBS}
+
+
+def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its_own(synthetic_meta, caplog):
+    """The engine passes one observation; PDP conditions on it and the one the loop published before it, as
+    select_action would, even when the loop published another while the chunk started; after a reset the new
+    episode's first chunk repeats its observation, as at select_action's first chunk."""
+    p = _rtc_policy(synthetic_meta)
+    assert p.config.n_obs_steps == 2
+    e = _engine_for(p, synthetic_meta)
+    for k in range(3):
+        e.notify_observation(_raw(k))  # PDP's announcing notify_observation, installed by init_rtc_processor
+    current, before = _preprocessed(e, _raw(1)), _preprocessed(e, _raw(0))  # the chunk's is not the latest
+    history = {k: torch.stack([before[k], current[k]], dim=1) for k in OBS}
+    noise = _noise(p)
+    got = p.predict_action_chunk(current, noise=noise, inference_delay=0, prev_chunk_left_over=None)
+    torch.testing.assert_close(got, p.predict_action_chunk(history, noise=noise, inference_delay=0,
+                                                           prev_chunk_left_over=None))
+    repeated = p.predict_action_chunk({k: torch.stack([current[k]] * 2, dim=1) for k in OBS}, noise=noise,
+                                      inference_delay=0, prev_chunk_left_over=None)
+    assert not torch.allclose(got, repeated)
+    p.reset()  # a new episode: the frames published before it are not its history
+    e.notify_observation(_raw(5))
+    first = _preprocessed(e, _raw(5))
+    torch.testing.assert_close(p.predict_action_chunk(first, noise=noise, inference_delay=0, prev_chunk_left_over=None),
+                               p.predict_action_chunk({k: torch.stack([first[k]] * 2, dim=1) for k in OBS},
+                                                      noise=noise, inference_delay=0, prev_chunk_left_over=None))
+    with caplog.at_level("WARNING"):  # an observation not among those published: repeated, and said once
+        for _ in range(2):
+            p.predict_action_chunk(_preprocessed(e, _raw(9)), inference_delay=0, prev_chunk_left_over=None)
+    assert p._rtc_observations.unmatched == 2 and caplog.text.count("was not among the last") == 1
+    p.config.rtc_observation_history = False
+    p.init_rtc_processor()
+    e.notify_observation(_raw(6))
+    assert p._rtc_observations is None  # the old behaviour: the chunk's observation repeated
+
+
 def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch,
                                                                                        caplog):
     import lerobot.rollout.inference.rtc as engine

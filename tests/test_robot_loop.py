@@ -208,6 +208,8 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     assert any(c["prev_chunk_left_over"] is not None for c in calls)
     queue = ctx.policy.inference.action_queue
     assert type(queue) is ConsumedDelayQueue and queue.executed_at_observation is not None  # observations announced
+    published = policy._rtc_observations  # each chunk conditioned on the history the loop published
+    assert published.matched > 0 and published.unmatched == 0
     assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
