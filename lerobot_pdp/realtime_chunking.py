@@ -161,10 +161,8 @@ class PublishedObservations:
         if engine is None or not frames or any(k not in batch or batch[k].shape != (1, *features[k].shape)
                                                  for k in keys):
             return None  # nothing published, or not one frame of the engine's (a history passed: kept)
-        for i in range(len(frames) - 1, -1, -1):  # newest first: usually the chunk's own
-            if _same_frame(_preprocess(engine, frames[i][1]), batch, keys):
-                break
-        else:
+        i = self._find(engine, [obs for _, obs in frames], batch, keys)
+        if i is None:
             self.unmatched += 1
             if self.unmatched == 1:
                 logger.warning("PDP under RTC: a chunk's observation was not among the last %d the loop published; it "
@@ -180,14 +178,42 @@ class PublishedObservations:
         earlier = [earlier[0] if earlier else batch] * (self.n_obs_steps - 1 - len(earlier)) + earlier
         return {k: torch.stack([f[k] for f in [*earlier, batch]], dim=1) for k in keys}
 
+    @staticmethod
+    def _find(engine: Any, frames: list[dict], batch: dict[str, Tensor], keys: list[str]) -> int | None:
+        """The index of the chunk's observation in ``frames``, searched newest first (usually the chunk's own).
+        The robot's vectors are compared first, as they cost little to preprocess, up to the end of the newest
+        run of frames they match: one match is the chunk's own. Images tell apart the frames of a run (a robot
+        at rest), and are compared throughout when the policy has no vector input."""
+        newest_first = list(range(len(frames) - 1, -1, -1))
+        vectors = {k: ft for k, ft in engine._hw_features.items() if ft["dtype"] not in ("image", "video")}
+        run: list[int] = []
+        compared: list[str] = []
+        for i in newest_first if vectors else []:
+            pre = _preprocess(engine, frames[i], vectors)
+            compared = compared or [k for k in keys if k in pre]
+            if not compared:
+                break
+            if _same_frame(pre, batch, compared):
+                run.append(i)
+            elif run:
+                break
+        if compared and len(run) == 1:
+            return run[0]
 
-def _preprocess(engine: Any, obs: dict) -> dict[str, Tensor]:
+        def same(i: int) -> bool:
+            return _same_frame(_preprocess(engine, frames[i]), batch, keys)
+
+        found = next((i for i in run if same(i)), None)
+        return found if found is not None else next((i for i in newest_first if i not in run and same(i)), None)
+
+
+def _preprocess(engine: Any, obs: dict, features: dict | None = None) -> dict[str, Tensor]:
     """``obs`` as the engine's thread turns a raw observation into the policy's input (lerobot.rollout.inference.rtc,
-    ``_rtc_loop``; its helpers are LeRobot's own)."""
+    ``_rtc_loop``; its helpers are LeRobot's own); ``features``: only these of the robot's."""
     from lerobot.policies.utils import prepare_observation_for_inference
     from lerobot.utils.feature_utils import build_dataset_frame
 
-    frame = build_dataset_frame(engine._hw_features, obs, prefix="observation")
+    frame = build_dataset_frame(engine._hw_features if features is None else features, obs, prefix="observation")
     frame = prepare_observation_for_inference(frame, torch.device(engine._device), engine._task,
                                               engine._robot.robot_type)
     frame["task"] = [engine._task]
@@ -222,8 +248,13 @@ def prepare_rtc(policy: Any) -> None:
             logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; each chunk is conditioned on "
                            "its observation repeated, and aligned with the moment the engine reads it (it may be "
                            "one step late)")
-        elif not getattr(announce, "announces_to_pdp", False):
-            engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+        else:
+            if not getattr(announce, "announces_to_pdp", False):
+                engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+            if keep_history:
+                logger.info("PDP under RTC: each chunk is conditioned on the last %d observations the loop published, "
+                            "as select_action is (--policy.rtc_observation_history=false: on its own, repeated)",
+                            cfg.n_obs_steps)
     if not cfg.rtc_consumed_delay or engine.ActionQueue is ConsumedDelayQueue:
         return
     if engine.ActionQueue is not ActionQueue or not hasattr(ActionQueue, "_check_and_resolve_delays"):

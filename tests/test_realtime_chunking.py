@@ -7,7 +7,7 @@ import pytest
 import torch
 from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.rollout.inference.rtc import supports_rtc_inference
-from policies import small_policy
+from policies import saved_steerable_checkpoint, small_policy
 
 
 @pytest.fixture(autouse=True)
@@ -216,8 +216,9 @@ def _engine_for(policy, meta):
 
     e = engine.RTCInferenceEngine.__new__(engine.RTCInferenceEngine)
     e._obs_lock, e._obs_holder, e._action_queue, e._policy = threading.Lock(), {}, None, policy
-    e._hw_features = {k: {"dtype": "float32", "shape": (2,), "names": [f"{k}.{i}" for i in range(2)]}
-                      for k in OBS}
+    e._hw_features = {k: {"dtype": "float32", "shape": ft.shape, "names": [f"{k}.{i}" for i in range(ft.shape[0])]}
+                      if len(ft.shape) == 1 else {"dtype": "image", "shape": (*ft.shape[1:], ft.shape[0]), "names": None}
+                      for k, ft in policy.config.condition_features.items()}
     e._device, e._task, e._robot = "cpu", "", types.SimpleNamespace(robot_type="test")
     e._preprocessor, _ = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
     return e
@@ -230,7 +231,7 @@ def _raw(k: int) -> dict:
 def _preprocessed(e, obs: dict) -> dict:
     from lerobot_pdp.realtime_chunking import _preprocess
 
-    return {k: v for k, v in _preprocess(e, obs).items() if k in OBS}
+    return {k: v for k, v in _preprocess(e, obs).items() if k in e._policy.config.condition_features}
 
 
 def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its_own(synthetic_meta, caplog):
@@ -267,6 +268,37 @@ def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its
     assert p._rtc_observations is None  # the old behaviour: the chunk's observation repeated
 
 
+def test_a_robot_at_rest_is_told_apart_by_its_camera(tmp_path):
+    """Two published frames with equal vectors (a robot at rest) and different images: the chunk's own is found
+    by its image, so its history is the frame before it, not its successor."""
+    import numpy as np
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from lerobot_pdp import PDPPolicy
+
+    ckpt, data = saved_steerable_checkpoint(tmp_path, camera="top")
+    p = PDPPolicy.from_pretrained(ckpt)
+    p.config.rtc_config = RTCConfig(execution_horizon=3)
+    p.init_rtc_processor()
+    e = _engine_for(p, LeRobotDatasetMetadata("local/ra", root=data))
+    vectors = [k for k, ft in e._hw_features.items() if ft["dtype"] == "float32"]
+
+    def frame(k: int, image_seed: int) -> dict:
+        values = {name: 0.1 * k + 0.01 * i for key in vectors for i, name in enumerate(e._hw_features[key]["names"])}
+        image = np.random.default_rng(image_seed).integers(0, 255, e._hw_features["observation.images.top"]["shape"])
+        return {**values, "top": image.astype(np.uint8)}
+
+    frames = [frame(0, 0), frame(1, 1), frame(1, 2)]  # the last two: at rest, the camera sees a change
+    for f in frames:
+        e.notify_observation(f)
+    batch = _preprocessed(e, frames[1])
+    history = p._rtc_observations.history(p, batch)
+    earlier = _preprocessed(e, frames[0])
+    for k in p.config.condition_features:
+        torch.testing.assert_close(history[k], torch.stack([earlier[k], batch[k]], dim=1))
+    assert p._rtc_observations.matched == 1
+
+
 def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_not_to(synthetic_meta, monkeypatch,
                                                                                        caplog):
     import lerobot.rollout.inference.rtc as engine
@@ -290,6 +322,7 @@ def test_prepare_rtc_gives_lerobots_engine_the_consumed_delay_queue_unless_told_
     # the info line names the settings chosen on validation for this chunk size, and the run's own prefix length
     assert "--inference.queue_threshold=7 " in caplog.text and "over its first 10 actions" in caplog.text
     assert "3 is recommended" in caplog.text
+    assert "conditioned on the last 2 observations the loop published" in caplog.text
 
 
 def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(synthetic_meta, tmp_path, caplog):

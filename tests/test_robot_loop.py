@@ -522,6 +522,8 @@ def test_record_fit_deploy_with_real_time_chunking(reach_around_pdp, tmp_path):
     assert len(lines) == 5, lines
     assert sum(d["success"] for d in lines) >= 3, lines
     assert "RTC inference error" not in log and "over its first 3 actions" in log
+    # each chunk conditioned on the observations the loop published, none missed
+    assert "conditioned on the last 2 observations the loop published" in log and "was not among" not in log
 
 
 @pytest.mark.slow
