@@ -213,6 +213,28 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
+def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, monkeypatch):
+    """``--inference.type=rtc`` with a camera policy on a robot that renders it: each chunk is conditioned on the
+    observation history the loop published (images included), none of its observations missed."""
+    import lerobot.rollout.inference.rtc as engine_module
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference import RTCInferenceConfig
+    from policies import saved_steerable_checkpoint
+
+    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
+    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
+                        engine_module.RTCInferenceEngine.notify_observation)
+    ckpt, _ = saved_steerable_checkpoint(tmp_path, camera="top")
+    outcomes = tmp_path / "o.jsonl"
+    ctx = run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes), episodes=1,
+                                         camera_names=["top"], camera_size=(32, 32), calibration_dir=tmp_path),
+                      inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=3), queue_threshold=7))
+    policy = ctx.policy.policy
+    assert "observation.images.top" in policy.config.condition_features
+    assert len(_outcomes(outcomes)) == 1
+    assert policy._rtc_observations.matched > 0 and policy._rtc_observations.unmatched == 0
+
+
 def test_episodic_rollout_records_one_dataset_episode_per_env_episode(untrained_reach_around, tmp_path):
     """``--strategy.type=episodic`` records deployments: each env episode is one dataset episode (the robot ends
     the recorded episode as the "next episode" key would), and PDP can fit z to such a recording."""
