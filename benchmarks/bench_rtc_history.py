@@ -73,7 +73,7 @@ def main() -> None:
         for obs in frames:
             published.published(e, obs)
         batch = _preprocess(e, frames[-2])  # the chunk's observation; the loop published one more since
-        assert published.history(e._policy, batch) is not None
+        assert published.history(e._policy, batch)[0] is not None
         engine_ms = _ms(lambda: _preprocess(e, frames[-2]), args.calls)  # noqa: B023
         history_ms = _ms(lambda: published.history(e._policy, batch), args.calls)  # noqa: B023
         print(json.dumps({"bench": "rtc_history", "image": [h, w], "n_obs_steps": published.n_obs_steps,

@@ -24,8 +24,8 @@ What differs from ``select_action``:
   per ``n_action_steps`` chunk: neither has a meaning when the engine replans at its own pace, so both are
   refused with a message (``--inference.type=sync`` runs them): at start-up, and as live requests (the robot
   keeps its latent);
-- a chunk whose generation overlapped a ``reset()`` (a new episode) is returned empty: its observation
-  belongs to the episode that ended.
+- a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
+  before it, is returned empty: its observation belongs to the episode that ended.
 
 A new chunk must continue from the step of the observation it was generated from. LeRobot's queue (0.6.1)
 replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, and takes the prefix from the
@@ -150,17 +150,17 @@ class PublishedObservations:
             self._engine = engine
             self._frames.append((resets, obs))
 
-    def history(self, policy: Any, batch: dict[str, Tensor]) -> dict[str, Tensor] | None:
-        """``batch``'s condition features as [1, n_obs_steps, *frame], the earlier frames from the observations
-        published before the chunk's in its episode (the earliest repeated when fewer exist); None: not found, or
-        the chunk's observation is from an episode that has ended (the chunk is dropped)."""
+    def history(self, policy: Any, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor] | None, bool]:
+        """(``batch``'s condition features as [1, n_obs_steps, *frame], the earlier frames from the observations
+        published before the chunk's in its episode, the earliest repeated when fewer exist, or None: not found;
+        whether the chunk's observation belongs to an episode that has ended)."""
         with self._lock:
             engine, frames = self._engine, list(self._frames)
         features = policy.config.condition_features
         keys = list(features)
         if engine is None or not frames or any(k not in batch or batch[k].shape != (1, *features[k].shape)
                                                  for k in keys):
-            return None  # nothing published, or not one frame of the engine's (a history passed: kept)
+            return None, False  # nothing published, or not one frame of the engine's (a history passed: kept)
         i = self._find(engine, [obs for _, obs in frames], batch, keys)
         if i is None:
             self.unmatched += 1
@@ -168,15 +168,15 @@ class PublishedObservations:
                 logger.warning("PDP under RTC: a chunk's observation was not among the last %d the loop published; it "
                                "is conditioned on that observation repeated (and any other chunk like it)",
                                len(frames))
-            return None
+            return None, False
         episode = frames[i][0]
         if episode != policy.steering.resets:
-            return None
+            return None, True
         self.matched += 1
         earlier = [_preprocess(engine, obs) for resets, obs in frames[max(0, i - self.n_obs_steps + 1) : i]
                    if resets == episode]
         earlier = [earlier[0] if earlier else batch] * (self.n_obs_steps - 1 - len(earlier)) + earlier
-        return {k: torch.stack([f[k] for f in [*earlier, batch]], dim=1) for k in keys}
+        return {k: torch.stack([f[k] for f in [*earlier, batch]], dim=1) for k in keys}, False
 
     @staticmethod
     def _find(engine: Any, frames: list[dict], batch: dict[str, Tensor], keys: list[str]) -> int | None:
@@ -345,7 +345,9 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
         policy._steer_file.poll(policy)
     check_rtc_steering(policy)
     published = getattr(policy, "_rtc_observations", None)
-    history = published.history(policy, batch) if published is not None else None
+    history, ended = published.history(policy, batch) if published is not None else (None, False)
+    if ended:  # the engine read this observation before an episode ended: no action of it reaches the next one
+        return torch.zeros(1, 0, policy.action_dim, device=policy.model.device)
     if history is None:
         history = {k: _history(batch, k, len(ft.shape), cfg.n_obs_steps) for k, ft in cfg.condition_features.items()}
     obs_cond = policy.model.obs_cond(history)

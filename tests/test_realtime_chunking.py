@@ -236,8 +236,9 @@ def _preprocessed(e, obs: dict) -> dict:
 
 def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its_own(synthetic_meta, caplog):
     """The engine passes one observation; PDP conditions on it and the one the loop published before it, as
-    select_action would, even when the loop published another while the chunk started; after a reset the new
-    episode's first chunk repeats its observation, as at select_action's first chunk."""
+    select_action would, even when the loop published another while the chunk started; a chunk from an observation
+    read before a reset is dropped; the new episode's first chunk repeats its observation, as at select_action's
+    first chunk."""
     p = _rtc_policy(synthetic_meta)
     assert p.config.n_obs_steps == 2
     e = _engine_for(p, synthetic_meta)
@@ -253,6 +254,8 @@ def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its
                                       inference_delay=0, prev_chunk_left_over=None)
     assert not torch.allclose(got, repeated)
     p.reset()  # a new episode: the frames published before it are not its history
+    stale = p.predict_action_chunk(current, inference_delay=0, prev_chunk_left_over=None)  # read before the reset
+    assert stale.shape == (1, 0, p.action_dim)  # no action of the episode that ended reaches the new one
     e.notify_observation(_raw(5))
     first = _preprocessed(e, _raw(5))
     torch.testing.assert_close(p.predict_action_chunk(first, noise=noise, inference_delay=0, prev_chunk_left_over=None),
@@ -265,7 +268,11 @@ def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its
     p.config.rtc_observation_history = False
     p.init_rtc_processor()
     e.notify_observation(_raw(6))
-    assert p._rtc_observations is None  # the old behaviour: the chunk's observation repeated
+    assert p._rtc_observations is None  # the chunk's observation repeated
+    last = _preprocessed(e, _raw(6))
+    torch.testing.assert_close(p.predict_action_chunk(last, noise=noise, inference_delay=0, prev_chunk_left_over=None),
+                               p.predict_action_chunk({k: torch.stack([last[k]] * 2, dim=1) for k in OBS},
+                                                      noise=noise, inference_delay=0, prev_chunk_left_over=None))
 
 
 def test_a_robot_at_rest_is_told_apart_by_its_camera(tmp_path):
@@ -292,7 +299,8 @@ def test_a_robot_at_rest_is_told_apart_by_its_camera(tmp_path):
     for f in frames:
         e.notify_observation(f)
     batch = _preprocessed(e, frames[1])
-    history = p._rtc_observations.history(p, batch)
+    history, ended = p._rtc_observations.history(p, batch)
+    assert not ended
     earlier = _preprocessed(e, frames[0])
     for k in p.config.condition_features:
         torch.testing.assert_close(history[k], torch.stack([earlier[k], batch[k]], dim=1))
