@@ -197,14 +197,10 @@ class PublishedObservations:
                 run.append(i)
             elif run:
                 break
-        if compared and len(run) == 1:
-            return run[0]
-
-        def same(i: int) -> bool:
-            return _same_frame(_preprocess(engine, frames[i]), batch, keys)
-
-        found = next((i for i in run if same(i)), None)
-        return found if found is not None else next((i for i in newest_first if i not in run and same(i)), None)
+        if compared and len(run) <= 1:
+            return run[0] if run else None  # a frame whose vectors differ cannot be the chunk's
+        return next((i for i in (run if compared else newest_first)
+                     if _same_frame(_preprocess(engine, frames[i]), batch, keys)), None)
 
 
 def _preprocess(engine: Any, obs: dict, features: dict | None = None) -> dict[str, Tensor]:
