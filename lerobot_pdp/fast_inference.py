@@ -24,6 +24,7 @@ in docs/performance.md ("Fast inference paths", ``benchmarks/bench_fast_paths.py
 
 from __future__ import annotations
 
+import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,6 +34,10 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
 
 from .denoiser import ConditionalResidualBlock1d, Conv1dBlock, FiLMUnet1d
+
+# One trace at a time: the warning filters it sets are process-wide, so a trace finishing in one thread (a fit
+# beside the control loop) would restore them under another's and let TracerWarnings through.
+_TRACE_LOCK = threading.Lock()
 
 
 def conv1d_unfolded(x: Tensor, conv: nn.Conv1d) -> Tensor:
@@ -279,7 +284,10 @@ class FastDenoiser:
         key = (sample.dtype, len(context))
         fn = self._traced.get(key)
         if fn is None:
-            fn = self._traced[key] = self._trace(sample, context)
+            with _TRACE_LOCK:
+                fn = self._traced.get(key)
+                if fn is None:
+                    fn = self._traced[key] = self._trace(sample, context)
         return fn(sample, *context)
 
     def _trace(self, sample: Tensor, context: list[Tensor]) -> Callable:
