@@ -35,8 +35,8 @@ from torch import Tensor, nn
 
 from .denoiser import ConditionalResidualBlock1d, Conv1dBlock, FiLMUnet1d
 
-# One trace at a time: the warning filters it sets are process-wide, so a trace finishing in one thread (a fit
-# beside the control loop) would restore them under another's and let TracerWarnings through.
+# One trace at a time: two threads (a fit beside the control loop) would trace the same denoiser twice, and the
+# warning filters a trace sets are process-wide, so one finishing would restore them under the other's.
 _TRACE_LOCK = threading.Lock()
 
 
@@ -57,7 +57,9 @@ def _conv_block(block: Conv1dBlock, x: Tensor, unfold: bool) -> Tensor:
         return block(x)
     norm = block.block[1]
     h = conv1d_unfolded(x, block.block[0])
-    return F.mish(F.group_norm(h, norm.num_groups, norm.weight, norm.bias, norm.eps))
+    # the aten op: F.group_norm's Python batch-size check warns under tracing (a TracerWarning), and the filter
+    # _trace sets is process-wide, so another thread's catch_warnings could let it through
+    return F.mish(torch.group_norm(h, norm.num_groups, norm.weight, norm.bias, norm.eps, torch.backends.cudnn.enabled))
 
 
 def _residual_block(res: ConditionalResidualBlock1d, x: Tensor, scale: Tensor, bias: Tensor, unfold: bool) -> Tensor:
