@@ -38,12 +38,17 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 @contextmanager
 def staging_dir(next_to: str | Path, prefix: str = ".staging-") -> Iterator[Path]:
-    """A fresh folder beside ``next_to`` (same filesystem, so its contents can be renamed into place),
-    removed with whatever is left in it when the block ends, also on error."""
+    """A fresh folder beside ``next_to`` (same filesystem, so it or its contents can be renamed into place),
+    with the permissions of a folder made by ``mkdir``, removed with whatever is left in it when the block ends,
+    also on error."""
     parent = Path(next_to).parent
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
     try:
+        probe = tmp / ".mode"  # mkdtemp's folder is its owner's alone (0700); one moved into place must not be
+        probe.mkdir()
+        tmp.chmod(probe.stat().st_mode & 0o7777)  # a plain mkdir's mode: 0777 less the umask
+        probe.rmdir()
         yield tmp
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

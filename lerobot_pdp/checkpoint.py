@@ -41,10 +41,13 @@ ADAPTATION_INFO = "adaptation.json"
 
 def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[str, Tensor] | None = None) -> None:
     """Write ``policy``'s config + weights (+ its active adaptation, if any) into a temporary folder next to
-    ``save_directory``, then move them in, so a crash mid-write never leaves a half checkpoint (weights are
-    moved last). A folder reused for a policy without an adaptation loses its stale adaptation files."""
+    ``save_directory``, then move them in. A new (or empty) folder is the staging folder renamed: a crash
+    leaves no checkpoint or a whole one. Into an existing checkpoint the files move one by one, weights last:
+    each file is whole, but a crash between two moves leaves new files beside old ones. A folder reused for a
+    policy without an adaptation loses its stale adaptation files."""
     save_directory = Path(save_directory)
     save_directory.mkdir(parents=True, exist_ok=True)
+    fresh = not any(save_directory.iterdir())
     try:
         with staging_dir(save_directory, prefix=".pdp-save-") as tmp:
             policy.config._save_pretrained(tmp)
@@ -53,6 +56,9 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             else:
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
             adapted = write_adaptation(policy.steering, tmp)
+            if fresh:
+                os.replace(tmp, save_directory)  # onto an empty folder: one rename
+                return
             names = sorted(p.name for p in tmp.iterdir())
             for name in sorted(names, key=lambda n: n.endswith(".safetensors")):
                 os.replace(tmp / name, save_directory / name)

@@ -194,10 +194,10 @@ class PDPPolicy(PreTrainedPolicy):
     init_rtc_processor = prepare_rtc  # lerobot-rollout calls it once config.rtc_config is set
 
     def _advance_phase(self, action: Tensor) -> None:
-        """With one latent per phase, move each env to its next latent when its gripper command flips
-        (see :class:`~lerobot_pdp.phases.PhaseTracker`); the next chunk is then generated under it."""
+        """Count each env's gripper flips (:class:`~lerobot_pdp.phases.PhaseTracker`); with one latent per phase,
+        an env that moved on to its next latent replans under it."""
         cfg = self.config
-        if not self.steering.per_phase or cfg.segment_gripper_dim is None:
+        if cfg.segment_gripper_dim is None:
             return
         raw = self.stats.unnormalize(ACTION, action)[:, cfg.segment_gripper_dim]
         if self.steering.observe(raw > cfg.segment_gripper_threshold, cfg.phase_switch_steps):

@@ -1,7 +1,7 @@
 """Pre/post-processors of PDP: LeRobot's standard pipelines (rename, batch, device, normalise / unnormalise).
 
-PDP normalises like LeRobot's diffusion policy (min-max to [-1, 1] for states, env states and actions),
-so the DDIM sampler's clipping range [-1, 1] matches the action range. The policy keeps a copy of the same
+PDP normalises like LeRobot's diffusion policy (min-max to [-1, 1] for states, env states and actions, mean-std
+for cameras), so the DDIM sampler's clipping range [-1, 1] matches the action range. The policy keeps a copy of the same
 statistics to normalise whole demonstrations in ``fit_latent``/``encode``.
 """
 

@@ -25,7 +25,9 @@ What differs from ``select_action``:
   refused with a message (``--inference.type=sync`` runs them): at start-up, and as live requests (the robot
   keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
-  before it, is returned empty: its observation belongs to the episode that ended.
+  before it, is returned empty: its observation belongs to the episode that ended (the observations the loop
+  published tell which episode a chunk's is from, with or without the history; LeRobot's engine keeps its last
+  observation across ``reset()``).
 
 A new chunk must continue from the step of the observation it was generated from. LeRobot's queue (0.6.1)
 replaces its actions with the new chunk less ``ceil(latency * fps)`` actions, and takes the prefix from the
@@ -34,8 +36,9 @@ that step's action, so the engine usually reads an observation whose step's acti
 prefix starts one step late, and the number dropped is off by one either way. PDP's chunks are short and
 replanned every few actions, so that misalignment recurs (avoiding, pick-place: docs/performance.md). With
 ``rtc_consumed_delay`` (the default) PDP has the engine use :class:`ConsumedDelayQueue`, which counts the
-actions executed since the observation (the engine's ``notify_observation`` announces each one); only runs with
-a PDP policy under RTC are affected.
+actions executed since the observation (the engine's ``notify_observation`` announces each one). It is set on
+LeRobot's engine module when a PDP policy is prepared for RTC, so an engine started later in the same process, for
+any policy, builds it too (``lerobot-rollout`` runs one policy per process).
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
 """
 
@@ -133,15 +136,17 @@ class PublishedObservations:
     another meanwhile, so the chunk's own observation is found among the last few by comparing it, preprocessed
     as the engine does, with the chunk's. The frames before it are preprocessed the same way (the engine's
     pipeline; PDP's is stateless). Frames from before an episode's start (the policy's ``reset()``) are not
-    its history."""
+    its history, and a chunk whose own frame is from an episode that ended is stale. ``keep_history=False``:
+    only that check (the chunk is conditioned on its observation repeated)."""
 
-    def __init__(self, n_obs_steps: int) -> None:
+    def __init__(self, n_obs_steps: int, keep_history: bool = True) -> None:
         self.n_obs_steps = n_obs_steps
+        self.keep_history = keep_history
         self._frames: deque[tuple[int, dict]] = deque(maxlen=n_obs_steps + 8)  # (policy resets, raw observation)
         self._engine: Any = None
         self._lock = threading.Lock()
-        self.matched = 0  # chunks conditioned on the published history
-        self.unmatched = 0  # chunks whose observation was not among the frames kept (conditioned on it repeated)
+        self.matched = 0  # chunks whose observation was found among the frames kept
+        self.unmatched = 0  # chunks whose observation was not (conditioned on it repeated, its episode unchecked)
 
     def published(self, engine: Any, obs: dict) -> None:
         """The loop published ``obs`` (the control loop's thread)."""
@@ -152,8 +157,8 @@ class PublishedObservations:
 
     def history(self, policy: Any, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor] | None, bool]:
         """(``batch``'s condition features as [1, n_obs_steps, *frame], the earlier frames from the observations
-        published before the chunk's in its episode, the earliest repeated when fewer exist, or None: not found;
-        whether the chunk's observation belongs to an episode that has ended)."""
+        published before the chunk's in its episode, the earliest repeated when fewer exist, or None: not found
+        or no history kept; whether the chunk's observation belongs to an episode that has ended)."""
         with self._lock:
             engine, frames = self._engine, list(self._frames)
         features = policy.config.condition_features
@@ -165,14 +170,16 @@ class PublishedObservations:
         if i is None:
             self.unmatched += 1
             if self.unmatched == 1:
-                logger.warning("PDP under RTC: a chunk's observation was not among the last %d the loop published; it "
-                               "is conditioned on that observation repeated (and any other chunk like it)",
-                               len(frames))
+                logger.warning("PDP under RTC: a chunk's observation was not among the last %d the loop published; "
+                               "its episode is not checked%s (and any other chunk like it)", len(frames),
+                               ", and it is conditioned on that observation repeated" if self.keep_history else "")
             return None, False
         episode = frames[i][0]
         if episode != policy.steering.resets:
             return None, True
         self.matched += 1
+        if not self.keep_history:
+            return None, False
         earlier = [_preprocess(engine, obs) for resets, obs in frames[max(0, i - self.n_obs_steps + 1) : i]
                    if resets == episode]
         earlier = [earlier[0] if earlier else batch] * (self.n_obs_steps - 1 - len(earlier)) + earlier
@@ -223,8 +230,9 @@ def _same_frame(a: dict[str, Tensor], b: dict[str, Tensor], keys: list[str]) -> 
 def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
     engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); name the run's
-    prefix length against the recommended one; with ``rtc_observation_history`` keep the observations the loop
-    publishes; with ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue`."""
+    prefix length against the recommended one; keep the observations the loop publishes (the chunks' episodes,
+    and with ``rtc_observation_history`` their history); with ``rtc_consumed_delay`` have the engine build its
+    queue as :class:`ConsumedDelayQueue`."""
     check_rtc_steering(policy)
     if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
         policy._steer_file.check = check_rtc_steering
@@ -234,23 +242,22 @@ def prepare_rtc(policy: Any) -> None:
                 RECOMMENDED_EXECUTION_HORIZON)
     cfg = policy.config
     keep_history = cfg.rtc_observation_history and cfg.n_obs_steps > 1
-    policy._rtc_observations = PublishedObservations(cfg.n_obs_steps) if keep_history else None
+    policy._rtc_observations = PublishedObservations(cfg.n_obs_steps, keep_history)
     engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy
     if engine is None:
         return
-    if keep_history or cfg.rtc_consumed_delay:
-        announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
-        if announce is None:
-            logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; each chunk is conditioned on "
-                           "its observation repeated, and aligned with the moment the engine reads it (it may be "
-                           "one step late)")
-        else:
-            if not getattr(announce, "announces_to_pdp", False):
-                engine.RTCInferenceEngine.notify_observation = _announcing(announce)
-            if keep_history:
-                logger.info("PDP under RTC: each chunk is conditioned on the last %d observations the loop published, "
-                            "as select_action is (--policy.rtc_observation_history=false: on its own, repeated)",
-                            cfg.n_obs_steps)
+    announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
+    if announce is None:
+        logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; each chunk is conditioned on its "
+                       "observation repeated, aligned with the moment the engine reads it (it may be one step late), "
+                       "and a chunk from the last episode's observation is not told apart")
+    else:
+        if not getattr(announce, "announces_to_pdp", False):
+            engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+        if keep_history:
+            logger.info("PDP under RTC: each chunk is conditioned on the last %d observations the loop published, "
+                        "as select_action is (--policy.rtc_observation_history=false: on its own, repeated)",
+                        cfg.n_obs_steps)
     if not cfg.rtc_consumed_delay or engine.ActionQueue is ConsumedDelayQueue:
         return
     if engine.ActionQueue is not ActionQueue or not hasattr(ActionQueue, "_check_and_resolve_delays"):

@@ -16,7 +16,8 @@ its content changed, the request in it sets the active latent before the chunk i
 Write the file whole (:func:`write_steering`, or ``lerobot-pdp steer``): a reader must never see half a
 request. Requests are checked before they are written (finite values, mode ids; with the checkpoint, its
 latent size and modes) and written as strict JSON. A bad request that reaches the policy anyway (a
-hand-written file) is logged and the current latent kept: a typo must not stop a running robot.
+hand-written file) is logged and the current latent kept, with the fit of the last good request if one is
+still running: a typo must not stop a running robot.
 
 A checkpoint is also steered once, as it loads, by its config's ``steer_*`` fields (:func:`apply_config_steering`).
 """
@@ -291,7 +292,7 @@ class SteerFile:
         if seen == self._seen:
             return changed
         self._seen = seen
-        self.fit = None  # a newer request supersedes a fit still running (its result is dropped)
+        pending, self.fit = self.fit, None  # a newer request supersedes a fit still running (its result is dropped)
         try:
             request = check_request(json.loads(content, parse_constant=_no_constant))
             if "dataset" in request:
@@ -302,7 +303,9 @@ class SteerFile:
                 return changed
             z = self._checked(policy, lambda: apply_steering(policy, request, base=self.path.parent))
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
-            logger.error("steering file %s: %s; keeping the current latent", self.path, e)
+            self.fit = pending  # a refused request supersedes nothing: the last good one's fit goes on
+            logger.error("steering file %s: %s; keeping the current latent%s", self.path, e,
+                         " (the fit still running stays)" if pending is not None else "")
             return changed
         logger.info("steering file %s: %s -> latent %s", self.path, request,
                     z.tolist() if hasattr(z, "tolist") else z)

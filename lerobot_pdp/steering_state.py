@@ -110,8 +110,7 @@ class Steering(nn.Module):
             if not torch.isfinite(z).all():
                 raise ValueError(f"latent has non-finite values: {z.tolist()}")
             self.latent = z.detach().to(self.latent.device)
-        self.noises.set(noise)
-        self.phases.reset()
+        self.noises.set(noise)  # the phases go on: they count the episode's gripper flips (phases.py)
         self.provenance = provenance
 
     def reset(self) -> None:
@@ -138,10 +137,10 @@ class Steering(nn.Module):
         return self.noises.next(batch_size, device)
 
     def observe(self, gripper_closed: Tensor, hold_steps: int) -> bool:
-        """An executed gripper command per env ([B] bool); True when some env moved to its next phase latent."""
-        if not self.per_phase:
-            return False
-        return self.phases.update(gripper_closed.to(self.latent.device), len(self.latent), hold_steps)
+        """An executed gripper command per env ([B] bool), counted whatever latent is active (one per phase may
+        come mid-episode); True when some env moved to its next phase latent."""
+        moved = self.phases.update(gripper_closed.to(self.latent.device), hold_steps)
+        return self.per_phase and bool((moved & (self.phases.phase <= len(self.latent) - 1)).any())
 
     def state_tensors(self) -> dict[str, Tensor]:
         """The active latent and noises (CPU copies), what an adapted checkpoint keeps."""

@@ -252,32 +252,35 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
         bar = tqdm(total=steps, desc="teach", unit="step")
     was_training = model.denoiser.training
     model.denoiser.train()
-    with torch.inference_mode(False), torch.enable_grad(), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(int(seed))
-        for _ in range(steps):
-            i_demo = torch.randint(0, len(demo.actions), (n_demo,), generator=g)
-            i_old = torch.randint(0, len(rehearsal.actions), (n_old,), generator=g) if n_old else i_demo[:0]
-            obs = torch.cat([demo.obs_cond[i_demo], rehearsal.obs_cond[i_old]]).to(device)
-            actions = torch.cat([demo.actions[i_demo], rehearsal.actions[i_old]]).to(device)
-            is_pad = torch.cat([demo.is_pad[i_demo], rehearsal.is_pad[i_old]]).to(device)
-            z = torch.cat([z_demo[i_demo], z_old[i_old]]).to(device)
-            eps = torch.randn_like(actions)
-            k = torch.randint(0, cfg.num_train_timesteps, (len(actions),), device=device)
-            pred = model.denoiser(model.noise_schedule.add_noise(actions, eps, k), k, obs, z)
-            loss = diffusion_loss(pred, eps, is_pad if mask_pad else None)
-            value = float(loss.detach())
-            if not math.isfinite(value):
-                raise FloatingPointError(f"teach: the loss became non-finite at step {len(losses) + 1} ({value}); "
-                                         "the policy's weights are now partly fine-tuned: reload it. Lower the lr")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, cfg.optimizer_grad_clip_norm)
-            opt.step()
-            losses.append(value)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{losses[-1]:.4f}", refresh=False)
-    model.denoiser.train(was_training)
-    if bar is not None:
-        bar.close()
+    try:
+        with torch.inference_mode(False), torch.enable_grad(), torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(seed))
+            for _ in range(steps):
+                i_demo = torch.randint(0, len(demo.actions), (n_demo,), generator=g)
+                i_old = torch.randint(0, len(rehearsal.actions), (n_old,), generator=g) if n_old else i_demo[:0]
+                obs = torch.cat([demo.obs_cond[i_demo], rehearsal.obs_cond[i_old]]).to(device)
+                actions = torch.cat([demo.actions[i_demo], rehearsal.actions[i_old]]).to(device)
+                is_pad = torch.cat([demo.is_pad[i_demo], rehearsal.is_pad[i_old]]).to(device)
+                z = torch.cat([z_demo[i_demo], z_old[i_old]]).to(device)
+                eps = torch.randn_like(actions)
+                k = torch.randint(0, cfg.num_train_timesteps, (len(actions),), device=device)
+                pred = model.denoiser(model.noise_schedule.add_noise(actions, eps, k), k, obs, z)
+                loss = diffusion_loss(pred, eps, is_pad if mask_pad else None)
+                value = float(loss.detach())
+                if not math.isfinite(value):
+                    raise FloatingPointError(f"teach: the loss became non-finite at step {len(losses) + 1} ({value}); "
+                                             "the policy's weights are now partly fine-tuned and its behavior bank holds the "
+                                             "new mode: reload it. Lower the lr")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, cfg.optimizer_grad_clip_norm)
+                opt.step()
+                losses.append(value)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{losses[-1]:.4f}", refresh=False)
+    finally:  # also when the loss turns non-finite: the policy's mode and the console are left as found
+        model.denoiser.train(was_training)
+        if bar is not None:
+            bar.close()
     return losses

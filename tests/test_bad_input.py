@@ -48,6 +48,9 @@ def _warnings(caplog, text: str) -> list[str]:
 
 
 def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
+    assert policy.latent_outlier(policy.mode_latents()[0][None]) is None  # the check, without acting
+    far, spread = policy.latent_outlier(torch.tensor([[1e6, -1e6]]))
+    assert far > 3 and spread > 0
     with caplog.at_level(logging.WARNING):
         policy.set_latent(policy.mode_latents()[0])
         assert not _warnings(caplog, "spreads")

@@ -332,9 +332,9 @@ def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
     assert p.phases.phase.tolist() == [0]
     p._advance_phase(act(1))  # ... held for 2 actions
     assert p.phases.phase.tolist() == [1] and torch.equal(p.current_latent(1)[0], z[1])
-    for closed in (0, 0, 0):  # last phase stays active
+    for closed in (0, 0, 0):  # a third phase (release): the last phase's latent stays active
         p._advance_phase(act(closed))
-    assert p.phases.phase.tolist() == [1]
+    assert p.phases.phase.tolist() == [2] and torch.equal(p.current_latent(1)[0], z[1])
 
 
 def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
@@ -354,8 +354,28 @@ def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
     p._advance_phase(act(0, 1, 0))  # 0 releases, 1 grasps
     assert p.phases.phase.tolist() == [2, 1, 0]
     assert torch.equal(p.current_latent(3), torch.stack([z[2], z[1], z[0]]))
-    p.set_latent(z)  # a new latent restarts every env at phase 0
-    assert torch.equal(p.current_latent(3), z[0].expand(3, -1))
+    p.set_latent(z.flip(0))  # a new latent mid-episode (live steering, a fit done) takes over at each env's phase
+    assert torch.equal(p.current_latent(3), torch.stack([z[0], z[1], z[2]]))
+    p.reset()  # a new episode: every env back at its first phase
+    assert torch.equal(p.current_latent(3), z[2].expand(3, -1))
+
+
+def test_phase_latents_set_mid_episode_start_at_the_phase_the_robot_is_in(synthetic_meta):
+    """The gripper flips are counted under a single latent too: one latent per phase arriving after the grasp
+    (a background fit finishing) conditions the carry on the carry latent, not the reach one."""
+    p = small_policy(synthetic_meta)
+    p.config.segment_gripper_dim = 0
+    p.config.phase_switch_steps = 1
+    p.set_latent(torch.tensor([0.5, 0.5]))
+    p.reset()
+    act = _gripper_actions(p)
+    for closed in (0, 0, 1, 1):  # reach, then grasp
+        p._advance_phase(act(closed))
+    z = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
+    p.set_latent(z)
+    assert torch.equal(p.current_latent(1)[0], z[1])
+    p._advance_phase(act(0))  # release: the last phase's latent stays
+    assert torch.equal(p.current_latent(1)[0], z[1])
 
 
 def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_meta):

@@ -268,11 +268,13 @@ def test_a_chunk_is_conditioned_on_the_observations_the_loop_published_up_to_its
     p.config.rtc_observation_history = False
     p.init_rtc_processor()
     e.notify_observation(_raw(6))
-    assert p._rtc_observations is None  # the chunk's observation repeated
-    last = _preprocessed(e, _raw(6))
+    e.notify_observation(_raw(7))
+    last = _preprocessed(e, _raw(7))  # without the history: the chunk's observation repeated
     torch.testing.assert_close(p.predict_action_chunk(last, noise=noise, inference_delay=0, prev_chunk_left_over=None),
                                p.predict_action_chunk({k: torch.stack([last[k]] * 2, dim=1) for k in OBS},
                                                       noise=noise, inference_delay=0, prev_chunk_left_over=None))
+    p.reset()  # ... and a chunk read before a reset is still told apart
+    assert p.predict_action_chunk(last, inference_delay=0, prev_chunk_left_over=None).shape == (1, 0, p.action_dim)
 
 
 def test_a_robot_at_rest_is_told_apart_by_its_camera(tmp_path):

@@ -266,6 +266,24 @@ def test_atomic_write_replaces_whole_files_and_leaves_no_temp_file_when_it_fails
     assert sorted(p.name for p in tmp_path.iterdir()) == ["busy", "results.json"]
 
 
+def test_a_staged_folder_moved_into_place_has_a_plain_folders_permissions(tmp_path):
+    """Adapted and taught checkpoints are staged folders renamed into place: readable by whoever may read a
+    folder made by mkdir (mkdtemp's own 0700 would lock out a robot service running as another user)."""
+    import os
+
+    from lerobot_pdp.atomic import staging_dir
+
+    old = os.umask(0o022)
+    try:
+        with staging_dir(tmp_path / "ckpt") as tmp:
+            (tmp / "config.json").write_text("{}")
+            os.replace(tmp, tmp_path / "ckpt")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "ckpt").stat().st_mode & 0o777 == 0o755
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+
+
 @pytest.mark.parametrize(("device", "message"), [("gpu", "is not a torch device"), ("cuda:0", "no CUDA device")])
 def test_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys, device, message):
     import torch

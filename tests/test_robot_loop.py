@@ -361,7 +361,7 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     assert len(p.active_latent) == 0
 
 
-def test_a_steering_fit_runs_off_the_control_path_and_a_newer_request_supersedes_it(synthetic_meta, tmp_path):
+def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_supersedes_it(synthetic_meta, tmp_path):
     steer = tmp_path / "steer.json"
     p = small_policy(synthetic_meta, steer_file=str(steer), fit_steps=150)
     p.eval()
@@ -393,6 +393,9 @@ def test_a_steering_fit_runs_off_the_control_path_and_a_newer_request_supersedes
     next_chunk()
     running = p._steer_file.fit
     assert running is not None
+    steer.write_text('{"latnt": [0.1, 0.2]}\n')  # a hand-written typo is refused and supersedes nothing
+    next_chunk()
+    assert p._steer_file.fit is running or running.done()  # (done: it landed at that poll, before the typo)
     write_steering(steer, {"mode": 0})
     next_chunk()
     assert running.wait(120)

@@ -467,11 +467,6 @@ class PointMassEnv(gym.Env):
             "min_clearance": float(self._min_clearance),
         }
 
-    @property
-    def trajectory(self) -> np.ndarray:
-        """End-effector positions of the current episode, including the reset position."""
-        return np.asarray(self._positions)
-
     # ---- rendering (numpy raster, no GL) ------------------------------------------------------------
 
     RENDER_PX: ClassVar[int] = 160
