@@ -146,8 +146,9 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
                 batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
                 progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps,
             )
-        judge_fit(model, config, result, windows, seed)
-        if (noise or cfg.fit_noise) == "chunks":
+        chunks = (noise or cfg.fit_noise) == "chunks"
+        judge_fit(model, config, result, windows, seed, chunks)
+        if chunks:
             result.noise = fit_chunk_noise(
                 model.denoiser, model.noise_schedule, windows, result.z.to(device), cfg.n_action_steps,
                 cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr, seed=seed if seed is not None else 0)
@@ -158,10 +159,12 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
     return result
 
 
-def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: DemoWindows, seed: int | None) -> None:
-    """Fill ``result.fit_error`` / ``error_ratio`` and warn when the fitted latent reproduces the demonstration
-    much worse than the policy reproduces its training demonstrations: on the validation scenes that is where
-    steering failed (``config.fit_warn_ratio``)."""
+def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: DemoWindows, seed: int | None,
+              chunks: bool = False) -> None:
+    """Fill ``result.fit_error`` / ``error_ratio`` (of the fitted z alone) and warn when the fitted latent
+    reproduces the demonstration much worse than the policy reproduces its training demonstrations: on the
+    validation scenes that is where steering failed (``config.fit_warn_ratio``). ``chunks``: chunk noises are
+    fitted next, which the warning then says instead of advising them."""
     if config.fit_report_chunks == 0:
         return
     result.fit_error = demonstration_error(model.denoiser, model.noise_schedule, windows,
@@ -178,11 +181,13 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
             "to a route this far from the training behaviors often fails: on the benchmark's validation scenes "
             "fits above 2x succeeded in 0-35 %% of the rollouts, on an unseen test scene in 2.5-92.5 %% by "
             "training seed. Try it before relying on it; demonstrations of this route in the training data are "
-            "what helps, and fit_latent(noise='chunks') (also fitting the sampler's noise per chunk) reached "
-            "such routes on validation scenes (docs/experiments.md, \"Does the fit tell when steering will "
+            "what helps, and %s (docs/experiments.md, \"Does the fit tell when steering will "
             "fail?\", \"z plus one sampler noise per chunk\"). Where neither reaches the route, teach it as a new "
             "mode: policy.teach(demo, training_dataset) or `lerobot-pdp teach CKPT --demo DATASET --out TAUGHT`.",
-            result.error_ratio, result.fit_error, reference, config.fit_warn_ratio)
+            result.error_ratio, result.fit_error, reference, config.fit_warn_ratio,
+            "the sampler noises per chunk fitted next (this ratio is of z alone) reached such routes on validation "
+            "scenes" if chunks else "also fitting the sampler's noise per chunk (fit_latent(noise='chunks'), "
+            "--policy.fit_noise=chunks, lerobot-pdp adapt --noise chunks) reached such routes on validation scenes")
 
 
 def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **settings: object) -> dict:

@@ -22,7 +22,7 @@ from typing import Any
 
 from .atomic import staging_dir
 from .candidate_rollouts import EnvFactory
-from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, read_adaptation, write_adaptation
+from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING, read_adaptation, write_adaptation
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .latent_search import SearchResult
@@ -31,7 +31,6 @@ from .outcome_scores import Score
 
 logger = logging.getLogger(__name__)
 
-CARD_HEADING = "## Adaptation"  # the model card's section on the adaptation, replaced when a checkpoint is re-adapted
 
 
 def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise: str | None = None,
@@ -137,7 +136,8 @@ def _card_section(provenance: dict, result) -> str:
     noises = "" if result.noise is None else f" and {len(result.noise)} sampler noises (one per chunk)"
     return (f"{CARD_HEADING}\n\nThis checkpoint is adapted to one demonstration (episode {demo.get('episode', '?')} of "
             f"`{Path(str(demo.get('dataset', 'arrays'))).name}`): it acts under the fitted latent "
-            f"`{result.z.tolist()}`{noises} from its first action (fit error ratio {ratio}, {provenance['date']}). "
+            f"`{result.z.tolist()}`{noises} from its first action (fit error ratio {ratio}"
+            f"{'' if result.noise is None else ' of the latent alone'}, {provenance['date']}). "
             f"Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
             "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
 

@@ -28,7 +28,7 @@ from huggingface_hub.serialization import save_torch_state_dict
 from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
-from .atomic import staging_dir
+from .atomic import staging_dir, write_text_atomic
 from .behavior_bank import CHECKPOINT_KEYS, TAUGHT_KEY
 from .checkpoint_files import damaged_weights, read_config_json, read_weight_shapes
 from .configuration_pdp import apply_legacy_defaults
@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 ADAPTATION_TENSORS = "adaptation.safetensors"
 ADAPTATION_INFO = "adaptation.json"
+CARD_HEADING = "## Adaptation"  # the model card's section on the adaptation, replaced when it changes
 
 
 def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[str, Tensor] | None = None) -> None:
@@ -44,7 +45,8 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     ``save_directory``, then move them in. A new (or empty) folder is the staging folder renamed: a crash
     leaves no checkpoint or a whole one. Into an existing checkpoint the files move one by one, weights last:
     each file is whole, but a crash between two moves leaves new files beside old ones. A folder reused for a
-    policy without an adaptation loses its stale adaptation files."""
+    policy without an adaptation loses its stale adaptation files, and its model card's adaptation section is
+    rewritten for the adaptation saved (:func:`refresh_card`)."""
     save_directory = Path(save_directory)
     save_directory.mkdir(parents=True, exist_ok=True)
     fresh = not any(save_directory.iterdir())
@@ -65,9 +67,30 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             if not adapted:  # only once the new checkpoint is in place: a failed save keeps the old one whole
                 for name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
                     (save_directory / name).unlink(missing_ok=True)
+            refresh_card(save_directory, policy.steering if adapted else None)
     finally:
         if not any(save_directory.iterdir()):
             save_directory.rmdir()
+
+
+def refresh_card(folder: Path, steering: Any) -> None:
+    """A model card (``README.md``) with an adaptation section describes the adaptation now saved in ``folder``
+    (``steering``; None: none), so a card never names a latent the checkpoint no longer acts under."""
+    card = folder / "README.md"
+    if not card.is_file():
+        return
+    text = card.read_text()
+    if f"\n{CARD_HEADING}\n" not in text:
+        return
+    text = text.split(f"\n{CARD_HEADING}\n")[0].rstrip() + "\n"
+    if steering is not None:
+        noises = len(steering.noises.noise)
+        source = (steering.provenance or {}).get("source", "set_latent")
+        text += (f"\n{CARD_HEADING}\n\nThis checkpoint acts under the latent `{steering.latent.tolist()}`"
+                 f"{f' and {noises} sampler noises (one per chunk)' if noises else ''} from its first action, saved "
+                 f"from Python ({source}); `{ADAPTATION_INFO}` holds where it came from. Weights are the base "
+                 "checkpoint's. `--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
+    write_text_atomic(card, text)
 
 
 def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> Any:

@@ -257,7 +257,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     sizes = {p.name: p.stat().st_size for p in sorted(out.glob("adaptation.*"))}
     ratio = info.get("error_ratio")
     print(f"wrote {out}: latent {info['latent']}, {info['noise_chunks']} chunk noise(s), error ratio "
-          f"{'n/a' if ratio is None else f'{ratio:.2f}'}; adaptation files {sizes} bytes")
+          f"{'n/a' if ratio is None else f'{ratio:.2f}'}{' (of the latent alone)' if info['noise_chunks'] else ''}; "
+          f"adaptation files {sizes} bytes")
     return 0
 
 

@@ -72,8 +72,9 @@ class FitResult:
     z_init: Tensor  # starting point
     losses: list[float] = field(default_factory=list)  # L_fit per step (first entry: at z_init)
     steps: int = 0
-    # L_fit (without lambda|z|^2, mean over phases) on every window at the fitted z, and its ratio to the
-    # training demonstrations' error at their own latents (None for a policy without that reference)
+    # L_fit (without lambda|z|^2, mean over phases) on every window at the fitted z (alone: before any chunk
+    # noises), and its ratio to the training demonstrations' error at their own latents (None for a policy
+    # without that reference)
     fit_error: float | None = None
     error_ratio: float | None = None
     # with fit_noise="chunks": one initial sampler noise per executed chunk, [C, horizon, A], played in order

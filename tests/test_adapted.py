@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import filecmp
 import json
+import shutil
 
 import pytest
 import torch
@@ -100,7 +101,8 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     _base_checkpoint(synthetic_meta, base)
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--episode", "2", "--steps", "2",
                 "--noise", "chunks", "--out", str(out)]) == 0
-    assert "adaptation files" in capsys.readouterr().out
+    cli_out = capsys.readouterr().out
+    assert "adaptation files" in cli_out
     for f in base.iterdir():  # every file of the base, the weights bit for bit
         assert filecmp.cmp(f, out / f.name, shallow=False) or f.name == "README.md", f.name
     assert "## Adaptation" in (out / "README.md").read_text()
@@ -110,6 +112,17 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     q = PDPPolicy.from_pretrained(out)
     assert q.active_latent.tolist() == info["latent"] and len(q.active_noise) == info["noise_chunks"]
     assert not list(tmp_path.glob(".pdp-adapt-*"))  # nothing half-written left beside it
+    assert "(of the latent alone)" in cli_out and "error ratio" in cli_out  # the ratio is z's, before the noises
+    # saved over from Python: the card's section follows the adaptation it now holds (or goes with it)
+    resaved = tmp_path / "resaved"
+    shutil.copytree(out, resaved)
+    q.set_latent(q.mode_latents()[1])
+    q.save_pretrained(resaved)
+    card = (resaved / "README.md").read_text()
+    assert card.count("## Adaptation") == 1 and str(q.active_latent.tolist()) in card and "noises" not in card
+    q.set_latent(None)
+    q.save_pretrained(resaved)
+    assert "## Adaptation" not in (resaved / "README.md").read_text() and not (resaved / ADAPTATION_INFO).exists()
     # an existing output is refused by name; so is a folder that is no checkpoint
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--out", str(out)]) == 2
     assert f"{out} exists" in capsys.readouterr().err
