@@ -1,5 +1,6 @@
 """A checkpoint folder's files checked before anything is built from them: a clear error naming the folder or
-file (a missing folder, a damaged config.json or model.safetensors, missing processor files) instead of
+file (a missing folder, a damaged config.json or model.safetensors, missing processor files, non-finite processor
+statistics) instead of
 huggingface_hub's or json's. Apart from checkpoint.py so that the config's own loader can use it."""
 
 from __future__ import annotations
@@ -56,6 +57,27 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
         if program in DEPLOY_PROGRAMS:
             raise FileNotFoundError(f"{program}: {text}")
         logger.info("%s; PDP itself loads without them", text)
+    check_processor_statistics(folder)
+
+
+def check_processor_statistics(folder: Path) -> None:
+    """Refuse a processor statistics file (``policy_*processor*.safetensors``: LeRobot's normaliser and
+    unnormaliser state) holding a non-finite value, naming the file and tensor: the postprocessor's would turn
+    every action non-finite after PDP's own check of the chunk, on the way to the robot."""
+    from safetensors import SafetensorError, safe_open
+
+    for path in sorted(folder.glob("policy_*processor*.safetensors")):
+        try:
+            with safe_open(str(path), framework="pt") as f:
+                for key in f.keys():
+                    t = f.get_tensor(key)
+                    if t.is_floating_point() and not bool(t.isfinite().all()):
+                        raise ValueError(f"{path}: statistic {key!r} holds {int((~t.isfinite()).sum())} non-finite "
+                                         f"value(s) of {t.numel()}; the checkpoint's normalisation is damaged: copy "
+                                         "the file again from the training run, or recompute the dataset's statistics")
+        except (SafetensorError, OSError) as e:
+            raise ValueError(f"{path} cannot be read ({e}): the file is damaged (cut off while written or "
+                             "copied?); copy it again from the training run") from e
 
 
 def read_config_json(path: str | Path) -> dict:

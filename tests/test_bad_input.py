@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -156,6 +157,22 @@ def test_a_damaged_weights_file_is_named(checkpoint, tmp_path):
     for cut in (100, len(data) // 2):  # "invalid header length", then "incomplete metadata"
         weights.write_bytes(data[:cut])
         with pytest.raises(ValueError, match=rf"{weights} is not a readable safetensors file .*damaged"):
+            PDPPolicy.from_pretrained(ckpt)
+
+
+def test_non_finite_processor_statistics_are_refused_at_load_by_file_and_key(checkpoint, tmp_path):
+    """The postprocessor's statistics unnormalise every action after PDP's own check of the chunk: a NaN there
+    would reach the robot, so the checkpoint is refused as it loads (the preprocessor's likewise)."""
+    from safetensors.torch import load_file, save_file
+
+    for kind in ("postprocessor", "preprocessor"):
+        ckpt = _copy(checkpoint, tmp_path / kind)
+        (stats_file,) = ckpt.glob(f"policy_{kind}_step_*.safetensors")
+        stats = load_file(stats_file)
+        key = next(k for k in sorted(stats) if k.endswith(".max"))
+        stats[key][0] = float("nan") if kind == "postprocessor" else float("inf")
+        save_file(stats, stats_file)
+        with pytest.raises(ValueError, match=rf"{stats_file}: statistic '{re.escape(key)}' holds 1 non-finite value"):
             PDPPolicy.from_pretrained(ckpt)
 
 
