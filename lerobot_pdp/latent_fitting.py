@@ -12,6 +12,9 @@ objective is the sum of the per-phase losses (paper Eq. 12).
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +82,31 @@ class FitResult:
     error_ratio: float | None = None
     # with fit_noise="chunks": one initial sampler noise per executed chunk, [C, horizon, A], played in order
     noise: Tensor | None = None
+
+
+class FitCancelled(RuntimeError):
+    """A fit stopped between two steps because its thread was told to (:func:`cancellable`)."""
+
+
+_CANCEL = threading.local()  # per thread: the event that stops the fits it runs
+
+
+@contextmanager
+def cancellable(stop: threading.Event) -> Iterator[None]:
+    """Within the block, on this thread, :func:`fit_latent` and :func:`fit_chunk_noise` raise :class:`FitCancelled`
+    at their next step once ``stop`` is set: a live-steering fit superseded by a newer request, or one still
+    running when the process exits (a thread left inside torch then aborts the interpreter's exit)."""
+    _CANCEL.stop = stop
+    try:
+        yield
+    finally:
+        _CANCEL.stop = None
+
+
+def _check_cancelled() -> None:
+    stop = getattr(_CANCEL, "stop", None)
+    if stop is not None and stop.is_set():
+        raise FitCancelled("the fit was cancelled")
 
 
 def _stratified_batch(segment: Tensor, n_segments: int, batch_size: int, g: torch.Generator) -> Tensor:
@@ -255,6 +283,7 @@ def fit_latent(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWin
     with torch.no_grad():
         obs = frozen.observations(windows.obs_cond.to(z.device))
     for i in iterator:
+        _check_cancelled()
         idx = _stratified_batch(windows.segment, windows.n_segments, batch_size, g)
         if use_fd:
             loss, grad = fit_loss_and_grad_fd(frozen, schedule, windows, z.detach(), idx, noise_samples, lam, g,
@@ -307,6 +336,7 @@ def fit_chunk_noise(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: De
     opt = torch.optim.Adam([x], lr=lr)
     with torch.inference_mode(False), torch.enable_grad():
         for _ in range(int(steps)):
+            _check_cancelled()
             idx = torch.randperm(n, generator=g)[:batch_size].to(device)
             with torch.no_grad():
                 ctx = frozen.context(obs[idx], z.float(), seg_all[idx])

@@ -24,6 +24,7 @@ A checkpoint is also steered once, as it loads, by its config's ``steer_*`` fiel
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import math
@@ -39,10 +40,19 @@ import torch
 
 from .adaptation import fit_provenance
 from .atomic import write_text_atomic
+from .latent_fitting import cancellable
 
 logger = logging.getLogger(__name__)
 
 REQUEST_KEYS = ("mode", "latent", "dataset")
+_RUNNING: set[BackgroundFit] = set()  # live-steering fits still running, cancelled when the process exits
+
+
+@atexit.register
+def _cancel_running_fits() -> None:
+    for fit in list(_RUNNING):
+        fit.cancel()
+        fit.wait(10)
 
 
 def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
@@ -232,8 +242,10 @@ def _mode_id(policy: Any, mode: Any) -> int:
 
 
 class BackgroundFit:
-    """One ``fit_latent`` of a ``dataset`` request in a daemon thread (a robot loop must not wait for it; a
-    process that ends meanwhile does not wait either). The result is activated by the control thread."""
+    """One ``fit_latent`` of a ``dataset`` request in a daemon thread (a robot loop must not wait for it). The
+    result is activated by the control thread. :meth:`cancel` stops it at its next step: a newer request
+    supersedes it, and a process that ends meanwhile cancels it and waits the step out (a thread left inside
+    torch's kernels aborts the interpreter's exit)."""
 
     def __init__(self, policy: Any, root: Path, episode: int, steps: int | None):
         self.root, self.episode, self.steps = root, episode, steps
@@ -241,15 +253,24 @@ class BackgroundFit:
         self.error: BaseException | None = None
         self.started = time.perf_counter()
         self.seconds: float | None = None
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(policy,), name="pdp-steering-fit", daemon=True)
+        _RUNNING.add(self)
         self._thread.start()
 
     def _run(self, policy: Any) -> None:
         try:
-            self.result = policy.fit_latent((self.root, self.episode), steps=self.steps, activate=False)
+            with cancellable(self._stop):
+                self.result = policy.fit_latent((self.root, self.episode), steps=self.steps, activate=False)
         except BaseException as e:  # noqa: BLE001 - reported by the control thread, which keeps its latent
             self.error = e
-        self.seconds = time.perf_counter() - self.started
+        finally:
+            self.seconds = time.perf_counter() - self.started
+            _RUNNING.discard(self)
+
+    def cancel(self) -> None:
+        """Stop the fit at its next step (its result, if it finishes first, is dropped by the caller)."""
+        self._stop.set()
 
     def done(self) -> bool:
         return not self._thread.is_alive()
@@ -292,16 +313,20 @@ class SteerFile:
         if seen == self._seen:
             return changed
         self._seen = seen
-        pending, self.fit = self.fit, None  # a newer request supersedes a fit still running (its result is dropped)
+        pending, self.fit = self.fit, None  # a newer request supersedes a fit still running (cancelled below)
         try:
             request = check_request(json.loads(content, parse_constant=_no_constant))
             if "dataset" in request:
                 root, episode, steps = fit_request(request, base=self.path.parent)
+                if pending is not None:
+                    pending.cancel()
                 self.fit = BackgroundFit(policy, root, episode, steps)
                 logger.info("steering file %s: fitting z to %s episode %d in the background; acting on the "
                             "current latent until it is ready", self.path, root, episode)
                 return changed
             z = self._checked(policy, lambda: apply_steering(policy, request, base=self.path.parent))
+            if pending is not None:
+                pending.cancel()
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
             self.fit = pending  # a refused request supersedes nothing: the last good one's fit goes on
             logger.error("steering file %s: %s; keeping the current latent%s", self.path, e,

@@ -8,9 +8,11 @@ an untrained reach-around PDP: they check the plumbing, not the behavior. The sl
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -398,9 +400,43 @@ def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_super
     assert p._steer_file.fit is running or running.done()  # (done: it landed at that poll, before the typo)
     write_steering(steer, {"mode": 0})
     next_chunk()
-    assert running.wait(120)
+    assert running.wait(120)  # cancelled at its next step, not run to its end beside the control loop
     next_chunk()
     assert torch.allclose(p.active_latent[0], p.mode_latents()[0])
+
+
+def test_a_process_ending_while_a_steering_fit_runs_exits_cleanly(synthetic_meta, tmp_path):
+    """A live-steering fit still running when the program ends (lerobot-rollout's --duration) is cancelled at
+    its next step: the interpreter exits normally instead of aborting on a thread left inside torch."""
+    script = tmp_path / "run.py"
+    script.write_text(f"""
+import sys, time
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+from policies import small_policy
+from lerobot_pdp.steering import BackgroundFit
+p = small_policy(LeRobotDatasetMetadata("local/synthetic", root={str(synthetic_meta.root)!r}))
+fit = BackgroundFit(p, {str(synthetic_meta.root)!r}, 1, 10**7)
+time.sleep(3)
+assert not fit.done()
+print("ending", flush=True)
+""")
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "ending" in proc.stdout and "terminate called" not in proc.stderr
+    assert time.perf_counter() - t0 < 120
+
+
+def test_a_superseded_steering_fit_is_cancelled(synthetic_meta, tmp_path):
+    from lerobot_pdp.latent_fitting import FitCancelled
+    from lerobot_pdp.steering import BackgroundFit
+
+    p = small_policy(synthetic_meta)
+    fit = BackgroundFit(p, synthetic_meta.root, 1, 10**7)
+    fit.cancel()
+    assert fit.wait(60) and isinstance(fit.error, FitCancelled) and fit.result is None
 
 
 def test_steering_requests_are_checked_before_writing(tmp_path, synthetic_meta):
