@@ -48,6 +48,7 @@ from .latent_search import SearchResult, search_latent, search_provenance
 from .model_card import pdp_model_card
 from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
+from .observation_encoder import check_observation
 from .outcome_scores import Score
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
 from .realtime_chunking import prepare_rtc, rtc_chunk
@@ -180,6 +181,7 @@ class PDPPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
         """One normalised action [B, A] per call; a new chunk is generated when the queue runs empty."""
         batch = {k: v for k, v in batch.items() if k != ACTION}
+        check_observation(batch, self.config.condition_features, ("B",))  # a key or size it was not trained on
         self._queues = populate_queues(self._queues, batch)
         if len(self._queues[ACTION]) == 0:
             actions = self.predict_action_chunk(batch, noise=noise)

@@ -16,6 +16,20 @@ from torch import Tensor, nn
 from .configuration_pdp import PDPConfig
 
 
+def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[str, ...]) -> None:
+    """Refuse an input the policy was not trained on, naming the key and the expected shape: a missing key or
+    a frame of another size would otherwise fail deep inside the network, or (a camera's size) act silently
+    on features the policy never saw. ``leading``: the names of the batch dims before each frame."""
+    for key, ft in features.items():
+        x = batch.get(key)
+        expected = f"[{', '.join((*leading, *map(str, ft.shape)))}]"
+        if x is None:
+            raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has {sorted(batch)}")
+        if x.dim() != len(leading) + len(ft.shape) or tuple(x.shape[len(leading):]) != tuple(ft.shape):
+            raise ValueError(f"observation {key!r} has shape {list(x.shape)}; this policy expects {expected} "
+                             "(its training dataset's feature)")
+
+
 class ObservationEncoder(nn.Module):
     """Per-frame condition features: ``[state | environment state | camera 1 | camera 2 | ...]``.
 
@@ -24,7 +38,8 @@ class ObservationEncoder(nn.Module):
 
     def __init__(self, config: PDPConfig):
         super().__init__()
-        self.keys = list(config.condition_features)
+        self.features = dict(config.condition_features)
+        self.keys = list(self.features)
         self.vector_keys = [k for k in self.keys if config.condition_features[k].type is not FeatureType.VISUAL]
         self.image_keys = [k for k in self.keys if config.condition_features[k].type is FeatureType.VISUAL]
         self.vector_dim = sum(config.condition_features[k].shape[0] for k in self.vector_keys)
@@ -43,6 +58,7 @@ class ObservationEncoder(nn.Module):
 
     def forward(self, batch: dict[str, Tensor]) -> Tensor:
         """Features [B, S, frame_dim] of observation histories ``batch[key]``: [B, S, dim] or [B, S, 3, H, W]."""
+        check_observation(batch, self.features, ("B", "n_obs_steps"))
         b, s = batch[self.keys[0]].shape[:2]
         return self._features({k: batch[k].flatten(0, 1) for k in self.keys}).view(b, s, -1)
 

@@ -48,6 +48,19 @@ def _warnings(caplog, text: str) -> list[str]:
 # ---- the steering API
 
 
+def test_select_action_names_a_missing_key_or_a_frame_of_another_size(policy):
+    policy.reset()
+    ok = {"observation.state": torch.zeros(1, 2), "observation.environment_state": torch.zeros(1, 2)}
+    with pytest.raises(KeyError, match=r"conditions on 'observation.environment_state' \[B, 2\], which the "
+                                       r"observation lacks; it has \['observation.state'\]"):
+        policy.select_action({"observation.state": ok["observation.state"]})
+    with pytest.raises(ValueError, match=r"'observation.state' has shape \[1, 4\]; this policy expects \[B, 2\]"):
+        policy.select_action({**ok, "observation.state": torch.zeros(1, 4)})
+    with pytest.raises(ValueError, match=r"expects \[B, n_obs_steps, 2\]"):  # a history passed whole
+        policy.predict_action_chunk({**ok, "observation.state": torch.zeros(1, 2, 3)})
+    policy.reset()
+
+
 def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
     assert policy.latent_outlier(policy.mode_latents()[0][None]) is None  # the check, without acting
     far, spread = policy.latent_outlier(torch.tensor([[1e6, -1e6]]))
