@@ -14,13 +14,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import shutil
 import time
 from pathlib import Path
 from typing import Any
 
-from .atomic import staging_dir
+from .atomic import move_into_place, staging_dir
 from .candidate_rollouts import EnvFactory
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING, read_adaptation, write_adaptation
 from .configuration_pdp import PDPConfig
@@ -112,7 +111,7 @@ def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: s
         if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
             text = text.split(f"\n{CARD_HEADING}\n")[0]
         (tmp / "README.md").write_text(text.rstrip() + "\n\n" + card_section)
-        os.replace(tmp, out)
+        move_into_place(tmp, Path(out))
 
 
 def _check_folders(base: Path, out: str | Path | None) -> None:

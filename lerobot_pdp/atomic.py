@@ -52,3 +52,15 @@ def staging_dir(next_to: str | Path, prefix: str = ".staging-") -> Iterator[Path
         yield tmp
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def move_into_place(staged: Path, out: Path) -> None:
+    """Rename the finished ``staged`` folder to ``out``, which was checked not to exist: one created meanwhile
+    (another program, a second run) is named instead of the rename's errno."""
+    try:
+        os.replace(staged, out)
+    except OSError as e:
+        if out.exists():
+            raise FileExistsError(f"{out} was created while this was being written; nothing was written there: "
+                                  "give a new folder") from e
+        raise

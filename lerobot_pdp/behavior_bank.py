@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 
 import numpy as np
 import torch
@@ -273,6 +274,8 @@ class BehaviorBank(nn.Module):
         if not spread > 0:
             return None
         nearest = float(torch.cdist(z.float().cpu(), train).min(1).values.max()) / spread
+        if math.isnan(nearest):  # the distance overflows float32 (|z| ~ 1e19 and up): as far as it gets
+            nearest = math.inf
         return (nearest, spread) if nearest > FAR_LATENT_SPREADS else None
 
     def warn_if_far(self, vae: TrajectoryVAE, z: Tensor) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -187,12 +188,15 @@ def add_steer_parser(sub: argparse._SubParsersAction) -> None:
         "chunk, without reloading the policy.",
     )
     p.add_argument("file", type=Path, help="the policy's --policy.steer_file")
+    # argparse reads "-1.5e-05" as an option (its negative-number rule knows no exponents): latents printed by
+    # Python look like that
+    p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|nan)$", re.IGNORECASE)
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--mode", help="a training mode, by id or name")
     g.add_argument("--latent", type=float, nargs="+", help="a latent z (latent_dim values)")
     g.add_argument("--dataset", help="a recording (LeRobotDataset folder) to fit z to")
     g.add_argument("--default", action="store_true", help="back to the policy's default latent")
-    p.add_argument("--episode", type=int, default=0, help="episode of --dataset (default 0)")
+    p.add_argument("--episode", type=int, default=None, help="episode of --dataset (default 0)")
     p.add_argument("--steps", type=int, default=None, help="fitting steps for --dataset (default: fit_steps)")
     p.add_argument("--policy-path", type=Path, default=None,
                    help="the running policy's checkpoint folder: the request is checked against its latent_dim and "
@@ -205,9 +209,12 @@ def cmd_steer(args: argparse.Namespace) -> int:
     from lerobot_pdp.steering import checkpoint_target, file_target, write_steering
 
     if args.dataset is not None:
-        request: dict = {"dataset": str(Path(args.dataset).resolve()), "episode": args.episode}
+        request: dict = {"dataset": str(Path(args.dataset).resolve()),
+                         "episode": 0 if args.episode is None else args.episode}
         if args.steps is not None:
             request["steps"] = args.steps
+    elif args.episode is not None or args.steps is not None:
+        raise ValueError("--episode and --steps go with --dataset (a recording to fit z to)")
     elif args.mode is not None:
         request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}
     else:
@@ -463,6 +470,14 @@ def cmd_explore(args: argparse.Namespace) -> int:
         import_gradio()
     except ImportError as e:
         raise RuntimeError(str(e)) from e
+    import socket
+
+    with socket.socket() as probe:  # a taken port, before minutes of loading and Gradio's traceback
+        try:
+            probe.bind(("127.0.0.1", args.port))
+        except OSError as e:
+            raise RuntimeError(f"port {args.port} is not free ({e.strerror}): another explorer or program holds "
+                               "it; give another with --port") from None
     explorer = Explorer(args.checkpoint, env=args.env, scene=args.scene, rollouts=args.rollouts,
                         max_steps=args.max_steps, cache_dir=args.cache_dir, dataset=args.dataset, device=args.device)
     print(f"explorer on {args.checkpoint}: http://127.0.0.1:{args.port} (Ctrl-C stops it)")
@@ -752,6 +767,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"lerobot-pdp {args.command}: error: {msg}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: a line, not torch's traceback (outputs go through atomic.py's staging)
+        print(f"lerobot-pdp {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

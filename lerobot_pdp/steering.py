@@ -56,13 +56,16 @@ def _cancel_running_fits() -> None:
 
 
 def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
-    """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes) and
-    write it atomically to ``path`` as strict JSON (no NaN / Infinity, which the policy would reject)."""
+    """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes; a
+    recording to fit, its folder and episode) and write it atomically to ``path`` as strict JSON (no NaN /
+    Infinity, which the policy would reject)."""
     check_request(request, expect)
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write the steering file {path}: folder {path.parent} does not exist "
                                 "(give the path the running policy's --policy.steer_file names)")
+    if "dataset" in request:  # the recording as the policy will look for it (relative: to the file's folder)
+        fit_request(request, base=path.parent)
     write_text_atomic(path, json.dumps(request, allow_nan=False) + "\n")
 
 
@@ -217,13 +220,22 @@ def apply_config_steering(policy: Any) -> None:
 
 
 def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:
-    """The (dataset root, episode, steps) of a ``dataset`` request, checked before any fit starts."""
+    """The (dataset root, episode, steps) of a ``dataset`` request, checked before any fit starts: a dataset
+    folder whose ``meta/info.json`` counts the episode."""
     root = Path(request["dataset"])
     if base is not None and not root.is_absolute():
         root = Path(base) / root
-    if not (root / "meta" / "info.json").is_file():
+    info = root / "meta" / "info.json"
+    if not info.is_file():
         raise FileNotFoundError(f"steering: {root} is not a LeRobotDataset (no meta/info.json)")
-    return root, request.get("episode", 0), request.get("steps")
+    try:
+        total = int(json.loads(info.read_text())["total_episodes"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"steering: {info} is damaged or not a LeRobotDataset's ({e!r})") from e
+    episode = request.get("episode", 0)
+    if not 0 <= episode < total:
+        raise ValueError(f"steering: {root} holds {total} episode(s) (0-{total - 1}); no episode {episode}")
+    return root, episode, request.get("steps")
 
 
 def _mode_id(policy: Any, mode: Any) -> int:

@@ -13,11 +13,10 @@ import dataclasses
 import datetime
 import json
 import logging
-import os
 import shutil
 from pathlib import Path
 
-from .atomic import staging_dir
+from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
@@ -77,7 +76,7 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         policy.save_pretrained(tmp)
         (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
         (tmp / "README.md").write_text(checkpoint_card(base, policy.config).rstrip() + "\n\n" + _card_section(info))
-        os.replace(tmp, out)
+        move_into_place(tmp, Path(out))
     return out, result
 
 

@@ -75,6 +75,11 @@ def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
     assert "[[1000000.0, -1000000.0]]" in msg and "spreads of the training latents from the nearest one" in msg
     assert "warning above 3" in msg
     assert policy.active_latent.tolist() == [[1e6, -1e6]]  # acted on, as asked
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # so far that float32 distances overflow: still far, still said
+        policy.set_latent([1e38, -1e38])
+    (msg,) = _warnings(caplog, "spreads")
+    assert "inf spreads" in msg
     policy.set_latent(None)
 
 
@@ -110,7 +115,7 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
 # ---- live steering: the file and lerobot-pdp steer
 
 
-def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, tmp_path, capsys):
+def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_meta, tmp_path, capsys):
     f = tmp_path / "steer.json"
     assert lerobot_pdp(["steer", str(f), "--latent", "nan", "inf"]) == 2
     assert "latent [nan, inf] has non-finite values [nan, inf]; every value must be a finite number" in capsys.readouterr().err
@@ -133,6 +138,18 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, tmp_path, cap
     with pytest.raises(ValueError, match="non-finite"):
         write_steering(f, {"latent": [float("nan"), 0.0]})
     assert json.loads(f.read_text()) == {"mode": "left-wide"}  # strict JSON, never NaN
+    assert lerobot_pdp(["steer", str(f), "--latent", "0.4", "-1.5e-05"]) == 0  # as Python prints small values
+    assert json.loads(f.read_text()) == {"latent": [0.4, -1.5e-05]}
+    assert lerobot_pdp(["steer", str(f), "--latent", "-inf", "1"]) == 2
+    assert "non-finite values [-inf]" in capsys.readouterr().err
+    # a recording to fit: its folder and episode, as the running policy will look for them
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(tmp_path / "nowhere")]) == 2
+    assert f"{tmp_path / 'nowhere'} is not a LeRobotDataset (no meta/info.json)" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(synthetic_meta.root), "--episode", "999"]) == 2
+    assert "no episode 999" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--mode", "1", "--episode", "4"]) == 2
+    assert "--episode and --steps go with --dataset" in capsys.readouterr().err
+    assert json.loads(f.read_text()) == {"latent": [0.4, -1.5e-05]}  # none of them written
 
 
 def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):

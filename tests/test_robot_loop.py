@@ -449,9 +449,10 @@ def test_steering_requests_are_checked_before_writing(tmp_path, synthetic_meta):
     assert not (tmp_path / "s.json").exists()
     assert main(["steer", str(tmp_path / "s.json"), "--mode", "2"]) == 0
     assert json.loads((tmp_path / "s.json").read_text()) == {"mode": 2}
-    assert main(["steer", str(tmp_path / "s.json"), "--dataset", "rec", "--episode", "1"]) == 0
+    rec = os.path.relpath(synthetic_meta.root)  # a recording named relative to the working folder
+    assert main(["steer", str(tmp_path / "s.json"), "--dataset", rec, "--episode", "1"]) == 0
     got = json.loads((tmp_path / "s.json").read_text())
-    assert Path(got["dataset"]).is_absolute() and got["episode"] == 1
+    assert got == {"dataset": str(Path(synthetic_meta.root).resolve()), "episode": 1}
     p = small_policy(synthetic_meta)
     with pytest.raises(KeyError, match="unknown mode name 'sideways'"):
         apply_steering(p, {"mode": "sideways"})
