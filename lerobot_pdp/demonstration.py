@@ -188,7 +188,10 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     info_path = root / "meta" / "info.json"
     if not info_path.is_file():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
-    info = json.loads(info_path.read_text())
+    try:
+        info = json.loads(info_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
     total = int(info.get("total_episodes") or 0)
     files = sorted((root / "data").glob("**/*.parquet"))
     if total == 0 or not files:

@@ -34,6 +34,7 @@ from .adapted import CARD_HEADING, load_base_policy, write_adapted_checkpoint
 from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
 from .checkpoint import ADAPTATION_INFO
+from .checkpoint_files import read_config_json
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
 from .steering_state import Steering
@@ -543,7 +544,7 @@ def _check_checkpoint(checkpoint: Path) -> None:
         if not (checkpoint / name).is_file():
             raise FileNotFoundError(f"{checkpoint} holds no {name}: give a PDP pretrained_model folder "
                                     "(config.json + model.safetensors)")
-    kind = json.loads((checkpoint / "config.json").read_text()).get("type")
+    kind = read_config_json(checkpoint / "config.json").get("type")  # a damaged file: named
     if kind != "pdp":
         raise ValueError(f"{checkpoint / 'config.json'} has type {kind!r}: the explorer needs a PDP checkpoint "
                          "(type 'pdp')")

@@ -85,7 +85,7 @@ class PDPPolicy(PreTrainedPolicy):
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         self.register_state_dict_post_hook(flatten_model_keys)  # the first release's keys ("vae.*", "behavior_traces")
         self.register_load_state_dict_pre_hook(nest_model_keys)
-        self.steering = Steering(cfg.latent_dim)  # what the next chunk is conditioned on: steering_state.py
+        self.steering = Steering(cfg.latent_dim, cfg)  # what the next chunk is conditioned on: steering_state.py
         self._steer_file = SteerFile(cfg.steer_file) if cfg.steer_file else None
         self._queues: dict[str, deque] = {}
         self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)

@@ -13,6 +13,7 @@ The state is small and can be kept: :meth:`Steering.state_tensors` / :meth:`Stee
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -73,9 +74,10 @@ class Steering(nn.Module):
     An ``nn.Module`` so that ``policy.to(device)`` moves it; its buffers are not part of the weights.
     """
 
-    def __init__(self, latent_dim: int):
+    def __init__(self, latent_dim: int, config: Any = None):
         super().__init__()
         self.latent_dim = latent_dim
+        self._config = config  # the policy's: without segment_gripper_dim it never changes phase (one latent)
         # [M, d_z]: empty = the policy's default latent; M > 1 = one per phase, advanced on gripper events
         self.register_buffer("latent", torch.zeros(0, latent_dim), persistent=False)
         self.noises = ChunkNoises()
@@ -107,6 +109,11 @@ class Steering(nn.Module):
             if z.dim() != 2 or z.shape[1] != self.latent_dim:
                 raise ValueError(f"latent must have shape [{self.latent_dim}] or [M, {self.latent_dim}], "
                                  f"got {tuple(z.shape)}")
+            if len(z) > 1 and self._config is not None and self._config.segment_gripper_dim is None:
+                raise ValueError(f"got {len(z)} latents {tuple(z.shape)}, one per phase, but this policy has no "
+                                 f"phases (trained without segment_gripper_dim): only the first would ever act. "
+                                 f"Give one latent [{self.latent_dim}] (of a path from interpolate, one of its rows; "
+                                 "of fit_latent, no segments)")
             if not torch.isfinite(z).all():
                 raise ValueError(f"latent has non-finite values: {z.tolist()}")
             self.latent = z.detach().to(self.latent.device)

@@ -48,6 +48,13 @@ def _warnings(caplog, text: str) -> list[str]:
 # ---- the steering API
 
 
+def test_a_recording_with_damaged_metadata_is_named(policy, synthetic_meta, tmp_path):
+    rec = Path(shutil.copytree(synthetic_meta.root, tmp_path / "rec"))
+    (rec / "meta" / "info.json").write_text("{")
+    with pytest.raises(ValueError, match=rf"{rec / 'meta' / 'info.json'} is not valid JSON"):
+        policy.fit_latent((rec, 0), steps=1, activate=False)
+
+
 def test_select_action_names_a_missing_key_or_a_frame_of_another_size(policy):
     policy.reset()
     ok = {"observation.state": torch.zeros(1, 2), "observation.environment_state": torch.zeros(1, 2)}

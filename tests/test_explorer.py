@@ -198,6 +198,10 @@ def test_bad_input_is_named(made, tmp_path):
     (half / "config.json").write_text(json.dumps({"type": "pdp"}))
     with pytest.raises(FileNotFoundError, match="holds no model.safetensors"):
         Explorer(half)
+    (half / "model.safetensors").write_bytes(b"")
+    (half / "config.json").write_text('{"type": "pdp", "latent_dim": ')
+    with pytest.raises(ValueError, match=rf"{half / 'config.json'} is not valid JSON"):
+        Explorer(half)
     with pytest.raises(ValueError, match=r"--env avoiding does not match .*observation.state"):
         Explorer(ckpt, env="avoiding")
     with pytest.raises(KeyError, match="unknown env"):

@@ -152,8 +152,13 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
     for k, v in p.state_dict().items():  # (an untrained policy's train_loss_dp is NaN)
         torch.testing.assert_close(v, before[k], rtol=0, atol=0, equal_nan=True, msg=f"fit_latent changed {k}")
     assert torch.equal(p.active_latent[0], res.z)
-    seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, 40)])
-    assert seg.z.shape == (2, 2) and p.active_latent.shape == (2, 2)
+    seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, 40)], activate=False)
+    assert seg.z.shape == (2, 2)
+    # one latent per phase on a policy that never changes phase (no gripper dim): only the first would act
+    for several in (seg.z, p.interpolate(seg.z[0], seg.z[1], n=3)):
+        with pytest.raises(ValueError, match=r"this policy has no phases .* Give one latent \[2\]"):
+            p.set_latent(several)
+    assert torch.equal(p.active_latent[0], res.z)  # refused: the latent before it stays
     r0 = p.fit_latent((root, 2), steps=0, init="random")
     assert torch.equal(r0.z, r0.z_init)
 
@@ -392,6 +397,7 @@ def test_mode_latents_of_segmented_behaviors_have_one_mean_per_phase(synthetic_m
     assert means[3].shape == (2, p.config.latent_dim)
     torch.testing.assert_close(means[3][0], z[0::2].mean(0))
     torch.testing.assert_close(means[3][1], z[1::2].mean(0))
+    p.config.segment_gripper_dim = 0  # phases advance on a gripper dim (without one, one latent is refused)
     p.set_latent(means[3])  # one z per phase, used in order
     assert len(p.active_latent) == 2
 

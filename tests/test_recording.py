@@ -99,6 +99,10 @@ def test_waypoints_from_file_and_argument_errors(tmp_path):
         make_dataset("nope", tmp_path / "x", progress=False)
     with pytest.raises(envs.SceneError, match="has no 'waypoints'"):
         make_dataset("reach-around", tmp_path / "x", scene=1, waypoints="scene", progress=False)
+    for name, text in (("bad.json", "not json ["), ("bad.yaml", "a: [b")):  # named with the file, not a parser's traceback
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=rf"way-point file {tmp_path / name} is not valid (JSON|YAML) \("):
+            make_dataset("reach-around", tmp_path / "x", scene=3, waypoints=tmp_path / name, progress=False)
     assert not (tmp_path / "x").exists()
 
 

@@ -65,12 +65,16 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
         path = Path(waypoints)
         if not path.is_file():
             raise FileNotFoundError(f"way-point file {path} does not exist")
-        if path.suffix.lower() in (".yaml", ".yml"):
-            import yaml
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                import yaml
 
-            data = yaml.safe_load(path.read_text())
-        else:
-            data = json.loads(path.read_text())
+                data = yaml.safe_load(path.read_text())
+            else:
+                data = json.loads(path.read_text())
+        except Exception as e:  # noqa: BLE001 - json's and yaml's parse errors: named with the file
+            raise ValueError(f"way-point file {path} is not valid {'YAML' if path.suffix.lower() in ('.yaml', '.yml') else 'JSON'}"
+                             f" ({e}); give a list of [x, y(, z)] points or a scene file with 'waypoints'") from e
         if isinstance(data, dict):
             sc = read_scene_file(path)
             if sc.waypoints is None:
