@@ -330,6 +330,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     for path, flag in ((args.out, "--out"), (args.history, "--history")):
         if path is not None and path.exists():
             raise FileExistsError(f"{flag} {path} exists: give a new path")
+    if args.history is not None and not args.history.parent.is_dir():  # before the search, not after it
+        raise FileNotFoundError(f"--history {args.history}: folder {args.history.parent} does not exist")
     for flag, value in (("--budget", args.budget), ("--rollouts-per-candidate", args.rollouts_per_candidate)):
         if value < 1:
             raise ValueError(f"{flag} must be >= 1, got {value}")
@@ -728,6 +730,12 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
         write_text_atomic(args.out / "validation.json", json.dumps(merged_validation, indent=1))
         write_text_atomic(args.out / "validation.md", validation_markdown(merged_validation))
         print(f"validation record: {args.out / 'validation.json'} ({', '.join(merged_validation['methods'])})")
+    # an earlier merge into this folder: its records this merge does not rewrite describe other runs
+    kept = {"teach": "teach" in res, "validation": merged_validation is not None}
+    stale = [args.out / f"{name}.{ext}" for name, ok in kept.items() if not ok for ext in ("json", "md")]
+    for f in [f for f in stale if f.is_file()]:
+        f.unlink()
+        print(f"removed {f}: it recorded runs this merge does not hold")
     print(results_markdown(res))
     print(f"results: {target} and {args.out / 'results.md'}")
     return 0

@@ -372,6 +372,7 @@ def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
         (["--waypoints", "scene"], "waypoints='scene' but the scene has no 'waypoints'"),
         (["--waypoints", "scene", "--scene", "3", "--radius", "0"], "--radius must be a finite number > 0"),
         (["--budget", "0"], "--budget must be >= 1, got 0"),
+        (["--history", str(tmp_path / "nodir" / "h.json")], r"--history .*h.json: folder .*nodir does not exist"),
         (["--budget", "1"], "--budget 1 rollouts pays for no candidate of --rollouts-per-candidate 2"),
         (["--scene", "val9"], "ships no validation scene 'val9'"),
         (["--init", "adaptation", "--budget", "1", "--rollouts-per-candidate", "1"], "carries no adaptation.safetensors"),

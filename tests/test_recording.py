@@ -124,6 +124,11 @@ def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):
 
     png = plot_dataset(reach_dataset, tmp_path / "fig" / "reach.png", scene=1)
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="was recorded in 'reach-around' .*not 'avoiding'"):
+        plot_dataset(reach_dataset, tmp_path / "other.png", env="avoiding")
+    with pytest.raises(FileNotFoundError, match="is not a LeRobotDataset folder"):
+        plot_dataset(tmp_path / "nope", tmp_path / "nope.png")
+    assert not (tmp_path / "other.png").exists()
     fig, ax = plt.subplots()
     draw_scene(ax, "avoiding", 3, "xy")
     assert len(ax.patches) == 6 + 2 - 1 + 4  # posts + walls - removed post + sealing boxes

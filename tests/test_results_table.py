@@ -399,6 +399,14 @@ def test_merge_results_merges_the_teaching_records_of_runs_made_method_by_method
     assert "| bc | 6 | 4 | 300 | 0.0001 | - | 0.0% | 100.0% (100.0%) |" in md
     assert "| dp | 6 | 4 | 300 | 0.0001 | - | 75.0% | 100.0% (100.0%) |" in md
     assert "teaching record" in capsys.readouterr().out
+    # merged again into the same folder from runs without teaching: the earlier teaching record goes
+    for method in ("bc", "dp"):
+        (tmp_path / f"plain_{method}").mkdir()
+        (tmp_path / f"plain_{method}" / "results.json").write_text(json.dumps(_results([6], {method: {6: [1.0] * 4}})))
+    assert main(["merge-results", str(tmp_path / "plain_bc"), str(tmp_path / "plain_dp"), "--out",
+                 str(tmp_path / "all")]) == 0
+    assert not (tmp_path / "all" / "teach.json").exists() and not (tmp_path / "all" / "teach.md").exists()
+    assert "removed" in capsys.readouterr().out
     one = _results([6], {"bc": {6: [1.0] * 4}})
     again = _results([7], {"dp": {7: [1.0] * 4}})
     with pytest.raises(ValueError, match="bc seed 6 is taught in two of the merged runs"):

@@ -162,10 +162,16 @@ def plot_dataset(
     """
     from .recording import read_dataset_meta
 
+    if not (Path(dataset_dir) / "meta" / "info.json").is_file():
+        raise FileNotFoundError(f"{dataset_dir} is not a LeRobotDataset folder (no meta/info.json)")
     meta = read_dataset_meta(dataset_dir) or {}
+    if env is not None and meta.get("env") not in (None, env):
+        raise ValueError(f"{dataset_dir} was recorded in {meta['env']!r} (meta/pdp_suite.json), not {env!r}: its "
+                         "demonstrations would be drawn over another env's scene and modes")
     env = env or meta.get("env")
     if env is None:
-        raise ValueError(f"{dataset_dir}: no meta/pdp_suite.json; pass env= (e.g. 'reach-around')")
+        raise ValueError(f"{dataset_dir}: no meta/pdp_suite.json says which env it was recorded in; give it "
+                         "(--env, or env= from Python; e.g. 'reach-around')")
     suite = get_suite_env(env)
     if scene is None:
         scene = meta.get("scene", 0)
