@@ -141,7 +141,7 @@ def test_rollout_runs_pdp_on_pdp_sim_resets_per_episode_and_stops_after_episodes
     assert feats["observation.state"]["names"] == [n + ".pos" for n in robot.state_names]
     assert feats["observation.environment_state"]["names"] == [n + ".pos" for n in robot.env_state_names]
     lines = _outcomes(outcomes)
-    assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "time" for d in lines)
+    assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines)
     assert len(resets) == 1  # the new episode's; the first one the strategy resets itself
     assert len(ctx.policy.policy.active_latent) == 1  # z was fitted to the recording at start-up
     assert not robot.is_connected
@@ -519,7 +519,7 @@ def test_an_interrupted_record_loop_labels_only_saved_episodes(tmp_path):
             _wrap_record_loop(interrupted_loop)(robot=robot, events={"exit_early": False}, dataset=object(), fps=50)
         assert robot.recorded_labels == [] and not robot.holding
         (line,) = _outcomes(outcomes)
-        assert line["ended_by"] == "time" and line["steps"] == 3
+        assert line["ended_by"] == "stopped" and line["steps"] == 3
     finally:
         robot.disconnect()
 
@@ -621,7 +621,7 @@ def test_ctrl_c_during_lerobot_record_leaves_a_usable_recording(tmp_path):
             proc.kill()
     total = json.loads((root / "meta" / "info.json").read_text())["total_episodes"]
     lines = _outcomes(outcomes)
-    assert total == 1 and [d["ended_by"] for d in lines] == ["success", "time"], (lines, err[-3000:])
+    assert total == 1 and [d["ended_by"] for d in lines] == ["success", "stopped"], (lines, err[-3000:])
     assert read_mode_labels(root)[0] == {0: 1}
     check_recording(root, 0, {"observation.state": (6,), "observation.environment_state": (6,), "action": (3,)})
 

@@ -79,7 +79,7 @@ def test_cameras_when_asked_for(tmp_path):
         teleop.disconnect()
 
 
-def test_an_unfinished_episode_is_logged_as_ended_by_time_on_disconnect(tmp_path):
+def test_an_unfinished_episode_is_logged_as_stopped_on_disconnect(tmp_path):
     outcomes = tmp_path / "o.jsonl"
     robot, teleop = _pair(tmp_path, {"env": "avoiding", "scene": "3", "outcomes": str(outcomes)},
                           waypoints="scene")
@@ -90,7 +90,7 @@ def test_an_unfinished_episode_is_logged_as_ended_by_time_on_disconnect(tmp_path
         robot.send_action(teleop.get_action())
     robot.disconnect()
     (line,) = [json.loads(s) for s in outcomes.read_text().splitlines()]
-    assert line["steps"] == 3 and line["success"] is False and line["ended_by"] == "time"
+    assert line["steps"] == 3 and line["success"] is False and line["ended_by"] == "stopped"
 
 
 def test_the_action_step_leaves_the_gripper_command_out(tmp_path):

@@ -214,8 +214,8 @@ class PDPSim(Robot):
             "collided": bool(info.get("collided", False)),
             "mode": label if isinstance(label, str) else int(label),
             "steps": self._steps,
-            "ended_by": "time" if cut else ("success" if info.get("is_success") else
-                                            "collision" if info.get("collided") else "time_limit"),
+            "ended_by": "stopped" if cut else ("success" if info.get("is_success") else
+                                               "collision" if info.get("collided") else "time_limit"),
             **self._loop_timing(),
             **self._action_steps(),
         }
