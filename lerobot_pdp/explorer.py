@@ -131,6 +131,8 @@ class Explorer:
                  dataset: str | Path | None = None, device: str = "cpu", seed: int = 0):
         self.checkpoint = Path(checkpoint)
         _check_checkpoint(self.checkpoint)
+        if dataset is not None:  # a bad argument is refused now, not at the first click
+            _check_episode(dataset, 0)
         self.policy = load_base_policy(self.checkpoint, device)
         self.rollouts, self.seed, self.device = _positive("rollouts", rollouts), seed, device
         self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -567,8 +569,15 @@ def _check_episode(dataset: str | Path, episode: Any) -> tuple[Path, int]:
     info = root / "meta" / "info.json"
     if not info.is_file():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset folder (no meta/info.json)")
-    total = int(json.loads(info.read_text()).get("total_episodes", 0))
-    if isinstance(episode, bool) or not float(episode).is_integer() or not 0 <= int(episode) < total:
+    total = int(read_config_json(info).get("total_episodes", 0))
+    try:
+        whole = not isinstance(episode, bool) and float(episode).is_integer()
+    except (TypeError, ValueError):
+        whole = False
+    if not whole:
+        raise ValueError(f"episode must be a whole number (an index of {root}'s episodes 0-{total - 1}), "
+                         f"got {episode!r}")
+    if not 0 <= int(episode) < total:
         raise ValueError(f"episode {episode!r} is out of range: {root} has episodes 0-{total - 1} "
                          f"(meta/info.json total_episodes = {total})")
     return root, int(episode)

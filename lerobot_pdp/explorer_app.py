@@ -9,11 +9,13 @@ fitted mark, the drawn path, the map's pixel geometry) is kept in ``gr.State``.
 from __future__ import annotations
 
 import functools
+import logging
 from dataclasses import asdict
 from typing import Any
 
 from .explorer import Explorer, FitMark, MapImage, Selection, import_gradio
 
+logger = logging.getLogger(__name__)
 USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, RuntimeError)
 
 
@@ -27,8 +29,10 @@ def build_app(explorer: Explorer) -> Any:
         def wrapped(*args, **kwargs):
             try:
                 return fn(*args, **kwargs)
-            except USER_ERRORS as e:
-                raise gr.Error(str(e.args[0] if isinstance(e, KeyError) and e.args else e)) from e
+            except USER_ERRORS as e:  # one log line in the terminal, not a traceback
+                message = str(e.args[0] if isinstance(e, KeyError) and e.args else e)
+                logger.info("explorer: %s", message)
+                raise gr.Error(message, print_exception=False) from e
         return wrapped
 
     def fresh() -> dict:

@@ -120,6 +120,9 @@ def test_a_fitted_demonstration_is_marked_with_its_error_ratio(explorer, made):
         explorer.fit(data, 99)
     with pytest.raises(FileNotFoundError, match="not a LeRobotDataset folder"):
         explorer.fit(data / "nowhere", 0)
+    for episode in ("abc", 0.9):
+        with pytest.raises(ValueError, match=r"episode must be a whole number .*episodes 0-7"):
+            explorer.fit(data, episode)
 
 
 def test_the_success_landscape_is_cached_per_checkpoint_scene_and_grid(explorer, monkeypatch):
@@ -206,6 +209,8 @@ def test_bad_input_is_named(made, tmp_path):
         Explorer(ckpt, env="avoiding")
     with pytest.raises(KeyError, match="unknown env"):
         Explorer(ckpt, env="no-such-env")
+    with pytest.raises(FileNotFoundError, match="nope is not a LeRobotDataset folder"):  # before loading anything
+        Explorer(ckpt, dataset=tmp_path / "nope")
     ex = Explorer(ckpt)
     with pytest.raises(ValueError, match="expected 2 finite numbers"):
         ex.latent("1, 2, 3")
