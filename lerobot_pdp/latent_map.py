@@ -95,8 +95,12 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     projection = MapProjection.fit(z)
     xy, axes_label = projection.to_map(z), projection.axis_labels
     ids = sorted(int(g) for g in np.unique(groups) if g >= 0)
-    cmap = plt.get_cmap("tab20" if len(ids) > 10 else "tab10")
-    color = {g: cmap(i % cmap.N) for i, g in enumerate(ids)}
+    if len(ids) <= 20:
+        cmap = plt.get_cmap("tab20" if len(ids) > 10 else "tab10")
+        color = {g: cmap(i) for i, g in enumerate(ids)}
+    else:  # more groups than a qualitative map has colours: evenly spaced hues, none repeated
+        cmap = plt.get_cmap("turbo")
+        color = {g: cmap(i / (len(ids) - 1)) for i, g in enumerate(ids)}
     shown = ids[:MAX_PANELS]
     cols = min(4, max(1, len(shown)))
     rows = -(-len(shown) // cols)
@@ -118,14 +122,20 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     if len(ids) <= 12:
         ax.legend(fontsize=7, loc="best")
     traces = policy.model.bank.traces.cpu().numpy()
-    j = 1 if traces.shape[2] > 1 else 0
-    for i, g in enumerate(shown):
-        tax = fig.add_subplot(grid[i // cols, 2 + i % cols])
+    # the two trace dims the behaviors differ most along (3-D routes may differ in height alone): the spread
+    # across behaviors at each point of the (resampled) traces, averaged along them
+    spread = traces.var(0).mean(0)
+    d0, j = sorted(np.argsort(spread)[::-1][:2].tolist()) if traces.shape[2] > 1 else (0, 0)
+    first = None
+    for i, g in enumerate(shown):  # one scale for all panels: the routes compare at a glance
+        tax = fig.add_subplot(grid[i // cols, 2 + i % cols], sharex=first, sharey=first)
+        first = first or tax
         for t in traces[groups == g]:
-            tax.plot(t[:, 0], t[:, j], color=color[g], lw=0.8, alpha=0.7)
+            tax.plot(t[:, d0], t[:, j], color=color[g], lw=0.8, alpha=0.7)
         tax.set_title(f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
         tax.tick_params(labelsize=6)
     more = f"; traces of the first {MAX_PANELS} of {len(ids)} shown" if len(ids) > MAX_PANELS else ""
-    fig.suptitle(title or f"behaviors of the training data (traces: trace dims 0 and {j}{more})", fontsize=11)
+    fig.suptitle(title or f"behaviors of the training data (traces: trace dims {d0} and {j}, the two they spread "
+                 f"most along{more})", fontsize=11)
     fig.tight_layout()
     return LatentMap(fig, ax, projection, groups, color)

@@ -105,6 +105,7 @@ def test_execution_horizon_0_holds_nothing(synthetic_meta):
 
 def test_steering_the_engine_cannot_follow_is_refused_with_the_way_out(synthetic_meta):
     p = _rtc_policy(synthetic_meta)
+    p.config.segment_gripper_dim = 0  # a stand-in gripper: the policy has phases
     means = p.mode_latents()
     p.set_latent(torch.stack([means[0], means[1]]))  # one latent per phase
     with pytest.raises(ValueError, match=r"one latent per phase \(2 phases\).*--inference.type=sync"):
@@ -345,6 +346,7 @@ def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(
     torch.manual_seed(0)
     p = small_policy(synthetic_meta, steer_file=str(steer))
     p.eval()
+    p.config.segment_gripper_dim = 0  # a stand-in gripper: the policy has phases
     p.config.rtc_config = RTCConfig()
     p.init_rtc_processor()
     means = p.mode_latents()
