@@ -25,12 +25,25 @@ from lerobot_pdp.explorer_app import build_app
 
 
 def checkpoint_folder(source: str) -> Path:
-    """A local folder as is; anything else a Hub model repo, downloaded (cached) once."""
+    """A local folder as is; a Hub model repo id downloaded (cached) once; anything else named."""
     if Path(source).is_dir():
         return Path(source)
     from huggingface_hub import snapshot_download
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
 
+    try:
+        validate_repo_id(source)
+    except HFValidationError:
+        raise SystemExit(f"PDP_CHECKPOINT={source}: no such folder, and not a Hub repo id (user/name)") from None
     return Path(snapshot_download(source))
+
+
+def rollouts() -> int:
+    value = os.environ.get("PDP_ROLLOUTS", "8")
+    if not value.strip().isdigit():
+        raise SystemExit(f"PDP_ROLLOUTS={value}: give a whole number of rollouts per selected latent (default 8)")
+    return int(value)
 
 
 def make_app(checkpoint: str | None = None):
@@ -38,7 +51,7 @@ def make_app(checkpoint: str | None = None):
     if not source:
         raise SystemExit("set PDP_CHECKPOINT to a PDP checkpoint folder or Hub repo id")
     explorer = Explorer(checkpoint_folder(source), env=os.environ.get("PDP_ENV") or None,
-                        scene=os.environ.get("PDP_SCENE", "0"), rollouts=int(os.environ.get("PDP_ROLLOUTS", "8")),
+                        scene=os.environ.get("PDP_SCENE", "0"), rollouts=rollouts(),
                         dataset=os.environ.get("PDP_DATASET") or None)
     return build_app(explorer)
 
