@@ -29,6 +29,7 @@ import json
 import logging
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -212,11 +213,24 @@ def apply_config_steering(policy: Any) -> None:
             raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
         policy.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
     elif cfg.steer_dataset_root is not None:
+        if cfg.fit_noise == "chunks" and _rollout_with_rtc():  # refused after the fit otherwise (minutes)
+            raise ValueError("--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which "
+                             "lerobot-rollout's RTC engine cannot replay in order (it replans at its own pace). "
+                             "Use --inference.type=sync, or --policy.fit_noise=none")
         t0 = time.perf_counter()
         res = policy.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
         logger.info("fitted latent to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)",
                     cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
                     "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
+
+
+def _rollout_with_rtc() -> bool:
+    """This process is ``lerobot-rollout --inference.type=rtc`` (it loads the policy, and so fits at start-up,
+    before it tells the policy about RTC)."""
+    args = sys.argv[1:]
+    return (bool(sys.argv) and Path(sys.argv[0]).stem.replace("_", "-") == "lerobot-rollout"
+            and ("--inference.type=rtc" in args or any(a == "--inference.type" and b == "rtc"
+                                                        for a, b in zip(args, args[1:], strict=False))))
 
 
 def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:
