@@ -221,6 +221,12 @@ class Explorer:
                              "latent_dim)")
         return z
 
+    def far_note(self, z: Any) -> str:
+        """A warning when ``z`` lies far outside the training latents (``set_latent``'s rule), else ''."""
+        far = self.policy.latent_outlier(torch.as_tensor(self.latent(z), dtype=torch.float32)[None])
+        return "" if far is None else (f" (far outside the training latents: {far[0]:.3g} spreads from the nearest; "
+                                       "the policy was never trained there)")
+
     def render_map(self, selected: Selection | None = None, fit: FitMark | None = None,
                    path: list[list[float]] | None = None) -> MapImage:
         """The latent map with the selected latent (star), a fitted latent with its error ratio (diamond) and an

@@ -51,6 +51,8 @@ def build_app(explorer: Explorer) -> Any:
                 image, summary = run.image, f"**{selection.source}**: {run.summary()}"
             else:
                 image = explorer.decoder_view(selection.z, state.get("dataset"), state.get("episode", 0))
+        if selection is not None:
+            summary += explorer.far_note(selection.z)
         latent = "" if selection is None else ", ".join(f"{v:.4g}" for v in selection.z)
         return view.image, image, summary, latent, state
 

@@ -216,6 +216,8 @@ def test_bad_input_is_named(made, tmp_path):
         ex.latent("1, 2, 3")
     with pytest.raises(ValueError, match="expected 2 numbers"):
         ex.latent("one, two")
+    assert ex.far_note(ex.mode_latent(0)) == ""  # a latent far outside the training ones is said beside it
+    assert "far outside the training latents" in ex.far_note("1e6, 1e6")
     assert 'pip install "lerobot_policy_pdp[explore]"' in GRADIO_HINT
     import sys
 
