@@ -12,6 +12,7 @@ The state is small and can be kept: :meth:`Steering.state_tensors` / :meth:`Stee
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -20,6 +21,8 @@ import torch
 from torch import Tensor, nn
 
 from .phases import PhaseTracker
+
+logger = logging.getLogger(__name__)
 
 
 class ChunkNoises(nn.Module):
@@ -154,6 +157,11 @@ class Steering(nn.Module):
         return {"latent": self.latent.detach().cpu(), "noise": self.noises.noise.detach().cpu()}
 
     def load_state_tensors(self, tensors: dict[str, Tensor], provenance: dict | None = None) -> None:
-        noise = tensors.get("noise")
-        self.activate(tensors["latent"] if len(tensors["latent"]) else None,
-                      noise if noise is not None and len(noise) else None, provenance)
+        noise, latent = tensors.get("noise"), tensors["latent"]
+        if len(latent) > 1 and self._config is not None and self._config.segment_gripper_dim is None:
+            # saved before several latents were refused on a policy without phases: it acted under the first
+            logger.warning("adaptation of %d phase latents on a policy without phases: acting under the first, as "
+                           "it did when it was saved", len(latent))
+            latent = latent[:1]
+        self.activate(latent if len(latent) else None, noise if noise is not None and len(noise) else None,
+                      provenance)

@@ -75,6 +75,22 @@ def test_set_latent_and_steering_fields_travel_with_the_checkpoint(synthetic_met
     assert PDPPolicy.from_pretrained(tmp_path / "a", config=cfg).active_latent.tolist() == [[1.0, 1.0]]
 
 
+def test_an_adaptation_of_phase_latents_saved_on_a_policy_without_phases_still_loads(synthetic_meta, tmp_path,
+                                                                                     caplog):
+    """Saved before several latents were refused on a policy without phases: it loads, acting under the first
+    latent as it did, and says so."""
+    from safetensors.torch import save_file
+
+    p = small_policy(synthetic_meta)
+    p.set_latent([0.25, -0.5])
+    p.save_pretrained(tmp_path / "a")
+    save_file({"latent": torch.tensor([[0.25, -0.5], [1.0, 1.0]]), "noise": torch.zeros(0)},
+              str(tmp_path / "a" / ADAPTATION_TENSORS))
+    with caplog.at_level("WARNING"):
+        q = PDPPolicy.from_pretrained(tmp_path / "a")
+    assert q.active_latent.tolist() == [[0.25, -0.5]] and "acting under the first" in caplog.text
+
+
 def test_a_damaged_adaptation_file_is_named(synthetic_meta, tmp_path):
     p = small_policy(synthetic_meta)
     p.set_latent([0.25, -0.5])
