@@ -475,6 +475,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     import socket
 
     with socket.socket() as probe:  # a taken port, before minutes of loading and Gradio's traceback
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is free
         try:
             probe.bind(("127.0.0.1", args.port))
         except OSError as e:

@@ -190,6 +190,21 @@ def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
     assert ex.decoder_view(ex.mode_latent(0), frames=1, samples=1).ndim == 3
 
 
+def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys):
+    import socket
+
+    from lerobot_pdp.cli import main
+
+    ckpt, _ = made
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        assert main(["explore", str(ckpt), "--port", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"port {port} is not free" in err and "--port" in err and "Traceback" not in err
+
+
 def test_bad_input_is_named(made, tmp_path):
     from lerobot_pdp.explorer import GRADIO_HINT, Explorer, import_gradio
 
