@@ -174,6 +174,21 @@ def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) 
     return v
 
 
+def recording_info(root: str | Path) -> dict:
+    """A recording's ``meta/info.json``; a missing folder, a folder that is no LeRobotDataset or a damaged file
+    is an error naming it (the light check; :func:`check_recording` reads the data files too)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"recording {root} does not exist")
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
+    try:
+        return json.loads(info_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
+
+
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]]) -> None:
     """Fail early, naming the problem, on a recording PDP cannot fit z to.
 
@@ -183,15 +198,7 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     compared as (C, H, W) against the recording's (H, W, C)).
     """
     root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"recording {root} does not exist")
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
-    try:
-        info = json.loads(info_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
+    info = recording_info(root)
     total = int(info.get("total_episodes") or 0)
     files = sorted((root / "data").glob("**/*.parquet"))
     if total == 0 or not files:

@@ -35,6 +35,7 @@ from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
 from .checkpoint import ADAPTATION_INFO
 from .checkpoint_files import read_config_json
+from .demonstration import recording_info
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
 from .steering_state import Steering
@@ -572,10 +573,7 @@ def _training_dataset(checkpoint: Path) -> Path | None:
 def _check_episode(dataset: str | Path, episode: Any) -> tuple[Path, int]:
     """``dataset`` is a LeRobotDataset folder and ``episode`` one of its episodes; else an error naming both."""
     root = Path(str(dataset).strip())
-    info = root / "meta" / "info.json"
-    if not info.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobotDataset folder (no meta/info.json)")
-    total = int(read_config_json(info).get("total_episodes", 0))
+    total = int(recording_info(root).get("total_episodes") or 0)
     try:
         whole = not isinstance(episode, bool) and float(episode).is_integer()
     except (TypeError, ValueError):

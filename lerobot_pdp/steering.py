@@ -41,6 +41,7 @@ import torch
 
 from .adaptation import fit_provenance
 from .atomic import write_text_atomic
+from .demonstration import recording_info
 from .latent_fitting import cancellable
 
 logger = logging.getLogger(__name__)
@@ -239,13 +240,7 @@ def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tupl
     root = Path(request["dataset"])
     if base is not None and not root.is_absolute():
         root = Path(base) / root
-    info = root / "meta" / "info.json"
-    if not info.is_file():
-        raise FileNotFoundError(f"steering: {root} is not a LeRobotDataset (no meta/info.json)")
-    try:
-        total = int(json.loads(info.read_text())["total_episodes"])
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"steering: {info} is damaged or not a LeRobotDataset's ({e!r})") from e
+    total = int(recording_info(root).get("total_episodes") or 0)  # the data files: the fit's own check
     episode = request.get("episode", 0)
     if not 0 <= episode < total:
         raise ValueError(f"steering: {root} holds {total} episode(s) (0-{total - 1}); no episode {episode}")

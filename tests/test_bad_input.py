@@ -151,7 +151,9 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert "non-finite values [-inf]" in capsys.readouterr().err
     # a recording to fit: its folder and episode, as the running policy will look for them
     assert lerobot_pdp(["steer", str(f), "--dataset", str(tmp_path / "nowhere")]) == 2
-    assert f"{tmp_path / 'nowhere'} is not a LeRobotDataset (no meta/info.json)" in capsys.readouterr().err
+    assert f"recording {tmp_path / 'nowhere'} does not exist" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(tmp_path)]) == 2
+    assert f"{tmp_path} is not a LeRobotDataset (no meta/info.json)" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--dataset", str(synthetic_meta.root), "--episode", "999"]) == 2
     assert "no episode 999" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--mode", "1", "--episode", "4"]) == 2

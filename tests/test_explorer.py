@@ -118,8 +118,10 @@ def test_a_fitted_demonstration_is_marked_with_its_error_ratio(explorer, made):
     assert plain.image.shape == marked.image.shape and not np.array_equal(plain.image, marked.image)
     with pytest.raises(ValueError, match=r"episode 99 is out of range: .* has episodes 0-7"):
         explorer.fit(data, 99)
-    with pytest.raises(FileNotFoundError, match="not a LeRobotDataset folder"):
+    with pytest.raises(FileNotFoundError, match="nowhere does not exist"):
         explorer.fit(data / "nowhere", 0)
+    with pytest.raises(FileNotFoundError, match=r"meta is not a LeRobotDataset \(no meta/info.json\)"):
+        explorer.fit(data / "meta", 0)
     for episode in ("abc", 0.9):
         with pytest.raises(ValueError, match=r"episode must be a whole number .*episodes 0-7"):
             explorer.fit(data, episode)
@@ -224,7 +226,7 @@ def test_bad_input_is_named(made, tmp_path):
         Explorer(ckpt, env="avoiding")
     with pytest.raises(KeyError, match="unknown env"):
         Explorer(ckpt, env="no-such-env")
-    with pytest.raises(FileNotFoundError, match="nope is not a LeRobotDataset folder"):  # before loading anything
+    with pytest.raises(FileNotFoundError, match="recording .*nope does not exist"):  # before loading anything
         Explorer(ckpt, dataset=tmp_path / "nope")
     ex = Explorer(ckpt)
     with pytest.raises(ValueError, match="expected 2 finite numbers"):

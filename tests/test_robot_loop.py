@@ -351,7 +351,7 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     for text, message in [('{"mode": 9}', "mode 9 is not a training mode"),
                           ('{"latent": [1, 2, 3]}', "latent must have shape"),
                           ('{"mode": 1', "Expecting"),
-                          ('{"dataset": "nowhere"}', "not a LeRobotDataset"),
+                          ('{"dataset": "nowhere"}', "nowhere does not exist"),
                           ('{"mode": 1, "latent": [0, 0]}', "exactly one of")]:
         caplog.clear()
         steer.write_text(text)
