@@ -21,7 +21,14 @@ from typing import Any
 
 from .atomic import move_into_place, staging_dir
 from .candidate_rollouts import EnvFactory
-from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING, read_adaptation, write_adaptation
+from .checkpoint import (
+    ADAPTATION_INFO,
+    ADAPTATION_TENSORS,
+    CARD_HEADING,
+    card_section,
+    read_adaptation,
+    write_adaptation,
+)
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .latent_search import SearchResult
@@ -133,12 +140,10 @@ def _card_section(provenance: dict, result) -> str:
     demo = provenance.get("demonstration", {})
     ratio = "n/a" if result.error_ratio is None else f"{result.error_ratio:.2f}"
     noises = "" if result.noise is None else f" and {len(result.noise)} sampler noises (one per chunk)"
-    return (f"{CARD_HEADING}\n\nThis checkpoint is adapted to one demonstration (episode {demo.get('episode', '?')} of "
-            f"`{Path(str(demo.get('dataset', 'arrays'))).name}`): it acts under the fitted latent "
-            f"`{result.z.tolist()}`{noises} from its first action (fit error ratio {ratio}"
-            f"{'' if result.noise is None else ' of the latent alone'}, {provenance['date']}). "
-            f"Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
-            "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
+    return card_section(f"This checkpoint is adapted to one demonstration (episode {demo.get('episode', '?')} of "
+                        f"`{Path(str(demo.get('dataset', 'arrays'))).name}`): it acts under the fitted latent "
+                        f"`{result.z.tolist()}`{noises} from its first action (fit error ratio {ratio}"
+                        f"{'' if result.noise is None else ' of the latent alone'}, {provenance['date']}).")
 
 
 def _search_card_section(provenance: dict, result: SearchResult) -> str:
@@ -147,8 +152,7 @@ def _search_card_section(provenance: dict, result: SearchResult) -> str:
             + (", then succeeding" if objective.get("finish") else "")
             if isinstance(objective, dict) and "waypoints" in objective else f"its score `{objective}`")
     where = "".join(f", {k} `{provenance[k]}`" for k in ("env", "scene") if k in provenance)
-    return (f"{CARD_HEADING}\n\nThis checkpoint acts under a latent found by searching for an outcome, without a "
-            f"demonstration ({result.method}, {result.rollouts_used} rollouts{where}): `{result.latent.tolist()}`, "
-            f"{what}: score {result.score:.3g}, success {100 * result.success:.0f} % of its rollouts "
-            f"({provenance['date']}). Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
-            "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
+    return card_section(f"This checkpoint acts under a latent found by searching for an outcome, without a "
+                        f"demonstration ({result.method}, {result.rollouts_used} rollouts{where}): "
+                        f"`{result.latent.tolist()}`, {what}: score {result.score:.3g}, success "
+                        f"{100 * result.success:.0f} % of its rollouts ({provenance['date']}).")

@@ -86,11 +86,16 @@ def refresh_card(folder: Path, steering: Any) -> None:
     if steering is not None:
         noises = len(steering.noises.noise)
         source = (steering.provenance or {}).get("source", "set_latent")
-        text += (f"\n{CARD_HEADING}\n\nThis checkpoint acts under the latent `{steering.latent.tolist()}`"
-                 f"{f' and {noises} sampler noises (one per chunk)' if noises else ''} from its first action, saved "
-                 f"from Python ({source}); `{ADAPTATION_INFO}` holds where it came from. Weights are the base "
-                 "checkpoint's. `--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
+        text += "\n" + card_section(f"This checkpoint acts under the latent `{steering.latent.tolist()}`"
+                                    f"{f' and {noises} sampler noises (one per chunk)' if noises else ''} from its "
+                                    f"first action, saved from Python ({source}).")
     write_text_atomic(card, text)
+
+
+def card_section(what: str) -> str:
+    """The model card's adaptation section: ``what`` the checkpoint acts under, and what every adapted one shares."""
+    return (f"{CARD_HEADING}\n\n{what} Weights are the base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. "
+            "`--policy.use_adaptation=false` (or `policy.set_latent(None)`) acts as the base.\n")
 
 
 def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> Any:

@@ -30,10 +30,10 @@ import torch
 from matplotlib.figure import Figure
 from PIL import Image
 
-from .adapted import CARD_HEADING, load_base_policy, write_adapted_checkpoint
+from .adapted import load_base_policy, write_adapted_checkpoint
 from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
-from .checkpoint import ADAPTATION_INFO
+from .checkpoint import ADAPTATION_INFO, card_section
 from .checkpoint_files import read_config_json
 from .demonstration import recording_info
 from .latent_map import LatentMap, latent_map_figure
@@ -505,10 +505,8 @@ class Explorer:
                       "base_checkpoint": _origin(self.checkpoint), "date": selection.provenance.get("date", date)}
         steering = Steering(self.latent_dim)
         steering.activate(torch.as_tensor(z, dtype=torch.float32), provenance=provenance)
-        card = (f"{CARD_HEADING}\n\nThis checkpoint acts under a latent chosen in the explorer (`lerobot-pdp "
-                f"explore`): `{np.round(z, 6).tolist()}`, {selection.source} ({provenance['date']}). Weights are the "
-                f"base checkpoint's; `{ADAPTATION_INFO}` holds the provenance. `--policy.use_adaptation=false` (or "
-                "`policy.set_latent(None)`) acts as the base.\n")
+        card = card_section(f"This checkpoint acts under a latent chosen in the explorer (`lerobot-pdp explore`): "
+                            f"`{np.round(z, 6).tolist()}`, {selection.source} ({provenance['date']}).")
         out.parent.mkdir(parents=True, exist_ok=True)
         write_adapted_checkpoint(self.checkpoint, SimpleNamespace(steering=steering), out, card)
         return out
