@@ -196,13 +196,12 @@ class PDPPolicy(PreTrainedPolicy):
     init_rtc_processor = prepare_rtc  # lerobot-rollout calls it once config.rtc_config is set
 
     def _advance_phase(self, action: Tensor) -> None:
-        """Count each env's gripper flips (:class:`~lerobot_pdp.phases.PhaseTracker`); with one latent per phase,
-        an env that moved on to its next latent replans under it."""
+        """Count each env's gripper flips (phases.py); one that moved on to its next phase latent replans."""
         cfg = self.config
         if cfg.segment_gripper_dim is None:
             return
-        raw = self.stats.unnormalize(ACTION, action)[:, cfg.segment_gripper_dim]
-        if self.steering.observe(raw > cfg.segment_gripper_threshold, cfg.phase_switch_steps):
+        closed = self.stats.normalized_value(ACTION, cfg.segment_gripper_dim, cfg.segment_gripper_threshold)
+        if self.steering.observe(action[:, cfg.segment_gripper_dim] > closed, cfg.phase_switch_steps):
             self._queues[ACTION].clear()  # the envs that did not switch just replan early
 
     def current_latent(self, batch_size: int = 1, device: torch.device | str | None = None) -> Tensor:

@@ -43,6 +43,7 @@ class FeatureStats(nn.Module):
                 self.register_buffer(self._name(key, s), torch.zeros(shape) if s != "std" else torch.ones(shape))
         self.register_buffer("loaded", torch.tensor(False))
         self._steps: tuple[NormalizerProcessorStep, UnnormalizerProcessorStep] | None = None
+        self._normalized: dict[tuple[str, int, float], float] = {}  # normalized_value's, per statistics
 
     @staticmethod
     def _name(key: str, stat: str) -> str:
@@ -61,13 +62,13 @@ class FeatureStats(nn.Module):
                                          f"expected {tuple(buf.shape)}")
                     buf.copy_(value.reshape(buf.shape))
         self.loaded.fill_(True)
-        self._steps = None
+        self._steps, self._normalized = None, {}
 
     def as_dict(self) -> dict[str, dict[str, Tensor]]:
         return {k: {s: getattr(self, self._name(k, s)) for s in self.STATS} for k in self.features}
 
     def _load_from_state_dict(self, *args, **kwargs):
-        self._steps = None  # statistics change when a checkpoint is loaded
+        self._steps, self._normalized = None, {}  # statistics change when a checkpoint is loaded
         super()._load_from_state_dict(*args, **kwargs)
 
     def _processor_steps(self) -> tuple[NormalizerProcessorStep, UnnormalizerProcessorStep]:
@@ -90,6 +91,19 @@ class FeatureStats(nn.Module):
         if act is not None:
             result[ACTION] = out[TransitionKey.ACTION]
         return result
+
+    def normalized_value(self, key: str, dim: int, raw: float) -> float:
+        """``raw`` in dim ``dim`` of feature ``key``, normalised, computed once per statistics: the normalisation
+        is increasing per dim, so a raw threshold compares with normalised values as this value does (a gripper
+        command checked every control step without unnormalising the action)."""
+        if (key, dim, raw) not in self._normalized:
+            x = torch.zeros(1, self.features[key].shape[0])
+            x[0, dim] = raw
+            step = self._processor_steps()[0]
+            out = step(create_transition(action=x))[TransitionKey.ACTION] if key == ACTION else \
+                step(create_transition(observation={key: x}))[TransitionKey.OBSERVATION][key]
+            self._normalized[(key, dim, raw)] = float(out[0, dim])
+        return self._normalized[(key, dim, raw)]
 
     def unnormalize(self, key: str, x: Tensor) -> Tensor:
         """Raw values of the normalised ``x`` of feature ``key``, on ``x``'s device."""

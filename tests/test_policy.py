@@ -342,6 +342,16 @@ def test_phase_latents_advance_on_gripper_flips(synthetic_meta):
     assert p.phases.phase.tolist() == [2] and torch.equal(p.current_latent(1)[0], z[1])
 
 
+def test_the_gripper_threshold_is_compared_in_the_normalised_space_as_in_the_raw_one(synthetic_meta):
+    """Phases are counted every control step from the normalised action against the threshold normalised once
+    (no unnormalising on the hot path): the same decisions as in raw units."""
+    p = small_policy(synthetic_meta)
+    a = torch.rand(1000, 2, generator=torch.Generator().manual_seed(0)) * 2.4 - 1.2
+    for thr in (-0.3, 0.0, 0.45):
+        closed = p.stats.normalized_value("action", 0, thr)
+        assert torch.equal(p.stats.unnormalize("action", a)[:, 0] > thr, a[:, 0] > closed)
+
+
 def test_phase_latents_advance_per_env_in_a_batched_rollout(synthetic_meta):
     """Vectorised rollout: one env's grasp must not switch the other envs to their next latent."""
     p = small_policy(synthetic_meta)
