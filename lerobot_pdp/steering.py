@@ -208,11 +208,15 @@ def apply_config_steering(policy: Any) -> None:
     cfg = policy.config
     if cfg.steer_latent is not None:
         policy.set_latent(torch.tensor(cfg.steer_latent, dtype=torch.float32))
+        logger.info("steered by steer_latent: latent %s", cfg.steer_latent)
     elif cfg.steer_mode is not None:
         means = policy.mode_latents()
         if cfg.steer_mode not in means:
             raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
         policy.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
+        name = means.names.get(cfg.steer_mode)
+        logger.info("steered to mode %s%s: latent %s", cfg.steer_mode, f" ({name})" if name else "",
+                    means[cfg.steer_mode].tolist())
     elif cfg.steer_dataset_root is not None:
         if cfg.fit_noise == "chunks" and _rollout_with_rtc():  # refused after the fit otherwise (minutes)
             raise ValueError("--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which "

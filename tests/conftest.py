@@ -9,11 +9,14 @@ import sys
 import tempfile
 from pathlib import Path
 
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
-os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+# Forced, not defaulted: tests never download (whatever the caller's environment says) and never read a
+# soft-DTW cache they did not write themselves (pytest-xdist's workers share their controller's).
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ["HF_DATASETS_OFFLINE"] = "1"
+if not os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["LEROBOT_PDP_CACHE"] = tempfile.mkdtemp(prefix="pdp-cache-")
 os.environ.setdefault("TQDM_DISABLE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("LEROBOT_PDP_CACHE", tempfile.mkdtemp(prefix="pdp-cache-"))
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # `make test` runs two pytest workers on the two cores: one torch thread each (and in their subprocesses),
@@ -22,6 +25,12 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("MKL_NUM_THREADS", "1")
     if "torch" in sys.modules:  # already imported (by a plugin): set its pool too
         sys.modules["torch"].set_num_threads(1)
+else:
+    # One process: the thread count a PDP build would set (half the cores) from the start, so that it does not
+    # depend on whether an earlier test happened to build one.
+    from lerobot_pdp.cpu_threads import apply_cpu_threads
+
+    apply_cpu_threads(None)
 
 import pytest  # noqa: E402
 

@@ -11,9 +11,12 @@ from lerobot.utils.constants import ACTION
 from lerobot_pdp import PDPConfig
 
 
-def small_policy(meta, device: str = "cpu", **kw):
-    """A PDP with a small U-Net, built as ``lerobot-train`` builds it (behaviors read from ``meta.root``)."""
-    return make_policy(PDPConfig(device=device, push_to_hub=False, down_dims=(16, 32), **kw), ds_meta=meta)
+def small_policy(meta, device: str = "cpu", seed: int = 0, **kw):
+    """A PDP with a small U-Net, built as ``lerobot-train`` builds it (behaviors read from ``meta.root``). Its
+    weights come from ``seed`` whatever ran before in this worker, and the global random state is left as it was."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return make_policy(PDPConfig(device=device, push_to_hub=False, down_dims=(16, 32), **kw), ds_meta=meta)
 
 
 def training_batch(meta, policy, n: int = 8, seed: int = 0) -> dict:
@@ -45,11 +48,12 @@ def saved_steerable_checkpoint(root: Path, camera: str | None = None) -> tuple[P
     extra = {"spatial_softmax_num_keypoints": 8} if camera else {}
     cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,
                     fit_steps=2, **extra)
-    policy = make_policy(cfg, ds_meta=meta)
-    torch.manual_seed(0)
-    for m in policy.modules():
-        if isinstance(m, LatentFiLM):
-            torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
+    with torch.random.fork_rng(devices=[]):  # the same weights whatever ran before; the global state untouched
+        torch.manual_seed(0)
+        policy = make_policy(cfg, ds_meta=meta)
+        for m in policy.modules():
+            if isinstance(m, LatentFiLM):
+                torch.nn.init.normal_(m.mlp[-1].weight, std=2.0)
     out = root / "ckpt"
     policy.save_pretrained(out)
     pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)

@@ -10,7 +10,17 @@ import torch
 
 from lerobot_pdp import column_views
 
-column_views.install()  # the explicit switch (importing the policy never patches LeRobot)
+
+@pytest.fixture(autouse=True, scope="module")
+def _installed():
+    """The explicit switch (importing the policy never patches LeRobot), for this module's tests only: LeRobot's
+    reader is restored after them, so no other test in this process reads datasets through the views."""
+    from lerobot.datasets.dataset_reader import DatasetReader
+
+    original = DatasetReader.__init__
+    column_views.install()
+    yield
+    DatasetReader.__init__ = original
 
 
 def _dataset(root, delta_timestamps, episodes=None):

@@ -33,8 +33,7 @@ def test_all_four_types_registered():
 @pytest.mark.parametrize("env_type", TYPES)
 def test_features_come_from_env_spaces(env_type):
     suite = next((s for s in envs.SUITE.values() if s.lerobot_env_type == env_type), None)
-    if suite is None:
-        pytest.skip(f"{env_type}: env module not in this checkout")
+    assert suite is not None, f"{env_type}: no suite env registers it"
     cfg = make_env_config(env_type)
     import gymnasium as gym
 
@@ -118,4 +117,4 @@ def test_lerobot_eval_runs_in_scene1(diffusion_checkpoint, tmp_path):
           "--env.type=pdp_reach_around", "--env.scene=1", "--eval.n_episodes=2", "--eval.batch_size=1",
           f"--output_dir={out}"], cwd=tmp_path)
     info = json.loads((out / "eval_info.json").read_text())
-    assert info["overall"]["n_episodes"] == 2 and 0.0 <= info["overall"]["pc_success"] <= 100.0
+    assert info["overall"]["n_episodes"] == 2 and info["overall"]["pc_success"] in (0.0, 50.0, 100.0)  # of 2

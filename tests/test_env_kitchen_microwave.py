@@ -6,11 +6,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-pytest.importorskip("gymnasium_robotics")
-
-from lerobot_pdp.envs import NOVEL, SceneError, get_suite_env, load_scene  # noqa: E402
-from lerobot_pdp.envs import kitchen_microwave as km  # noqa: E402
-from lerobot_pdp.envs.scene import scene_from_dict  # noqa: E402
+from lerobot_pdp.envs import NOVEL, SceneError, get_suite_env, load_scene
+from lerobot_pdp.envs import kitchen_microwave as km
+from lerobot_pdp.envs.scene import scene_from_dict
 
 
 def rollout(env: km.KitchenMicrowaveEnv, expert, seed: int = 0) -> tuple[dict, int]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import time
 from pathlib import Path
 
@@ -44,21 +43,14 @@ def explorer(made, tmp_path_factory):
                     cache_dir=tmp_path_factory.mktemp("cache"), dataset=data)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def served(explorer):
     """The app on a free local port; closed after the module's tests."""
     from lerobot_pdp.explorer_app import launch
 
-    port = _free_port()
-    app = launch(explorer, port=port, block=False)
+    app = launch(explorer, port=None, block=False)  # Gradio binds the first free port it tries (no race)
     try:
-        yield f"http://127.0.0.1:{port}/"
+        yield app.local_url
     finally:
         app.close()
 
@@ -277,7 +269,7 @@ def test_the_app_through_gradio_client(served, explorer, made, tmp_path):
     note = client.predict(str(tmp_path / "adapted"), api_name="/save")
     assert "wrote" in note and (tmp_path / "adapted" / ADAPTATION_INFO).is_file()
     assert json.loads((tmp_path / "adapted" / ADAPTATION_INFO).read_text())["source"] == "fit_latent"
-    land_png, note = client.predict(3, 1, api_name="/landscape")  # (2 x 2: the landscape test's)
+    land_png, note = client.predict(3, 1, api_name="/landscape")  # (a 3 x 3 grid, one rollout each)
     assert Path(land_png).is_file() and "computed and cached" in note
     _, note = client.predict(3, 1, api_name="/landscape")
     assert "read from the cache" in note
@@ -316,11 +308,10 @@ def test_a_person_clicks_the_map_in_a_browser(made, tmp_path, monkeypatch):
     monkeypatch.chdir(data.parent)  # the page shows the folders as given: relative ones, no machine's paths
     explorer = Explorer(Path(ckpt.name), env="reach-around", scene="3", rollouts=4, max_steps=STEPS,
                         cache_dir=tmp_path / "cache", dataset=Path(data.name))
-    port = _free_port()
-    app = launch(explorer, port=port, block=False)
+    app = launch(explorer, port=None, block=False)
     driver = webdriver.Chrome(service=webdriver.ChromeService(executable_path=DRIVER), options=options)
     try:
-        driver.get(f"http://127.0.0.1:{port}/")
+        driver.get(app.local_url)
         wait = WebDriverWait(driver, 120)
         img = wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#latent-map img"))
         wait.until(lambda d: d.execute_script("return arguments[0].complete && arguments[0].naturalWidth > 0", img))

@@ -101,8 +101,10 @@ def test_mode_latents_fall_back_to_discovered_modes_with_a_warning(embedded, cap
         nearest = {min(labeled, key=lambda m: float((labeled[m] - z).norm())) for z in means.values()}
         assert nearest == set(labeled)
         embedded.set_latent(means[0])  # and steers like any latent
+        assert torch.equal(embedded.active_latent[0], means[0])
     finally:
         embedded.model.bank.mode = saved
+        embedded.set_latent(None)  # the module's policy is shared: back to its default latent
 
 
 def test_cluster_choice_errors_are_named():

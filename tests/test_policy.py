@@ -160,7 +160,10 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
             p.set_latent(several)
     assert torch.equal(p.active_latent[0], res.z)  # refused: the latent before it stays
     r0 = p.fit_latent((root, 2), steps=0, init="random")
-    assert torch.equal(r0.z, r0.z_init)
+    assert torch.equal(r0.z, r0.z_init) and not torch.allclose(r0.z_init, p.encode((root, 2)), atol=1e-3)
+    start = torch.tensor([0.25, -0.5])  # a given start (a mode's latent, an earlier fit): the fit begins there
+    given = p.fit_latent((root, 2), steps=2, init=start, activate=False)
+    assert torch.equal(given.z_init, start) and not torch.equal(given.z, start) and len(given.losses) == 2
 
 
 @pytest.mark.parametrize(
@@ -418,7 +421,7 @@ def test_segments_default_follows_training_and_bad_values_are_named(synthetic_me
     assert p.encode(ep).shape == (p.config.latent_dim,)  # "auto" on an unsegmented policy: one z
     p.config.segment_gripper_dim = 0  # stand-in gripper: the sign of the raw x action
     res = p.fit_latent(ep, steps=2)  # "auto" now splits on gripper flips: one z per phase
-    assert res.z.dim() == 2 and res.z.shape[0] == len(p.active_latent) >= 1
+    assert res.z.dim() == 2 and res.z.shape[0] == len(p.active_latent) == 2  # episode 2 flips once
     assert p.fit_latent(ep, steps=2, segments=None).z.shape == (p.config.latent_dim,)
     with pytest.raises(ValueError, match=r"segments must be None, 'auto', 'gripper'.*got 'phases'"):
         p.fit_latent(ep, steps=2, segments="phases")
@@ -439,6 +442,30 @@ def test_demo_windows_are_the_fit_windows_tagged_by_phase(synthetic_meta):
     assert p.demo_windows(ep).n_segments == 1  # "auto" on an unsegmented policy
     with pytest.raises(ValueError, match=r"segment \(10, 5\) is not a non-empty frame range"):
         p.demo_windows(ep, segments=[(10, 5)])
+
+
+def test_fit_windows_are_what_lerobot_trains_on(synthetic_meta):
+    """The windows fit_latent / encode / teach compute L_fit on are exactly the training loader's windows
+    passed through LeRobot's preprocessor (the same normalisation, history, clamping and padding at the edges)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    p = small_policy(synthetic_meta)
+    p.eval()
+    cfg, fps = p.config, synthetic_meta.fps
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=synthetic_meta.stats)
+    ds = LeRobotDataset("local/synthetic", root=synthetic_meta.root, video_backend="pyav", delta_timestamps={
+        **{k: [i / fps for i in cfg.observation_delta_indices] for k in cfg.input_features},
+        "action": [i / fps for i in cfg.action_delta_indices],
+    })
+    w = p.demo_windows((synthetic_meta.root, 2), segments=None)
+    start, T = int(ds.meta.episodes["dataset_from_index"][2]), len(w.actions)
+    for t in (0, 1, T // 2, T - 3, T - 1):
+        item = pre(torch.utils.data.default_collate([ds[start + t]]))
+        torch.testing.assert_close(w.actions[t], item["action"][0], atol=1e-5, rtol=1e-5)
+        assert torch.equal(w.is_pad[t], item["action_is_pad"][0]), t
+        with torch.no_grad():
+            torch.testing.assert_close(w.obs_cond[t], p.model.obs_cond(item)[0], atol=1e-5, rtol=1e-5)
+    assert w.is_pad[T - 1].sum() == cfg.horizon - cfg.n_obs_steps  # the last window: its own frames only
 
 
 def test_checkpoint_keys_stay_the_first_release_keys():
@@ -608,6 +635,39 @@ def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
     r = PDPPolicy.from_pretrained(v1, config=given)
     assert (r.config.timestep_spacing, r.config.use_clipped_model_output) == ("trailing", True)
     assert r.model.noise_schedule.timestep_spacing == "trailing"
+
+
+@pytest.mark.parametrize("kind", ["episode", "prior", "zero"])
+def test_an_unsteered_policy_acts_under_its_inference_latent_drawn_once_per_episode(synthetic_meta, kind):
+    """Nothing steered (every plain lerobot-eval / lerobot-rollout): each env's chunks are conditioned on
+    ``inference_latent``: a random training behaviour's latent ("episode"), a prior draw, or zero; the draw is
+    kept for the whole episode and made anew at reset()."""
+    p = small_policy(synthetic_meta, inference_latent=kind)
+    p.eval()
+    pre, _ = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
+    used: list[torch.Tensor] = []
+    generate = p.generate
+    p.generate = lambda obs, z, *a, **k: (used.append(z.clone()), generate(obs, z, *a, **k))[1]
+    obs = pre({"observation.state": torch.tensor([[0.0, -1.0], [0.5, -1.0], [0.0, -0.5]]),
+               "observation.environment_state": torch.tensor([[0.0, 1.0]] * 3)})
+    torch.manual_seed(0)
+    episodes = []
+    for _ in range(4):
+        p.reset()
+        for _ in range(2 * p.config.n_action_steps):  # two chunks per episode
+            p.select_action(obs)
+        episodes.append(used[-2:])
+        used.clear()
+    training = p.behavior_latents().detach()
+    for first, second in episodes:
+        assert first.shape == (3, p.config.latent_dim) and torch.equal(first, second)  # once per episode
+        if kind == "zero":
+            assert torch.equal(first, torch.zeros_like(first))
+        else:  # "episode": each env's row is one of the training latents; "prior": none is
+            is_training = [bool((torch.isclose(row, training, atol=1e-6).all(-1)).any()) for row in first]
+            assert all(is_training) if kind == "episode" else not any(is_training), (kind, first)
+    if kind != "zero":  # a new draw at each reset
+        assert len({tuple(e[0].flatten().tolist()) for e in episodes}) > 1
 
 
 def test_a_loaded_checkpoint_is_steered_by_its_config_before_the_first_action(synthetic_meta, tmp_path):

@@ -26,7 +26,7 @@ def test_whole_protocol_tiny(tmp_path):
     for m in ("pdp", "dp", "bc"):
         for s in range(4):
             entry = saved["methods"][m][f"scene{s}"]
-            assert len(entry["success"]) == 1 and 0.0 <= entry["mean"] <= 1.0
+            assert len(entry["success"]) == 1 and entry["mean"] == entry["success"][0]
     assert "coverage" in saved["methods"]["pdp"]["scene0"]
     assert "| pdp |" in (tmp_path / "bench" / "results.md").read_text()
     figs = {p.split("/")[-1] for p in res["figures"]}
@@ -176,7 +176,9 @@ def test_pdp_steers_to_a_new_route_from_one_demo(reach_around_pdp, tmp_path):
     baseline = run_rollouts(suite, 3, policy, pre, post, 0, seed=0)
     for m, z in means.items():
         policy.set_latent(z)
-        baseline.extend(run_rollouts(suite, 3, policy, pre, post, 2, seed=100 + m))
+        per_mode = run_rollouts(suite, 3, policy, pre, post, 2, seed=100 + m)
+        assert per_mode.success_rate <= 0.5, (m, per_mode.success_rate)  # no mode's latent makes the route
+        baseline.extend(per_mode)
     assert baseline.success_rate <= 0.2, baseline.success_rate
     demo_root, source = ensure_demo(suite, tmp_path, 3)
     assert "way-points" in source
@@ -185,10 +187,12 @@ def test_pdp_steers_to_a_new_route_from_one_demo(reach_around_pdp, tmp_path):
     fitted = run_rollouts(suite, 3, policy, pre, post, 10, seed=1)
     # the same steering from the command line: lerobot-eval fits z at start-up from the demo dataset
     out = tmp_path / "eval"
-    run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={ckpt}", "--env.type=pdp_reach_around", "--env.scene=3",
-             f"--policy.steer_dataset_root={demo_root}", "--policy.steer_episode_index=0", "--policy.device=cpu",
-             "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}"])
+    proc = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={ckpt}", "--env.type=pdp_reach_around",
+                    "--env.scene=3", f"--policy.steer_dataset_root={demo_root}", "--policy.steer_episode_index=0",
+                    "--policy.device=cpu", "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}"])
+    assert f"fitted latent to {demo_root} episode 0" in proc.stdout + proc.stderr
     info = json.loads(next(out.rglob("eval_info.json")).read_text())
-    assert info["overall"]["n_episodes"] == 2 and "pc_success" in info["overall"]
+    # the same fit as above (same demo, settings and seed): the route it opens is taken from the command line too
+    assert info["overall"]["n_episodes"] == 2 and info["overall"]["pc_success"] >= 50, info["overall"]
     # fitting z alone turns a scene every training mode fails into a solved one
     assert fitted.success_rate >= 0.8, fitted.success_rate

@@ -365,8 +365,6 @@ def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(
 def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synthetic_meta, monkeypatch):
     """lerobot-rollout loads (and so fits at start-up) before it tells the policy about RTC: chunk noises, which
     the engine cannot replay, are refused from its command line before minutes of fitting."""
-    import time
-
     from lerobot_pdp.steering import _rollout_with_rtc
 
     for argv, rtc in ((["/venv/bin/lerobot-rollout", "--inference.type=rtc"], True),
@@ -378,7 +376,7 @@ def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synt
     monkeypatch.setattr("sys.argv", ["lerobot-rollout", "--inference.type=rtc"])
     p = small_policy(synthetic_meta, steer_dataset_root=str(synthetic_meta.root), steer_episode_index=0,
                      fit_noise="chunks", fit_steps=10**6)
-    t0 = time.perf_counter()
+    monkeypatch.setattr(p, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
     with pytest.raises(ValueError, match=r"fit_noise=chunks .*Use --inference.type=sync, or --policy.fit_noise=none"):
         p.apply_config_steering()
-    assert time.perf_counter() - t0 < 5 and not p.steering.active
+    assert not p.steering.active

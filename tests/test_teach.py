@@ -64,11 +64,14 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
 
 
 def test_teaching_makes_the_new_route_the_denoisers_own(synthetic_meta):
-    """After teaching, the denoiser reproduces the demonstration at its new latent better than before, while the
-    training demonstrations' error at their own latents stays where it was."""
+    """After teaching, the denoiser reproduces the demonstration at its new latent clearly better than before, while
+    the training demonstrations' error at their own latents stays where it was. The denoiser first learns the
+    training data (teaching an untrained one lowers every error alike: it would tell teaching from nothing)."""
     p = small_policy(synthetic_meta, optimizer_lr=1e-3)
     demo = new_route()
     old_demo = (synthetic_meta.root, 1)
+    # 200 rehearsal steps of the training windows (a quarter of each batch on a training episode, mode 4 a copy)
+    p.teach(old_demo, synthetic_meta.root, steps=200, lr=3e-3, seed=0)
     z_new = p.encode(demo)[None]
     z_old = p.encode(old_demo)[None]
 
@@ -79,8 +82,9 @@ def test_teaching_makes_the_new_route_the_denoisers_own(synthetic_meta):
     new_before, old_before = errors()
     p.teach(demo, synthetic_meta.root, steps=60, lr=1e-3, seed=0)
     new_after, old_after = errors()
-    assert new_after < 0.7 * new_before, (new_before, new_after)
-    assert old_after < 1.5 * old_before, (old_before, old_after)
+    # measured on three weight seeds: new 0.65-0.73 of before, old 0.93-1.07
+    assert new_after < 0.85 * new_before, (new_before, new_after)
+    assert 0.8 * old_before < old_after < 1.2 * old_before, (old_before, old_after)
 
 
 def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, capsys):

@@ -15,7 +15,12 @@ from lerobot_pdp.benchmark.settings import BenchmarkConfig, split_scenes
 
 
 @pytest.mark.slow
-def test_validate_tiny(tmp_path, monkeypatch):
+def test_validate_tiny(tmp_path, monkeypatch, one_torch_thread):
+    import os
+
+    # the in-process evaluations and the --jobs 2 workers below on one thread each, whatever the machine's
+    # cores: the rerun must reproduce the numbers bit for bit, and float sums split over threads differ
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
     monkeypatch.delitem(settings.FROZEN, ("reach-around", "full"))  # shipped choices: the full budget, not this run
     # a shorter candidate list keeps the test quick; the shipped lists are checked below
     monkeypatch.setattr(validation, "SAMPLER_CANDIDATES", ((4, "leading"), (4, "trailing")))
