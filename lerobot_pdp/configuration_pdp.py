@@ -171,13 +171,14 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     use_clipped_model_output: bool = False
 
     # ---- Optimisation (one optimizer, two parameter groups) ----
-    # AdamW learning rates, chosen on reach-around's validation scenes at 6000 steps (seed 100): 1e-3 steered
+    # Adam learning rates, chosen on reach-around's validation scenes at 6000 steps (seed 100): 1e-3 steered
     # better than the paper's 1e-4 (val scenes 100 / 100 / 2.5 / 92.5 against 100 / 95 / 12.5 / 40 %,
     # docs/results.md "Validation"); every benchmark run trains at 1e-3. For runs far longer than a few
     # thousand steps the paper's 1e-4 is the alternative (not measured here).
     optimizer_lr: float = 1e-3  # denoiser theta
     embedding_lr: float = 1e-3  # encoder phi and decoder psi
-    # AdamW's other settings and the gradient clip, as LeRobot's diffusion policy.
+    # Adam's other settings (weight_decay is Adam's L2 term: LeRobot's AdamConfig, torch.optim.Adam) and the
+    # gradient clip, as LeRobot's diffusion policy.
     optimizer_betas: tuple[float, float] = (0.95, 0.999)
     optimizer_eps: float = 1e-8
     optimizer_weight_decay: float = 1e-6

@@ -256,7 +256,8 @@ def frozen_for(env: str, quick: bool, method: str, obs: str = "state") -> dict[s
 
 # The camera variant (``benchmark --obs images``). One camera per env, chosen so that the agent, the goal and
 # every scene's barriers are in view (reach-around's top view shows scene 3's wall edge-on, hiding its
-# window; the oblique view shows the window), at a size a CPU trains on in a session.
+# window; the oblique view shows the window), at a size a 2-core CPU trains at the quick budget in under an
+# hour (docs/results/cameras.md).
 CAMERAS = {"reach-around": "oblique", "avoiding": "top", "pick-place": "oblique"}
 IMAGE_SIZE = 64
 # The vision encoder of every camera method, identical for PDP and DP (LeRobot's diffusion image encoder):
