@@ -69,20 +69,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=2000, help="timed steps per env")
     p.add_argument("--envs", nargs="*", default=None, help="suite env names (default: all)")
     args = p.parse_args(argv)
+    if args.steps < 1:
+        p.error(f"--steps must be >= 1, got {args.steps}")
 
     import lerobot_pdp.envs as envs
     from lerobot_pdp.benchmark.machine import cpu_model
 
     names = args.envs or list(envs.SUITE)
+    failed = 0
     for name in names:
         try:
             row = bench(name, args.steps)
         except Exception as e:  # noqa: BLE001 - one broken env must not hide the others' numbers
             row = {"env": name, "error": f"{type(e).__name__}: {e}"}
+            failed += 1
         row["machine"] = f"{platform.machine()} {platform.processor() or ''}".strip()
         row["cpu"] = cpu_model()
         print(json.dumps(row), flush=True)
-    return 0
+    return 1 if failed else 0  # the others' numbers are printed, but a broken env fails the run
 
 
 if __name__ == "__main__":

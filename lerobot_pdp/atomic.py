@@ -14,6 +14,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 def write_file_atomic(path: str | Path, write: Callable[[Path], None]) -> None:
@@ -29,6 +30,13 @@ def write_file_atomic(path: str | Path, write: Callable[[Path], None]) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def write_figure_atomic(fig: Any, path: str | Path, **savefig: Any) -> None:
+    """Save a matplotlib figure whole or not at all, in the format its suffix names (PNG without one: the
+    temporary name's ``.tmp`` is no format)."""
+    fmt = Path(path).suffix[1:] or "png"
+    write_file_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, **savefig))
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:

@@ -700,14 +700,21 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     target = args.out / "results.json"
     if any(target.resolve() == f.resolve() for f in files):
         raise ValueError(f"--out {args.out} would overwrite one of the inputs ({target}); choose another folder")
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a file; give a folder for the merged results")
+    if (args.out / "runs").is_dir() or (target.is_file() and "merged_from" not in _json_or_empty(target)):
+        raise ValueError(f"--out {args.out} holds a benchmark run (its own results.json and runs/), not an earlier "
+                         "merge: merging into it would replace its records; choose a new folder")
     loaded = []
     for f in files:
         try:
-            # named relative to the merged folder: the merged results.json records where its parts came from
-            loaded.append((os.path.relpath(f, args.out), json.loads(f.read_text())))
+            loaded.append((str(f), json.loads(f.read_text())))
         except json.JSONDecodeError as e:
             raise ValueError(f"{f} is not JSON ({e})") from e
     res = merge_results(loaded)
+    # named relative to the merged folder: the merged results.json records where its parts came from
+    res["merged_from"] = [os.path.relpath(f, args.out) for f in files]
+    table = results_markdown(res)  # everything computed before anything is written
     # validation runs, one per method: their validation.json records are merged too
     records = [f.with_name("validation.json") for f in files]
     merged_validation = None
@@ -720,7 +727,7 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
         print(f"validation records not merged: no {', '.join(missing)} (runs without --validate)")
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(target, json.dumps(res, indent=1))
-    write_text_atomic(args.out / "results.md", results_markdown(res))
+    write_text_atomic(args.out / "results.md", table)
     if "teach" in res:  # runs with --teach: their teaching records as one teach.json / teach.md
         from lerobot_pdp.benchmark.teaching import teach_markdown
 
@@ -737,9 +744,17 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     for f in [f for f in stale if f.is_file()]:
         f.unlink()
         print(f"removed {f}: it recorded runs this merge does not hold")
-    print(results_markdown(res))
+    print(table)
     print(f"results: {target} and {args.out / 'results.md'}")
     return 0
+
+
+def _json_or_empty(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
@@ -771,8 +786,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, KeyError, FileExistsError, FileNotFoundError, RuntimeError) as e:
-        # Expected user errors (bad scene, existing output, infeasible mode): one clear line, no traceback.
+    except (ValueError, KeyError, OSError, RuntimeError) as e:
+        # Expected user errors (bad scene, existing output, infeasible mode) and the file system's (a read-only
+        # or missing place, a file where a folder goes: OSError names the path): one clear line, no traceback.
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"lerobot-pdp {args.command}: error: {msg}", file=sys.stderr)
         return 2

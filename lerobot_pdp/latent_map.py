@@ -18,7 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .atomic import write_file_atomic  # noqa: E402
+from .atomic import write_figure_atomic  # noqa: E402
 
 MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
 
@@ -74,7 +74,7 @@ def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: st
     fig = latent_map_figure(policy, k, title).figure
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
+    write_figure_atomic(fig, out_png, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out_png
 

@@ -177,6 +177,36 @@ def test_benchmark_lr_overrides_every_methods_learning_rate(tmp_path):
     assert not (tmp_path / "bench").exists()
 
 
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--rollouts", "0"], r"rollouts must be a whole number >= 1, got 0"),
+    (["--steps", "0"], r"steps must be a whole number >= 1, got 0"),
+    (["--steps", "-5"], r"steps must be a whole number >= 1, got -5"),
+    (["--seeds", "-1"], r"seeds must be whole numbers in 0..2\*\*32-1 \(lerobot-train's --seed\), got -1"),
+    (["--seeds", "0", "0"], r"seeds lists 0 more than once"),
+    (["--scenes", "0", "1", "1"], r"scenes lists 1 more than once; each is run \(and counted\) once"),
+    (["--scenes", "0", "7"], r"--scenes 7: reach-around ships no such scene"),
+])
+def test_a_benchmark_request_that_would_report_wrong_numbers_is_refused_before_anything_is_made(tmp_path, argv,
+                                                                                                  message):
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+    from lerobot_pdp.cli import benchmark_config, build_parser
+
+    cfg = benchmark_config(build_parser().parse_args(["benchmark", "--env", "reach-around", "--quick", "--out",
+                                                      str(tmp_path / "bench"), *argv]))
+    with pytest.raises(ValueError, match=message):
+        run_benchmark(cfg)
+    assert not (tmp_path / "bench").exists()
+
+
+def test_benchmark_out_under_a_file_is_named(tmp_path, capsys):
+    from lerobot_pdp.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        assert main(["benchmark", "--env", "reach-around", "--quick", "--out", str(out)]) == 2
+        assert f"--out {out}: {tmp_path / 'afile'} is a file; give a folder" in capsys.readouterr().err
+
+
 def test_benchmark_batch_size_overrides_every_methods_batch(tmp_path):
     """``--batch-size`` (for choosing a budget on validation) reaches every method's lerobot-train call; a
     batch below 1 is refused before anything is trained."""
@@ -268,3 +298,21 @@ def test_vqbet_outside_the_camera_variant_is_refused_with_the_reason(tmp_path):
     with pytest.raises(ValueError, match=r"unknown method\(s\) \['vqbet'\].*vqbet needs --obs images"):
         run_benchmark(BenchmarkConfig(env="reach-around", out=tmp_path / "b", methods=["vqbet"], seeds=[0]))
     assert not list((tmp_path / "b").glob("data/*"))  # refused before any dataset is made
+
+
+def test_the_training_progress_follows_lerobot_trains_rounded_step_counter():
+    """lerobot-train logs ``step:<format_big_number(step)>`` every --log_freq steps: "2K" from 1500 on. The bar
+    reads each log line as the next multiple of log_freq, so it neither stalls at 1000 nor jumps ahead."""
+    from lerobot.utils.utils import format_big_number
+
+    from lerobot_pdp.benchmark.training import logged_step
+
+    done, seen = 0, []
+    for step in range(80, 1601, 80):  # --steps=1600 --log_freq=80, as train_args sets them
+        done = logged_step(f"INFO ... step:{format_big_number(step)} smpl:{format_big_number(step * 64)} loss:0.1",
+                           done, 80)
+        seen.append(done)
+    assert seen == list(range(80, 1601, 80))
+    assert logged_step("INFO Checkpoint policy after step 1000", 0, 80) is None
+    resumed = logged_step("step:1K", 1000, 80)  # resumed from the step-1000 checkpoint: its first line, 1040
+    assert resumed == 1040

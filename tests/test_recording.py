@@ -151,5 +151,9 @@ def test_cli_make_and_plot(tmp_path, capsys):
     assert read_dataset_meta(out)["episode_modes"] == [3, 3]
     rc = cli_main(["plot-dataset", str(out), "--out", str(tmp_path / "p.png")])
     assert rc == 0 and (tmp_path / "p.png").is_file()
+    rc = cli_main(["plot-dataset", str(out), "--out", str(tmp_path / "plot")])  # no suffix: a PNG by that name
+    assert rc == 0 and (tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert cli_main(["plot-dataset", str(out), "--out", str(tmp_path / "p.svg")]) == 0
+    assert (tmp_path / "p.svg").read_text().lstrip().startswith("<?xml")
     rc = cli_main(["make-dataset", "--env", "reach-around", "--out", str(out), "--no-progress"])
     assert rc == 2 and "already exists" in capsys.readouterr().err

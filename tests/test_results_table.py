@@ -417,3 +417,38 @@ def test_merge_results_merges_the_teaching_records_of_runs_made_method_by_method
     with pytest.raises(ValueError, match="b: teaching budget is 'quick' but a has None"):  # a key only one has
         merge_results([("a", one | {"teach": _taught("bc", 6, 0.0)}),
                        ("b", again | {"teach": _taught("dp", 7, 0.0, budget="quick")})])
+
+
+def test_merge_results_refuses_a_benchmark_folder_as_out_and_scene_lists_that_differ(tmp_path, capsys):
+    """--out a benchmark run's own folder would replace its results and records: refused, untouched. Runs whose
+    methods cover other scenes make no one table: refused naming both, nothing written. Adaptation settings
+    besides the defaults survive the merge."""
+    from lerobot_pdp.cli import main
+
+    a = _results([0], {"pdp": {0: [1.0, 0.5, 1.0, 1.0]}})
+    a["methods"]["pdp"]["adapt"] = {"noise": "chunks"}
+    b = _results([1], {"pdp": {1: [1.0, 1.0, 0.0, 1.0]}})
+    b["methods"]["pdp"]["adapt"] = {"noise": "chunks"}
+    for name, res in (("a", a), ("b", b)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(res))
+    run = tmp_path / "run"
+    (run / "runs").mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps(a))
+    (run / "teach.json").write_text("{}")
+    assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(run)]) == 2
+    assert "holds a benchmark run" in capsys.readouterr().err
+    assert json.loads((run / "results.json").read_text()) == a and (run / "teach.json").is_file()
+    assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "m")]) == 0
+    merged = json.loads((tmp_path / "m" / "results.json").read_text())
+    assert merged["methods"]["pdp"]["adapt"] == {"noise": "chunks"}
+    assert "pdp {'noise': 'chunks'}" in (tmp_path / "m" / "results.md").read_text()
+    # an earlier merge is a fine --out: merged again in place
+    assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "m")]) == 0
+    capsys.readouterr()
+    c = _results([2], {"dp": {2: [1.0, 1.0, 1.0]}}, scenes=(0, 1, 2))
+    (tmp_path / "c.json").write_text(json.dumps(c))
+    assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "c.json"), "--out", str(tmp_path / "ac")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'c.json'}: dp has scenes ['scene0', 'scene1', 'scene2']" in err and "pdp has" in err, err
+    assert not (tmp_path / "ac").exists()

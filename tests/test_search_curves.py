@@ -209,6 +209,11 @@ def test_bad_input_is_named(results, tmp_path, capsys):
                 "--out", str(tmp_path / "c")]) == 2
     assert f"no trained pdp run at {tmp_path}/runs/pdp/seed{SEED}" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+    # another env's folder (here still without results.json: named by its dataset) is refused before a demo is made
+    demos = sorted((results / "data").iterdir())
+    assert cli([*base[:3], "avoiding", *base[4:], "--scene", "val1"]) == 2
+    assert f"{results} is a benchmark run of reach-around, not avoiding: give --env reach-around" in capsys.readouterr().err
+    assert sorted((results / "data").iterdir()) == demos and not (tmp_path / "c").exists()
 
 
 def test_a_second_search_into_a_held_folder_is_refused(results, tmp_path, capsys):

@@ -190,9 +190,11 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
     the per-scene rates say *where* an initialisation wins or loses, which the mean hides."""
     cache = run_dir / "init_ablation.json"
     sampler = sampler_of(ckpt, cfg)
+    # what the rates depend on besides the sampler: a cache of other rollouts or scenes is redone
+    design = {"rollouts": cfg.rollouts, "scenes": [str(s) for s in cfg.scenes if s != 0]}
     cached = cached_evaluation(cache, sampler, ckpt)
-    if cached:
-        return {k: v for k, v in cached.items() if k not in sampler and k != "device"}
+    if cached and all(cached.get(k) == v for k, v in design.items()):
+        return {k: v for k, v in cached.items() if k not in sampler and k not in design and k != "device"}
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     method = Method("pdp", "pdp")
     out: dict[str, Any] = {}
@@ -211,7 +213,7 @@ def evaluate_init_ablation(suite: SuiteEnv, ckpt: Path, demos: dict[int | str, P
             print(f"[benchmark] init {init} steps {steps}: success {out[key]} per scene {rates}")
     policy.set_latent(None)
     out["per_scene"] = per_scene
-    write_text_atomic(cache, json.dumps({**out, **sampler, "device": cfg.device}, indent=1))
+    write_text_atomic(cache, json.dumps({**out, **sampler, **design, "device": cfg.device}, indent=1))
     return out
 
 

@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..atomic import write_file_atomic  # noqa: E402
+from ..atomic import write_figure_atomic  # noqa: E402
 from ..envs.plotting import draw_scene, mode_color, scene_views  # noqa: E402
 from ..envs.suite import SuiteEnv  # noqa: E402
 from .settings import ABLATIONS  # noqa: E402
@@ -90,7 +90,7 @@ def latent_map(suite: SuiteEnv, eval_json: dict[str, Any], out_png: Path, title:
         axes[0][-1].legend(*axes[0][0].get_legend_handles_labels(), fontsize=7, loc="center left",
                            bbox_to_anchor=(1.0, 0.5))
     fig.tight_layout()
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=120, bbox_inches="tight"))
+    write_figure_atomic(fig, out_png, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out_png
 
@@ -118,7 +118,7 @@ def rollouts_grid(suite: SuiteEnv, traces: dict[str, dict[str, list]], scenes: l
             ax.set_ylabel("")
     fig.suptitle(f"{suite.name}: rollouts ({plane} view; green = success, red = failure)")
     fig.tight_layout()
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
+    write_figure_atomic(fig, out_png, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out_png
 
@@ -151,7 +151,7 @@ def interpolation_sweep(suite: SuiteEnv, sweep: dict[str, Any], out_png: Path) -
                  f"({suite.mode_names[b]})\nlinear: through the map's centre; elliptical: around it; "
                  "dashed = failed rollout", fontsize=11)
     fig.tight_layout()
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight"))
+    write_figure_atomic(fig, out_png, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out_png
 

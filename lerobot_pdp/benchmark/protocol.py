@@ -43,6 +43,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     suite = get_suite_env(cfg.env)
     full, quick = SETTINGS[suite.name]
     check_split(cfg.split, tuple(cfg.scenes), list(cfg.seeds))
+    check_request(cfg, suite)
     if cfg.validate and cfg.split != "validation":
         raise ValueError("--validate chooses settings on the validation split only: add --split validation")
     if cfg.reuse_validation and not cfg.validate:
@@ -77,7 +78,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
         if cfg.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
         settings = replace(settings, batch_size=cfg.batch_size)
-    steps = cfg.steps or settings.steps
+    steps = cfg.steps if cfg.steps is not None else settings.steps
     user_sampler = cfg.inference_steps is not None or cfg.timestep_spacing is not None  # wins over FROZEN
     if cfg.inference_steps is None:
         cfg = replace(cfg, inference_steps=settings.inference_steps)
@@ -162,6 +163,35 @@ def _train_and_evaluate(cfg: BenchmarkConfig, suite: SuiteEnv, all_methods: dict
         res["figures"] = [str(p.relative_to(out)) for p in write_figures(suite, out, cfg, ckpts, sweep)]
         write_text_atomic(out / "results.json", json.dumps(res, indent=1))
     return res
+
+
+def check_request(cfg: BenchmarkConfig, suite: SuiteEnv) -> None:
+    """Refuse, before any dataset or training, what would train for nothing or report wrong numbers: no
+    rollouts, no steps, a seed lerobot-train refuses, a scene listed twice (counted twice in the shifted
+    average) or one the env does not ship."""
+    from ..envs.scene import SceneError, load_scene
+
+    out = Path(cfg.out)
+    if (out.exists() and not out.is_dir()) or any(p.exists() and not p.is_dir() for p in out.parents):
+        raise ValueError(f"--out {out}: {next(p for p in (out, *out.parents) if p.exists())} is a file; "
+                         "give a folder (new, or a run's folder to resume)")
+    for name, value in (("rollouts", cfg.rollouts), ("steps", cfg.steps), ("episodes_per_mode", cfg.episodes_per_mode)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
+    if not cfg.seeds:
+        raise ValueError("seeds: give at least one training seed")
+    for seed in cfg.seeds:
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
+            raise ValueError(f"seeds must be whole numbers in 0..2**32-1 (lerobot-train's --seed), got {seed!r}")
+    for name, values in (("seeds", list(cfg.seeds)), ("scenes", list(cfg.scenes))):
+        twice = sorted({str(v) for v in values if values.count(v) > 1})
+        if twice:
+            raise ValueError(f"{name} lists {', '.join(twice)} more than once; each is run (and counted) once")
+    for scene in cfg.scenes:
+        try:
+            load_scene(scene, suite.scene_key)
+        except SceneError as e:
+            raise ValueError(f"--scenes {scene}: {suite.name} ships no such scene ({e})") from None
 
 
 def check_device(device: str) -> None:

@@ -198,13 +198,16 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     out["seeds"] = sorted({s for r in rows.values() for s, *_ in r})
     out["merged_from"] = [name for name, _ in results]
     out["methods"] = {}
+    first_method, first_rows = next(iter(rows.items()))
+    table_scenes = [k for k in first_rows[0][2] if k.startswith("scene")]  # one table: every method, every scene
     for method, per_seed in rows.items():
         per_seed.sort(key=lambda r: r[0])
         scenes = [k for k in per_seed[0][2] if k.startswith("scene")]
         for _, name, entry, _ in per_seed:
             got = [k for k in entry if k.startswith("scene")]
-            if got != scenes:
-                raise ValueError(f"{name}: {method} has scenes {got} but {per_seed[0][1]} has {scenes}")
+            if got != table_scenes:
+                raise ValueError(f"{name}: {method} has scenes {got} but {first_rows[0][1]}'s {first_method} has "
+                                 f"{table_scenes}; merge runs of the same scenes")
         merged: dict[str, Any] = {"seeds": [r[0] for r in per_seed]}
         for scene in scenes:
             success = [entry[scene]["success"][i] for _, _, entry, i in per_seed]
@@ -221,6 +224,13 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             merged["inference_steps"] = steps_used
             merged["timestep_spacing"] = sorted({s for _, _, e, _ in per_seed for s in e.get("timestep_spacing", [])})
         merged["eval_devices"] = sorted({d for _, _, e, _ in per_seed for d in e.get("eval_devices", ["unrecorded"])})
+        adapt_used = []  # each run's adaptation settings besides the defaults, once each
+        for _, _, e, _ in per_seed:
+            for a in (e["adapt"] if isinstance(e.get("adapt"), list) else [e["adapt"]] if e.get("adapt") else []):
+                if a not in adapt_used:
+                    adapt_used.append(a)
+        if adapt_used:
+            merged["adapt"] = adapt_used[0] if len(adapt_used) == 1 else adapt_used
         out["methods"][method] = merged
     taught = [(name, res["teach"]) for name, res in results if "teach" in res]
     if taught:  # runs with --teach: one record of every (method, seed) they taught

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -35,33 +36,48 @@ TRAIN_THREADS_ENV = {"OMP_NUM_THREADS": _THREADS, "MKL_NUM_THREADS": _THREADS} i
 RESUME_EVERY = 1000
 
 
+_LOGGED_STEP = re.compile(r"step:(\d+)(K?)")
+
+
+def logged_step(line: str, done: int, log_freq: int) -> int | None:
+    """The training step a ``lerobot-train`` log line reports (None: not a step line), given the last one
+    ``done``. Its counter is rounded from 1000 on ("step:2K" at 1500), but a line comes every ``--log_freq``
+    steps: the next multiple of ``log_freq`` after ``done`` is exact where the rounded counter is not."""
+    m = _LOGGED_STEP.search(line)
+    if m is None:
+        return None
+    if not m.group(2):
+        return int(m.group(1))
+    return (done // log_freq + 1) * log_freq if log_freq > 0 else int(m.group(1)) * 1000
+
+
 def _run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: int = 0,
                 on_checkpoint=None) -> None:
     """Run ``lerobot-train`` with its output in ``log`` (appended to when resuming from step ``start``); a
     progress bar follows its logged step counter; ``on_checkpoint(step)`` runs as each checkpoint starts."""
-    import re
-
     from tqdm.auto import tqdm
 
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TQDM_DISABLE": "1", **TRAIN_THREADS_ENV, **column_views.child_env()}
-    pattern = re.compile(r"step:(\d+)(K?)")
+    log_freq = next((int(a.partition("=")[2]) for a in args if a.startswith("--log_freq=")), 0)
     saving = re.compile(r"Checkpoint policy after step (\d+)")
     # line-buffered: a run killed from outside keeps its log up to the kill
     with open(log, "a" if start else "w", buffering=1) as fh, tqdm(total=total_steps, initial=start, desc=desc, unit="step") as bar:
         proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         assert proc.stdout is not None
+        done = start
         for line in proc.stdout:
             fh.write(line)
-            m = pattern.search(line)
-            if m:
-                # lerobot-train rounds large counters ("step:2K" at step 1500): never past the total
-                step = min(int(m.group(1)) * (1000 if m.group(2) else 1), total_steps)
-                bar.update(max(0, step - bar.n))
+            step = logged_step(line, done, log_freq)
+            if step is not None:
+                step = min(step, total_steps)
+                bar.update(max(0, step - done))
+                done = max(done, step)
             m = saving.search(line)
             if m and on_checkpoint is not None:
                 on_checkpoint(int(m.group(1)))
         rc = proc.wait()
-        bar.update(total_steps - bar.n)
+        if rc == 0:
+            bar.update(total_steps - done)
     if rc != 0:
         tail = "".join(log.read_text().splitlines(keepends=True)[-40:])
         raise RuntimeError(f"{args[0]} failed with exit code {rc}; see {log}\n{tail}")

@@ -22,7 +22,7 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
-from ..atomic import write_file_atomic  # noqa: E402
+from ..atomic import write_figure_atomic  # noqa: E402
 from .scene import Barrier, load_scene  # noqa: E402
 from .suite import NOVEL, SuiteEnv, get_suite_env, parse_task_mode  # noqa: E402
 
@@ -191,6 +191,6 @@ def plot_dataset(
     fig.tight_layout()
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    write_file_atomic(out_png, lambda tmp: fig.savefig(tmp, dpi=120, bbox_inches="tight"))
+    write_figure_atomic(fig, out_png, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out_png
