@@ -12,6 +12,7 @@ import hashlib
 import logging
 import math
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -287,7 +288,7 @@ def read_training_behaviors(config, root: str | Path, features: dict,
     cfg = config
     keys = training_behavior_keys(cfg, features)
     if episodes is None:
-        episodes = read_episodes(root, keys)
+        episodes = read_training_episodes(cfg, root, keys)
     for ep, item in episodes.items():
         for k in keys:
             check_finite(k, item[k], f"episode {ep}")
@@ -295,6 +296,58 @@ def read_training_behaviors(config, root: str | Path, features: dict,
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
         cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
     )
+
+
+def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[int, dict]:
+    """The episodes the policy trains on (``config.dataset_episodes``, else lerobot-train's --dataset.episodes,
+    then recorded in the config; else all), read with ``keys``. A listed episode the dataset lacks is refused."""
+    if config.dataset_episodes is None:
+        config.dataset_episodes = lerobot_train_episodes(sys.argv)
+        if config.dataset_episodes is not None:
+            logger.info("PDP: the behavior bank reads lerobot-train's --dataset.episodes %s of %s",
+                        config.dataset_episodes, root)
+    episodes = read_episodes(root, keys, config.dataset_episodes)
+    missing = sorted(set(config.dataset_episodes or ()) - set(episodes))
+    if missing:
+        raise ValueError(f"{root}: dataset_episodes lists episodes {missing}, which the dataset does not hold")
+    return episodes
+
+
+def lerobot_train_episodes(argv: list[str]) -> list[int] | None:
+    """``--dataset.episodes`` of a ``lerobot-train`` command line (None: not given, or another program)."""
+    if not argv or Path(argv[0]).name not in ("lerobot-train", "lerobot_train.py"):
+        return None
+    import yaml  # draccus parses its command-line values as YAML
+
+    for i, arg in enumerate(argv[1:], start=1):
+        name, eq, value = arg.partition("=")
+        if name != "--dataset.episodes":
+            continue
+        if not eq:
+            value = argv[i + 1] if i + 1 < len(argv) else ""
+        parsed = yaml.safe_load(value) if value.strip() else None
+        if parsed is None:
+            return None
+        if not isinstance(parsed, list) or not all(isinstance(e, int) and not isinstance(e, bool) for e in parsed):
+            raise ValueError(f"--dataset.episodes={value}: expected a list of episode indices, e.g. '[0,2,5]'")
+        return [int(e) for e in parsed]
+    return None
+
+
+def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None:
+    """Refuse a behavior trace that is the same in every episode and never moves (a wrong ``trace_key``: every
+    soft-DTW distance is 0 and the latent learns nothing); warn when no trace moves within its episode (soft-DTW
+    compares paths), and when the dataset holds one episode (:func:`warn_few_episodes`)."""
+    where = f"trace_key '{config.trace_key}'" + (f" dims {config.trace_dims}" if config.trace_dims is not None else "")
+    if len(behaviors) and np.ptp(behaviors.traces.reshape(-1, behaviors.traces.shape[-1]), axis=0).max() == 0:
+        raise ValueError(f"{root}: the behavior trace ({where}) has the same value in every frame of every episode, "
+                         "so every demonstration looks alike and the latent learns nothing; set --policy.trace_key "
+                         "(and --policy.trace_dims) to a state-like vector that moves, e.g. end-effector positions")
+    if len(behaviors) and np.ptp(behaviors.traces, axis=1).max() == 0:
+        logger.warning("%s: the behavior trace (%s) never changes within an episode: soft-DTW compares paths, so "
+                       "PDP tells the demonstrations apart by where they are only; a state-like vector that moves "
+                       "(end-effector positions) works best", root, where)
+    warn_few_episodes(behaviors, root, config.beta_geo)
 
 
 def warn_few_episodes(behaviors: BehaviorTraces, root: str | Path, beta_geo: float) -> None:

@@ -83,6 +83,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     use_separate_rgb_encoder_per_camera: bool = False
 
     # ---- Behavior trace X(tau) and its geometry ----
+    # The training dataset's episodes the behavior bank reads (None: every episode). LeRobot does not tell a
+    # policy which episodes it trains on: under lerobot-train, --dataset.episodes is read from its command line
+    # when this is unset, so held-out episodes never shape the latent space (recorded here for teaching).
+    dataset_episodes: list[int] | None = None
     # Feature whose dims form the behavior trace (positions work best: DTW compares paths).
     trace_key: str = OBS_STATE
     # Indices into `trace_key` that form X(tau); None = all dims.
@@ -289,6 +293,12 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         errors = []
         if self.latent_dim < 1:
             errors.append(f"latent_dim must be >= 1, got {self.latent_dim}")
+        if self.dataset_episodes is not None and (
+                not self.dataset_episodes or any(isinstance(e, bool) or not isinstance(e, int) or e < 0
+                                                 for e in self.dataset_episodes)
+                or len(set(self.dataset_episodes)) != len(self.dataset_episodes)):
+            errors.append(f"dataset_episodes must be distinct episode indices >= 0 (or None: all), "
+                          f"got {self.dataset_episodes}")
         if self.cpu_threads is not None and self.cpu_threads < 0:
             errors.append(f"cpu_threads must be >= 0 (0: torch's default) or None (auto), got {self.cpu_threads}")
         if not self.sdtw_gamma > 0:
@@ -429,7 +439,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         for key, shape in shapes.items():
             if len(shape) != 3 or shape[0] != 3:
                 raise ValueError(f"camera '{key}' must have shape (3, H, W) (channel first, RGB), got {shape}")
-        if len(set(shapes.values())) > 1:
+        if len(set(shapes.values())) > 1 and self.resize_shape is None:
             raise ValueError(f"all cameras must have the same shape (one encoder input size); got {shapes}. "
                              "Resize them when recording, or set --policy.resize_shape")
         size = self.resize_shape or next(iter(shapes.values()))[1:]

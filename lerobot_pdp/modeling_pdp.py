@@ -34,7 +34,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_provenance, fit_to_demonstration
-from .behavior import read_training_behaviors, warn_few_episodes
+from .behavior import check_behaviors, read_training_behaviors
 from .behavior_bank import resolve_dataset_config
 from .candidate_rollouts import EnvFactory
 from .checkpoint import apply_adaptation, flatten_model_keys, load_weights, nest_model_keys, save_checkpoint
@@ -80,7 +80,7 @@ class PDPPolicy(PreTrainedPolicy):
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             behaviors = read_training_behaviors(cfg, dataset_meta.root, dataset_meta.features)
-            warn_few_episodes(behaviors, dataset_meta.root, cfg.beta_geo)
+            check_behaviors(behaviors, dataset_meta.root, cfg)
             resolve_dataset_config(cfg, behaviors)  # mode_names, one-hot latent_dim: before anything is built
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         self.register_state_dict_post_hook(flatten_model_keys)  # the first release's keys ("vae.*", "behavior_traces")

@@ -74,6 +74,8 @@ class ObservationEncoder(nn.Module):
         if self.separate:
             return torch.cat([enc(x) for enc, x in zip(self.rgb_encoder, images, strict=True)], dim=-1)
         n = images[0].shape[0]
+        if len({x.shape[-2:] for x in images}) > 1:  # cameras of other sizes (resize_shape set): one size to stack
+            images = [self.rgb_encoder.resize(x) for x in images]
         out = self.rgb_encoder(torch.cat(images))  # one backbone pass over all cameras
         return out.view(len(images), n, -1).transpose(0, 1).flatten(1)
 

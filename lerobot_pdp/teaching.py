@@ -178,7 +178,9 @@ def check_training_data(policy: Any, root: str | Path) -> dict[int, dict]:
     model, cfg = policy.model, policy.config
     check_recording(root, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
     features = json.loads((root / "meta" / "info.json").read_text()).get("features", {})
-    episodes = read_episodes(root, list(dict.fromkeys([*training_behavior_keys(cfg, features), *_rehearsal_keys(cfg)])))
+    # the episodes it trained on (lerobot-train's --dataset.episodes), not the held-out ones
+    episodes = read_episodes(root, list(dict.fromkeys([*training_behavior_keys(cfg, features), *_rehearsal_keys(cfg)])),
+                             cfg.dataset_episodes)
     found = read_training_behaviors(cfg, root, features, episodes)
     bank = model.bank.traces.detach().cpu().numpy()
     taught = model.bank.global_start.detach().cpu().numpy() == TAUGHT_START
@@ -212,7 +214,7 @@ def rehearsal_windows(policy: Any, root: str | Path,
     model, cfg = policy.model, policy.config
     cameras = [k for k in cfg.condition_features if k in cfg.image_features]
     if episodes is None:
-        episodes = read_episodes(root, _rehearsal_keys(cfg))
+        episodes = read_episodes(root, _rehearsal_keys(cfg), cfg.dataset_episodes)
     with torch.no_grad():
         z_bank = model.behavior_latents().detach().cpu()
     bank_ep = model.bank.episode.cpu().numpy()

@@ -1,5 +1,6 @@
 """PDPPolicy in-process: construction from a real dataset, training step, steering API, errors, save/load."""
 
+import logging
 import math
 import re
 
@@ -712,3 +713,65 @@ def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_met
     obs = {k: v[:1] for k, v in training_batch(synthetic_meta, p).items() if k.startswith("observation.")}
     with pytest.raises(FloatingPointError, match="non-finite actions"):
         p.predict_action_chunk(obs)
+
+
+def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_meta, monkeypatch):
+    """LeRobot does not tell a policy which episodes it trains on: under lerobot-train, --dataset.episodes is read
+    from its command line (held-out episodes never shape the latent space) and recorded in the config; elsewhere
+    dataset_episodes says it; an episode the dataset lacks is refused."""
+    from lerobot_pdp.behavior import lerobot_train_episodes
+
+    assert lerobot_train_episodes(["/venv/bin/lerobot-train", "--dataset.episodes=[0, 3,5]"]) == [0, 3, 5]
+    assert lerobot_train_episodes(["lerobot-train", "--dataset.episodes", "[2]", "--steps=4"]) == [2]
+    assert lerobot_train_episodes(["lerobot-train", "--dataset.episodes=null"]) is None
+    assert lerobot_train_episodes(["lerobot-eval", "--dataset.episodes=[1]"]) is None  # not a training
+    with pytest.raises(ValueError, match=r"--dataset.episodes=abc: expected a list of episode indices"):
+        lerobot_train_episodes(["lerobot-train", "--dataset.episodes=abc"])
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-train", "--policy.type=pdp", "--dataset.episodes=[0,3,17]"])
+    p = small_policy(synthetic_meta)
+    assert p.config.dataset_episodes == [0, 3, 17]
+    assert sorted(set(p.model.bank.episode.tolist())) == [0, 3, 17]
+    monkeypatch.setattr("sys.argv", ["python"])
+    q = small_policy(synthetic_meta, dataset_episodes=[1, 2])
+    assert sorted(set(q.model.bank.episode.tolist())) == [1, 2] and len(q.mode_latents()) <= 2
+    with pytest.raises(ValueError, match=r"dataset_episodes lists episodes \[99\], which the dataset does not hold"):
+        small_policy(synthetic_meta, dataset_episodes=[1, 99])
+    with pytest.raises(ValueError, match=r"dataset_episodes must be distinct episode indices >= 0"):
+        from lerobot_pdp import PDPConfig
+
+        PDPConfig(dataset_episodes=[1, 1])
+
+
+@pytest.mark.slow
+def test_lerobot_train_on_some_episodes_keeps_the_others_out_of_the_latent_space(synthetic_dataset, tmp_path):
+    import json
+
+    from conftest import lerobot_cli, run_cli
+
+    out = tmp_path / "train"
+    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
+             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/synthetic", f"--dataset.root={synthetic_dataset}",
+             "--dataset.episodes=[0, 1, 10, 11]", "--steps=2", "--batch_size=8", "--num_workers=0", "--save_freq=2",
+             "--log_freq=1", "--wandb.enable=false", f"--output_dir={out}"])
+    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    assert json.loads((ckpt / "config.json").read_text())["dataset_episodes"] == [0, 1, 10, 11]
+    p = PDPPolicy.from_pretrained(ckpt)
+    assert sorted(set(p.model.bank.episode.tolist())) == [0, 1, 10, 11]
+
+
+def test_a_trace_that_never_moves_is_refused_or_warned(synthetic_meta, caplog):
+    """The synthetic goal (observation.environment_state) is the same in every frame of every episode: as the
+    behavior trace every soft-DTW distance would be 0, refused naming the key. A trace that differs between
+    episodes but never moves within one is accepted with a warning."""
+    with pytest.raises(ValueError, match=r"behavior trace \(trace_key 'observation.environment_state'\) has the "
+                                         r"same value in every frame of every episode.*--policy.trace_key"):
+        small_policy(synthetic_meta, trace_key="observation.environment_state")
+    from lerobot_pdp.behavior import check_behaviors, read_training_behaviors
+
+    cfg = small_policy(synthetic_meta).config
+    behaviors = read_training_behaviors(cfg, synthetic_meta.root, synthetic_meta.features)
+    mid = behaviors.traces.shape[1] // 2
+    behaviors.traces[:] = behaviors.traces[:, mid:mid + 1]  # each episode frozen at its midpoint (they differ)
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.behavior"):
+        check_behaviors(behaviors, synthetic_meta.root, cfg)
+    assert "never changes within an episode" in caplog.text

@@ -168,6 +168,27 @@ def test_cameras_of_different_shapes_are_refused():
         cfg.validate_features()
 
 
+@pytest.mark.parametrize("separate", [False, True])
+def test_cameras_of_different_shapes_are_encoded_with_resize_shape(separate):
+    """--policy.resize_shape (what the refusal above advises) brings every camera to one size before the shared
+    encoder stacks them (a separate encoder per camera resizes its own)."""
+    from lerobot_pdp.observation_encoder import ObservationEncoder
+
+    cfg = PDPConfig(input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (2,)),
+                                    TOP: PolicyFeature(FeatureType.VISUAL, (3, 48, 48)),
+                                    SIDE: PolicyFeature(FeatureType.VISUAL, (3, 32, 40))},
+                    output_features={ACTION: PolicyFeature(FeatureType.ACTION, (2,))}, resize_shape=(32, 32),
+                    use_separate_rgb_encoder_per_camera=separate, spatial_softmax_num_keypoints=8)
+    cfg.validate_features()
+    enc = ObservationEncoder(cfg).eval()
+    g = torch.Generator().manual_seed(0)
+    batch = {OBS_STATE: torch.zeros(2, 2, 2), TOP: torch.rand(2, 2, 3, 48, 48, generator=g),
+             SIDE: torch.rand(2, 2, 3, 32, 40, generator=g)}
+    with torch.no_grad():
+        out = enc(batch)
+    assert out.shape == (2, 2, 2 + 2 * 2 * 8) and torch.isfinite(out).all()
+
+
 def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):
     policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
     pos, act = demo_path(0, np.random.default_rng(0))
