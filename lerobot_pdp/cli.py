@@ -123,7 +123,8 @@ def add_label_modes_parser(sub: argparse._SubParsersAction) -> None:
         help="add episode-level mode labels to an existing LeRobotDataset (meta/mode_labels.json)",
         description="Writes DATASET/meta/mode_labels.json, which PDP reads as each episode's mode (its task "
         'strings stay as they are). Format: {"episodes": {"<episode index>": <mode id>, ...}, "names": '
-        '{"<mode id>": "<name>", ...}}; every episode labelled, ids are integers >= 0, names optional.',
+        '{"<mode id>": "<name>", ...}}; every episode labelled, ids are integers >= 0, names optional. An existing '
+        "file is replaced whole (e.g. one a resumed recording left labelling only its earlier episodes).",
     )
     p.add_argument("dataset", type=Path, help="a local LeRobotDataset folder")
     src = p.add_mutually_exclusive_group(required=True)
@@ -140,7 +141,8 @@ def cmd_label_modes(args: argparse.Namespace) -> int:
         labels, names = read_mode_labels_file(args.labels)
     else:
         labels, names = {}, {}
-        for ep, item in read_episodes(args.dataset, []).items():
+        # the task strings alone: an existing label file (stale after a resumed recording) is replaced
+        for ep, item in read_episodes(args.dataset, [], mode_labels=False).items():
             mode = parse_task_mode(item["task"])
             if not isinstance(mode, int):
                 raise ValueError(f"{args.dataset}: episode {ep}'s task {item['task']!r} carries no 'mode <id>: <name>' "

@@ -7,7 +7,6 @@ to train on a CPU in minutes. The learning rates (1e-3 where the paper has 1e-4)
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
@@ -16,6 +15,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_pdp.checkpoint_files import check_checkpoint_source
 from lerobot_pdp.chunk_config import ActionChunkConfigMixin
+from lerobot_pdp.config_errors import config_error
 
 LATENT_CONDITIONING = ("film", "concat", "input", "none")
 LATENT_TYPES = ("continuous", "onehot")
@@ -380,12 +380,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         if (self.steer_dataset_root is None) != (self.steer_episode_index is None):
             errors.append("steer_dataset_root and steer_episode_index must be given together")
         if errors:
-            message = "Invalid PDPConfig: " + "; ".join(errors)
-            if _decoded_by_draccus():  # --policy.* on LeRobot's command line: see _decoded_by_draccus
-                from draccus.utils import DecodingError
-
-                raise DecodingError((), message)
-            raise ValueError(message)
+            raise config_error("Invalid PDPConfig: " + "; ".join(errors))  # --policy.* named on LeRobot's command line
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, **kwargs):  # noqa: ANN001, ANN206 - LeRobot's signature
@@ -465,23 +460,6 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         if self.trace_dims is not None:
             return len(self.trace_dims)
         return self.input_features[self.trace_key].shape[0]
-
-
-def _decoded_by_draccus() -> bool:
-    """True when this config is being built by draccus (LeRobot's command-line and config-file parser).
-
-    draccus turns a ValueError raised while building a dataclass into "Couldn't instantiate class PDPConfig
-    using the given arguments", dropping the message that names the field; a ``DecodingError`` passes
-    through it to LeRobot's parser, which prints it. A Python caller still gets the ValueError.
-    """
-    frame = sys._getframe(2)
-    for _ in range(6):
-        if frame is None:
-            return False
-        if frame.f_code.co_name == "decode_dataclass" and frame.f_globals.get("__name__", "").startswith("draccus"):
-            return True
-        frame = frame.f_back
-    return False
 
 
 def apply_legacy_defaults(config: PDPConfig, saved: dict) -> list[str]:

@@ -13,13 +13,14 @@ import numpy as np
 
 
 def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None = None,
-                  images: list[str] = ()) -> dict[int, dict]:
+                  images: list[str] = (), mode_labels: bool = True) -> dict[int, dict]:
     """Whole episodes of a local LeRobotDataset v3 as numpy arrays: {episode_index: {key: [T, ...], "task": str}},
     plus ``"mode"`` / ``"mode_name"`` when the dataset has episode-level labels (``meta/mode_labels.json``).
 
     Reads the parquet files directly: the training loader only yields windows, but the behavior encoder
     needs complete demonstrations. ``images``: camera columns stored as images, returned as their cells
-    (PNG bytes; see :func:`read_episode_frames`).
+    (PNG bytes; see :func:`read_episode_frames`). ``mode_labels=False`` leaves the label file unread (for
+    the writers that replace it, whatever a stale one says).
     """
     import pandas as pd
 
@@ -54,7 +55,7 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
         item["task"] = task_by_index.get(int(g["task_index"].iloc[0]), "")
         item["from_index"] = int(g["index"].iloc[0])  # global frame index of the episode's first frame
         out[int(ep)] = item
-    labels = read_mode_labels(root)
+    labels = read_mode_labels(root) if mode_labels else None
     if labels is not None:
         for ep, item in out.items():
             if ep not in labels[0]:

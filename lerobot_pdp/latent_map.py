@@ -21,6 +21,8 @@ import numpy as np  # noqa: E402
 from .atomic import write_figure_atomic  # noqa: E402
 
 MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
+UNLABELLED = -1  # group of the behaviors without a mode label (behavior.UNLABELED), drawn in grey
+UNLABELLED_COLOR = (0.6, 0.6, 0.6, 1.0)
 
 
 @dataclass
@@ -101,25 +103,33 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     else:  # more groups than a qualitative map has colours: evenly spaced hues, none repeated
         cmap = plt.get_cmap("turbo")
         color = {g: cmap(i / (len(ids) - 1)) for i, g in enumerate(ids)}
-    shown = ids[:MAX_PANELS]
+    unlabelled = int((groups < 0).sum())  # behaviors of episodes without a mode label, when others have one
+    if unlabelled:
+        color[UNLABELLED] = UNLABELLED_COLOR
+        names[UNLABELLED] = "unlabelled"
+    drawn = ids + [UNLABELLED] * bool(unlabelled)
+    shown = drawn[:MAX_PANELS]
     cols = min(4, max(1, len(shown)))
     rows = -(-len(shown) // cols)
     fig = plt.figure(figsize=(6 + 2.4 * cols, max(5.0, 2.2 * rows)))
     grid = fig.add_gridspec(max(rows, 1), cols + 2)
     ax = fig.add_subplot(grid[:, :2])
     phase = policy.behavior_phase().cpu().numpy()
-    for g in ids:
+    for g in drawn:
+        tag = "" if g == UNLABELLED else f"{g}"
+        label = " ".join(x for x in (tag, names[g] if names[g] and len(drawn) <= 12 else "") if x)
         for ph in np.unique(phase):
             sel = (groups == g) & (phase == ph)
             ax.scatter(xy[sel, 0], xy[sel, 1], s=14, color=color[g], marker="os^v"[int(ph) % 4],
-                       label=f"{g}" + (f" {names[g]}" if names[g] and len(ids) <= 12 else "") if ph == 0 else None)
-        center = xy[groups == g].mean(0)
-        ax.annotate(str(g), center, fontsize=8, ha="center", va="center", weight="bold")
+                       label=label if ph == 0 else None)
+        if tag:
+            ax.annotate(tag, xy[groups == g].mean(0), fontsize=8, ha="center", va="center", weight="bold")
     ax.set_xlabel(axes_label[0])
     ax.set_ylabel(axes_label[1])
-    ax.set_title(f"latent map: {len(z)} behaviors, coloured by {what}" +
+    ax.set_title(f"latent map: {len(z)} behaviors" + (f" ({unlabelled} unlabelled, grey)" if unlabelled else "") +
+                 f", coloured by {what}" +
                  (" (markers = phases)" if len(np.unique(phase)) > 1 else ""), fontsize=10)
-    if len(ids) <= 12:
+    if len(drawn) <= 12:
         ax.legend(fontsize=7, loc="best")
     traces = policy.model.bank.traces.cpu().numpy()
     # the two trace dims the behaviors differ most along (3-D routes may differ in height alone): the spread
@@ -132,9 +142,9 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
         first = first or tax
         for t in traces[groups == g]:
             tax.plot(t[:, d0], t[:, j], color=color[g], lw=0.8, alpha=0.7)
-        tax.set_title(f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
+        tax.set_title(names[g] if g == UNLABELLED else f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
         tax.tick_params(labelsize=6)
-    more = f"; traces of the first {MAX_PANELS} of {len(ids)} shown" if len(ids) > MAX_PANELS else ""
+    more = f"; traces of the first {MAX_PANELS} of {len(drawn)} shown" if len(drawn) > MAX_PANELS else ""
     fig.suptitle(title or f"behaviors of the training data (traces: trace dims {d0} and {j}, the two they spread "
                  f"most along{more})", fontsize=11)
     fig.tight_layout()

@@ -126,7 +126,7 @@ def cluster_distances(dist: np.ndarray, k: int | None = None, min_cluster_size: 
     if k is None:
         if n < 2 * min_cluster_size:
             raise ValueError(f"finding the modes needs at least {2 * min_cluster_size} training episodes (two "
-                             f"modes of min_cluster_size = {min_cluster_size}), got {n}; pass k")
+                             f"modes of min_cluster_size = {min_cluster_size}), got {n}; pass k (--k on the command line)")
         labels = HDBSCAN(min_cluster_size=min_cluster_size, metric="precomputed", copy=True).fit_predict(dist)
         found = sorted(set(labels.tolist()) - {-1})
         if not found:  # no dense group at all: one mode
@@ -164,7 +164,7 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | No
     scores: dict[int, float] = {}
     if k is None:
         if n < 3:
-            raise ValueError(f"choosing k needs at least 3 training episodes, got {n}; pass k")
+            raise ValueError(f"choosing k needs at least 3 training episodes, got {n}; pass k (--k on the command line)")
         best = None
         if max_k is None:
             max_k = min(max(2, n // 2), MAX_K_LIMIT)
@@ -177,7 +177,7 @@ def cluster_episodes(features: np.ndarray, k: int | None = None, max_k: int | No
             if best is None or scores[cand] > scores[best[0]]:
                 best = (cand, labels)
         if best is None:
-            raise ValueError("the training latents do not split into clusters (all identical?); pass k=1")
+            raise ValueError("the training latents do not split into clusters (all identical?); pass k=1 (--k 1 on the command line)")
         k, labels = best
         if k == top < n - 1:  # the search stopped at its bound, which then decided k: say so
             logger.warning("discover_modes chose k = %d, the largest candidate; there may be more modes "

@@ -231,6 +231,63 @@ def test_labels_from_task_strings_and_their_absence(synthetic_dataset, instructi
     assert "carries no 'mode <id>: <name>' label; give --labels" in capsys.readouterr().err
 
 
+def test_label_modes_from_tasks_replaces_a_stale_label_file(synthetic_dataset, tmp_path, capsys):
+    """A label file that covers only some episodes (as a resumed recording used to leave) is replaced whole, not
+    read first (reading it is what training refuses)."""
+    import json
+    import shutil
+
+    from lerobot_pdp.cli import main
+    from lerobot_pdp.episodes import read_mode_labels
+
+    root = tmp_path / "synthetic"
+    shutil.copytree(synthetic_dataset, root)
+    stale = root / "meta" / "mode_labels.json"
+    stale.write_text(json.dumps({"episodes": {"0": 3, "1": 3}}))
+    assert main(["label-modes", str(root), "--from-tasks"]) == 0
+    labels, _ = read_mode_labels(root)
+    assert labels == {e: e % 4 for e in range(40)}  # write_dataset's order: modes 0..3 in turn
+    assert sorted(p.name for p in stale.parent.iterdir() if "mode_labels" in p.name) == ["mode_labels.json"]
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_latent_map_draws_unlabelled_behaviors_in_grey(tmp_path):
+    """Episodes with a mode label and episodes with an instruction only: every behavior is drawn, the unlabelled
+    ones as their own grey group, and the title counts them."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from matplotlib.colors import to_rgba
+    from policies import small_policy
+
+    from lerobot_pdp.latent_map import UNLABELLED_COLOR, latent_map_figure
+
+    from synthetic import GOAL, MODES, demo_path
+
+    feat = {"dtype": "float32", "shape": (2,)}
+    ds = LeRobotDataset.create(repo_id="local/mixed", fps=10, root=tmp_path / "mixed", features={
+        "observation.state": {**feat, "names": ["x", "y"]}, "observation.environment_state": {**feat, "names": ["gx", "gy"]},
+        "action": {**feat, "names": ["dx", "dy"]}})
+    rng = np.random.default_rng(0)
+    for m, task in [(0, None), (0, None), (2, None), (2, None), (1, INSTRUCTION), (3, INSTRUCTION)]:
+        pos, act = demo_path(m, rng)
+        for p, a in zip(pos, act, strict=True):
+            ds.add_frame({"observation.state": p, "observation.environment_state": GOAL.astype(np.float32),
+                          "action": a, "task": task or f"mode {m}: {MODES[m][0]}"})
+        ds.save_episode()
+    ds.finalize()
+    policy = small_policy(_meta(tmp_path / "mixed"))
+    drawn = latent_map_figure(policy)
+    try:
+        assert drawn.groups.tolist() == [0, 0, 2, 2, -1, -1]
+        assert drawn.axes.get_title().startswith("latent map: 6 behaviors (2 unlabelled, grey), coloured by mode label")
+        points = {tuple(c.get_facecolor()[0]): len(c.get_offsets()) for c in drawn.axes.collections if len(c.get_offsets())}
+        assert sum(points.values()) == 6 and points[to_rgba(UNLABELLED_COLOR)] == 2
+        assert [t.get_text() for t in drawn.axes.get_legend().get_texts()][-1] == "unlabelled"
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close(drawn.figure)
+
+
 @pytest.mark.slow
 def test_lerobot_train_on_an_instruction_dataset_without_labels(instruction_dataset, tmp_path):
     import json

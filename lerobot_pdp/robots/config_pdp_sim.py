@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 from lerobot.robots import RobotConfig
 
+from lerobot_pdp.config_errors import config_error
+
 
 @RobotConfig.register_subclass("pdp_sim")
 @dataclass(kw_only=True)
@@ -44,4 +46,4 @@ class PDPSimConfig(RobotConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.episodes is not None and self.episodes < 1:
-            raise ValueError(f"pdp_sim: episodes must be >= 1 or None, got {self.episodes}")
+            raise config_error(f"pdp_sim: episodes must be >= 1 or None, got {self.episodes}")

@@ -98,6 +98,7 @@ class PDPSim(Robot):
         self._events: dict | None = None
         self.recorded_labels: list[int | str] = []  # mode label of each recorded (saved) episode
         self.dataset_root: Path | None = None
+        self.first_episode: int | None = None  # dataset index of the first recorded episode (> 0: --resume)
         _LIVE[config.id] = self
         record_hooks.install()  # no-op outside lerobot-record
         if self.in_rollout:
@@ -263,6 +264,13 @@ class PDPSim(Robot):
         self._events = events
         if dataset is not None and getattr(dataset, "root", None) is not None:
             self.dataset_root = Path(dataset.root)
+        if recording and self.first_episode is None:
+            # lerobot-record --resume=true: this session's episodes follow the dataset's. Their env episodes are
+            # numbered alike, so the logs match LeRobot's and the reset noise does not repeat the first session's
+            self.first_episode = int(getattr(dataset, "num_episodes", 0) or 0)
+            if self.first_episode and self._connected and self.finished == 0 and self._steps == 0:
+                self.episode = self.first_episode - 1
+                self.reset_scene()
         if self._connected and (self._steps > 0 or self._pending_reset):
             if not self._pending_reset:
                 self._finish_episode({}, cut=True)
@@ -293,25 +301,74 @@ class PDPSim(Robot):
         self.holding = False
 
     def _write_mode_labels(self) -> None:
-        """``meta/mode_labels.json`` for the recorded dataset, when every episode has a training mode."""
+        """``meta/mode_labels.json`` for the recorded dataset, when every episode has a training mode.
+
+        After ``--resume=true`` the file covers the dataset's earlier episodes too: their labels come from the
+        file they had (kept as they are), else from their task strings. When some episode has no training
+        mode the file cannot be written, and an old one is removed: it would label only some episodes, which
+        training and ``label-modes`` refuse.
+        """
         if self.dataset_root is None or not self.recorded_labels:
             return
-        from lerobot_pdp.episodes import write_mode_labels
+        from lerobot_pdp.episodes import MODE_LABELS_FILE, write_mode_labels
 
         info = self.dataset_root / "meta" / "info.json"
         if not info.is_file():
             return
         total = json.loads(info.read_text()).get("total_episodes")
+        if not isinstance(total, int):
+            logger.warning("pdp_sim: %s has no total_episodes; no %s written", info, MODE_LABELS_FILE)
+            return
+        first = self.first_episode or 0
         # saved episodes are a prefix of the recorded ones: only the last can be unsaved (interrupted before
         # lerobot-record's save_episode)
-        labels = self.recorded_labels[:total] if isinstance(total, int) else self.recorded_labels
+        labels: dict[int, int | str | None] = dict(enumerate(self.recorded_labels[:max(total - first, 0)], first))
         if not labels:
             return  # nothing saved (an empty recording)
-        if total != len(labels) or not all(isinstance(x, (int, np.integer)) for x in labels):
-            logger.warning("pdp_sim: no meta/mode_labels.json (%s episodes, labels %s)", total, labels)
+        names = {int(m): self.suite.mode_names[int(m)] for m in labels.values() if isinstance(m, (int, np.integer))}
+        if first:
+            earlier, earlier_names = self._earlier_labels(first)
+            labels, names = {**earlier, **labels}, {**names, **earlier_names}  # the dataset's names kept
+        modes = {e: int(m) for e, m in labels.items() if isinstance(m, (int, np.integer))}
+        path = self.dataset_root / "meta" / MODE_LABELS_FILE
+        if sorted(modes) == list(range(total)):
+            write_mode_labels(self.dataset_root, modes, names)
             return
-        names = {int(m): self.suite.mode_names[int(m)] for m in set(labels)}
-        write_mode_labels(self.dataset_root, {i: int(m) for i, m in enumerate(labels)}, names)
+        missing = {e: labels.get(e) for e in range(total) if e not in modes}
+        removed = path.is_file()
+        if removed:
+            path.unlink()
+        if not modes and not removed:  # e.g. one demonstration of a new route: nothing to label, nothing wrong
+            logger.info("pdp_sim: no meta/%s: no episode has a training mode (%d episodes, labels %s)",
+                        MODE_LABELS_FILE, total, list(missing.values()))
+            return
+        logger.warning("pdp_sim: no meta/%s: episodes %s have no training mode (labels %s), episodes %s have one; "
+                       "PDP reads the modes from the task strings%s", MODE_LABELS_FILE, sorted(missing),
+                       list(missing.values()), sorted(modes),
+                       f" (removed {path}, which labelled only some episodes)" if removed else "")
+
+    def _earlier_labels(self, first: int) -> tuple[dict[int, int | str | None], dict[int, str]]:
+        """Mode labels and names of the episodes a resumed dataset had before this session (``0..first-1``): from
+        its ``meta/mode_labels.json``, else (an episode the file lacks, or no file) from its task string."""
+        from lerobot_pdp.episodes import parse_task_mode, read_episodes, read_mode_labels
+
+        labels: dict[int, int | str | None] = {}
+        names: dict[int, str] = {}
+        try:
+            found = read_mode_labels(self.dataset_root)
+        except ValueError as e:  # a damaged file: the task strings still carry the labels
+            logger.warning("pdp_sim: ignoring the dataset's mode labels: %s", e)
+            found = None
+        if found is not None:
+            labels = {e: m for e, m in found[0].items() if e < first}
+            names = dict(found[1])
+        rest = [e for e in range(first) if e not in labels]
+        if rest:
+            for e, item in read_episodes(self.dataset_root, [], rest, mode_labels=False).items():
+                labels[e] = parse_task_mode(item["task"])
+                if isinstance(labels[e], int) and ":" in item["task"]:
+                    names.setdefault(labels[e], item["task"].split(":", 1)[1].strip())
+        return labels, names
 
     def _require_connected(self) -> None:
         if not self._connected:

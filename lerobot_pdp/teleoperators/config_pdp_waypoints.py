@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from lerobot.teleoperators import TeleoperatorConfig
 
+from ..config_errors import config_error
+
 
 @TeleoperatorConfig.register_subclass("pdp_waypoints")
 @dataclass(kw_only=True)
@@ -27,5 +29,16 @@ class PDPWaypointsConfig(TeleoperatorConfig):
 
     def __post_init__(self) -> None:
         if (self.waypoints is None) == (self.mode is None):
-            raise ValueError("pdp_waypoints needs exactly one of --teleop.waypoints=<file or \"scene\"> "
-                             "and --teleop.mode=<id or name>")
+            raise config_error("pdp_waypoints needs exactly one of --teleop.waypoints=<file or \"scene\"> "
+                               "and --teleop.mode=<id or name>")
+        if self.mode is not None:
+            self.mode = str(self.mode).strip()
+            # the id's range depends on the robot's env: PDPWaypoints checks it when it is made, which
+            # lerobot-record does before it writes the dataset folder
+            try:
+                negative = int(self.mode) < 0
+            except ValueError:
+                negative = False  # a mode name
+            if not self.mode or negative:
+                raise config_error(f"pdp_waypoints: --teleop.mode={self.mode!r} is not a mode; expected a mode id "
+                                   ">= 0 or a mode name of the robot's env")

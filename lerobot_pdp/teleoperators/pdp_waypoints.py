@@ -34,6 +34,24 @@ class PDPWaypoints(Teleoperator):
         self._expert = None
         self._episode = None
         self._connected = False
+        self._checked_for: PDPSim | None = None  # the robot the route was resolved against
+        try:
+            robot = find_robot(config.robot_id)
+        except LookupError:
+            return  # no robot yet: connect() checks the route
+        # lerobot-record makes the robot, then the teleoperator, then the dataset folder: a mode or way-point
+        # file the robot's env cannot take is refused here, before anything is written
+        self._resolve_route(robot)
+
+    def _resolve_route(self, robot: PDPSim) -> None:
+        """The mode id or way-points of the route in ``robot``'s env and scene (a clear error if they do not fit)."""
+        from lerobot_pdp.envs.recording import _resolve_modes, resolve_waypoints
+
+        if self.config.mode is not None:
+            self._mode = _resolve_modes(robot.suite, [self.config.mode])[0]
+        else:
+            self._waypoints = resolve_waypoints(self.config.waypoints, robot.scene, robot.suite)
+        self._checked_for = robot
 
     @property
     def action_features(self) -> dict[str, type]:
@@ -65,13 +83,9 @@ class PDPWaypoints(Teleoperator):
 
     def connect(self, calibrate: bool = True) -> None:
         """Find the robot and check the route against its env and scene (bad mode or file -> clear error)."""
-        from lerobot_pdp.envs.recording import _resolve_modes, resolve_waypoints
-
         robot = find_robot(self.config.robot_id)
-        if self.config.mode is not None:
-            self._mode = _resolve_modes(robot.suite, [self.config.mode])[0]
-        else:
-            self._waypoints = resolve_waypoints(self.config.waypoints, robot.scene, robot.suite)
+        if robot is not self._checked_for:
+            self._resolve_route(robot)
         self.robot = robot
         self._connected = True
 
