@@ -155,7 +155,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     num_train_timesteps: int = 20
     # Deterministic DDIM steps at inference. 20 = the whole chain, the sampler the benchmark's validation
     # kept at the full budget on reach-around and kitchen (docs/results.md, "Validation"). 5 samples a new
-    # chunk 2.7x faster (under 5 ms on one CPU core, docs/performance.md) and is less precise where actions
+    # chunk 3.2x faster (9 against 29 ms on one CPU core, docs/performance.md) and is less precise where actions
     # must be exact (grasps, narrow openings).
     num_inference_steps: int = 20
     # Noise schedule of the forward process: "squaredcos_cap_v2" (cosine, as LeRobot) or "linear".
