@@ -339,11 +339,14 @@ def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None
     soft-DTW distance is 0 and the latent learns nothing); warn when no trace moves within its episode (soft-DTW
     compares paths), and when the dataset holds one episode (:func:`warn_few_episodes`)."""
     where = f"trace_key '{config.trace_key}'" + (f" dims {config.trace_dims}" if config.trace_dims is not None else "")
-    if len(behaviors) and np.ptp(behaviors.traces.reshape(-1, behaviors.traces.shape[-1]), axis=0).max() == 0:
+    if not len(behaviors):
+        return
+    tol = 1e-9 * max(1.0, float(np.abs(behaviors.traces).max()))  # resampling may move a constant by an ulp
+    if np.ptp(behaviors.traces.reshape(-1, behaviors.traces.shape[-1]), axis=0).max() <= tol:
         raise ValueError(f"{root}: the behavior trace ({where}) has the same value in every frame of every episode, "
                          "so every demonstration looks alike and the latent learns nothing; set --policy.trace_key "
                          "(and --policy.trace_dims) to a state-like vector that moves, e.g. end-effector positions")
-    if len(behaviors) and np.ptp(behaviors.traces, axis=1).max() == 0:
+    if np.ptp(behaviors.traces, axis=1).max() <= tol:
         logger.warning("%s: the behavior trace (%s) never changes within an episode: soft-DTW compares paths, so "
                        "PDP tells the demonstrations apart by where they are only; a state-like vector that moves "
                        "(end-effector positions) works best", root, where)
