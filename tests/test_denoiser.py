@@ -116,6 +116,14 @@ def test_inference_caches_follow_weight_updates_and_pickle():
     torch.testing.assert_close(after, net(x, torch.tensor([19]), c, z), atol=1e-5, rtol=1e-5)
     clone = pickle.loads(pickle.dumps(fast))  # traces and constants are dropped, rebuilt on demand
     assert clone.net is not net and torch.equal(clone.run(x, clone.contexts(c, z, [19, 0])[0]), after)
+    frozen = fast.frozen()
+    assert fast.frozen() is frozen  # nothing changed: the same constants (a captured CUDA graph stays valid)
+    # parameters replaced by new objects (load_state_dict(assign=True)), even at their old versions: rebuilt
+    state = {k: v + 0.05 * torch.randn_like(v) for k, v in net.state_dict().items()}
+    net.load_state_dict(state, assign=True)
+    assert fast.frozen() is not frozen
+    torch.testing.assert_close(fast.run(x, fast.contexts(c, z, [19, 0])[0]), net(x, torch.tensor([19]), c, z),
+                               atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.numerics
