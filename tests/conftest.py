@@ -57,6 +57,16 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
     return proc
 
 
+def train_tiny_pdp(dataset: Path, out: Path, *extra: str, steps: int = 4, batch_size: int = 8) -> Path:
+    """A real ``lerobot-train`` of a small PDP on ``dataset`` for ``steps`` steps (``extra``: more flags);
+    returns the last checkpoint's ``pretrained_model`` folder."""
+    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
+             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/tiny", f"--dataset.root={dataset}",
+             f"--steps={steps}", f"--batch_size={batch_size}", "--num_workers=0", f"--save_freq={steps}",
+             "--log_freq=1", "--wandb.enable=false", f"--output_dir={out}", *extra], timeout=600)
+    return out / "checkpoints" / "last" / "pretrained_model"
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Tiny models, small batches: one intra-op thread for a module. With 2 threads on a 2-core machine that has

@@ -292,14 +292,9 @@ def test_latent_map_draws_unlabelled_behaviors_in_grey(tmp_path):
 def test_lerobot_train_on_an_instruction_dataset_without_labels(instruction_dataset, tmp_path):
     import json
 
-    from conftest import lerobot_cli, run_cli
+    from conftest import train_tiny_pdp
 
-    out = tmp_path / "train"
-    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
-             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/instr", f"--dataset.root={instruction_dataset}",
-             "--steps=4", "--batch_size=8", "--num_workers=0", "--save_freq=4", "--log_freq=1",
-             "--wandb.enable=false", f"--output_dir={out}"])
-    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    ckpt = train_tiny_pdp(instruction_dataset, tmp_path / "train")
     cfg = json.loads((ckpt / "config.json").read_text())
     assert cfg["type"] == "pdp" and cfg["mode_names"] is None
     from lerobot_pdp import PDPPolicy

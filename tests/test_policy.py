@@ -746,14 +746,9 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
 def test_lerobot_train_on_some_episodes_keeps_the_others_out_of_the_latent_space(synthetic_dataset, tmp_path):
     import json
 
-    from conftest import lerobot_cli, run_cli
+    from conftest import train_tiny_pdp
 
-    out = tmp_path / "train"
-    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
-             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/synthetic", f"--dataset.root={synthetic_dataset}",
-             "--dataset.episodes=[0, 1, 10, 11]", "--steps=2", "--batch_size=8", "--num_workers=0", "--save_freq=2",
-             "--log_freq=1", "--wandb.enable=false", f"--output_dir={out}"])
-    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    ckpt = train_tiny_pdp(synthetic_dataset, tmp_path / "train", "--dataset.episodes=[0, 1, 10, 11]", steps=2)
     assert json.loads((ckpt / "config.json").read_text())["dataset_episodes"] == [0, 1, 10, 11]
     p = PDPPolicy.from_pretrained(ckpt)
     assert sorted(set(p.model.bank.episode.tolist())) == [0, 1, 10, 11]

@@ -339,15 +339,10 @@ def test_lerobot_record_writes_a_make_dataset_shaped_dataset(recorded, tmp_path)
 
 @pytest.mark.slow
 def test_pdp_trains_on_the_recorded_dataset_with_lerobot_train(recorded, tmp_path):
-    from conftest import lerobot_cli, run_cli
+    from conftest import train_tiny_pdp
 
     root, _ = recorded
-    out = tmp_path / "train"
-    run_cli([lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false", "--policy.device=cpu",
-             "--policy.down_dims=[16,32]", "--dataset.repo_id=local/pdp_sim_rec", f"--dataset.root={root}",
-             "--steps=3", "--batch_size=8", "--num_workers=0", "--save_freq=3", "--log_freq=1",
-             "--wandb.enable=false", f"--output_dir={out}"], timeout=600)
-    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    ckpt = train_tiny_pdp(root, tmp_path / "train", steps=3)
     cfg = json.loads((ckpt / "config.json").read_text())
     assert cfg["type"] == "pdp" and (ckpt / "model.safetensors").is_file()
 
