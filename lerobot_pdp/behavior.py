@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from .atomic import write_file_atomic
 from .distributed import main_process_first
-from .episodes import check_finite, parse_task_mode, read_episodes  # noqa: F401  (re-exported)
+from .episodes import check_finite, parse_task_mode, parse_task_name, read_episodes  # noqa: F401  (re-exported)
 
 logger = logging.getLogger(__name__)
 
@@ -120,8 +120,7 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
             mode = int(item["mode"])
             names.setdefault(mode, item.get("mode_name") or str(mode))
         elif isinstance(mode := parse_task_mode(item.get("task", "")), int):  # "mode <id>: <name>"
-            name = item["task"].split(":", 1)[1].strip() if ":" in item["task"] else str(mode)
-            names.setdefault(mode, name)
+            names.setdefault(mode, parse_task_name(item["task"]) or str(mode))
         else:  # e.g. a language instruction: no label (modes can be discovered, see PDPPolicy.discover_modes)
             mode = UNLABELED
         segs = [(0, len(states))]

@@ -135,7 +135,13 @@ def add_label_modes_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_label_modes(args: argparse.Namespace) -> int:
-    from lerobot_pdp.episodes import parse_task_mode, read_episodes, read_mode_labels_file, write_mode_labels
+    from lerobot_pdp.episodes import (
+        parse_task_mode,
+        parse_task_name,
+        read_episodes,
+        read_mode_labels_file,
+        write_mode_labels,
+    )
 
     if args.labels is not None:
         labels, names = read_mode_labels_file(args.labels)
@@ -148,7 +154,7 @@ def cmd_label_modes(args: argparse.Namespace) -> int:
                 raise ValueError(f"{args.dataset}: episode {ep}'s task {item['task']!r} carries no 'mode <id>: <name>' "
                                  "label; give --labels")
             labels[ep] = mode
-            names.setdefault(mode, item["task"].split(":", 1)[1].strip() if ":" in item["task"] else "")
+            names.setdefault(mode, parse_task_name(item["task"]))
     path = write_mode_labels(args.dataset, labels, names)
     print(f"wrote {path}: {len(labels)} episodes, {len(set(labels.values()))} modes")
     return 0

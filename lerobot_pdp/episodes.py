@@ -124,6 +124,11 @@ def parse_task_mode(task: str) -> int | str | None:
     return head or None
 
 
+def parse_task_name(task: str) -> str:
+    """The mode name of a ``"mode <id>: <name>"`` task string (``""`` when it has none)."""
+    return task.split(":", 1)[1].strip() if isinstance(task, str) and ":" in task else ""
+
+
 # Mode labels that live beside a dataset instead of in its task strings (which stay free for instructions).
 MODE_LABELS_FILE = "mode_labels.json"
 

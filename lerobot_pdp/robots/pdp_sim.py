@@ -350,7 +350,7 @@ class PDPSim(Robot):
     def _earlier_labels(self, first: int) -> tuple[dict[int, int | str | None], dict[int, str]]:
         """Mode labels and names of the episodes a resumed dataset had before this session (``0..first-1``): from
         its ``meta/mode_labels.json``, else (an episode the file lacks, or no file) from its task string."""
-        from lerobot_pdp.episodes import parse_task_mode, read_episodes, read_mode_labels
+        from lerobot_pdp.episodes import parse_task_mode, parse_task_name, read_episodes, read_mode_labels
 
         labels: dict[int, int | str | None] = {}
         names: dict[int, str] = {}
@@ -366,8 +366,8 @@ class PDPSim(Robot):
         if rest:
             for e, item in read_episodes(self.dataset_root, [], rest, mode_labels=False).items():
                 labels[e] = parse_task_mode(item["task"])
-                if isinstance(labels[e], int) and ":" in item["task"]:
-                    names.setdefault(labels[e], item["task"].split(":", 1)[1].strip())
+                if isinstance(labels[e], int) and parse_task_name(item["task"]):
+                    names.setdefault(labels[e], parse_task_name(item["task"]))
         return labels, names
 
     def _require_connected(self) -> None:
