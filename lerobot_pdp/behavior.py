@@ -313,24 +313,49 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
 
 
 def lerobot_train_episodes(argv: list[str]) -> list[int] | None:
-    """``--dataset.episodes`` of a ``lerobot-train`` command line (None: not given, or another program)."""
+    """``--dataset.episodes`` of a ``lerobot-train`` command line, else ``dataset.episodes`` of its
+    ``--config_path`` file (a ``train_config.json``, its folder, or a YAML/JSON file, as LeRobot reads it); the
+    command line wins, as in LeRobot's parser. None: not given, a Hub config (not read here), or another program."""
     if not argv or Path(argv[0]).name not in ("lerobot-train", "lerobot_train.py"):
         return None
-    import yaml  # draccus parses its command-line values as YAML
+    import yaml  # draccus parses its command-line values as YAML, and reads config files as YAML/JSON
 
+    given = _cli_value(argv, "--dataset.episodes")
+    if given is not None:
+        return _episode_list(yaml.safe_load(given) if given.strip() else None, f"--dataset.episodes={given}")
+    config_path = _cli_value(argv, "--config_path")
+    if not config_path:
+        return None
+    path = Path(config_path)
+    if path.is_dir():
+        path = path / "train_config.json"
+    if not path.is_file():
+        return None
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ValueError(f"{path}: cannot read --config_path ({e})") from e
+    dataset = data.get("dataset") if isinstance(data, dict) else None
+    value = dataset.get("episodes") if isinstance(dataset, dict) else None
+    return _episode_list(value, f"{path}: dataset.episodes={value}")
+
+
+def _cli_value(argv: list[str], name: str) -> str | None:
+    """The value of ``name=V`` or ``name V`` on a command line (the last one given, as draccus takes it)."""
+    value = None
     for i, arg in enumerate(argv[1:], start=1):
-        name, eq, value = arg.partition("=")
-        if name != "--dataset.episodes":
-            continue
-        if not eq:
-            value = argv[i + 1] if i + 1 < len(argv) else ""
-        parsed = yaml.safe_load(value) if value.strip() else None
-        if parsed is None:
-            return None
-        if not isinstance(parsed, list) or not all(isinstance(e, int) and not isinstance(e, bool) for e in parsed):
-            raise ValueError(f"--dataset.episodes={value}: expected a list of episode indices, e.g. '[0,2,5]'")
-        return [int(e) for e in parsed]
-    return None
+        key, eq, rest = arg.partition("=")
+        if key == name:
+            value = rest if eq else (argv[i + 1] if i + 1 < len(argv) else "")
+    return value
+
+
+def _episode_list(parsed, where: str) -> list[int] | None:
+    if parsed is None:
+        return None
+    if not isinstance(parsed, list) or not all(isinstance(e, int) and not isinstance(e, bool) for e in parsed):
+        raise ValueError(f"{where}: expected a list of episode indices, e.g. '[0,2,5]'")
+    return [int(e) for e in parsed]
 
 
 def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None:

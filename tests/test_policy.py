@@ -1,5 +1,6 @@
 """PDPPolicy in-process: construction from a real dataset, training step, steering API, errors, save/load."""
 
+import json
 import logging
 import math
 import re
@@ -715,7 +716,7 @@ def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_met
         p.predict_action_chunk(obs)
 
 
-def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_meta, monkeypatch):
+def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_meta, monkeypatch, tmp_path):
     """LeRobot does not tell a policy which episodes it trains on: under lerobot-train, --dataset.episodes is read
     from its command line (held-out episodes never shape the latent space) and recorded in the config; elsewhere
     dataset_episodes says it; an episode the dataset lacks is refused."""
@@ -727,6 +728,20 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
     assert lerobot_train_episodes(["lerobot-eval", "--dataset.episodes=[1]"]) is None  # not a training
     with pytest.raises(ValueError, match=r"--dataset.episodes=abc: expected a list of episode indices"):
         lerobot_train_episodes(["lerobot-train", "--dataset.episodes=abc"])
+    # ... or from the --config_path file (a train_config.json, its folder, or YAML), the command line winning
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "train_config.json").write_text(json.dumps({"dataset": {"repo_id": "x", "episodes": [1, 4]}, "steps": 3}))
+    (tmp_path / "train.yaml").write_text("dataset:\n  repo_id: x\n  episodes: [2, 5]\n")
+    assert lerobot_train_episodes(["lerobot-train", f"--config_path={run / 'train_config.json'}"]) == [1, 4]
+    assert lerobot_train_episodes(["lerobot-train", "--config_path", str(run), "--resume=true"]) == [1, 4]
+    assert lerobot_train_episodes(["lerobot-train", f"--config_path={tmp_path / 'train.yaml'}"]) == [2, 5]
+    assert lerobot_train_episodes(["lerobot-train", f"--config_path={run}", "--dataset.episodes=[0]"]) == [0]
+    assert lerobot_train_episodes(["lerobot-train", f"--config_path={run}", "--dataset.episodes=null"]) is None
+    assert lerobot_train_episodes(["lerobot-train", "--config_path=someone/a_hub_repo"]) is None
+    (tmp_path / "bad.yaml").write_text("dataset:\n  episodes: all\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: dataset.episodes=all: expected a list of episode indices"):
+        lerobot_train_episodes(["lerobot-train", f"--config_path={tmp_path / 'bad.yaml'}"])
     monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-train", "--policy.type=pdp", "--dataset.episodes=[0,3,17]"])
     p = small_policy(synthetic_meta)
     assert p.config.dataset_episodes == [0, 3, 17]
