@@ -233,6 +233,29 @@ def test_a_second_search_into_a_held_folder_is_refused(results, tmp_path, capsys
         proc.wait()
 
 
+def test_the_scene_demonstration_is_made_under_the_benchmark_folders_lock(results, tmp_path):
+    """The fit's demonstration is written into the benchmark folder (where the benchmark keeps it): while a
+    benchmark holds that folder, search-curves names it instead of racing it; once free, it makes the demo."""
+    from test_folder_lock import holder
+
+    from lerobot_pdp.benchmark.data import demo_root
+    from lerobot_pdp.envs import get_suite_env
+    from lerobot_pdp.folder_lock import FolderBusyError
+
+    demo = demo_root(get_suite_env("reach-around"), results, "val2")
+    assert not demo.exists()
+    proc = holder(results)
+    try:
+        with pytest.raises(FolderBusyError, match=rf"{results} is being written by another process \(pid {proc.pid}, "):
+            measure(results, tmp_path / "curves", scene="val2", methods=["fit"])
+        assert not demo.exists()
+    finally:
+        proc.kill()
+        proc.wait()
+    measure(results, tmp_path / "curves", scene="val2", methods=["fit"])
+    assert (demo / "meta" / "pdp_demo.json").is_file()
+
+
 def test_cli_writes_the_record_with_its_command(results, tmp_path, capsys):
     dest = tmp_path / "fit_only"
     args = ["search-curves", str(results), "--env", "reach-around", "--scene", "val1", "--seed", str(SEED),

@@ -302,7 +302,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     dest.mkdir(parents=True, exist_ok=True)
     with hold_folder(dest, "search-curves"):  # one writer: the records are read, extended and rewritten
         curves = _Curves(suite, scene, seed, Path(out), runs, waypoints, rollouts, rollouts_per_candidate, max_envs,
-                         confirm_rollouts, device, progress)
+                         confirm_rollouts, device, progress, out_held=Path(out).resolve() == dest.resolve())
         return _record_curves(curves, methods, budgets, score, dest, command)
 
 
@@ -348,8 +348,9 @@ class _Curves:
 
     def __init__(self, suite: Any, scene: int | str, seed: int, out: Path, runs: dict[str, Path],
                  waypoints: WaypointScore | None, rollouts: int, rollouts_per_candidate: int, max_envs: int,
-                 confirm_rollouts: int, device: str, progress: bool):
+                 confirm_rollouts: int, device: str, progress: bool, out_held: bool = False):
         self.suite, self.scene, self.seed, self.out, self.runs = suite, scene, seed, out, runs
+        self.out_held = out_held  # this process already holds the benchmark folder's lock (dest is that folder)
         self.waypoints, self.rollouts, self.k, self.max_envs = waypoints, rollouts, rollouts_per_candidate, max_envs
         self.confirm_rollouts, self.device, self.progress = confirm_rollouts, device, progress
         self.eval0, self.search0 = evaluation_seed(seed, scene), search_seed(seed, scene)
@@ -367,14 +368,24 @@ class _Curves:
                                              s["timestep_spacing"])
         return self._loaded[name]
 
+    def _demo(self) -> Path:
+        """The scene's demonstration in the benchmark folder, made there (as the benchmark makes it) under that
+        folder's lock when it is missing: a benchmark writing the folder meanwhile is named, not raced."""
+        from .data import demo_root, ensure_demo
+
+        if (demo_root(self.suite, self.out, self.scene) / "meta" / "pdp_demo.json").is_file() or self.out_held:
+            return ensure_demo(self.suite, self.out, self.scene)[0]
+        with hold_folder(self.out, "search-curves (making a scene demonstration)"):
+            return ensure_demo(self.suite, self.out, self.scene)[0]
+
     def fit(self) -> dict[str, Any]:
         """The benchmark's adaptation of PDP to the scene's demonstration, evaluated as the benchmark does."""
         if not self._fitted:
-            from .data import demo_episode, ensure_demo
+            from .data import demo_episode
             from .evaluation import adapt
 
             policy, pre, post = self.policy_of("pdp")
-            demo = demo_episode(ensure_demo(self.suite, self.out, self.scene)[0])
+            demo = demo_episode(self._demo())
             t0 = time.perf_counter()
             actor, info = adapt(Method("pdp", "pdp"), policy, pre, demo, self.seed, **self.adapt_kwargs)
             seconds = time.perf_counter() - t0
