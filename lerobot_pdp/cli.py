@@ -21,10 +21,13 @@ if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only whe
     from lerobot_pdp.benchmark.settings import BenchmarkConfig
 
 
-def _env_names() -> list[str]:
-    import lerobot_pdp.envs as envs
+# The suite's envs, named in help texts. Listed here because importing lerobot_pdp.envs registers LeRobot's env
+# configs (seconds); tests/test_cli_startup.py checks the list against envs.SUITE.
+SUITE_ENVS = ("avoiding", "kitchen-microwave", "pick-place", "reach-around")
 
-    return sorted(envs.SUITE)
+
+def _env_names() -> list[str]:
+    return list(SUITE_ENVS)
 
 
 def _parse_modes(values: Sequence[str] | None) -> list[int | str] | None:
@@ -214,7 +217,7 @@ def add_steer_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_steer(args: argparse.Namespace) -> int:
-    from lerobot_pdp.steering import checkpoint_target, file_target, write_steering
+    from lerobot_pdp.steer_requests import checkpoint_target, file_target, write_steering
 
     if args.dataset is not None:
         request: dict = {"dataset": str(Path(args.dataset).resolve()),
@@ -398,7 +401,13 @@ def _checkpoint_config(checkpoint: Path):
 
 
 def add_teach_parser(sub: argparse._SubParsersAction) -> None:
-    from lerobot_pdp.teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LATENTS, TEACH_LR, TEACH_STEPS
+    from lerobot_pdp.teach_defaults import (
+        TEACH_DEMO_SHARE,
+        TEACH_LATENT,
+        TEACH_LATENTS,
+        TEACH_LR,
+        TEACH_STEPS,
+    )
 
     p = sub.add_parser(
         "teach",

@@ -10,7 +10,6 @@ that fitting scores. Encoding and fitting (``adaptation``, ``latent_fitting``) t
 
 from __future__ import annotations
 
-import json
 import operator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +22,7 @@ from torch import Tensor, nn
 
 from .behavior import check_finite, gripper_segments, read_episodes
 from .configuration_pdp import PDPConfig
-from .episodes import read_episode_frames
+from .episodes import read_episode_frames, recording_info  # noqa: F401  (re-exported)
 from .latent_fitting import DemoWindows, frame_windows
 from .normalization import FeatureStats
 
@@ -172,21 +171,6 @@ def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) 
         raise ValueError(f"{where}: camera '{key}' has float values in [{v.min():.3g}, {v.max():.3g}]; expected "
                          "[0, 1] (as LeRobotDataset yields frames) or uint8")
     return v
-
-
-def recording_info(root: str | Path) -> dict:
-    """A recording's ``meta/info.json``; a missing folder, a folder that is no LeRobotDataset or a damaged file
-    is an error naming it (the light check; :func:`check_recording` reads the data files too)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"recording {root} does not exist")
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
-    try:
-        return json.loads(info_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
 
 
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]]) -> None:

@@ -7,6 +7,7 @@ episodes, read here straight from the dataset's parquet files.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -199,3 +200,18 @@ def write_mode_labels(root: str | Path, labels: dict[int, int], names: dict[int,
     write_text_atomic(path, json.dumps({"episodes": {str(k): v for k, v in sorted(labels.items())},
                                         "names": {str(k): v for k, v in sorted(names.items())}}, indent=1))
     return path
+
+
+def recording_info(root: str | Path) -> dict:
+    """A recording's ``meta/info.json``; a missing folder, a folder that is no LeRobotDataset or a damaged file
+    is an error naming it (the light check; :func:`check_recording` reads the data files too)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"recording {root} does not exist")
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
+    try:
+        return json.loads(info_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e

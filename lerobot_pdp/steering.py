@@ -27,26 +27,30 @@ from __future__ import annotations
 import atexit
 import json
 import logging
-import math
 import os
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from .adaptation import fit_provenance
-from .atomic import write_text_atomic
-from .demonstration import recording_info
 from .latent_fitting import cancellable
+from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks and writer live there)
+    REQUEST_KEYS,
+    SteerTarget,
+    check_request,
+    checkpoint_target,
+    file_target,
+    fit_request,
+    write_steering,
+)
 
 logger = logging.getLogger(__name__)
 
-REQUEST_KEYS = ("mode", "latent", "dataset")
 _RUNNING: set[BackgroundFit] = set()  # live-steering fits still running, cancelled when the process exits
 
 
@@ -55,127 +59,6 @@ def _cancel_running_fits() -> None:
     for fit in list(_RUNNING):
         fit.cancel()
         fit.wait(10)
-
-
-def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
-    """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes; a
-    recording to fit, its folder and episode) and write it atomically to ``path`` as strict JSON (no NaN /
-    Infinity, which the policy would reject)."""
-    check_request(request, expect)
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"cannot write the steering file {path}: folder {path.parent} does not exist "
-                                "(give the path the running policy's --policy.steer_file names)")
-    if "dataset" in request:  # the recording as the policy will look for it (relative: to the file's folder)
-        fit_request(request, base=path.parent)
-    write_text_atomic(path, json.dumps(request, allow_nan=False) + "\n")
-
-
-@dataclass
-class SteerTarget:
-    """What a request is checked against: the latent size and mode ids a policy accepts, and where they came
-    from (named in the error). ``modes`` None: not known (unlabelled modes are discovered by the policy)."""
-
-    latent_dim: int | None
-    modes: dict[int, str] | None
-    source: str  # "checkpoint DIR", named with an unknown mode
-    latent_source: str  # why latent_dim is expected, named with a latent of another size
-
-
-def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
-    """The latent size and mode labels of a checkpoint folder, read from its config.json and the behavior bank
-    in model.safetensors (no policy is built)."""
-    from safetensors import SafetensorError, safe_open
-
-    folder = Path(checkpoint)
-    config, weights = folder / "config.json", folder / "model.safetensors"
-    if not config.is_file() or not weights.is_file():
-        raise FileNotFoundError(f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors)")
-    try:
-        cfg = json.loads(config.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{config} is not valid JSON ({e}): the file is damaged; copy it again") from e
-    try:
-        with safe_open(str(weights), framework="pt") as f:
-            labels = f.get_tensor("behavior_mode").tolist() if "behavior_mode" in f.keys() else []
-    except SafetensorError as e:
-        raise ValueError(f"{weights} is not a readable safetensors file ({e})") from e
-    names = {int(k): v for k, v in (cfg.get("mode_names") or {}).items()}
-    labelled = sorted({int(m) for m in labels if m >= 0})
-    modes = {m: names.get(m, str(m)) for m in labelled} if labelled else None
-    return SteerTarget(int(cfg.get("latent_dim", 2)), modes, f"checkpoint {folder}",
-                       f"latent_dim of checkpoint {folder}")
-
-
-def file_target(path: str | Path) -> SteerTarget | None:
-    """The latent size of the request already in a steering file (what the running policy accepted, or will
-    reject, already), or None when it holds no latent."""
-    try:
-        latent = json.loads(Path(path).read_text()).get("latent")
-    except (OSError, ValueError, AttributeError):
-        return None
-    if not isinstance(latent, list) or not latent:
-        return None
-    row = latent[0] if isinstance(latent[0], list) else latent
-    return SteerTarget(len(row), None, str(path), f"the size of the latent already in {path}; --policy-path "
-                       "checks against the policy's checkpoint instead")
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
-
-
-def check_request(request: Any, expect: SteerTarget | None = None) -> dict[str, Any]:
-    """The request's form: a JSON object with exactly one of ``mode``, ``latent``, ``dataset``, finite latent
-    values, a mode id >= 0 or a name, an episode and steps >= 0; with ``expect``, the latent's size and the mode
-    against the policy's."""
-    if not isinstance(request, dict):
-        raise ValueError(f"a steering request must be a JSON object, got {type(request).__name__}: {request!r}")
-    given = [k for k in REQUEST_KEYS if k in request]
-    if len(given) != 1:
-        raise ValueError(f"a steering request needs exactly one of {list(REQUEST_KEYS)}, got {sorted(request)}")
-    allowed = {"dataset": {"dataset", "episode", "steps"}}.get(given[0], {given[0]})
-    extra = sorted(set(request) - allowed)
-    if extra:
-        raise ValueError(f"unknown keys {extra} in a {given[0]!r} steering request (allowed: {sorted(allowed)})")
-    if "latent" in request and request["latent"] is not None:
-        _check_latent(request["latent"], expect)
-    if "mode" in request:
-        _check_mode(request["mode"], expect)
-    if "dataset" in request:
-        if not isinstance(request["dataset"], str) or not request["dataset"]:
-            raise ValueError(f"steering: dataset must be a folder path, got {request['dataset']!r}")
-        for key, what in (("episode", "an episode index (an integer >= 0)"), ("steps", "an integer >= 0")):
-            v = request.get(key)
-            if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 0):
-                raise ValueError(f"steering: {key} must be {what}, got {v!r}")
-    return request
-
-
-def _check_latent(latent: Any, expect: SteerTarget | None) -> None:
-    rows = latent if isinstance(latent, list) and latent and all(isinstance(r, list) for r in latent) else [latent]
-    if not all(isinstance(r, list) and r and all(_is_number(x) for x in r) for r in rows):
-        raise ValueError(f"steering: latent must be a list of numbers (or one list per phase), got {latent!r}")
-    bad = [x for r in rows for x in r if not math.isfinite(x)]
-    if bad:
-        raise ValueError(f"steering: latent {latent} has non-finite values {bad}; every value must be a finite number")
-    if len({len(r) for r in rows}) != 1:
-        raise ValueError(f"steering: the phase latents of {latent} have different sizes")
-    if expect is not None and expect.latent_dim is not None and len(rows[0]) != expect.latent_dim:
-        raise ValueError(f"steering: latent {latent} has {len(rows[0])} values; expected {expect.latent_dim} "
-                         f"({expect.latent_source})")
-
-
-def _check_mode(mode: Any, expect: SteerTarget | None) -> None:
-    if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():
-        mode = int(mode)
-    if isinstance(mode, bool) or not isinstance(mode, (int, str)) or mode == "" or (isinstance(mode, int) and mode < 0):
-        raise ValueError(f"steering: mode must be a mode id >= 0 or a mode name, got {mode!r}")
-    if expect is None or expect.modes is None:
-        return
-    if mode not in expect.modes and mode not in expect.modes.values():
-        known = ", ".join(f"{m} ({n})" for m, n in sorted(expect.modes.items()))
-        raise ValueError(f"steering: no mode {mode!r} in {expect.source}; its modes are {known}")
 
 
 def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None = None) -> Any:
@@ -236,19 +119,6 @@ def _rollout_with_rtc() -> bool:
     return (bool(sys.argv) and Path(sys.argv[0]).stem.replace("_", "-") == "lerobot-rollout"
             and ("--inference.type=rtc" in args or any(a == "--inference.type" and b == "rtc"
                                                         for a, b in zip(args, args[1:], strict=False))))
-
-
-def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:
-    """The (dataset root, episode, steps) of a ``dataset`` request, checked before any fit starts: a dataset
-    folder whose ``meta/info.json`` counts the episode."""
-    root = Path(request["dataset"])
-    if base is not None and not root.is_absolute():
-        root = Path(base) / root
-    total = int(recording_info(root).get("total_episodes") or 0)  # the data files: the fit's own check
-    episode = request.get("episode", 0)
-    if not 0 <= episode < total:
-        raise ValueError(f"steering: {root} holds {total} episode(s) (0-{total - 1}); no episode {episode}")
-    return root, episode, request.get("steps")
 
 
 def _mode_id(policy: Any, mode: Any) -> int:

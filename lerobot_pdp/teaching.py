@@ -41,17 +41,17 @@ from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
 from .episodes import read_episode_frames
 from .latent_fitting import DemoWindows
+from .teach_defaults import (  # noqa: F401  (re-exported)
+    TEACH_BATCH_SIZE,
+    TEACH_DEMO_SHARE,
+    TEACH_LATENT,
+    TEACH_LATENTS,
+    TEACH_LR,
+    TEACH_STEPS,
+)
 
 logger = logging.getLogger(__name__)
 
-# Defaults of teach_new_mode(), chosen on avoiding's zero-mode validation scene (docs/experiments.md, "Teaching a
-# new mode where no latent reaches the route").
-TEACH_STEPS = 3000
-TEACH_LR = 1e-4
-TEACH_DEMO_SHARE = 0.25
-TEACH_BATCH_SIZE = 64
-TEACH_LATENTS = ("encoder", "geometry")
-TEACH_LATENT = "encoder"
 
 
 @dataclass
