@@ -278,6 +278,7 @@ def load_policy(ckpt: Path, inference_steps: int | None = None, device: str = "c
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     import lerobot_pdp.baselines  # noqa: F401  (registers mlp_bc in any process, spawned workers included)
+    import lerobot_pdp.configuration_pdp  # noqa: F401  (and pdp: `import lerobot_pdp` alone does not)
 
     cfg = PreTrainedConfig.from_pretrained(ckpt)
     cfg.device = device
