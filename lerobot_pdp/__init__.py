@@ -9,13 +9,18 @@ names below load on first use, so ``lerobot-pdp steer`` and ``--help`` start wit
 small distributions: ``lerobot_env_pdp`` (``--env.type=pdp_*``, ``lerobot_pdp.envs``), ``lerobot_robot_pdp``
 (``--robot.type=pdp_sim``), ``lerobot_teleoperator_pdp`` (``--teleop.type=pdp_waypoints``) and
 ``lerobot_policy_pdp_baselines`` (``--policy.type=mlp_bc``). The faster dataset reading of ``column_views`` is
-switched on explicitly.
+switched on explicitly. On a machine without FFmpeg, LeRobot's "torchcodec cannot be loaded" warning is
+reported in one line (:mod:`lerobot_pdp.console`).
 """
 
 from __future__ import annotations
 
 import importlib
 from typing import TYPE_CHECKING, Any
+
+from lerobot_pdp import console as _console
+
+_console.install()  # LeRobot's torchcodec fallback warning in one line for Python users too (a log filter: cheap)
 
 if TYPE_CHECKING:
     from lerobot_pdp.configuration_pdp import PDPConfig

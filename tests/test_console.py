@@ -50,6 +50,17 @@ def test_lerobot_pdp_make_dataset_prints_no_torchcodec_traceback(tmp_path):
     _assert_clean(proc)
 
 
+def test_a_python_user_of_the_policy_gets_the_one_line_report(synthetic_dataset):
+    """`from lerobot_pdp import PDPPolicy` in a script, then a LeRobotDataset (which probes torchcodec)."""
+    import subprocess
+    import sys
+
+    code = ("from lerobot_pdp import PDPPolicy\n"
+            "from lerobot.datasets.lerobot_dataset import LeRobotDataset\n"
+            f"LeRobotDataset('local/x', root={str(synthetic_dataset)!r})\n")
+    _assert_clean(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300))
+
+
 # ---- the filter itself, on LeRobot's message as torchcodec 0.11 / LeRobot 0.6 write it ----------------------
 
 def _block(version: int, cause: str) -> str:
