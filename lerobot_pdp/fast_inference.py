@@ -180,10 +180,14 @@ class FrozenDenoiser:
         along with the chunks): what :meth:`context` takes, worth computing once while only z changes."""
         return F.linear(F.mish(obs_cond), self.w_obs, self.b)
 
-    def context(self, observations: Tensor, z: Tensor | None, rows: Tensor | None = None) -> Context:
+    def context(self, observations: Tensor, z: Tensor | None, rows: Tensor | None = None,
+                terms: tuple[Tensor | None, Tensor | None] | None = None) -> Context:
         """Conditioning of chunks with :meth:`observations` rows [B, R] under latents ``z`` [L, d_z]; chunk b
-        takes latent ``rows[b]`` (default: b). Differentiable in z."""
-        gain, shift = self.latent_terms(z) if z is not None else (None, None)
+        takes latent ``rows[b]`` (default: b). Differentiable in z. ``terms``: z's :meth:`latent_terms`, when
+        the caller kept them."""
+        if terms is None:
+            terms = self.latent_terms(z) if z is not None else (None, None)
+        gain, shift = terms
         if rows is not None:
             gain = gain[rows] if gain is not None else None
             shift = shift[rows] if shift is not None else None
@@ -246,6 +250,8 @@ class FastDenoiser:
         self._frozen: tuple[list[Tensor], list[int], torch.device, torch.dtype, FrozenDenoiser] | None = None
         self._param_dicts: list[dict] | None = None
         self._traced: dict[tuple, Callable] = {}
+        # z's modulation terms of the last chunk: (FrozenDenoiser, inference mode, a copy of z, terms)
+        self._terms: tuple | None = None
 
     def frozen(self) -> FrozenDenoiser:
         """The current weights' :class:`FrozenDenoiser` (the same object until a weight changes: a captured
@@ -268,7 +274,21 @@ class FastDenoiser:
     def sample_modulation(self, obs_cond: Tensor, z: Tensor | None, steps: list[int]) -> Tensor:
         """Modulation rows of one chunk batch at each sampler step: [S, B, R]."""
         frozen = self.frozen()
-        return frozen.modulation(steps, frozen.context(frozen.observations(obs_cond), z))
+        return frozen.modulation(steps, frozen.context(frozen.observations(obs_cond), z, terms=self._latent_terms(frozen, z)))
+
+    def _latent_terms(self, frozen: FrozenDenoiser, z: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+        """z's terms, reused while z and the weights stay the same (a robot acts on one latent for many chunks;
+        the FiLM MLP is ~5 % of a CPU chunk). CPU only: comparing z on a GPU would wait for it."""
+        if z is None or z.device.type != "cpu":
+            return frozen.latent_terms(z) if z is not None else (None, None)
+        inference = torch.is_inference_mode_enabled()
+        kept = self._terms
+        if (kept is not None and kept[0] is frozen and kept[1] == inference and kept[2].shape == z.shape
+                and kept[2].dtype == z.dtype and torch.equal(kept[2], z)):
+            return kept[3]
+        terms = frozen.latent_terms(z)
+        self._terms = (frozen, inference, z.clone(), terms)
+        return terms
 
     def contexts(self, obs_cond: Tensor, z: Tensor | None, steps: list[int]) -> list[list[Tensor]]:
         """:meth:`sample_modulation` split per step into the blocks' ``scale, bias``, as :meth:`run` takes them."""

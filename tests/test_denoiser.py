@@ -127,6 +127,35 @@ def test_inference_caches_follow_weight_updates_and_pickle():
 
 
 @pytest.mark.numerics
+def test_the_latents_modulation_is_reused_only_while_the_latent_stays():
+    """A robot acts on one latent for many chunks, so z's FiLM terms are kept between chunks: a latent changed in
+    place, a new latent, another batch of latents, and inference mode each give the terms of the z at hand."""
+    net = _net("film").eval()
+    for m in net.modules():
+        if isinstance(m, LatentFiLM):
+            torch.nn.init.normal_(m.mlp[-1].weight, std=0.5)
+    fast = FastDenoiser(net, 20)
+    x, c = torch.randn(1, 16, 3), torch.randn(1, 10)
+    z = torch.randn(1, 2)
+
+    def check(z, c=c, x=x):
+        torch.testing.assert_close(fast.run(x, fast.contexts(c, z, [7])[0]), net(x, torch.tensor([7] * len(x)), c, z),
+                                   atol=1e-5, rtol=1e-5)
+
+    check(z)
+    kept = fast._terms
+    check(z)
+    assert fast._terms is kept  # the same latent: its terms were reused
+    z.add_(0.5)  # changed in place (set_latent writes into its buffer)
+    check(z)
+    check(torch.randn(1, 2))
+    check(torch.randn(3, 2), c=torch.randn(3, 10), x=torch.randn(3, 16, 3))  # one latent per chunk
+    with torch.inference_mode():
+        check(z)
+    check(z)
+
+
+@pytest.mark.numerics
 def test_concat_ablation_feeds_the_raw_latent_to_a_linear_map():
     """The paper's concat ablation: z meets a linear map first (no Mish, which would fold distinct negative
     coordinates onto nearly the same value), so every block's condition is affine in z."""
