@@ -382,6 +382,9 @@ def cmd_search(args: argparse.Namespace) -> int:
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
+    if not res.interrupted and all(c.generation == 0 for c in res.history):
+        print(f"the budget ended with the starting latents ({len(res.history)} of them): no {res.method} step was "
+              "taken; a larger --budget lets it search beyond them")
     print(f"wrote {args.out}" if args.out is not None else "no --out: no checkpoint written")
     return 0
 

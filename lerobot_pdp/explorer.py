@@ -35,7 +35,7 @@ from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
 from .checkpoint import ADAPTATION_INFO, card_section
 from .checkpoint_files import read_config_json
-from .demonstration import recording_info
+from .demonstration import check_recording, recording_info
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
 from .steering_state import Steering
@@ -135,6 +135,8 @@ class Explorer:
         if dataset is not None:  # a bad argument is refused now, not at the first click
             _check_episode(dataset, 0)
         self.policy = load_base_policy(self.checkpoint, device)
+        if dataset is not None:  # ... also a recording the checkpoint cannot read (another camera, no state)
+            check_recording(dataset, 0, {k: tuple(ft.shape) for k, ft in self.policy.config.condition_features.items()})
         self.rollouts, self.seed, self.device = _positive("rollouts", rollouts), seed, device
         self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
         self.dataset = Path(dataset) if dataset is not None else _training_dataset(self.checkpoint)
@@ -379,6 +381,16 @@ class Explorer:
         return (Selection(z.tolist(), f"fit to {label} (error ratio {ratio})", prov),
                 FitMark(z.tolist(), result.error_ratio, label))
 
+    def decoder_source(self, dataset: str | Path | None = None) -> Path | None:
+        """The recording the decoder's view samples on: ``dataset``, else the explorer's (``--dataset`` or the
+        training dataset); None when there is none."""
+        return Path(str(dataset).strip()) if dataset not in (None, "") and str(dataset).strip() else self.dataset
+
+    def no_recording_note(self) -> str:
+        """Why there is no decoder's view, and how to get one."""
+        return ("the decoder's view needs a recorded episode: start with --dataset DATA (a LeRobotDataset folder), "
+                f"or fit an episode below ({_training_dataset_note(self.checkpoint)})")
+
     def decoder_view(self, z: Any, dataset: str | Path | None = None, episode: int = 0, frames: int = 4,
                      samples: int = 4) -> np.ndarray:
         """What the denoiser makes of latent ``z``: ``samples`` action chunks sampled at ``frames`` observations
@@ -386,10 +398,9 @@ class Explorer:
         from lerobot.utils.constants import ACTION
 
         z = self.latent(z)
-        source = dataset if dataset not in (None, "") else self.dataset
+        source = self.decoder_source(dataset)
         if source is None:
-            raise ValueError(f"the decoder's view needs a recorded episode: give a LeRobotDataset folder ("
-                             f"{self.checkpoint} names no local training dataset in train_config.json)")
+            raise ValueError(self.no_recording_note())
         root, episode = _check_episode(source, episode)
         with self._lock:
             windows = self.policy.demo_windows((root, episode))
@@ -467,7 +478,7 @@ class Explorer:
 
     def landscape_image(self, land: Landscape) -> np.ndarray:
         """The success landscape as a heat map under the training latents (collisions hatched)."""
-        proj, groups, colors = self.map.projection, self.map.groups, self.map.colors
+        proj = self.map.projection
         xy = proj.to_map(self.policy.behavior_table()["z"])
         fig = Figure(figsize=(5.6, 4.6))
         ax = fig.subplots()
@@ -478,15 +489,14 @@ class Explorer:
         for (r, c), v in np.ndenumerate(land.collision):
             if v > 0:
                 ax.plot(land.xs[c], land.ys[r], "x", color="k", ms=4 + 6 * v)
-        for g, col in colors.items():
-            sel = groups == g
-            ax.scatter(xy[sel, 0], xy[sel, 1], s=10, color=col, edgecolor="k", lw=0.3)
+        # white dots: mode colours would read as success levels on the red-yellow-green map
+        ax.scatter(xy[:, 0], xy[:, 1], s=12, color="white", edgecolor="k", lw=0.5)
         fig.colorbar(im, ax=ax, label="success rate")
         ax.set_xlabel(proj.axis_labels[0])
         ax.set_ylabel(proj.axis_labels[1])
         where = "cache" if land.from_cache else "rollouts just run"
         ax.set_title(f"success over z, {self.scene.name} ({len(land.xs)}x{len(land.ys)} grid; from {where})\n"
-                     "x: collisions; dots: training latents", fontsize=9)
+                     "x: collisions; white dots: training latents", fontsize=9)
         fig.tight_layout()
         return _pixels(fig)
 
@@ -507,6 +517,9 @@ class Explorer:
         steering.activate(torch.as_tensor(z, dtype=torch.float32), provenance=provenance)
         card = card_section(f"This checkpoint acts under a latent chosen in the explorer (`lerobot-pdp explore`): "
                             f"`{np.round(z, 6).tolist()}`, {selection.source} ({provenance['date']}).")
+        in_the_way = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+        if in_the_way is not None:
+            raise FileExistsError(f"{in_the_way} is a file, not a folder: give a new folder for the adapted checkpoint")
         out.parent.mkdir(parents=True, exist_ok=True)
         write_adapted_checkpoint(self.checkpoint, SimpleNamespace(steering=steering), out, card)
         return out
@@ -538,7 +551,11 @@ def _pixels(fig: Figure) -> np.ndarray:
 
 
 def _positive(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not float(value).is_integer() or int(value) < 1:
+    try:
+        ok = not isinstance(value, bool) and float(value).is_integer() and int(value) >= 1
+    except (TypeError, ValueError):  # None (an emptied number box), text
+        ok = False
+    if not ok:
         raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     return int(value)
 
@@ -568,8 +585,22 @@ def _training_dataset(checkpoint: Path) -> Path | None:
     return root if (root / "meta" / "info.json").is_file() else None
 
 
+def _training_dataset_note(checkpoint: Path) -> str:
+    """What the checkpoint's train_config.json says of its training dataset, for a message."""
+    from .taught import training_data_of
+
+    try:
+        root = training_data_of(checkpoint)
+    except (OSError, ValueError):
+        return f"{checkpoint} has no train_config.json naming a local training dataset"
+    return f"{checkpoint}'s train_config.json names {root}, which is not a LeRobotDataset folder on this machine" + (
+        f" (looked for relative to {Path.cwd()})" if not root.is_absolute() else "")
+
+
 def _check_episode(dataset: str | Path, episode: Any) -> tuple[Path, int]:
     """``dataset`` is a LeRobotDataset folder and ``episode`` one of its episodes; else an error naming both."""
+    if dataset is None or not str(dataset).strip():
+        raise ValueError("give a LeRobotDataset folder (the folder box is empty)")
     root = Path(str(dataset).strip())
     total = int(recording_info(root).get("total_episodes") or 0)
     try:

@@ -4,6 +4,10 @@ Only wiring lives here (what each control calls, what it updates); the work is i
 is also a named API endpoint (``/pick``, ``/select``, ``/interpolate``, ``/fit``, ``/landscape``, ``/save``), so
 the app can be driven by ``gradio_client`` as well as by a person. Per-visitor state (the selected latent, the
 fitted mark, the drawn path, the map's pixel geometry) is kept in ``gr.State``.
+
+A bad input is an error to a client (its endpoint raises), but on the page it is a message in the summary (and a
+toast) with everything else left as it was: Gradio marks every output of a failed event with an "Error" overlay,
+which would sit over the latent map and take its clicks. So the page's controls run "soft" twins of the endpoints.
 """
 
 from __future__ import annotations
@@ -23,16 +27,33 @@ def build_app(explorer: Explorer) -> Any:
     """The explorer as a ``gr.Blocks`` app, queued, not launched (``app.launch()``; a Space runs it as is)."""
     gr = import_gradio()
 
+    def _message(e: Exception) -> str:
+        message = str(e.args[0] if isinstance(e, KeyError) and e.args else e)
+        logger.info("explorer: %s", message)  # one log line in the terminal, not a traceback
+        return message
+
     def user_errors(fn):
-        """A bad input is a message on the page (and an error a client reads), not a server traceback."""
+        """An endpoint: a bad input is an error a client reads, not a server traceback."""
         @functools.wraps(fn)
         def wrapped(*args, **kwargs):
             try:
                 return fn(*args, **kwargs)
-            except USER_ERRORS as e:  # one log line in the terminal, not a traceback
-                message = str(e.args[0] if isinstance(e, KeyError) and e.args else e)
-                logger.info("explorer: %s", message)
-                raise gr.Error(message, print_exception=False) from e
+            except USER_ERRORS as e:
+                raise gr.Error(_message(e), print_exception=False) from e
+        return wrapped
+
+    def on_page(fn, message_at: int, n_outputs: int):
+        """The page's twin of an endpoint: a bad input is shown in output ``message_at`` (and a toast); the other
+        outputs keep what they show, so no error overlay covers the map."""
+        @functools.wraps(fn)
+        def wrapped(*args, **kwargs):
+            try:
+                return fn(*args, **kwargs)
+            except USER_ERRORS as e:
+                message = _message(e)
+                gr.Warning(message)
+                out = tuple(f"**Not done:** {message}" if i == message_at else gr.skip() for i in range(n_outputs))
+                return out if n_outputs > 1 else out[0]
         return wrapped
 
     def fresh() -> dict:
@@ -49,6 +70,8 @@ def build_app(explorer: Explorer) -> Any:
             if explorer.has_env:
                 run = explorer.rollout(selection.z)
                 image, summary = run.image, f"**{selection.source}**: {run.summary()}"
+            elif explorer.decoder_source(state.get("dataset")) is None:  # selected (and savable) all the same
+                summary += f"; {explorer.no_recording_note()}"
             else:
                 image = explorer.decoder_view(selection.z, state.get("dataset"), state.get("episode", 0))
         if selection is not None:
@@ -61,8 +84,10 @@ def build_app(explorer: Explorer) -> Any:
         gr.Markdown(f"## PDP explorer\n{explorer.describe()}")
         with gr.Row():
             with gr.Column(scale=3):
-                map_img = gr.Image(label="latent map (click a point)", type="numpy", interactive=False,
-                                   elem_id="latent-map")
+                gr.Markdown("**Latent map**: click a point to act at its latent")
+                # no label drawn over the picture: it would hide the first line of the map's own title
+                map_img = gr.Image(label="latent map (click a point)", show_label=False, type="numpy",
+                                   interactive=False, elem_id="latent-map")
             with gr.Column(scale=1):
                 latent_box = gr.Textbox(label="selected latent z", elem_id="latent")
                 go = gr.Button("act at this latent")
@@ -100,11 +125,9 @@ def build_app(explorer: Explorer) -> Any:
 
         outputs = [map_img, result_img, summary, latent_box, state]
 
-        @user_errors
         def start(state):
             return show(fresh(), None)
 
-        @user_errors
         def pick(x, y, state):
             view = state.get("view")
             if view is None:  # a client that never loaded the page: the map as it would show it
@@ -123,46 +146,56 @@ def build_app(explorer: Explorer) -> Any:
 
         on_click.__annotations__ = {"evt": gr.SelectData}  # Gradio reads the class; this module imports it lazily
 
-        @user_errors
         def select(latent, state):
             z = explorer.latent(latent)
             return show(state, Selection(z.tolist(), "latent typed in", {"source": "explorer: latent typed in"}))
 
-        @user_errors
         def interpolate(a, b, path, t, state):
             selection, line = explorer.interpolate(a, b, t, path)
             return show({**state, "path": line}, selection)
 
-        @user_errors
         def fit(dataset, episode, steps, state):
+            if steps not in (None, "") and (not float(steps).is_integer() or steps < 0):
+                raise ValueError(f"fit steps must be a whole number >= 0 (0: the checkpoint's fit_steps), got {steps}")
             selection, mark = explorer.fit(dataset, episode, int(steps) if steps not in (None, "") and steps > 0 else None)
-            return show({**state, "fit": asdict(mark), "dataset": str(dataset), "episode": int(episode)}, selection)
+            # the fitted latent is the selection: an earlier interpolation's path is no longer what the map is about
+            return show({**state, "fit": asdict(mark), "path": None, "dataset": str(dataset), "episode": int(episode)},
+                        selection)
 
-        @user_errors
         def landscape(grid_n, rollouts, progress=gr.Progress()):  # noqa: B008 (how Gradio asks for a progress bar)
-            land = explorer.landscape(int(grid_n), int(rollouts), progress=lambda f, d: progress(f, desc=d))
+            land = explorer.landscape(grid_n, rollouts, progress=lambda f, d: progress(f, desc=d))
             note = (f"{'read from the cache' if land.from_cache else 'computed and cached'}: `{land.cache.name}`; "
                     f"mean success {land.success.mean():.0%}")
             return explorer.landscape_image(land), note
 
-        @user_errors
         def save(out, state):
             if not state.get("selection"):
                 raise ValueError("select a latent first (click the map, interpolate or fit)")
             path = explorer.save_adapted(Selection(**state["selection"]), out)
             return f"wrote `{path}`: load it with `PDPPolicy.from_pretrained` or `--policy.path`"
 
-        app.load(start, [state], outputs, api_name=False)
-        map_img.select(on_click, [state], [px, py], api_name=False).then(pick, [px, py, state], outputs,
-                                                                         api_name=False)
-        gr.Button("pick", visible=False).click(pick, [px, py, state], outputs, api_name="pick")
-        go.click(select, [latent_box, state], outputs, api_name="select")
-        latent_box.submit(select, [latent_box, state], outputs, api_name=False)
-        t_slider.release(interpolate, [mode_a, mode_b, path_kind, t_slider, state], outputs, api_name="interpolate")
-        fit_btn.click(fit, [demo_box, demo_episode, fit_steps, state], outputs, api_name="fit")
+        at_summary = outputs.index(summary)
+        app.load(user_errors(start), [state], outputs, api_name=False)
+        map_img.select(on_click, [state], [px, py], api_name=False).then(on_page(pick, at_summary, len(outputs)),
+                                                                         [px, py, state], outputs, api_name=False)
+        go.click(on_page(select, at_summary, len(outputs)), [latent_box, state], outputs, api_name=False)
+        latent_box.submit(on_page(select, at_summary, len(outputs)), [latent_box, state], outputs, api_name=False)
+        t_slider.release(on_page(interpolate, at_summary, len(outputs)), [mode_a, mode_b, path_kind, t_slider, state],
+                         outputs, api_name=False)
+        fit_btn.click(on_page(fit, at_summary, len(outputs)), [demo_box, demo_episode, fit_steps, state], outputs,
+                      api_name=False)
         if explorer.has_env:
-            land_btn.click(landscape, [grid, land_rollouts], [land_img, land_note], api_name="landscape")
-        save_btn.click(save, [out_box, state], [save_note], api_name="save")
+            land_btn.click(on_page(landscape, 1, 2), [grid, land_rollouts], [land_img, land_note], api_name=False)
+        save_btn.click(on_page(save, 0, 1), [out_box, state], [save_note], api_name=False)
+        # the endpoints a client calls (hidden buttons: the page uses the twins above)
+        api = {"pick": (pick, [px, py, state], outputs), "select": (select, [latent_box, state], outputs),
+               "interpolate": (interpolate, [mode_a, mode_b, path_kind, t_slider, state], outputs),
+               "fit": (fit, [demo_box, demo_episode, fit_steps, state], outputs),
+               "save": (save, [out_box, state], [save_note])}
+        if explorer.has_env:
+            api["landscape"] = (landscape, [grid, land_rollouts], [land_img, land_note])
+        for name, (fn, inputs, outs) in api.items():
+            gr.Button(name, visible=False).click(user_errors(fn), inputs, outs, api_name=name)
     app.queue(default_concurrency_limit=1)  # one policy: requests take turns
     return app
 

@@ -24,7 +24,13 @@ def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[s
         x = batch.get(key)
         expected = f"[{', '.join((*leading, *map(str, ft.shape)))}]"
         if x is None:
-            raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has {sorted(batch)}")
+            hint = ""
+            if key.startswith("observation.images.") and len(ft.shape) == 3:  # a camera checkpoint, an env without it
+                h, w = ft.shape[-2:]
+                hint = (f": the env must give this camera (lerobot_pdp's envs: --env.camera={key.rsplit('.', 1)[-1]} "
+                        f"--env.image_size={h if h == w else f'{h}x{w}'})")
+            raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has "
+                           f"{sorted(batch)}{hint}")
         if x.dim() != len(leading) + len(ft.shape) or tuple(x.shape[len(leading):]) != tuple(ft.shape):
             raise ValueError(f"observation {key!r} has shape {list(x.shape)}; this policy expects {expected} "
                              "(its training dataset's feature)")

@@ -37,12 +37,27 @@ def training_data_of(checkpoint: str | Path) -> Path:
         raise FileNotFoundError(f"{checkpoint} has no train_config.json naming its training dataset: give it with "
                                 "--data (the dataset the checkpoint was trained on)")
     try:
-        root = json.loads(path.read_text()).get("dataset", {}).get("root")
-    except ValueError as e:
+        train = json.loads(path.read_text())
+        root = train.get("dataset", {}).get("root")
+    except (ValueError, AttributeError) as e:
         raise ValueError(f"{path} is not valid JSON ({e}): give the training dataset with --data") from e
     if not root:
         raise ValueError(f"{path} names no local dataset root (dataset.root): give the training dataset with --data")
-    return Path(root)
+    return _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
+
+
+def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) -> Path:
+    """lerobot-train records ``--dataset.root`` as typed: a relative root is relative to the folder it was run
+    in. Found from here as given; else from that folder, which a checkpoint under ``OUTPUT_DIR/checkpoints/
+    STEP/pretrained_model`` tells when ``output_dir`` is relative too (``runs/x`` run in ``/lab``: ``/lab``)."""
+    if root.is_absolute() or root.exists() or not output_dir or Path(output_dir).is_absolute():
+        return root
+    run = checkpoint.resolve().parents[2] if len(checkpoint.resolve().parents) > 2 else None
+    parts = Path(output_dir).parts
+    if run is None or run.parts[-len(parts):] != parts:
+        return root
+    launch = Path(*run.parts[: -len(parts)])
+    return launch / root if (launch / root).exists() else root
 
 
 def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, training_data: str | Path | None = None,

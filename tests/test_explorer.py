@@ -169,8 +169,53 @@ def test_without_an_env_the_decoder_view_replaces_rollouts(made):
         ex.rollout(ex.mode_latent(1))
     with pytest.raises(ValueError, match="need an env"):
         ex.landscape(2, 1)
-    with pytest.raises(ValueError, match="needs a recorded episode"):
+    with pytest.raises(ValueError, match="needs a recorded episode: start with --dataset DATA"):
         Explorer(ckpt).decoder_view(ex.mode_latent(1))
+
+
+def test_without_an_env_or_a_recording_a_latent_is_still_selected_and_saved(made, tmp_path):
+    """The real robot's case, the checkpoint copied without its data: the map, interpolation and saving work; the
+    page says the decoder's view needs a recording and how to give one."""
+    from gradio_client import Client
+
+    from lerobot_pdp.explorer import Explorer
+    from lerobot_pdp.explorer_app import launch
+
+    ckpt, _ = made
+    ex = Explorer(ckpt)
+    assert ex.dataset is None
+    app = launch(ex, port=None, block=False)
+    try:
+        client = Client(app.local_url, verbose=False)
+        _, decoder_png, summary, latent = client.predict("0.3, -0.2", api_name="/select")
+        assert latent == "0.3, -0.2" and decoder_png is None
+        assert "the decoder's view needs a recorded episode: start with --dataset DATA" in summary
+        note = client.predict(str(tmp_path / "adapted"), api_name="/save")
+        assert "wrote" in note and (tmp_path / "adapted" / ADAPTATION_INFO).is_file()
+    finally:
+        app.close()
+    assert PDPPolicy.from_pretrained(tmp_path / "adapted").active_latent[0].tolist() == pytest.approx(
+        [0.3, -0.2])
+
+
+def test_a_relative_training_dataset_is_found_from_the_folder_lerobot_train_ran_in(tmp_path, monkeypatch):
+    """lerobot-train records --dataset.root and --output_dir as typed; the checkpoint's own path says where that was."""
+    from lerobot_pdp.taught import training_data_of
+
+    lab = tmp_path / "lab"
+    ckpt = lab / "runs" / "x" / "checkpoints" / "000010" / "pretrained_model"
+    ckpt.mkdir(parents=True)
+    (lab / "data" / "d" / "meta").mkdir(parents=True)
+    (ckpt / "train_config.json").write_text(json.dumps({"dataset": {"root": "data/d"}, "output_dir": "runs/x"}))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert training_data_of(ckpt) == lab / "data" / "d"
+    assert training_data_of(Path("../lab/runs/x/checkpoints/000010/pretrained_model")) == lab / "data" / "d"
+    (lab / "last").symlink_to(ckpt.parent, target_is_directory=True)  # checkpoints/last is a link to a step
+    assert training_data_of(lab / "last" / "pretrained_model") == lab / "data" / "d"
+    shutil.rmtree(lab / "data")  # gone: the root as recorded (the message names it)
+    assert training_data_of(ckpt) == Path("data/d")
 
 
 def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
@@ -200,7 +245,7 @@ def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys):
 
 
 def test_bad_input_is_named(made, tmp_path):
-    from lerobot_pdp.explorer import GRADIO_HINT, Explorer, import_gradio
+    from lerobot_pdp.explorer import GRADIO_HINT, Explorer, Selection, import_gradio
 
     ckpt, _ = made
     with pytest.raises(FileNotFoundError, match="no such checkpoint folder"):
@@ -220,7 +265,19 @@ def test_bad_input_is_named(made, tmp_path):
         Explorer(ckpt, env="no-such-env")
     with pytest.raises(FileNotFoundError, match="recording .*nope does not exist"):  # before loading anything
         Explorer(ckpt, dataset=tmp_path / "nope")
+    from lerobot_pdp.envs.recording import make_dataset
+
+    other = make_dataset("avoiding", tmp_path / "other", scene=0, episodes_per_mode=1, modes=[0], progress=False)
+    with pytest.raises(ValueError, match=r"does not match the checkpoint"):  # at start-up, not at the first click
+        Explorer(ckpt, dataset=other)
     ex = Explorer(ckpt)
+    with pytest.raises(ValueError, match=r"give a LeRobotDataset folder \(the folder box is empty\)"):
+        ex.fit("  ", 0)
+    with pytest.raises(ValueError, match=r"grid must be an integer >= 1, got None"):  # an emptied number box
+        Explorer(ckpt, env="reach-around").landscape(None, 1)
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(FileExistsError, match=r"a_file is a file, not a folder: give a new folder"):
+        ex.save_adapted(Selection([0.0, 0.0], "typed", {}), tmp_path / "a_file" / "sub")
     with pytest.raises(ValueError, match="expected 2 finite numbers"):
         ex.latent("1, 2, 3")
     with pytest.raises(ValueError, match="expected 2 numbers"):
@@ -279,6 +336,8 @@ def test_the_app_through_gradio_client(served, explorer, made, tmp_path):
         client.predict("1, 2, 3", api_name="/select")
     with pytest.raises(Exception, match="exists"):
         client.predict(str(tmp_path / "adapted"), api_name="/save")
+    with pytest.raises(Exception, match=r"fit steps must be a whole number >= 0 \(0: the checkpoint's fit_steps\), got -5"):
+        client.predict(str(data), 2, -5, api_name="/fit")
 
 
 # ------------------------------------------------------------------------------------------------ a real browser
@@ -320,6 +379,11 @@ def test_a_person_clicks_the_map_in_a_browser(made, tmp_path, monkeypatch):
         natural_w, natural_h = driver.execute_script("return [arguments[0].naturalWidth, arguments[0].naturalHeight]", img)
         rect = driver.execute_script("var r = arguments[0].getBoundingClientRect(); return [r.width, r.height]", img)
         scale = min(rect[0] / natural_w, rect[1] / natural_h, 1.0)
+        # a stray click (on the trace panels right of the map's axes): a message in the summary, nothing covers the map
+        ActionChains(driver).move_to_element_with_offset(img, round(0.42 * natural_w * scale), 0).click().perform()
+        stray = wait.until(lambda d: "Not done" in d.find_element(By.ID, "summary").text
+                           and d.find_element(By.ID, "summary").text)
+        assert "outside the latent map's axes" in stray
         # selenium's offsets are from the element's centre; the picture is centred in it
         dx, dy = (px - natural_w / 2) * scale, (py - natural_h / 2) * scale
         ActionChains(driver).move_to_element_with_offset(img, round(dx), round(dy)).click().perform()

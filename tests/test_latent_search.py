@@ -316,7 +316,9 @@ def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoin
     args = ["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--waypoints", str(wps), "--budget",
             "3", "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--radius", "0.08", "--no-progress"]
     assert cli([*args, "--out", str(out), "--history", str(hist)]) == 0
-    assert f"wrote {out}" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"wrote {out}" in printed
+    assert "the budget ended with the starting latents (3 of them): no cma step was taken" in printed  # 8 modes
     record = json.loads(hist.read_text())
     assert len(record["history"]) == 3 and record["rollouts_used"] == 3
     info = json.loads((out / ADAPTATION_INFO).read_text())

@@ -202,6 +202,11 @@ def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):
     del ep[TOP]
     with pytest.raises(KeyError, match="missing 'observation.images.top'"):
         policy.fit_latent(ep, steps=1)
+    # an env without the camera (lerobot-eval of a camera checkpoint without --env.camera): the flags are named
+    obs = {OBS_STATE: torch.zeros(1, 2), OBS_ENV_STATE: torch.zeros(1, 2)}
+    with pytest.raises(KeyError, match=r"which the observation lacks; .*: the env must give this camera \(lerobot_pdp's "
+                                       r"envs: --env.camera=top --env.image_size=48\)"):
+        policy.select_action(obs)
 
 
 # ---------------------------------------------------------------------------------------------- end to end
