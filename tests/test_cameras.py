@@ -169,6 +169,7 @@ def test_make_dataset_camera_writes_video_lerobot_reads(tmp_path):
     assert list(out.glob("videos/observation.images.top/*/*.mp4"))
     assert read_dataset_meta(out)["cameras"] == ["top"] and read_dataset_meta(out)["image_size"] == [SIZE, SIZE]
     assert not list(tmp_path.glob(".cam.partial-*"))  # written atomically
+    assert not (out / "images").exists()  # the frames LeRobot encoded into videos leave no empty folders
 
     ds = LeRobotDataset("local/cam", root=out)
     first, later = ds[0], ds[len(ds) - 1]

@@ -363,6 +363,7 @@ def make_dataset(
                     ds.save_episode()
             with keep_cpu_scheduling():
                 ds.finalize()
+            _drop_empty_folders(tmp / "dataset" / "images")  # LeRobot's frames, encoded into videos: empty folders
             meta = {
                 "env": suite.name,
                 "scene": _scene_meta(scene),
@@ -401,3 +402,14 @@ def read_dataset_meta(dataset_dir: str | Path) -> dict[str, Any] | None:
     """The generation record written by :func:`make_dataset`, or None for other datasets."""
     p = Path(dataset_dir) / "meta" / META_FILE
     return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _drop_empty_folders(folder: Path) -> None:
+    """Remove ``folder`` and its subfolders when they hold no file (what LeRobot leaves after encoding videos)."""
+    if not folder.is_dir():
+        return
+    for d in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        if not any(d.iterdir()):
+            d.rmdir()
+    if not any(folder.iterdir()):
+        folder.rmdir()
