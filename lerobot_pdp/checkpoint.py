@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -156,10 +157,18 @@ def resize_to_checkpoint(model: nn.Module, shapes: dict[str, tuple[int, ...]]) -
 
 def apply_saved_config(policy: Any, model_file: str) -> None:
     """Legacy defaults for the fields a checkpoint's config.json predates (it lies beside the weights: a local
-    folder, or the hub snapshot the config came from); the sampler is rebuilt when they changed it."""
+    folder, or the hub snapshot the config came from), except those given on the command line
+    (``--policy.<field>``: LeRobot has merged them into the config by now); the sampler is rebuilt when they
+    changed it, and the log says so (LeRobot printed the config before)."""
     saved = Path(model_file).with_name(CONFIG_NAME)
-    if saved.is_file() and apply_legacy_defaults(policy.config, read_config_json(saved)):
+    if not saved.is_file():
+        return
+    given = {a.partition("=")[0].removeprefix("--policy.") for a in sys.argv[1:] if a.startswith("--policy.")}
+    changed = apply_legacy_defaults(policy.config, read_config_json(saved), given)
+    if changed:
         policy.model.set_sampler(policy.config.timestep_spacing, policy.config.use_clipped_model_output)
+        logger.info("%s predates %s: sampling as it was made, with %s (give --policy.<field>=... to change it)",
+                    saved, ", ".join(changed), ", ".join(f"{n}={getattr(policy.config, n)}" for n in changed))
 
 
 def flatten_model_keys(module: nn.Module, state_dict: dict[str, Tensor], prefix: str, local_metadata) -> None:

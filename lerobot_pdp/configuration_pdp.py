@@ -7,6 +7,7 @@ to train on a CPU in minutes. The learning rates (1e-3 where the paper has 1e-4)
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
@@ -462,15 +463,16 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         return self.input_features[self.trace_key].shape[0]
 
 
-def apply_legacy_defaults(config: PDPConfig, saved: dict) -> list[str]:
+def apply_legacy_defaults(config: PDPConfig, saved: dict, given: Iterable[str] = ()) -> list[str]:
     """Give ``config`` (parsed from a checkpoint's ``saved`` config.json) the values of :data:`LEGACY_DEFAULTS`
     for the fields that file lacks, so that a checkpoint written before a default changed samples as it did.
-    A value that differs from today's default was set on purpose (a command-line override) and is kept; one
-    equal to today's default cannot be told from a missing key and gets the legacy value. Returns the fields
-    changed."""
+    A field named in ``given`` (the command line's ``--policy.<field>``) or holding another value than today's
+    default was set on purpose and is kept; otherwise it cannot be told from a missing key and gets the legacy
+    value. Returns the fields changed."""
     changed = []
     for name, old in LEGACY_DEFAULTS.items():
-        if name not in saved and getattr(config, name) == PDPConfig.__dataclass_fields__[name].default:
+        if (name not in saved and name not in given
+                and getattr(config, name) == PDPConfig.__dataclass_fields__[name].default):
             setattr(config, name, old)
             changed.append(name)
     return changed

@@ -605,7 +605,7 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
     assert res.fit_error is None and res.error_ratio is None and not caplog.records
 
 
-def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
+def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path, monkeypatch, caplog):
     """The DDIM grid and step rule defaults changed ("even" + clipped-output noise -> diffusers' "leading"
     without it): a checkpoint whose config.json lacks those keys samples as it was made to; one that has them,
     or a value given on purpose when loading, is kept."""
@@ -617,10 +617,14 @@ def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
 
     v1 = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
     assert not set(LEGACY_DEFAULTS) & set(json.loads((v1 / "config.json").read_text()))
-    p = PDPPolicy.from_pretrained(v1)
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.checkpoint"):
+        p = PDPPolicy.from_pretrained(v1)
     sched = p.model.noise_schedule
     assert (p.config.timestep_spacing, p.config.use_clipped_model_output) == ("even", True)
     assert (sched.timestep_spacing, sched.use_clipped_model_output) == ("even", True)
+    # LeRobot printed the config before the weights loaded: the log says which sampler it acts with
+    assert ("predates timestep_spacing, use_clipped_model_output: sampling as it was made, with "
+            "timestep_spacing=even, use_clipped_model_output=True") in caplog.text
 
     new = tmp_path / "new"
     shutil.copytree(v1, new)
@@ -637,6 +641,17 @@ def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path):
     r = PDPPolicy.from_pretrained(v1, config=given)
     assert (r.config.timestep_spacing, r.config.use_clipped_model_output) == ("trailing", True)
     assert r.model.noise_schedule.timestep_spacing == "trailing"
+
+    # today's defaults asked for on purpose on the command line (--policy.path=V1 --policy.<field>=..., as lerobot-eval):
+    # kept, although they cannot be told from a missing key by value
+    flags = ["--timestep_spacing=leading", "--use_clipped_model_output=false"]
+    monkeypatch.setattr("sys.argv", ["my_eval.py", f"--policy.path={v1}", *(f"--policy.{f[2:]}" for f in flags)])
+    asked = PDPPolicy.from_pretrained(v1, config=PDPConfig.from_pretrained(v1, cli_overrides=flags))
+    assert (asked.model.noise_schedule.timestep_spacing, asked.model.noise_schedule.use_clipped_model_output) == (
+        "leading", False)
+    monkeypatch.setattr("sys.argv", ["my_eval.py", f"--policy.path={v1}", "--policy.timestep_spacing=trailing"])
+    mixed = PDPPolicy.from_pretrained(v1, config=PDPConfig.from_pretrained(v1, cli_overrides=flags[:1]))
+    assert (mixed.config.timestep_spacing, mixed.config.use_clipped_model_output) == ("leading", True)
 
 
 @pytest.mark.parametrize("kind", ["episode", "prior", "zero"])
