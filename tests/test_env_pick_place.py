@@ -240,3 +240,21 @@ def test_expert_brakes_onto_the_object_without_creeping():
         within_3cm = next(i for i, g in enumerate(gaps) if g < 0.03)
         assert len(gaps) - 1 - within_3cm <= 8, (seed, len(gaps) - 1 - within_3cm)
         assert gaps[-1] < 0.006  # and still closes on the object
+
+
+def test_rendering_without_an_opengl_context_says_how_to_get_one():
+    """On a machine without a display and without MUJOCO_GL (lerobot-eval records videos through render()), the
+    error names the environment variable to set, not MuJoCo's "OpenGL platform library" message alone."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import gymnasium as gym\nfrom lerobot_pdp.envs import pick_place as pp\n"
+            "env = gym.make(pp.GYM_ID, scene=0, render_mode='rgb_array')\nenv.reset(seed=0)\n"
+            "try:\n    env.render()\nexcept RuntimeError as e:\n    print('refused:', e)\nelse:\n    print('rendered')\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY", "PYOPENGL_PLATFORM")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout.strip().splitlines()[-1]
+    # a machine with a GL context (a desktop) renders; a headless one gets the advice
+    assert out == "rendered" or ("set MUJOCO_GL=egl (or osmesa)" in out and out.startswith("refused: pick-place")), out

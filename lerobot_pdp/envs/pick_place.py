@@ -391,7 +391,7 @@ class PickPlaceEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, 240, 320)
+            self._renderer = _renderer(self.model, 240, 320)
         cam = mujoco.MjvCamera()
         cam.lookat[:] = (0.0, 0.0, 0.4)
         cam.distance, cam.azimuth, cam.elevation = 1.6, 150.0, -25.0
@@ -616,3 +616,18 @@ SUITE_ENV = register_suite_env(SuiteEnv(
 
 if GYM_ID not in gym.registry:
     gym.register(id=GYM_ID, entry_point=f"{__name__}:PickPlaceEnv", max_episode_steps=MAX_EPISODE_STEPS)
+
+
+def _renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
+    """MuJoCo's renderer, or an error saying how to get one on a machine without a display: MuJoCo picks its
+    OpenGL backend from ``MUJOCO_GL`` when it is imported, so it cannot be chosen here (and a backend whose
+    library is missing would break ``import mujoco`` for every env, not only this one's pictures)."""
+    try:
+        return mujoco.Renderer(model, height, width)
+    except mujoco.FatalError as e:
+        if "OpenGL" not in str(e):
+            raise
+        raise RuntimeError(
+            f"pick-place renders its camera and videos with MuJoCo's OpenGL renderer, which has no context here "
+            f"({e}): on a machine without a display set MUJOCO_GL=egl (or osmesa) in the environment before "
+            "starting, e.g. `MUJOCO_GL=egl lerobot-eval ...`") from e
