@@ -8,8 +8,10 @@ folder next to theirs and moved in when complete.
 
 from __future__ import annotations
 
+import glob
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -51,7 +53,9 @@ def staging_dir(next_to: str | Path, prefix: str = ".staging-") -> Iterator[Path
     also on error."""
     parent = Path(next_to).parent
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    _sweep_stale(parent, prefix)
+    # the writer named in the folder's name (host, pid): a later one can tell it was killed and sweep it
+    tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{_host()}-{os.getpid()}-", dir=parent))
     try:
         probe = tmp / ".mode"  # mkdtemp's folder is its owner's alone (0700); one moved into place must not be
         probe.mkdir()
@@ -60,6 +64,26 @@ def staging_dir(next_to: str | Path, prefix: str = ".staging-") -> Iterator[Path
         yield tmp
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _host() -> str:
+    return "".join(c for c in socket.gethostname() if c.isalnum())[:32] or "host"
+
+
+def _sweep_stale(parent: Path, prefix: str) -> None:
+    """Remove the staging folders ``prefix`` left in ``parent`` by writers of this host that no longer run (a
+    process killed while writing: its ``finally`` never ran). Another host's (a shared file system) are left."""
+    mine = f"{prefix}{_host()}-"
+    for old in parent.glob(f"{glob.escape(mine)}*"):
+        pid = old.name[len(mine):].split("-", 1)[0]
+        if not pid.isdigit() or not old.is_dir():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(old, ignore_errors=True)
+        except PermissionError:  # alive, another user's
+            pass
 
 
 def move_into_place(staged: Path, out: Path) -> None:

@@ -284,6 +284,32 @@ def test_a_staged_folder_moved_into_place_has_a_plain_folders_permissions(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
 
 
+def test_a_writer_killed_while_staging_leaves_nothing_once_the_next_one_writes(tmp_path):
+    """A process killed inside a staging folder (SIGKILL: its cleanup never runs) leaves it behind, e.g. inside a
+    lerobot-train checkpoint folder; the next writer of that place sweeps it, and only the dead writer's."""
+    import signal
+    import subprocess
+    import sys
+
+    from lerobot_pdp.atomic import staging_dir
+
+    code = ("import sys, time\nfrom lerobot_pdp.atomic import staging_dir\n"
+            "with staging_dir(sys.argv[1], prefix='.pdp-save-') as tmp:\n"
+            "    (tmp / 'config.json').write_text('{}')\n    print('staged', flush=True)\n    time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "pretrained_model")], stdout=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout.readline().strip() == "staged"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    (left,) = tmp_path.glob(".pdp-save-*")
+    other_host = tmp_path / ".pdp-save-elsewhere-1-x"  # a shared file system's other machine: not ours to judge
+    other_host.mkdir()
+    with staging_dir(tmp_path / "pretrained_model", prefix=".pdp-save-") as tmp:
+        assert not left.exists() and other_host.exists()
+        with staging_dir(tmp_path / "pretrained_model", prefix=".pdp-save-"):  # a live writer's stays
+            assert tmp.exists()
+
+
 @pytest.mark.parametrize(("device", "message"), [("gpu", "is not a torch device"), ("cuda:0", "no CUDA device")])
 def test_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys, device, message):
     import torch
