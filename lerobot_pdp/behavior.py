@@ -15,6 +15,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -298,13 +299,25 @@ def read_training_behaviors(config, root: str | Path, features: dict,
 
 
 def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[int, dict]:
-    """The episodes the policy trains on (``config.dataset_episodes``, else lerobot-train's --dataset.episodes,
-    then recorded in the config; else all), read with ``keys``. A listed episode the dataset lacks is refused."""
-    if config.dataset_episodes is None:
-        config.dataset_episodes = lerobot_train_episodes(sys.argv)
-        if config.dataset_episodes is not None:
-            logger.info("PDP: the behavior bank reads lerobot-train's --dataset.episodes %s of %s",
-                        config.dataset_episodes, root)
+    """The episodes the policy trains on, read with ``keys``: under lerobot-train those LeRobot trains on (its
+    ``--dataset.episodes``, of the command line or the ``--config_path`` file; else every episode), recorded in
+    ``config.dataset_episodes`` (a stale value, e.g. of a checkpoint fine-tuned on other data, is replaced with a
+    warning); elsewhere ``config.dataset_episodes`` (None: all). A listed episode the dataset lacks is refused."""
+    if running_lerobot_train(sys.argv):
+        trains_on = lerobot_train_episodes(sys.argv)
+        if config.dataset_episodes is not None and config.dataset_episodes != trains_on:
+            logger.warning("PDP: dataset_episodes %s is not what lerobot-train trains on (%s): the behavior bank "
+                           "reads the episodes it trains on (choose them with --dataset.episodes)",
+                           config.dataset_episodes, "every episode" if trains_on is None else trains_on)
+        config.dataset_episodes = trains_on
+        if trains_on is not None:
+            logger.info("PDP: the behavior bank reads lerobot-train's --dataset.episodes %s of %s", trains_on, root)
+        split = _train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split"))
+        if split not in (None, "", 0, 0.0, "0", "0.0"):
+            logger.warning("PDP: --dataset.eval_split=%s holds episodes out of LeRobot's training batches, but PDP's "
+                           "behavior bank (its latent space) reads them too: eval_loss is held out for the denoiser, "
+                           "not for the latent. To keep episodes out of the latent, train with --dataset.episodes",
+                           split)
     episodes = read_episodes(root, keys, config.dataset_episodes)
     missing = sorted(set(config.dataset_episodes or ()) - set(episodes))
     if missing:
@@ -312,32 +325,57 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
     return episodes
 
 
+def running_lerobot_train(argv: list[str]) -> bool:
+    """This process is ``lerobot-train`` (also each process ``accelerate launch`` starts for it)."""
+    return bool(argv) and Path(argv[0]).name in ("lerobot-train", "lerobot_train.py")
+
+
 def lerobot_train_episodes(argv: list[str]) -> list[int] | None:
     """``--dataset.episodes`` of a ``lerobot-train`` command line, else ``dataset.episodes`` of its
     ``--config_path`` file (a ``train_config.json``, its folder, or a YAML/JSON file, as LeRobot reads it); the
     command line wins, as in LeRobot's parser. None: not given, a Hub config (not read here), or another program."""
-    if not argv or Path(argv[0]).name not in ("lerobot-train", "lerobot_train.py"):
+    if not running_lerobot_train(argv):
         return None
-    import yaml  # draccus parses its command-line values as YAML, and reads config files as YAML/JSON
+    import yaml  # draccus parses its command-line values as YAML
 
     given = _cli_value(argv, "--dataset.episodes")
     if given is not None:
         return _episode_list(yaml.safe_load(given) if given.strip() else None, f"--dataset.episodes={given}")
+    path, value = _config_file_value(argv, ("dataset", "episodes"))
+    return _episode_list(value, f"{path}: dataset.episodes={value}")
+
+
+def _train_value(argv: list[str], flag: str, keys: tuple[str, ...]) -> Any:
+    """A lerobot-train setting as LeRobot's parser sees it: the command line's ``flag``, else the ``--config_path``
+    file's ``keys``; None when neither gives it."""
+    import yaml
+
+    given = _cli_value(argv, flag)
+    if given is not None:
+        return yaml.safe_load(given) if given.strip() else None
+    return _config_file_value(argv, keys)[1]
+
+
+def _config_file_value(argv: list[str], keys: tuple[str, ...]) -> tuple[Path | None, Any]:
+    """(the file, the value at ``keys``) of lerobot-train's ``--config_path`` (a ``train_config.json``, its folder,
+    or a YAML/JSON file, as LeRobot reads it); (None, None) without one or for a Hub config (not read here)."""
+    import yaml  # draccus reads config files as YAML/JSON
+
     config_path = _cli_value(argv, "--config_path")
     if not config_path:
-        return None
+        return None, None
     path = Path(config_path)
     if path.is_dir():
         path = path / "train_config.json"
     if not path.is_file():
-        return None
+        return None, None
     try:
-        data = yaml.safe_load(path.read_text())
+        value = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as e:
         raise ValueError(f"{path}: cannot read --config_path ({e})") from e
-    dataset = data.get("dataset") if isinstance(data, dict) else None
-    value = dataset.get("episodes") if isinstance(dataset, dict) else None
-    return _episode_list(value, f"{path}: dataset.episodes={value}")
+    for key in keys:
+        value = value.get(key) if isinstance(value, dict) else None
+    return path, value
 
 
 def _cli_value(argv: list[str], name: str) -> str | None:

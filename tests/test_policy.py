@@ -731,7 +731,7 @@ def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_met
         p.predict_action_chunk(obs)
 
 
-def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_meta, monkeypatch, tmp_path):
+def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_meta, monkeypatch, tmp_path, caplog):
     """LeRobot does not tell a policy which episodes it trains on: under lerobot-train, --dataset.episodes is read
     from its command line (held-out episodes never shape the latent space) and recorded in the config; elsewhere
     dataset_episodes says it; an episode the dataset lacks is refused."""
@@ -761,6 +761,18 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
     p = small_policy(synthetic_meta)
     assert p.config.dataset_episodes == [0, 3, 17]
     assert sorted(set(p.model.bank.episode.tolist())) == [0, 3, 17]
+    # under lerobot-train what it trains on wins over a stale dataset_episodes (a fine-tuned checkpoint's, a
+    # --config_path file's policy section, --policy.dataset_episodes), with a warning
+    caplog.set_level(logging.WARNING, logger="lerobot_pdp.behavior")
+    monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.episodes=[1,2]"])
+    stale = small_policy(synthetic_meta, dataset_episodes=[0, 3, 17])
+    assert stale.config.dataset_episodes == [1, 2] and sorted(set(stale.model.bank.episode.tolist())) == [1, 2]
+    assert "dataset_episodes [0, 3, 17] is not what lerobot-train trains on ([1, 2])" in caplog.text
+    monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.eval_split=0.25"])
+    every = small_policy(synthetic_meta, dataset_episodes=[0, 3])
+    assert every.config.dataset_episodes is None and len(set(every.model.bank.episode.tolist())) > 2
+    assert "dataset_episodes [0, 3] is not what lerobot-train trains on (every episode)" in caplog.text
+    assert "--dataset.eval_split=0.25 holds episodes out of LeRobot's training batches, but PDP's" in caplog.text
     monkeypatch.setattr("sys.argv", ["python"])
     q = small_policy(synthetic_meta, dataset_episodes=[1, 2])
     assert sorted(set(q.model.bank.episode.tolist())) == [1, 2] and len(q.mode_latents()) <= 2
