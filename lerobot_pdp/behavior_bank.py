@@ -168,6 +168,24 @@ class BehaviorBank(nn.Module):
 
     # ------------------------------------------------------------------ checksum, ranks
 
+    def snapshot(self) -> dict[str, Tensor]:
+        """A copy of every buffer, for :meth:`restore`."""
+        return {name: getattr(self, name).detach().clone() for name in (*CHECKPOINT_KEYS, "taught")}
+
+    def restore(self, saved: dict[str, Tensor]) -> None:
+        """Put back the buffers of a :meth:`snapshot`."""
+        for name, t in saved.items():
+            setattr(self, name, t)
+        self._discovered = None
+
+    @staticmethod
+    def same_behaviors(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:
+        """Two snapshots hold the same behaviours: where they sit, their modes and their traces (to float
+        tolerance: delta^X and kappa follow from the traces, and a recomputed delta^X may differ in its last bits)."""
+        where = ("episode", "start", "end", "global_start", "mode")
+        return (all(torch.equal(a[n], b[n]) for n in where) and a["traces"].shape == b["traces"].shape
+                and bool(torch.allclose(a["traces"], b["traces"], rtol=1e-5, atol=1e-6)))
+
     def digest(self) -> str:
         """SHA-1 of the bank (traces, where they sit, modes, delta^X, kappa): equal iff the banks are."""
         h = hashlib.sha1()

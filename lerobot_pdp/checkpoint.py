@@ -106,6 +106,8 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
     from safetensors import SafetensorError
 
     shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
+    bank = policy.model.bank
+    read = bank.snapshot() if len(bank.episode) else None  # the training dataset's, read by lerobot-train
     resize_to_checkpoint(policy.model, shapes)
     check_weight_shapes(policy, model_file, shapes)  # e.g. latent_dim edited in config.json
     try:
@@ -114,7 +116,29 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
         raise damaged_weights(model_file, e) from e
     check_finite_weights(policy, model_file)
     apply_saved_config(policy, model_file)
+    if read is not None:
+        keep_training_behaviors(policy, read, model_file)
     return policy
+
+
+def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: str) -> None:
+    """A checkpoint loaded to train on (lerobot-train ``--policy.path`` or ``--resume``) over a dataset whose
+    behaviours differ from the ones the checkpoint's bank holds (another dataset, a grown one, other episodes):
+    training goes on with the dataset's, ``read`` when the policy was built, so that every training window is
+    conditioned on its own episode's latent; the checkpoint's bank would give each a stranger's, or fail at
+    the first episode it lacks. Said in a warning, with what changes (its mode latents, taught modes)."""
+    bank = policy.model.bank
+    loaded = bank.snapshot()
+    if bank.same_behaviors(loaded, read):
+        return
+    n_old, n_new = len(loaded["episode"].unique()), len(read["episode"].unique())
+    taught = (f"; its {loaded['taught'].shape[0]} taught behaviour(s) are not in this dataset and are dropped"
+              if loaded["taught"].numel() else "")
+    logger.warning("%s holds the behaviours of other data (%d episode(s), %d behaviours) than the dataset this "
+                   "policy trains on (%d episode(s), %d behaviours): training goes on with this dataset's behaviour "
+                   "bank (its traces, modes and soft-DTW distances), so mode latents now describe this dataset%s",
+                   model_file, n_old, len(loaded["episode"]), n_new, len(read["episode"]), taught)
+    bank.restore(read)
 
 
 def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:

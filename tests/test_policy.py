@@ -812,3 +812,42 @@ def test_a_trace_that_never_moves_is_refused_or_warned(synthetic_meta, caplog):
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp.behavior"):
         check_behaviors(behaviors, synthetic_meta.root, cfg)
     assert "never changes within an episode" in caplog.text
+
+
+def test_training_on_from_a_checkpoint_keeps_the_datasets_behaviors(synthetic_meta, tmp_path, caplog):
+    """lerobot-train --policy.path=CKPT (fine-tuning) or --resume over a dataset whose behaviours are not the ones
+    the checkpoint's bank holds: training goes on with the dataset's (each window conditioned on its own
+    episode), with a warning; over the same dataset (a plain resume) the checkpoint's bank stays, silently."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+
+    from lerobot_pdp import PDPConfig
+
+    from synthetic import write_dataset
+
+    other = LeRobotDatasetMetadata("local/other", root=write_dataset(tmp_path / "other", episodes_per_mode=2,
+                                                                      seed=1, modes=(2, 3)))
+    base = small_policy(other)
+    base.save_pretrained(tmp_path / "base")
+    same = small_policy(synthetic_meta)
+    same.save_pretrained(tmp_path / "same")
+
+    def train_from(ckpt):  # what lerobot-train builds: the checkpoint's config, the training dataset's metadata
+        cfg = PDPConfig.from_pretrained(ckpt)
+        cfg.pretrained_path = ckpt
+        return make_policy(cfg, ds_meta=synthetic_meta)
+
+    caplog.set_level(logging.WARNING, logger="lerobot_pdp.checkpoint")
+    tuned = train_from(tmp_path / "base")
+    assert "holds the behaviours of other data (4 episode(s), 4 behaviours) than the dataset this policy trains on " \
+           "(40 episode(s), 40 behaviours)" in caplog.text
+    assert sorted(set(tuned.model.bank.episode.tolist())) == list(range(40))
+    assert torch.equal(tuned.model.bank.traces, same.model.bank.traces)  # the dataset's traces, not the other's
+    torch.testing.assert_close(tuned.model.bank.distances, same.model.bank.distances)
+    nets = {k: w for k, w in base.state_dict().items() if k.startswith(("vae.", "denoiser."))}
+    assert len(nets) > 10 and all(torch.equal(tuned.state_dict()[k], w) for k, w in nets.items())  # the checkpoint's
+    assert sorted(tuned.mode_latents()) == [0, 1, 2, 3]  # this dataset's modes
+    caplog.clear()
+    resumed = train_from(tmp_path / "same")
+    assert "holds the behaviours of other data" not in caplog.text
+    assert torch.equal(resumed.model.bank.distances, same.model.bank.distances)
