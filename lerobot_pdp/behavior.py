@@ -408,7 +408,12 @@ def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None
         raise ValueError(f"{root}: the behavior trace ({where}) has the same value in every frame of every episode, "
                          "so every demonstration looks alike and the latent learns nothing; set --policy.trace_key "
                          "(and --policy.trace_dims) to a state-like vector that moves, e.g. end-effector positions")
-    if np.ptp(behaviors.traces, axis=1).max() <= tol:
+    if len(behaviors) > 1 and np.ptp(behaviors.traces, axis=0).max() <= tol:
+        logger.warning("%s: every behavior trace (%s, trace_length %d) is the same, so soft-DTW finds no distance "
+                       "between demonstrations and every latent comes out alike: nothing to steer between. If the "
+                       "demonstrations do differ, give traces that show it (a longer --policy.trace_length, other "
+                       "--policy.trace_dims)", root, where, behaviors.traces.shape[1])
+    elif np.ptp(behaviors.traces, axis=1).max() <= tol:
         logger.warning("%s: the behavior trace (%s) never changes within an episode: soft-DTW compares paths, so "
                        "PDP tells the demonstrations apart by where they are only; a state-like vector that moves "
                        "(end-effector positions) works best", root, where)

@@ -300,6 +300,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                 or len(set(self.dataset_episodes)) != len(self.dataset_episodes)):
             errors.append(f"dataset_episodes must be distinct episode indices >= 0 (or None: all), "
                           f"got {self.dataset_episodes}")
+        if self.drop_n_last_frames < 0:  # else LeRobot's sampler says it, without the option's --policy. name
+            errors.append(f"drop_n_last_frames must be >= 0, got {self.drop_n_last_frames}")
         if self.cpu_threads is not None and self.cpu_threads < 0:
             errors.append(f"cpu_threads must be >= 0 (0: torch's default) or None (auto), got {self.cpu_threads}")
         if not self.sdtw_gamma > 0:

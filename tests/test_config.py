@@ -31,6 +31,7 @@ def test_delta_indices():
     ("kwargs", "message"),
     [
         ({"latent_dim": 0}, "latent_dim must be >= 1"),
+        ({"drop_n_last_frames": -1}, "drop_n_last_frames must be >= 0, got -1"),
         ({"sdtw_gamma": 0.0}, "sdtw_gamma must be > 0"),
         ({"sdtw_gamma": -1.0}, "sdtw_gamma must be > 0"),
         ({"latent_conditioning": "add"}, "latent_conditioning must be one of"),

@@ -811,7 +811,12 @@ def test_a_trace_that_never_moves_is_refused_or_warned(synthetic_meta, caplog):
     behaviors.traces[:] = behaviors.traces[:, mid:mid + 1]  # each episode frozen at its midpoint (they differ)
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp.behavior"):
         check_behaviors(behaviors, synthetic_meta.root, cfg)
-    assert "never changes within an episode" in caplog.text
+    assert "never changes within an episode" in caplog.text and "is the same, so soft-DTW" not in caplog.text
+    # traces that move but are the same in every episode (trace_length=2: each is [start, goal]): said too
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.behavior"):
+        small_policy(synthetic_meta, trace_length=2)
+    assert "every behavior trace (trace_key 'observation.state', trace_length 2) is the same" in caplog.text
 
 
 def test_training_on_from_a_checkpoint_keeps_the_datasets_behaviors(synthetic_meta, tmp_path, caplog):
