@@ -494,6 +494,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
         raise RuntimeError(str(e)) from e
     import socket
 
+    from lerobot_pdp.explorer import check_checkpoint_folder
+
+    check_checkpoint_folder(args.checkpoint)  # a mistyped folder: said first (no port or loading involved)
     with socket.socket() as probe:  # a taken port, before minutes of loading and Gradio's traceback
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is free
         try:

@@ -131,7 +131,7 @@ class Explorer:
                  rollouts: int = 8, max_steps: int | None = None, cache_dir: str | Path | None = None,
                  dataset: str | Path | None = None, device: str = "cpu", seed: int = 0):
         self.checkpoint = Path(checkpoint)
-        _check_checkpoint(self.checkpoint)
+        check_checkpoint_folder(self.checkpoint)
         if dataset is not None:  # a bad argument is refused now, not at the first click
             _check_episode(dataset, 0)
         self.policy = load_base_policy(self.checkpoint, device)
@@ -560,7 +560,8 @@ def _positive(name: str, value: Any) -> int:
     return int(value)
 
 
-def _check_checkpoint(checkpoint: Path) -> None:
+def check_checkpoint_folder(checkpoint: Path) -> None:
+    """A PDP checkpoint folder (config.json of type pdp + model.safetensors), else an error naming what is wrong."""
     if not checkpoint.is_dir():
         raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a pretrained_model folder holding "
                                 "config.json and model.safetensors)")
