@@ -306,9 +306,12 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
     if running_lerobot_train(sys.argv):
         trains_on = lerobot_train_episodes(sys.argv)
         if config.dataset_episodes is not None and config.dataset_episodes != trains_on:
-            logger.warning("PDP: dataset_episodes %s is not what lerobot-train trains on (%s): the behavior bank "
-                           "reads the episodes it trains on (choose them with --dataset.episodes)",
-                           config.dataset_episodes, "every episode" if trains_on is None else trains_on)
+            chosen = _cli_value(sys.argv, "--dataset.episodes") is not None  # said on this command line: no surprise
+            logger.log(logging.INFO if chosen else logging.WARNING,
+                       "PDP: the behavior bank reads the episodes lerobot-train trains on (%s), not dataset_episodes "
+                       "%s (a checkpoint's, a config file's or --policy.dataset_episodes)%s",
+                       "every episode" if trains_on is None else trains_on, config.dataset_episodes,
+                       "" if chosen else "; choose them with --dataset.episodes")
         config.dataset_episodes = trains_on
         if trains_on is not None:
             logger.info("PDP: the behavior bank reads lerobot-train's --dataset.episodes %s of %s", trains_on, root)

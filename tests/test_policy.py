@@ -763,15 +763,18 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
     assert sorted(set(p.model.bank.episode.tolist())) == [0, 3, 17]
     # under lerobot-train what it trains on wins over a stale dataset_episodes (a fine-tuned checkpoint's, a
     # --config_path file's policy section, --policy.dataset_episodes), with a warning
-    caplog.set_level(logging.WARNING, logger="lerobot_pdp.behavior")
+    caplog.set_level(logging.INFO, logger="lerobot_pdp.behavior")
     monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.episodes=[1,2]"])
     stale = small_policy(synthetic_meta, dataset_episodes=[0, 3, 17])
     assert stale.config.dataset_episodes == [1, 2] and sorted(set(stale.model.bank.episode.tolist())) == [1, 2]
-    assert "dataset_episodes [0, 3, 17] is not what lerobot-train trains on ([1, 2])" in caplog.text
+    said = [r for r in caplog.records if "reads the episodes lerobot-train trains on ([1, 2]), not dataset_episodes "
+            "[0, 3, 17]" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.INFO  # chosen on this command line: said, not warned
     monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.eval_split=0.25"])
     every = small_policy(synthetic_meta, dataset_episodes=[0, 3])
     assert every.config.dataset_episodes is None and len(set(every.model.bank.episode.tolist())) > 2
-    assert "dataset_episodes [0, 3] is not what lerobot-train trains on (every episode)" in caplog.text
+    said = [r for r in caplog.records if "trains on (every episode), not dataset_episodes [0, 3]" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING and "--dataset.episodes" in said[0].getMessage()
     assert "--dataset.eval_split=0.25 holds episodes out of LeRobot's training batches, but PDP's" in caplog.text
     monkeypatch.setattr("sys.argv", ["python"])
     q = small_policy(synthetic_meta, dataset_episodes=[1, 2])
