@@ -101,6 +101,8 @@ class BehaviorTraces:
     end: np.ndarray  # [N] last frame (exclusive)
     mode: np.ndarray  # [N] mode id from the task string, UNLABELED if none
     mode_names: dict[int, str]
+    # episodes lerobot-train holds out for its eval loss (--dataset.eval_split): encoded, never trained on
+    held_out: frozenset[int] = frozenset()
 
     def __len__(self) -> int:
         return len(self.traces)
@@ -292,10 +294,28 @@ def read_training_behaviors(config, root: str | Path, features: dict,
     for ep, item in episodes.items():
         for k in keys:
             check_finite(k, item[k], f"episode {ep}")
-    return build_behavior_traces(
+    behaviors = build_behavior_traces(
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
         cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
     )
+    split = _train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split")) if running_lerobot_train(
+        sys.argv) else None
+    if split:
+        behaviors.held_out = frozenset(eval_split_episodes(episodes, float(split), cfg.dataset_episodes))
+        logger.info("PDP: --dataset.eval_split=%s holds out episodes %s for LeRobot's eval loss: the behavior bank "
+                    "encodes them (that loss needs their latents) but the latent space is trained on the other %d",
+                    split, sorted(behaviors.held_out), len(episodes) - len(behaviors.held_out))
+    return behaviors
+
+
+def eval_split_episodes(episodes: dict[int, dict], split: float, order: list[int] | None = None) -> list[int]:
+    """The episodes ``lerobot-train --dataset.eval_split=split`` holds out, by LeRobot 0.6's rule
+    (``make_train_eval_datasets``): per task, the last ``ceil(n * split)`` of its episodes, in the order of
+    ``--dataset.episodes`` (``order``; default the dataset's)."""
+    per_task: dict[str, list[int]] = {}
+    for ep in order if order is not None else sorted(episodes):
+        per_task.setdefault(str(episodes[ep].get("task", "")), []).append(ep)
+    return [ep for eps in per_task.values() for ep in eps[len(eps) - math.ceil(len(eps) * split):]]
 
 
 def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[int, dict]:
@@ -315,12 +335,6 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
         config.dataset_episodes = trains_on
         if trains_on is not None:
             logger.info("PDP: the behavior bank reads lerobot-train's --dataset.episodes %s of %s", trains_on, root)
-        split = _train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split"))
-        if split not in (None, "", 0, 0.0, "0", "0.0"):
-            logger.warning("PDP: --dataset.eval_split=%s holds episodes out of LeRobot's training batches, but PDP's "
-                           "behavior bank (its latent space) reads them too: eval_loss is held out for the denoiser, "
-                           "not for the latent. To keep episodes out of the latent, train with --dataset.episodes",
-                           split)
     episodes = read_episodes(root, keys, config.dataset_episodes)
     missing = sorted(set(config.dataset_episodes or ()) - set(episodes))
     if missing:

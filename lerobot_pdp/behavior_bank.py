@@ -98,6 +98,9 @@ class BehaviorBank(nn.Module):
         self.register_buffer("distances", torch.zeros(0, 0))
         self.register_buffer("kappa", torch.tensor(1.0 if cfg.geo_kappa is None else cfg.geo_kappa))
         self.register_buffer("taught", torch.zeros(0, cfg.latent_dim))
+        # behaviours L_embed samples from (empty: all); lerobot-train's eval split is left out. Not saved: it is
+        # the training run's, set again from its dataset when training resumes
+        self.register_buffer("embed_pool", torch.zeros(0, dtype=torch.long), persistent=False)
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
 
     # ------------------------------------------------------------------ filling it
@@ -114,6 +117,9 @@ class BehaviorBank(nn.Module):
         self.end = torch.as_tensor(b.end, dtype=torch.long)
         self.mode = torch.as_tensor(b.mode, dtype=torch.long)
         self._discovered = None
+        held = torch.as_tensor(sorted(b.held_out), dtype=torch.long)
+        self.embed_pool = (torch.nonzero(~torch.isin(self.episode, held)).flatten() if len(held)
+                           else torch.zeros(0, dtype=torch.long))
         if cfg.latent_type == "onehot":
             if cfg.latent_dim != onehot_modes(b):
                 raise ValueError(f"latent_type='onehot' with latent_dim {cfg.latent_dim} for {onehot_modes(b)} modes: "

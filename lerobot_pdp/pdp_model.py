@@ -177,11 +177,14 @@ class PDPModel(nn.Module):
 
     def embedding_loss(self, device) -> tuple[Tensor, dict]:
         bank = self.bank
-        n = len(bank.traces)
+        pool = bank.embed_pool  # the behaviours it trains on (empty: all; an eval split's are left out)
+        n = len(pool) if len(pool) else len(bank.traces)
         if torch.device(device).type == "cuda":  # randperm of a small n is drawn on the host: not graph-safe
             idx = torch.rand(n, device=device).argsort()[: self.config.embed_batch_size]
         else:
             idx = torch.randperm(n, device=device)[: self.config.embed_batch_size]
+        if len(pool):
+            idx = pool.to(idx.device)[idx]
         return self.vae.loss(
             bank.traces[idx], bank.distances[idx][:, idx], bank.kappa,
             self.config.beta_kl, self.config.beta_geo,

@@ -775,7 +775,6 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
     assert every.config.dataset_episodes is None and len(set(every.model.bank.episode.tolist())) > 2
     said = [r for r in caplog.records if "trains on (every episode), not dataset_episodes [0, 3]" in r.getMessage()]
     assert len(said) == 1 and said[0].levelno == logging.WARNING and "--dataset.episodes" in said[0].getMessage()
-    assert "--dataset.eval_split=0.25 holds episodes out of LeRobot's training batches, but PDP's" in caplog.text
     monkeypatch.setattr("sys.argv", ["python"])
     q = small_policy(synthetic_meta, dataset_episodes=[1, 2])
     assert sorted(set(q.model.bank.episode.tolist())) == [1, 2] and len(q.mode_latents()) <= 2
@@ -859,3 +858,34 @@ def test_training_on_from_a_checkpoint_keeps_the_datasets_behaviors(synthetic_me
     resumed = train_from(tmp_path / "same")
     assert "holds the behaviours of other data" not in caplog.text
     assert torch.equal(resumed.model.bank.distances, same.model.bank.distances)
+
+
+def test_lerobot_trains_eval_split_stays_out_of_the_latent_space(synthetic_dataset, synthetic_meta, monkeypatch):
+    """lerobot-train --dataset.eval_split holds out, per task, the last episodes for its eval loss: PDP holds out
+    the same ones (LeRobot's own split computes them here), encodes them (the eval loss needs their latents) and
+    never trains its latent space on them."""
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.train import TrainPipelineConfig
+    from lerobot.datasets.factory import make_train_eval_datasets
+
+    from lerobot_pdp import PDPConfig
+
+    cfg = TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/synthetic", root=str(synthetic_dataset),
+                                                    eval_split=0.25), policy=PDPConfig(push_to_hub=False))
+    _, held_by_lerobot = make_train_eval_datasets(cfg)
+    monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.eval_split=0.25"])
+    p = small_policy(synthetic_meta)
+    bank = p.model.bank
+    held = sorted(set(bank.episode.tolist()) - set(bank.episode[bank.embed_pool].tolist()))
+    assert held == sorted(held_by_lerobot.episodes) and len(held) == 12  # 3 of each mode's 10
+    assert len(bank.episode) == 40  # all encoded: the eval loss looks them up
+    # L_embed never draws them: with their traces poisoned it stays finite, draw after draw
+    poisoned = torch.isin(bank.episode, torch.tensor(held))
+    bank.traces[poisoned] = float("nan")
+    p.train()
+    for _ in range(20):
+        loss, _ = p.model.embedding_loss("cpu")
+        assert torch.isfinite(loss)
+    monkeypatch.setattr("sys.argv", ["python"])  # outside lerobot-train: every behaviour trains the latent
+    assert len(small_policy(synthetic_meta).model.bank.embed_pool) == 0
+
