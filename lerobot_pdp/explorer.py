@@ -248,7 +248,9 @@ class Explorer:
                                            textcoords="offset points", fontsize=8, zorder=8))
             if selected is not None:
                 xy = proj.to_map(self.latent(selected.z))[0]
-                artists.append(ax.scatter(*xy, marker="*", s=260, color="gold", edgecolor="k", lw=1.2, zorder=9))
+                # an outline: the training points under the selection stay visible
+                artists.append(ax.scatter(*xy, marker="*", s=260, facecolor="none", edgecolor="darkgoldenrod",
+                                          lw=1.8, zorder=9))
             marked = [a.get_offsets() if hasattr(a, "get_offsets") else np.c_[a.get_xdata(), a.get_ydata()]
                       for a in artists if hasattr(a, "get_offsets") or hasattr(a, "get_xdata")]
             (x0, x1), (y0, y1) = self._limits
