@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from lerobot.configs.parser import parse_arg  # LeRobot's reader of one command-line option
 from torch import Tensor, nn
 
 from .atomic import write_file_atomic
@@ -326,7 +327,7 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
     if running_lerobot_train(sys.argv):
         trains_on = lerobot_train_episodes(sys.argv)
         if config.dataset_episodes is not None and config.dataset_episodes != trains_on:
-            chosen = _cli_value(sys.argv, "--dataset.episodes") is not None  # said on this command line: no surprise
+            chosen = parse_arg("dataset.episodes", sys.argv[1:]) is not None  # said on this command line: no surprise
             logger.log(logging.INFO if chosen else logging.WARNING,
                        "PDP: the behavior bank reads the episodes lerobot-train trains on (%s), not dataset_episodes "
                        "%s (a checkpoint's, a config file's or --policy.dataset_episodes)%s",
@@ -355,7 +356,7 @@ def lerobot_train_episodes(argv: list[str]) -> list[int] | None:
         return None
     import yaml  # draccus parses its command-line values as YAML
 
-    given = _cli_value(argv, "--dataset.episodes")
+    given = parse_arg("dataset.episodes", argv[1:])
     if given is not None:
         return _episode_list(yaml.safe_load(given) if given.strip() else None, f"--dataset.episodes={given}")
     path, value = _config_file_value(argv, ("dataset", "episodes"))
@@ -367,7 +368,7 @@ def _train_value(argv: list[str], flag: str, keys: tuple[str, ...]) -> Any:
     file's ``keys``; None when neither gives it."""
     import yaml
 
-    given = _cli_value(argv, flag)
+    given = parse_arg(flag.removeprefix("--"), argv[1:])
     if given is not None:
         return yaml.safe_load(given) if given.strip() else None
     return _config_file_value(argv, keys)[1]
@@ -378,7 +379,7 @@ def _config_file_value(argv: list[str], keys: tuple[str, ...]) -> tuple[Path | N
     or a YAML/JSON file, as LeRobot reads it); (None, None) without one or for a Hub config (not read here)."""
     import yaml  # draccus reads config files as YAML/JSON
 
-    config_path = _cli_value(argv, "--config_path")
+    config_path = parse_arg("config_path", argv[1:])
     if not config_path:
         return None, None
     path = Path(config_path)
@@ -393,16 +394,6 @@ def _config_file_value(argv: list[str], keys: tuple[str, ...]) -> tuple[Path | N
     for key in keys:
         value = value.get(key) if isinstance(value, dict) else None
     return path, value
-
-
-def _cli_value(argv: list[str], name: str) -> str | None:
-    """The value of ``name=V`` or ``name V`` on a command line (the last one given, as draccus takes it)."""
-    value = None
-    for i, arg in enumerate(argv[1:], start=1):
-        key, eq, rest = arg.partition("=")
-        if key == name:
-            value = rest if eq else (argv[i + 1] if i + 1 < len(argv) else "")
-    return value
 
 
 def _episode_list(parsed, where: str) -> list[int] | None:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import write_text_atomic
+from .checkpoint_files import read_config_json
 from .episodes import recording_info
 
 REQUEST_KEYS = ("mode", "latent", "dataset")
@@ -54,10 +55,7 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
     config, weights = folder / "config.json", folder / "model.safetensors"
     if not config.is_file() or not weights.is_file():
         raise FileNotFoundError(f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors)")
-    try:
-        cfg = json.loads(config.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{config} is not valid JSON ({e}): the file is damaged; copy it again") from e
+    cfg = read_config_json(config)  # a damaged file: an error naming it
     try:
         with safe_open(str(weights), framework="numpy") as f:  # numpy: no torch import
             labels = f.get_tensor("behavior_mode").tolist() if "behavior_mode" in f.keys() else []
