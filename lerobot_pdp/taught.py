@@ -18,6 +18,7 @@ from pathlib import Path
 
 from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
+from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .model_card import checkpoint_card
@@ -36,11 +37,9 @@ def training_data_of(checkpoint: str | Path) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"{checkpoint} has no train_config.json naming its training dataset: give it with "
                                 "--data (the dataset the checkpoint was trained on)")
-    try:
-        train = json.loads(path.read_text())
-        root = train.get("dataset", {}).get("root")
-    except (ValueError, AttributeError) as e:
-        raise ValueError(f"{path} is not valid JSON ({e}): give the training dataset with --data") from e
+    train = read_config_json(path)  # a damaged file: an error naming it
+    dataset = train.get("dataset") if isinstance(train, dict) else None
+    root = dataset.get("root") if isinstance(dataset, dict) else None
     if not root:
         raise ValueError(f"{path} names no local dataset root (dataset.root): give the training dataset with --data")
     return _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
@@ -52,8 +51,8 @@ def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) ->
     STEP/pretrained_model`` tells when ``output_dir`` is relative too (``runs/x`` run in ``/lab``: ``/lab``)."""
     if root.is_absolute() or root.exists() or not output_dir or Path(output_dir).is_absolute():
         return root
-    run = checkpoint.resolve().parents[2] if len(checkpoint.resolve().parents) > 2 else None
-    parts = Path(output_dir).parts
+    parents = checkpoint.resolve().parents
+    run, parts = (parents[2] if len(parents) > 2 else None), Path(output_dir).parts
     if run is None or run.parts[-len(parts):] != parts:
         return root
     launch = Path(*run.parts[: -len(parts)])

@@ -216,6 +216,12 @@ def test_a_relative_training_dataset_is_found_from_the_folder_lerobot_train_ran_
     assert training_data_of(lab / "last" / "pretrained_model") == lab / "data" / "d"
     shutil.rmtree(lab / "data")  # gone: the root as recorded (the message names it)
     assert training_data_of(ckpt) == Path("data/d")
+    (ckpt / "train_config.json").write_text('{"dataset": {"root": ')  # cut off while copied
+    with pytest.raises(ValueError, match=rf"{ckpt / 'train_config.json'} is not valid JSON"):
+        training_data_of(ckpt)
+    (ckpt / "train_config.json").write_text('{"dataset": "data/d"}')
+    with pytest.raises(ValueError, match=r"names no local dataset root \(dataset.root\): give the training dataset"):
+        training_data_of(ckpt)
 
 
 def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
