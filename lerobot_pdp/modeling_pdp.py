@@ -50,6 +50,7 @@ from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
 from .observation_encoder import check_observation
 from .outcome_scores import Score
+from .paced_chunks import is_one_frame, paced_history
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
 from .realtime_chunking import prepare_rtc, rtc_chunk
 from .steering import SteerFile, apply_config_steering
@@ -160,12 +161,11 @@ class PDPPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
-        """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent (from
-        lerobot-rollout's RTC engine, with ``inference_delay`` / ``prev_chunk_left_over``: :func:`rtc_chunk`)."""
+        """The next ``n_action_steps`` normalised actions [B, n_action_steps, A] under the active latent, from a history
+        [B, n_obs_steps, *frame] or one frame joining the policy's own (paced_chunks.py; RTC: :func:`rtc_chunk`)."""
         if "inference_delay" in kwargs or "prev_chunk_left_over" in kwargs:
             return rtc_chunk(self, batch, noise=noise, **kwargs)
-        if any(len(q) for k, q in self._queues.items() if k != ACTION):  # online: the observation history
-            batch = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
+        batch = paced_history(self, batch) if is_one_frame(batch, self.config.condition_features) else batch
         if self._steer_file is not None:  # live steering: a changed file sets z before this chunk
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
@@ -184,7 +184,8 @@ class PDPPolicy(PreTrainedPolicy):
         check_observation(batch, self.config.condition_features, ("B",))  # a key or size it was not trained on
         self._queues = populate_queues(self._queues, batch)
         if len(self._queues[ACTION]) == 0:
-            actions = self.predict_action_chunk(batch, noise=noise)
+            history = {k: torch.stack(list(self._queues[k]), dim=1) for k in self.config.condition_features}
+            actions = self.predict_action_chunk(history, noise=noise)
             self._queues[ACTION].extend(actions.transpose(0, 1))
         action = self._queues[ACTION].popleft()
         self._advance_phase(action)

@@ -290,19 +290,21 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
     return notify_observation
 
 
-def check_rtc_steering(policy: Any) -> None:
-    """Refuse steering the RTC engine cannot honour (see the module docstring), naming the way out."""
+def check_rtc_steering(policy: Any, engine: str = "lerobot-rollout's RTC engine",
+                       way_out: str = "Use --inference.type=sync, or") -> None:
+    """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
+    docstring), naming the way out."""
     steering = policy.steering
     if steering.per_phase:
         raise ValueError(
             f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
-            "commands the robot executes; lerobot-rollout's RTC engine replans at its own pace, so phases cannot "
-            "follow. Use --inference.type=sync, or steer with one latent (a mode or a latent of one phase)")
+            f"commands the robot executes; {engine} replans at its own pace, so phases cannot "
+            f"follow. {way_out} steer with one latent (a mode or a latent of one phase)")
     if len(steering.noises.noise):
         raise ValueError(
             f"the active adaptation carries {len(steering.noises.noise)} fitted chunk noises, one per "
-            f"{policy.config.n_action_steps}-action chunk of select_action; lerobot-rollout's RTC engine replans at "
-            "its own pace, so they cannot be replayed in order. Use --inference.type=sync, or an adaptation fitted "
+            f"{policy.config.n_action_steps}-action chunk of select_action; {engine} replans at "
+            f"its own pace, so they cannot be replayed in order. {way_out} use an adaptation fitted "
             "without noises (fit_noise=none)")
 
 

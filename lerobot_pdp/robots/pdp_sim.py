@@ -5,7 +5,8 @@ names ``make-dataset`` writes into its dataset features); actions are the env's 
 An env episode ends on success, collision or the env's time limit; the robot then resets its own scene
 before the next observation, as a person would, and appends the episode's outcome to ``outcomes``.
 Inside ``lerobot-rollout`` the names carry ``.pos`` / ``.vel`` suffixes and the robot resets the policy per
-episode and ends the run after ``episodes`` (see :mod:`.rollout_hooks`).
+episode and ends the run after ``episodes`` (see :mod:`.rollout_hooks`); in LeRobot's async robot client it
+drops the last episode's queued actions and ends the run likewise (:mod:`.client_hooks`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 from lerobot.robots import Robot
 
-from . import record_hooks
+from . import client_hooks, record_hooks
 from .config_pdp_sim import PDPSimConfig
 from .live import LIVE
 
@@ -101,6 +102,7 @@ class PDPSim(Robot):
         self.first_episode: int | None = None  # dataset index of the first recorded episode (> 0: --resume)
         _LIVE[config.id] = self
         record_hooks.install()  # no-op outside lerobot-record
+        client_hooks.install()  # no-op outside LeRobot's async robot client
         if self.in_rollout:
             rollout_hooks.install()
 

@@ -1,0 +1,47 @@
+"""Chunks asked for one observation at a time, at the caller's pace: LeRobot's async policy server.
+
+LeRobot's asynchronous inference (``lerobot.async_inference``) runs the policy in a server process that calls
+``predict_action_chunk`` with the latest observation the robot client sent, one frame [B, *frame] without
+the history ``select_action`` keeps, whenever the client's action queue runs low. PDP conditions on
+``n_obs_steps`` frames, so such an observation joins the policy's own observation history (the one
+``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
+that history. Steering tied to ``select_action``'s chunks cannot follow a caller that replans at its own pace:
+per-phase latents (advanced on the gripper commands ``select_action`` returns) and fitted chunk noises (one
+per ``n_action_steps`` chunk) are refused, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`),
+at the first chunk and in live requests (the robot keeps its latent).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import torch
+from lerobot.policies.utils import populate_queues
+from torch import Tensor
+
+from .observation_encoder import check_observation
+from .realtime_chunking import check_rtc_steering
+
+check_paced_steering = functools.partial(
+    check_rtc_steering, engine="a caller that asks for chunks one observation at a time (LeRobot's async policy "
+    "server)", way_out="Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or")
+
+
+def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:
+    """``batch`` holds one observation [B, *frame] per key, not a history [B, n_obs_steps, *frame] (told by the
+    first conditioning key it has)."""
+    key = next((k for k in features if k in batch), None)
+    return key is not None and batch[key].dim() == 1 + len(features[key].shape)
+
+
+def paced_history(policy: Any, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The observation history [B, n_obs_steps, *frame] per conditioning key after ``batch``'s one observation
+    joins it; steering that needs ``select_action``'s pace is refused first (the module docstring)."""
+    features = policy.config.condition_features
+    check_observation(batch, features, ("B",))  # a missing key or a frame of another size, named
+    check_paced_steering(policy)
+    if policy._steer_file is not None:  # a live request the caller cannot follow is refused, the latent kept
+        policy._steer_file.check = check_paced_steering
+    policy._queues = populate_queues(policy._queues, {k: batch[k] for k in features})
+    return {k: torch.stack(list(policy._queues[k]), dim=1) for k in features}

@@ -1,0 +1,156 @@
+"""LeRobot's asynchronous-inference policy server, serving PDP: ``python -m lerobot_pdp.policy_server``.
+
+LeRobot 0.6.1's ``python -m lerobot.async_inference.policy_server`` serves only the policy types of its
+hard-coded ``SUPPORTED_POLICIES`` and loads no plugins, so it refuses ``pdp``. This command is that server,
+with its options (``--host --port --fps --inference_latency --obs_queue_timeout``), changed in this process
+only (nothing of LeRobot is changed on disk):
+
+* plugins are loaded and ``pdp`` is admitted;
+* the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
+  reach the policy: LeRobot's server passes on the state and the cameras only;
+* ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
+  ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
+  ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
+
+The robot side is LeRobot's own client (``python -m lerobot.async_inference.robot_client --policy_type=pdp
+--pretrained_name_or_path=CKPT ...``); the checkpoint is loaded by the server, from its file system. How PDP
+acts on one observation at a time: :mod:`lerobot_pdp.paced_chunks`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from types import SimpleNamespace
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+SERVED = "pdp"
+STATE = "observation.state"
+_ORIGINAL = "_lerobot_original"
+
+
+def split_policy_options(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(the server's own options, the ``--policy.<field>=<value>`` options as config overrides ``--<field>=<value>``)."""
+    server, policy = [], []
+    for arg in argv:
+        if arg.startswith("--policy."):
+            policy.append("--" + arg.removeprefix("--policy."))
+        else:
+            server.append(arg)
+    return server, policy
+
+
+def check_policy_options(overrides: list[str]) -> None:
+    """Refuse an unknown PDP field or a bad value now, not when the first robot client connects."""
+    if not overrides:
+        return
+    import draccus
+
+    from .configuration_pdp import PDPConfig
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            draccus.parse(PDPConfig, args=["--device=cpu", *overrides])  # no device probe
+    except (SystemExit, Exception) as e:  # draccus exits after printing its usage (unknown option) or raises
+        said = (err.getvalue().strip().splitlines() or [""])[-1].split("error: ", 1)[-1] \
+            if isinstance(e, SystemExit) else " ".join(str(e).split())
+        raise SystemExit(f"lerobot_pdp.policy_server: bad --policy.* option ({said}) in "
+                         f"{' '.join('--policy.' + o[2:] for o in overrides)}") from e
+
+
+def with_vector_features(original: Callable) -> Callable:
+    """Wrap LeRobot's ``raw_observation_to_observation``: it keeps ``observation.state`` and the cameras; float
+    vectors of other names (``observation.environment_state``) are added as [1, D] tensors, read by name. A
+    value the client's features name but its observation lacks is named (LeRobot's says only the name)."""
+
+    def vectors(lerobot_features: dict[str, dict]) -> dict[str, list[str]]:
+        return {k: list(ft["names"]) for k, ft in lerobot_features.items() if k.startswith("observation.")
+                and ft.get("dtype") not in ("image", "video") and len(ft.get("shape", ())) == 1 and ft.get("names")}
+
+    @functools.wraps(original)
+    def raw_observation_to_observation(raw: dict[str, Any], lerobot_features: dict[str, dict], *args: Any, **kw: Any):
+        import torch
+
+        named = vectors(lerobot_features)
+        for key, names in named.items():
+            missing = [n for n in names if n not in raw]
+            if missing:
+                raise KeyError(f"the robot client's observation lacks {missing} of {key!r} (it has {sorted(raw)})")
+        out = original(raw, lerobot_features, *args, **kw)
+        for key, names in named.items():
+            if key != STATE:
+                out[key] = torch.tensor([float(raw[n]) for n in names], dtype=torch.float32).unsqueeze(0)
+        return out
+
+    return raw_observation_to_observation
+
+
+def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
+    """Wrap LeRobot's ``get_policy_class``: PDP is loaded with ``overrides`` applied to its saved config, and
+    steering a paced caller cannot follow (per-phase latents, fitted chunk noises) is refused as the client
+    connects, not at its first chunk."""
+
+    @functools.wraps(original)
+    def get_policy_class(name: str):
+        cls = original(name)
+        if name != SERVED:
+            if overrides:
+                logger.warning("--policy.* options are PDP's; the client asks for %r: ignored", name)
+            return cls
+
+        def from_pretrained(path: str, **kwargs: Any):
+            from lerobot.configs.policies import PreTrainedConfig
+
+            from .paced_chunks import check_paced_steering
+
+            if overrides:
+                kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
+                logger.info("PDP config of %s with %s", path, " ".join(overrides))
+            policy = cls.from_pretrained(path, **kwargs)
+            check_paced_steering(policy)
+            return policy
+
+        return SimpleNamespace(from_pretrained=from_pretrained)
+
+    return get_policy_class
+
+
+def admit_pdp(server: Any, overrides: list[str]) -> None:
+    """Make LeRobot's policy-server module (``server``) serve PDP, in this process (the module docstring)."""
+    if SERVED not in server.SUPPORTED_POLICIES:
+        server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
+    for name, wrap in (("raw_observation_to_observation", with_vector_features),
+                       ("get_policy_class", functools.partial(with_policy_options, overrides=overrides))):
+        original = getattr(server, name)
+        original = getattr(original, _ORIGINAL, original)  # admitted again: these options replace the last ones
+        wrapper = wrap(original)
+        setattr(wrapper, _ORIGINAL, original)
+        setattr(server, name, wrapper)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args, overrides = split_policy_options(sys.argv[1:] if argv is None else argv)
+    try:
+        import draccus
+        from lerobot.async_inference import policy_server as server
+        from lerobot.async_inference.configs import PolicyServerConfig
+    except ImportError as e:  # grpcio: LeRobot's "async" extra
+        raise SystemExit(f"LeRobot's policy server needs its async extra ({e}): pip install 'lerobot[async]' "
+                         "(or lerobot_policy_pdp[async])") from e
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()
+    check_policy_options(overrides)
+    admit_pdp(server, overrides)
+    server.serve(draccus.parse(PolicyServerConfig, args=args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""What LeRobot's async robot client lacks for a simulated robot, added around two of its module globals.
+
+``python -m lerobot.async_inference.robot_client`` (LeRobot 0.6.x) tells the policy server its features with
+``map_robot_keys_to_lerobot_features``, which merges every float observation into one ``observation.state``,
+and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only then:
+
+* ``map_robot_keys_to_lerobot_features`` is wrapped to split ``observation.state`` into ``observation.state``
+  and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on
+  (``python -m lerobot_pdp.policy_server`` passes the second on to the policy);
+* ``RobotClient`` is wrapped so that the robot, when it resets its scene (a new episode), drops the actions
+  still queued from the episode that ended, and ends the run after ``--robot.episodes`` (the client's
+  shutdown event, as Ctrl-C would). The server's observation history is not reset: the new episode's first
+  chunk is conditioned on the last frame of the previous one too (``n_obs_steps`` = 2).
+
+Nothing of LeRobot is changed on disk; other robots are untouched.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from typing import Any
+
+from .hooks import split_environment_state, wrap_once
+from .live import LIVE
+
+logger = logging.getLogger(__name__)
+
+CLIENT_MODULE = "lerobot.async_inference.robot_client"
+
+
+def client_module() -> Any:
+    """LeRobot's robot-client module when this process loaded it: imported, or run as ``python -m`` (then it is
+    ``__main__``, where the client looks its globals up); None otherwise."""
+    main = sys.modules.get("__main__")
+    if getattr(getattr(main, "__spec__", None), "name", None) == CLIENT_MODULE:
+        return main
+    return sys.modules.get(CLIENT_MODULE)
+
+
+def install() -> bool:
+    """Wrap the client's functions once; False when LeRobot's robot client is not loaded."""
+    mod = client_module()
+    if mod is None:
+        return False
+    if not (hasattr(mod, "map_robot_keys_to_lerobot_features") and hasattr(mod, "RobotClient")):
+        logger.warning("pdp_sim: this LeRobot robot client has no map_robot_keys_to_lerobot_features/RobotClient; "
+                       "environment_state stays in the state and episodes do not end the run")
+        return False
+    wrap_once(mod, "map_robot_keys_to_lerobot_features", _wrap_features)
+    wrap_once(mod, "RobotClient", _wrap_client)
+    return True
+
+
+def _ours(robot: Any) -> bool:
+    return any(r is robot for r in list(LIVE.values()))
+
+
+def _wrap_features(original):
+    @functools.wraps(original)
+    def map_robot_keys_to_lerobot_features(robot: Any) -> dict[str, dict]:
+        features = original(robot)
+        if _ours(robot):
+            features = split_environment_state(features, robot.state_keys, robot.env_state_keys)
+        return features
+
+    return map_robot_keys_to_lerobot_features
+
+
+class QueuedActions:
+    """What the robot resets at a scene reset, in place of lerobot-rollout's inference engine: the client's
+    queued actions, which belong to the episode that ended."""
+
+    def __init__(self, client: Any):
+        self.client = client
+
+    def reset(self) -> None:
+        with self.client.action_queue_lock:
+            dropped = self.client.action_queue.qsize()
+            self.client.action_queue.queue.clear()
+        self.client.must_go.set()  # the next observation is answered whatever it looks like
+        logger.info("pdp_sim: new episode, %d queued action(s) of the last one dropped", dropped)
+
+
+def _wrap_client(original):
+    class RobotClient(original):  # noqa: D101 - LeRobot's, with the robot told its client
+        def __init__(self, *args: Any, **kwargs: Any):
+            super().__init__(*args, **kwargs)
+            if _ours(self.robot):
+                self.robot.attach_rollout(QueuedActions(self), self.shutdown_event)
+
+    RobotClient.__doc__ = original.__doc__
+    return RobotClient

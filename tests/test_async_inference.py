@@ -1,0 +1,222 @@
+"""PDP under LeRobot's asynchronous inference: ``python -m lerobot_pdp.policy_server`` with LeRobot's own robot
+client (``python -m lerobot.async_inference.robot_client``) driving a ``pdp_sim`` robot.
+
+The fast tests run LeRobot's server and client classes in this process over a real gRPC channel, with a
+checkpoint of an older release (``tests/data/pdp_checkpoints_v2``, small and barely trained: they check the
+plumbing, not the behaviour); the slow test runs both commands as processes and steers with a recording.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from concurrent import futures
+from pathlib import Path
+
+import pytest
+import torch
+from policies import small_policy
+
+from lerobot_pdp import policy_server
+from lerobot_pdp.robots import PDPSimConfig, client_hooks
+
+CHECKPOINTS = Path(__file__).parent / "data" / "pdp_checkpoints_v2"
+
+
+@pytest.fixture
+def server_module(monkeypatch):
+    """LeRobot's policy-server module; what ``admit_pdp`` changes in it is restored after the test."""
+    from lerobot.async_inference import policy_server as server
+
+    for name in ("SUPPORTED_POLICIES", "raw_observation_to_observation", "get_policy_class"):
+        monkeypatch.setattr(server, name, getattr(server, name))
+    return server
+
+
+@pytest.fixture
+def client_module(monkeypatch):
+    """LeRobot's robot-client module with pdp_sim's hooks; restored after the test."""
+    from lerobot.async_inference import robot_client
+
+    for name in ("map_robot_keys_to_lerobot_features", "RobotClient"):
+        monkeypatch.setattr(robot_client, name, getattr(robot_client, name))
+    assert client_hooks.install()
+    yield robot_client
+    from lerobot_pdp.robots.pdp_sim import _LIVE
+
+    for robot in list(_LIVE.values()):
+        if robot.is_connected:
+            robot.disconnect()
+    _LIVE.clear()
+
+
+def _outcomes(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+# ------------------------------------------------------------------------------------ one observation at a time
+
+
+def test_one_observation_at_a_time_joins_the_policy_history(synthetic_meta):
+    """What the server passes (one frame [B, D] per chunk) conditions PDP as select_action's history does: the
+    frames it was given, newest last; the first one fills the history."""
+    p = small_policy(synthetic_meta)
+    p.eval()
+    g = torch.Generator().manual_seed(0)
+    frames = [{k: torch.rand(1, *ft.shape, generator=g) for k, ft in p.config.condition_features.items()}
+              for _ in range(3)]
+    noise = torch.randn(1, p.config.horizon, p.action_dim, generator=g)
+
+    def history(*idx):
+        return {k: torch.stack([frames[i][k] for i in idx], dim=1) for k in p.config.condition_features}
+
+    p.reset()
+    first = p.predict_action_chunk(frames[0], noise=noise)
+    torch.testing.assert_close(first, p.predict_action_chunk(history(0, 0), noise=noise))
+    p.predict_action_chunk(frames[1], noise=noise)
+    third = p.predict_action_chunk(frames[2], noise=noise)
+    torch.testing.assert_close(third, p.predict_action_chunk(history(1, 2), noise=noise))
+    assert not torch.allclose(first, third)
+
+
+def test_steering_a_paced_caller_cannot_follow_is_refused(synthetic_meta):
+    """Fitted chunk noises replay one per select_action chunk: asked for chunks at its own pace, PDP refuses
+    them with the way out, before acting."""
+    p = small_policy(synthetic_meta)
+    p.eval()
+    p.fit_latent((synthetic_meta.root, 2), steps=1, noise="chunks")
+    frame = {k: torch.zeros(1, *ft.shape) for k, ft in p.config.condition_features.items()}
+    with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server.*Serve an adapted checkpoint"):
+        p.predict_action_chunk(frame)
+
+
+# ------------------------------------------------------------------------------------------------- the server
+
+
+def test_the_server_admits_pdp_and_passes_the_environment_state(server_module):
+    server = server_module
+    policy_server.admit_pdp(server, [])
+    assert "pdp" in server.SUPPORTED_POLICIES and "diffusion" in server.SUPPORTED_POLICIES
+    state, env = ["x", "y"], ["ox", "oy", "oz"]
+    features = {"observation.state": {"dtype": "float32", "shape": (2,), "names": state},
+                "observation.environment_state": {"dtype": "float32", "shape": (3,), "names": env}}
+    raw = {"x": 1.0, "y": 2.0, "ox": 3.0, "oy": 4.0, "oz": 5.0}
+    obs = server.raw_observation_to_observation(raw, features, {})
+    torch.testing.assert_close(obs["observation.state"], torch.tensor([[1.0, 2.0]]))
+    torch.testing.assert_close(obs["observation.environment_state"], torch.tensor([[3.0, 4.0, 5.0]]))
+    with pytest.raises(KeyError, match=r"lacks \['oz'\] of 'observation.environment_state'"):
+        server.raw_observation_to_observation({k: v for k, v in raw.items() if k != "oz"}, features, {})
+
+
+def test_the_server_loads_pdp_with_its_policy_options_and_refuses_what_it_cannot_follow(server_module):
+    server = server_module
+    policy_server.admit_pdp(server, ["--steer_mode=1"])
+    policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    torch.testing.assert_close(policy.active_latent, policy.mode_latents()[1].reshape(1, -1))
+    policy_server.admit_pdp(server, [])
+    with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server"):  # adapted with --noise chunks
+        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
+
+
+@pytest.mark.parametrize("option, said", [
+    ("--policy.steer_mod=2", r"unrecognized arguments: --steer_mod=2\) in --policy.steer_mod=2"),
+    ("--policy.steer_mode=x", r"`steer_mode`: Could not decode"),
+    ("--policy.horizon=0", r"Invalid PDPConfig: horizon must be >= 1"),
+])
+def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):
+    server_args, overrides = policy_server.split_policy_options(["--port=8080", option])
+    assert server_args == ["--port=8080"]
+    with pytest.raises(SystemExit, match=r"lerobot_pdp.policy_server: bad --policy.\* option \(" + said):
+        policy_server.check_policy_options(overrides)
+
+
+# ------------------------------------------------------------------------------ server and client, in process
+
+
+def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_its_episodes(
+        server_module, client_module, tmp_path):
+    """LeRobot's client and server classes over a real gRPC channel: pdp_sim's features reach PDP as trained
+    (state and environment state), each episode's end drops the queued actions, and the run ends after
+    ``--robot.episodes``."""
+    import grpc
+    from lerobot.async_inference.configs import PolicyServerConfig, RobotClientConfig
+    from lerobot.transport import services_pb2_grpc
+
+    server = server_module
+    policy_server.admit_pdp(server, [])
+    seen = []
+    passes = server.raw_observation_to_observation
+    server.raw_observation_to_observation = lambda *a, **k: (obs := passes(*a, **k), seen.append(sorted(obs)))[0]
+    service = server.PolicyServer(PolicyServerConfig(host="127.0.0.1", fps=50))
+    grpc_server = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+    services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, grpc_server)
+    port = grpc_server.add_insecure_port("127.0.0.1:0")
+    grpc_server.start()
+    outcomes = tmp_path / "outcomes.jsonl"
+    try:
+        client = client_module.RobotClient(RobotClientConfig(
+            policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / "trained"), actions_per_chunk=8,
+            server_address=f"127.0.0.1:{port}", fps=100,
+            robot=PDPSimConfig(env="reach-around", scene="0", episodes=2, outcomes=str(outcomes),
+                               calibration_dir=tmp_path)))
+        features = client.policy_config.lerobot_features
+        assert features["observation.environment_state"]["names"] == client.robot.env_state_names
+        assert client.start()
+        receiver = threading.Thread(target=client.receive_actions, daemon=True)
+        receiver.start()
+        t0 = time.monotonic()
+        client.control_loop(task="")  # returns when the robot ends the run
+        assert time.monotonic() - t0 < 120
+        client.stop()
+        receiver.join(10)
+    finally:
+        grpc_server.stop(0)
+    lines = _outcomes(outcomes)
+    assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines), lines
+    assert seen and all(keys == ["observation.environment_state", "observation.state", "task"] for keys in seen)
+
+
+# ------------------------------------------------------------------------------------------------ real processes
+
+
+@pytest.mark.slow
+def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp, tmp_path):
+    """``lerobot-record`` one demonstration of reach-around scene 3, serve PDP fitted to it at load
+    (``--policy.steer_dataset_root``), and let LeRobot's robot client drive pdp_sim in that scene: the bar of
+    the synchronous rollout test (3 of 5 episodes reach the goal; the training modes collide with scene 3's wall)."""
+    import socket
+
+    from conftest import run_cli
+    from test_robot_loop import CLI_ENV, _record
+
+    env = {**CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home")}
+    demo, outcomes = tmp_path / "demo", tmp_path / "outcomes.jsonl"
+    run_cli(_record(tmp_path, demo, 1, "--robot.scene=3", "--teleop.waypoints=scene"), timeout=300, env=env)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    import os
+
+    full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **env}
+    served = subprocess.Popen([sys.executable, "-m", "lerobot_pdp.policy_server", "--host=127.0.0.1", f"--port={port}",
+                               "--fps=50", f"--policy.steer_dataset_root={demo}", "--policy.steer_episode_index=0"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=full_env)
+    try:
+        client = subprocess.run(
+            [sys.executable, "-m", "lerobot.async_inference.robot_client", "--robot.type=pdp_sim",
+             "--robot.env=reach-around", "--robot.scene=3", "--robot.episodes=5", f"--robot.outcomes={outcomes}",
+             f"--robot.calibration_dir={tmp_path / 'cal'}", f"--server_address=127.0.0.1:{port}",
+             "--policy_type=pdp", f"--pretrained_name_or_path={reach_around_pdp}", "--policy_device=cpu",
+             "--actions_per_chunk=8", "--fps=50", "--task=reach the goal"],
+            capture_output=True, text=True, timeout=300, env=full_env)
+    finally:
+        served.terminate()
+        server_log = served.communicate(timeout=30)[0]
+    log = client.stdout + client.stderr
+    lines = _outcomes(outcomes)
+    assert client.returncode == 0 and len(lines) == 5, (log[-3000:], server_log[-3000:])
+    assert "fitted latent to" in server_log, server_log[-3000:]
+    assert sum(d["success"] for d in lines) >= 3, lines
