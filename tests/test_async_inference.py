@@ -111,11 +111,19 @@ def test_the_server_admits_pdp_and_passes_the_environment_state(server_module):
         server.raw_observation_to_observation({k: v for k, v in raw.items() if k != "oz"}, features, {})
 
 
-def test_the_server_loads_pdp_with_its_policy_options_and_refuses_what_it_cannot_follow(server_module):
+def test_the_server_loads_pdp_with_its_policy_options_and_refuses_what_it_cannot_follow(server_module, tmp_path):
+    from lerobot_pdp.steering import write_steering
+
     server = server_module
-    policy_server.admit_pdp(server, ["--steer_mode=1"])
+    steer = tmp_path / "steer.json"
+    policy_server.admit_pdp(server, ["--steer_mode=1", f"--steer_file={steer}"])
     policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
-    torch.testing.assert_close(policy.active_latent, policy.mode_latents()[1].reshape(1, -1))
+    modes = policy.mode_latents()
+    torch.testing.assert_close(policy.active_latent, modes[1].reshape(1, -1))
+    write_steering(steer, {"mode": 2})  # live steering of the served policy: read before the next chunk
+    frame = {k: torch.zeros(1, *ft.shape) for k, ft in policy.config.condition_features.items()}
+    policy.predict_action_chunk(frame)
+    torch.testing.assert_close(policy.active_latent, modes[2].reshape(1, -1))
     policy_server.admit_pdp(server, [])
     with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server"):  # adapted with --noise chunks
         server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
