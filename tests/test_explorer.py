@@ -8,6 +8,7 @@ differently; rollouts are cut to 30 steps. The tests check the machinery, not th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -399,7 +400,13 @@ def test_a_person_clicks_the_map_in_a_browser(made, tmp_path, monkeypatch):
         assert "map point" in summary
         latent = driver.find_element(By.CSS_SELECTOR, "#latent textarea").get_attribute("value")
         assert np.allclose([float(v) for v in latent.split(",")], explorer.mode_latent(3), atol=0.03)
-        time.sleep(1.0)  # the rollout picture's fade-in
+        # the stray click's toast is closed as a person would (its close button), then the picture fades in
+        for button in driver.find_elements(By.CSS_SELECTOR, ".toast-close"):
+            with contextlib.suppress(Exception):  # one that already closed itself
+                button.click()
+        WebDriverWait(driver, 15).until(lambda d: not [t for t in d.find_elements(By.CSS_SELECTOR, ".toast-body")
+                                                      if t.is_displayed()])
+        time.sleep(1.0)
         shot = tmp_path / "explorer.png"
         driver.save_screenshot(str(shot))
         assert shot.stat().st_size > 10_000

@@ -8,8 +8,8 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on
   (``python -m lerobot_pdp.policy_server`` passes the second on to the policy);
 * ``RobotClient`` is wrapped so that the robot, when it resets its scene (a new episode), drops the actions
-  still queued from the episode that ended, and ends the run after ``--robot.episodes`` (the client's
-  shutdown event, as Ctrl-C would). The server's observation history is not reset: the new episode's first
+  still queued from the episode that ended, and the run ends after ``--robot.episodes`` (the client's shutdown
+  event, as Ctrl-C would, set in place of the next observation). The server's observation history is not reset: the new episode's first
   chunk is conditioned on the last frame of the previous one too (``n_obs_steps`` = 2).
 
 Nothing of LeRobot is changed on disk; other robots are untouched.
@@ -87,8 +87,17 @@ def _wrap_client(original):
     class RobotClient(original):  # noqa: D101 - LeRobot's, with the robot told its client
         def __init__(self, *args: Any, **kwargs: Any):
             super().__init__(*args, **kwargs)
-            if _ours(self.robot):
-                self.robot.attach_rollout(QueuedActions(self), self.shutdown_event)
+            self._pdp_sim = _ours(self.robot)
+            if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
+                self.robot.attach_rollout(QueuedActions(self), None)
+
+        def control_loop_observation(self, task: str, verbose: bool = False):
+            if self._pdp_sim and self.robot.done:
+                if self.running:
+                    logger.info("pdp_sim: %d episodes done, ending the run", self.robot.finished)
+                    self.shutdown_event.set()  # as the operator's Ctrl-C would
+                return None
+            return super().control_loop_observation(task, verbose)
 
     RobotClient.__doc__ = original.__doc__
     return RobotClient
