@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,6 +39,7 @@ from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, tr
 from .configuration_pdp import PDPConfig
 from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
 from .modes import SPACES, DiscoveredModes, ModeLatents, discover, labelled_mode_latents
+from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -286,10 +288,15 @@ class BehaviorBank(nn.Module):
         return {"z": z, "episode": self.episode.cpu().numpy(), "start": self.start.cpu().numpy(),
                 "end": self.end.cpu().numpy(), "mode": self.mode.cpu().numpy()}
 
-    def outlier(self, vae: TrajectoryVAE, z: Tensor) -> tuple[float, float] | None:
-        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` [M, d_z] lies more
-        than ``FAR_LATENT_SPREADS`` spreads (RMS standard deviations of the training latents per dim) from every
-        training latent, else None (also without behaviors)."""
+    def outlier(self, vae: TrajectoryVAE, z: Any) -> tuple[float, float] | None:
+        """(distance to the nearest training latent in spreads, spread) when a row of ``z`` ([d_z] or [M, d_z]: a
+        tensor, array or list, as ``set_latent`` takes) lies more than ``FAR_LATENT_SPREADS`` spreads (RMS standard
+        deviations of the training latents per dim) from every training latent, else None (also without behaviors)."""
+        z = as_latent_tensor(z)
+        d = self.config.latent_dim
+        if z.dim() not in (1, 2) or z.shape[-1] != d:
+            raise ValueError(f"latent has shape {list(z.shape)}; expected [{d}] or [M, {d}] (latent_dim {d})")
+        z = z.reshape(-1, d)
         if len(self.traces) < 2:
             return None
         with torch.no_grad():

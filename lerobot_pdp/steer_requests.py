@@ -134,9 +134,13 @@ def _check_mode(mode: Any, expect: SteerTarget | None) -> None:
         raise ValueError(f"steering: mode must be a mode id >= 0 or a mode name, got {mode!r}")
     if expect is None or expect.modes is None:
         return
+    known = ", ".join(f"{m} ({n})" for m, n in sorted(expect.modes.items()))
     if mode not in expect.modes and mode not in expect.modes.values():
-        known = ", ".join(f"{m} ({n})" for m, n in sorted(expect.modes.items()))
         raise ValueError(f"steering: no mode {mode!r} in {expect.source}; its modes are {known}")
+    named = [m for m, n in expect.modes.items() if n == mode] if isinstance(mode, str) else []
+    if len(named) > 1:
+        raise ValueError(f"steering: mode name {mode!r} names modes {sorted(named)} in {expect.source}; steer by "
+                         f"mode id (its modes are {known})")
 
 
 def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tuple[Path, int, int | None]:

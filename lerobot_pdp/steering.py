@@ -129,9 +129,11 @@ def _mode_id(policy: Any, mode: Any) -> int:
         if mode.strip().lstrip("-").isdigit():
             return int(mode)
         names = policy.config.mode_names or {}
-        for k, name in names.items():
-            if name == mode:
-                return int(k)
+        ids = [int(k) for k, name in names.items() if name == mode]
+        if len(ids) > 1:  # a checkpoint taught before names were checked: no silent pick
+            raise KeyError(f"steering: mode name {mode!r} names modes {ids}; steer by mode id")
+        if ids:
+            return ids[0]
         raise KeyError(f"steering: unknown mode name {mode!r}; the checkpoint's modes are {names or 'unnamed'}")
     raise ValueError(f"steering: mode must be a mode id or name, got {mode!r}")
 

@@ -95,6 +95,10 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
         raise ValueError("teach needs mode-labelled training episodes (meta/mode_labels.json or task strings "
                          "'mode <id>: <name>'): without labels the modes are discovered clusters, which a taught "
                          "mode cannot join; label the training dataset (lerobot-pdp latent-map shows the clusters)")
+    name = name or _demo_name(episode)
+    same = sorted(int(k) for k, v in (cfg.mode_names or {}).items() if v == name)
+    if same:  # steering by that name would reach the old mode
+        raise ValueError(f"teach: mode {same[0]} is already named {name!r}; give the new mode another name")
     episodes = check_training_data(policy, training_data)
     t0 = time.perf_counter()
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
@@ -103,7 +107,8 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
-    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name or _demo_name(episode), z_new)  # + delta^X
+    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new)  # + delta^X
+    warn_if_known_route(model.bank, len(z_bank), mode)
     if latent == "geometry":
         delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
         z_new = geometric_latent(z_new, z_bank, delta, float(model.bank.kappa))
@@ -120,6 +125,25 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
                 "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, z_new.tolist(), nearest,
                 _mean(losses[:20]), _mean(losses[-20:]))
     return result
+
+
+def warn_if_known_route(bank: Any, n_old: int, mode: int) -> None:
+    """Warn (before the fine-tuning's minutes) when the demonstration's trace is as close to a behaviour the policy
+    has as its training behaviours are to their nearest neighbour: a route it knows, which a fit reaches without a
+    new mode. Told by soft-DTW divergences (delta^X), not latents: the encoder may put a new route near an old one."""
+    d = bank.distances.detach().cpu().double()
+    if n_old < 2 or len(d) <= n_old:
+        return
+    old = d[:n_old, :n_old] + torch.diag(torch.full((n_old,), math.inf, dtype=d.dtype))
+    typical = float(old.min(1).values.median())  # a behaviour to its nearest other one
+    new = d[n_old:, :n_old]  # [phases, old]
+    nearest = new.min(1)
+    if bool((nearest.values <= typical).all()):
+        j = int(nearest.indices[0])
+        logger.warning("teach: the demonstration's trace is as close to training episode %d (mode %d) as training "
+                       "behaviours are to their nearest neighbour (soft-DTW %.3g, typical %.3g): the policy may know "
+                       "this route already; a fit (lerobot-pdp adapt) reaches a known route without teaching mode %d",
+                       int(bank.episode[j]), int(bank.mode[j]), float(nearest.values.max()), typical, mode)
 
 
 def geometric_latent(z0: Tensor, z_old: Tensor, delta: Tensor, kappa: float, steps: int = 500,

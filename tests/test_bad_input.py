@@ -72,6 +72,11 @@ def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
     assert policy.latent_outlier(policy.mode_latents()[0][None]) is None  # the check, without acting
     far, spread = policy.latent_outlier(torch.tensor([[1e6, -1e6]]))
     assert far > 3 and spread > 0
+    assert policy.latent_outlier(policy.mode_latents()[0]) is None  # one latent [d_z], as set_latent takes it
+    for z in (torch.tensor([1e6, -1e6]), np.array([1e6, -1e6]), [1e6, -1e6]):
+        assert policy.latent_outlier(z)[0] > 3
+    with pytest.raises(ValueError, match=r"latent has shape \[3\]; expected \[2\] or \[M, 2\]"):
+        policy.latent_outlier([1.0, 2.0, 3.0])
     with caplog.at_level(logging.WARNING):
         policy.set_latent(policy.mode_latents()[0])
         assert not _warnings(caplog, "spreads")

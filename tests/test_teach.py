@@ -189,3 +189,34 @@ def test_a_latent_placed_by_the_geometry_is_kept_with_the_checkpoint(synthetic_m
     torch.testing.assert_close(q.behavior_latents(), p.behavior_latents())
     with pytest.raises(ValueError, match="latent must be one of"):
         p.teach(demo, synthetic_meta.root, steps=1, latent="far")
+
+
+def test_a_used_mode_name_and_a_known_route_are_named_before_the_fine_tuning(synthetic_meta, caplog):
+    """A name an old mode has would make steering by name reach the old mode: refused. A demonstration of a
+    route the policy already has (a training episode) is taught, with a warning that a fit would do."""
+    import logging
+
+    from synthetic import MODES
+
+    from lerobot_pdp.steering import apply_steering
+
+    p = small_policy(synthetic_meta)
+    with pytest.raises(ValueError, match=rf"mode 1 is already named '{MODES[1][0]}'; give the new mode another name"):
+        p.teach(new_route(), synthetic_meta.root, steps=1, name=MODES[1][0])
+    assert len(p.mode_latents()) == 4
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.teaching"):
+        p.teach(new_route(), synthetic_meta.root, steps=1, name="far right")
+    assert "may know this route already" not in caplog.text  # a route of its own
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.teaching"):
+        res = p.teach((synthetic_meta.root, 5), synthetic_meta.root, steps=1, name="episode 5 again")
+    mode5 = int(p.model.bank.mode[p.model.bank.episode == 5][0])
+    assert f"close to training episode 5 (mode {mode5})" in caplog.text and f"teaching mode {res.mode}" in caplog.text
+    p.config.mode_names[str(res.mode)] = "far right"  # as a checkpoint taught before names were checked holds them
+    with pytest.raises(KeyError, match=r"mode name 'far right' names modes \[4, 5\]; steer by mode id"):
+        apply_steering(p, {"mode": "far right"})
+    from lerobot_pdp.steer_requests import SteerTarget, check_request
+
+    target = SteerTarget(latent_dim=2, modes={int(k): v for k, v in p.config.mode_names.items()}, source="checkpoint C",
+                         latent_source="its config")
+    with pytest.raises(ValueError, match=r"mode name 'far right' names modes \[4, 5\] in checkpoint C; steer by mode id"):
+        check_request({"mode": "far right"}, target)
