@@ -151,7 +151,8 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
         if chunks:
             result.noise = fit_chunk_noise(
                 model.denoiser, model.noise_schedule, windows, result.z.to(device), cfg.n_action_steps,
-                cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr, seed=seed if seed is not None else 0)
+                cfg.num_inference_steps, cfg.fit_noise_steps, cfg.fit_noise_lr, seed=seed if seed is not None else 0,
+                progress=progress)
     finally:
         model.train(was_training)
     if not demo.per_phase:

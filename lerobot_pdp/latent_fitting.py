@@ -317,7 +317,8 @@ def demonstration_error(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows
 
 
 def fit_chunk_noise(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z: Tensor, chunk_frames: int, sample_steps: int,
-                    steps: int = 100, lr: float = 0.05, batch_size: int = 32, seed: int = 0) -> Tensor:
+                    steps: int = 100, lr: float = 0.05, batch_size: int = 32, seed: int = 0,
+                    progress: bool = False) -> Tensor:
     """One initial sampler noise per executed chunk of the demonstration, z [M, d_z] fixed: noise x_j is
     optimised (Adam) so that the ``sample_steps``-step DDIM chain from it, under z and each window's
     observations, reproduces the chunks of the windows at frames ``j * chunk_frames ...`` (masked MSE, as
@@ -334,8 +335,13 @@ def fit_chunk_noise(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: De
     with torch.no_grad():
         obs = frozen.observations(windows.obs_cond.to(device))
     opt = torch.optim.Adam([x], lr=lr)
+    iterator = range(int(steps))
+    if progress:  # the longer half of an adaptation with chunk noises (a DDIM chain per window and step)
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc=f"fit {len(x)} chunk noises", leave=False)
     with torch.inference_mode(False), torch.enable_grad():
-        for _ in range(int(steps)):
+        for _ in iterator:
             _check_cancelled()
             idx = torch.randperm(n, generator=g)[:batch_size].to(device)
             with torch.no_grad():

@@ -24,6 +24,10 @@ def _obs(p):
             for k, ft in p.config.condition_features.items()}
 
 
+def info_noises(out) -> int:
+    return json.loads((out / ADAPTATION_INFO).read_text())["noise_chunks"]
+
+
 def _chunks(p, obs, n=3):
     p.reset()
     torch.manual_seed(0)
@@ -112,13 +116,24 @@ def _base_checkpoint(meta, path):
     return p
 
 
-def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, tmp_path, capsys):
+def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, tmp_path, capsys, monkeypatch):
+    import tqdm.auto
+
+    bars = []  # both fits show a progress bar (the test suite hides tqdm's output: TQDM_DISABLE)
+
+    class Bar(tqdm.auto.tqdm):
+        def __init__(self, *a, **k):
+            bars.append(k.get("desc"))
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Bar)
     base, out = tmp_path / "base", tmp_path / "adapted"
     _base_checkpoint(synthetic_meta, base)
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--episode", "2", "--steps", "2",
                 "--noise", "chunks", "--out", str(out)]) == 0
     cli_out = capsys.readouterr().out
     assert "adaptation files" in cli_out
+    assert bars[-2:] == ["fit_latent", f"fit {info_noises(out)} chunk noises"], bars
     for f in base.iterdir():  # every file of the base, the weights bit for bit
         assert filecmp.cmp(f, out / f.name, shallow=False) or f.name == "README.md", f.name
     assert "## Adaptation" in (out / "README.md").read_text()

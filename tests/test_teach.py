@@ -196,9 +196,9 @@ def test_a_used_mode_name_and_a_known_route_are_named_before_the_fine_tuning(syn
     route the policy already has (a training episode) is taught, with a warning that a fit would do."""
     import logging
 
-    from synthetic import MODES
-
     from lerobot_pdp.steering import apply_steering
+
+    from synthetic import MODES
 
     p = small_policy(synthetic_meta)
     with pytest.raises(ValueError, match=rf"mode 1 is already named '{MODES[1][0]}'; give the new mode another name"):
