@@ -95,7 +95,8 @@ def apply_config_steering(policy: Any) -> None:
     elif cfg.steer_mode is not None:
         means = policy.mode_latents()
         if cfg.steer_mode not in means:
-            raise KeyError(f"steer_mode {cfg.steer_mode} is not a training mode; modes are {sorted(means)}")
+            known = ", ".join(f"{m} ({means.names[m]})" if means.names.get(m) else str(m) for m in sorted(means))
+            raise KeyError(f"steer_mode {cfg.steer_mode} is not a mode of this checkpoint; its modes are {known}")
         policy.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
         name = means.names.get(cfg.steer_mode)
         logger.info("steered to mode %s%s: latent %s", cfg.steer_mode, f" ({name})" if name else "",

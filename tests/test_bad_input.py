@@ -309,3 +309,14 @@ def test_a_one_episode_dataset_warns_naming_it(tmp_path, caplog):
         small_policy(LeRobotDatasetMetadata("local/synthetic", root=root))
     (msg,) = _warnings(caplog, "holds one episode")
     assert f"training dataset {root} holds one episode" in msg and "L_geo" in msg and "is 0" in msg
+
+
+def test_an_unknown_steer_mode_names_the_checkpoints_modes():
+    """``--policy.steer_mode`` of a mode the checkpoint lacks (lerobot-eval, lerobot-rollout): its modes by id and name."""
+    from pathlib import Path
+
+    taught = PDPPolicy.from_pretrained(Path(__file__).parent / "data" / "pdp_checkpoints_v2" / "taught")
+    taught.config.steer_mode = 12
+    with pytest.raises(KeyError, match=r"steer_mode 12 is not a mode of this checkpoint; its modes are 0 \(over-tight\)"
+                                       r".* 8 \(taught: episode 0 of ra_s3\)"):
+        taught.apply_config_steering()
