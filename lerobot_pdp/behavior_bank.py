@@ -104,6 +104,9 @@ class BehaviorBank(nn.Module):
         # the training run's, set again from its dataset when training resumes
         self.register_buffer("embed_pool", torch.zeros(0, dtype=torch.long), persistent=False)
         self._discovered: tuple[tuple, DiscoveredModes] | None = None  # cached discover_modes() result
+        # the demonstrations of the taught modes, by mode (a Demonstration each): rehearsed when teaching again,
+        # saved beside the weights (taught_demos.py)
+        self.taught_demos: dict[int, Any] = {}
 
     # ------------------------------------------------------------------ filling it
 
@@ -181,10 +184,15 @@ class BehaviorBank(nn.Module):
         return {name: getattr(self, name).detach().clone() for name in (*CHECKPOINT_KEYS, "taught")}
 
     def restore(self, saved: dict[str, Tensor]) -> None:
-        """Put back the buffers of a :meth:`snapshot`."""
+        """Put back the buffers of a :meth:`snapshot` (taught demonstrations of modes it lacks are dropped)."""
         for name, t in saved.items():
             setattr(self, name, t)
         self._discovered = None
+        self.taught_demos = {m: d for m, d in self.taught_demos.items() if m in self.taught_modes()}
+
+    def taught_modes(self) -> list[int]:
+        """The ids of the modes taught to the policy (their behaviours sit at ``TAUGHT_START``)."""
+        return sorted({int(m) for m in self.mode[self.global_start == TAUGHT_START].tolist()})
 
     @staticmethod
     def same_behaviors(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:

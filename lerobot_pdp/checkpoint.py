@@ -31,8 +31,9 @@ from torch import Tensor, nn
 
 from .atomic import staging_dir, write_text_atomic
 from .behavior_bank import CHECKPOINT_KEYS, TAUGHT_KEY
-from .checkpoint_files import damaged_weights, read_config_json, read_weight_shapes
+from .checkpoint_files import damaged_weights, optional_checkpoint_file, read_config_json, read_weight_shapes
 from .configuration_pdp import apply_legacy_defaults
+from .taught_demos import TAUGHT_DEMOS, write_taught_demos
 
 logger = logging.getLogger(__name__)
 
@@ -42,12 +43,12 @@ CARD_HEADING = "## Adaptation"  # the model card's section on the adaptation, re
 
 
 def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[str, Tensor] | None = None) -> None:
-    """Write ``policy``'s config + weights (+ its active adaptation, if any) into a temporary folder next to
-    ``save_directory``, then move them in. A new (or empty) folder is the staging folder renamed: a crash
-    leaves no checkpoint or a whole one. Into an existing checkpoint the files move one by one, weights last:
-    each file is whole, but a crash between two moves leaves new files beside old ones. A folder reused for a
-    policy without an adaptation loses its stale adaptation files, and its model card's adaptation section is
-    rewritten for the adaptation saved (:func:`refresh_card`)."""
+    """Write ``policy``'s config + weights (+ its active adaptation and its taught demonstrations, if any) into a
+    temporary folder next to ``save_directory``, then move them in. A new (or empty) folder is the staging folder
+    renamed: a crash leaves no checkpoint or a whole one. Into an existing checkpoint the files move one by one,
+    weights last: each file is whole, but a crash between two moves leaves new files beside old ones. A folder
+    reused for a policy without an adaptation (or taught demonstrations) loses its stale files, and its model
+    card's adaptation section is rewritten for the adaptation saved (:func:`refresh_card`)."""
     save_directory = Path(save_directory)
     save_directory.mkdir(parents=True, exist_ok=True)
     fresh = not any(save_directory.iterdir())
@@ -59,6 +60,7 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             else:
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
             adapted = write_adaptation(policy.steering, tmp)
+            taught = write_taught_demos(policy.model.bank, set(policy.config.image_features), tmp)
             if fresh:
                 os.replace(tmp, save_directory)  # onto an empty folder: one rename
                 return
@@ -68,6 +70,8 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             if not adapted:  # only once the new checkpoint is in place: a failed save keeps the old one whole
                 for name in (ADAPTATION_TENSORS, ADAPTATION_INFO):
                     (save_directory / name).unlink(missing_ok=True)
+            if not taught:
+                (save_directory / TAUGHT_DEMOS).unlink(missing_ok=True)
             refresh_card(save_directory, policy.steering if adapted else None)
     finally:
         if not any(save_directory.iterdir()):
@@ -249,21 +253,10 @@ def read_adaptation(pretrained: str | Path, **hub: Any) -> tuple[dict[str, Tenso
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    folder = Path(pretrained)
-    if folder.is_dir():
-        tensors_file, info_file = folder / ADAPTATION_TENSORS, folder / ADAPTATION_INFO
-        if not tensors_file.is_file():
-            return None
-    else:
-        from huggingface_hub import hf_hub_download
-        from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
-
-        kw = {k: hub[k] for k in ("revision", "cache_dir", "token", "local_files_only", "force_download") if k in hub}
-        try:
-            tensors_file = Path(hf_hub_download(str(pretrained), ADAPTATION_TENSORS, **kw))
-            info_file = Path(hf_hub_download(str(pretrained), ADAPTATION_INFO, **kw))
-        except (EntryNotFoundError, LocalEntryNotFoundError):
-            return None
+    tensors_file = optional_checkpoint_file(pretrained, ADAPTATION_TENSORS, **hub)
+    if tensors_file is None:
+        return None
+    info_file = optional_checkpoint_file(pretrained, ADAPTATION_INFO, **hub) or tensors_file.with_name(ADAPTATION_INFO)
     try:
         tensors = load_file(str(tensors_file))
         info = json.loads(info_file.read_text()) if info_file.is_file() else {}

@@ -105,3 +105,19 @@ def damaged_weights(model_file: str, error: Exception) -> ValueError:
     """The error for a weights file safetensors cannot read (its header, or its tensors when loading)."""
     return ValueError(f"{model_file} is not a readable safetensors file ({error}): the file is damaged (cut off "
                       "while written or copied?); copy it again from the training run")
+
+
+def optional_checkpoint_file(pretrained: str | Path, name: str, **hub) -> Path | None:
+    """The file ``name`` of a checkpoint (a local folder, or a Hub repo: ``hub`` holds ``revision``, ``cache_dir``,
+    ...), or None when the checkpoint has none."""
+    folder = Path(pretrained)
+    if folder.is_dir():
+        return folder / name if (folder / name).is_file() else None
+    from huggingface_hub import hf_hub_download
+    from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
+
+    kw = {k: hub[k] for k in ("revision", "cache_dir", "token", "local_files_only", "force_download") if k in hub}
+    try:
+        return Path(hf_hub_download(str(pretrained), name, **kw))
+    except (EntryNotFoundError, LocalEntryNotFoundError):
+        return None

@@ -55,6 +55,7 @@ from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
 from .realtime_chunking import prepare_rtc, rtc_chunk
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering
+from .taught_demos import read_taught_demos
 from .teaching import TeachResult, teach_new_mode
 
 logger = logging.getLogger(__name__)
@@ -99,6 +100,7 @@ class PDPPolicy(PreTrainedPolicy):
         check_checkpoint_source(pretrained_name_or_path, need_config=kwargs.get("config") is None)
         policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
         apply_adaptation(policy, pretrained_name_or_path, **kwargs)
+        read_taught_demos(policy, pretrained_name_or_path, **kwargs)  # rehearsed if it is taught again
         policy.apply_config_steering()
         return policy
 
@@ -128,8 +130,7 @@ class PDPPolicy(PreTrainedPolicy):
         """Sampler noises fitted with ``noise="chunks"`` [C, horizon, A], one per new chunk, in order."""
         return self.steering.noises.noise
 
-    phases = property(lambda self: self.steering.phases,  # each env's PhaseTracker
-                      lambda self, tracker: setattr(self.steering, "phases", tracker))
+    phases = property(lambda self: self.steering.phases, lambda self, t: setattr(self.steering, "phases", t))  # per env
 
     # ------------------------------------------------------------------ LeRobot contract
 
@@ -221,8 +222,8 @@ class PDPPolicy(PreTrainedPolicy):
         if z is not None:
             self.model.bank.warn_if_far(self.model.vae, self.steering.latent)
 
-    def latent_outlier(self, z: Tensor) -> tuple[float, float] | None:
-        """(distance in spreads, spread) when a row of ``z`` lies far from every training latent: :meth:`BehaviorBank.outlier`."""
+    def latent_outlier(self, z: Tensor) -> tuple[float, float] | None:  # (distance in spreads, spread) or None
+        """When a row of ``z`` lies far from every training latent: :meth:`BehaviorBank.outlier`."""
         return self.model.bank.outlier(self.model.vae, z)
 
     def apply_config_steering(self) -> None:

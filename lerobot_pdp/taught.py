@@ -3,7 +3,8 @@
 ``lerobot-pdp teach CKPT --demo DATASET --out TAUGHT`` (:func:`teach_checkpoint`) runs
 :func:`~lerobot_pdp.teaching.teach_new_mode` once and writes TAUGHT whole: the base's processors and training
 config, the fine-tuned weights with the grown behaviour bank, the config naming the new mode, ``teaching.json``
-(where the demonstration came from, the settings, the loss, the time) and a model card section. The new mode is
+(where the demonstration came from, the settings, the loss, the time), the taught demonstrations
+(``taught_demonstrations.safetensors``: rehearsed when it is taught again) and a model card section. The new mode is
 then a mode like the others: ``--policy.steer_mode=<id>`` in ``lerobot-eval`` / ``lerobot-rollout``.
 """
 
@@ -22,13 +23,15 @@ from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .model_card import checkpoint_card
+from .taught_demos import TAUGHT_DEMOS
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult
 
 logger = logging.getLogger(__name__)
 
 TEACHING_INFO = "teaching.json"
 # written anew for the taught policy; every other file of the base is copied
-_REWRITTEN = ("config.json", "model.safetensors", "README.md", ADAPTATION_TENSORS, ADAPTATION_INFO, TEACHING_INFO)
+_REWRITTEN = ("config.json", "model.safetensors", "README.md", ADAPTATION_TENSORS, ADAPTATION_INFO, TEACHING_INFO,
+              TAUGHT_DEMOS)
 
 
 def training_data_of(checkpoint: str | Path) -> Path:

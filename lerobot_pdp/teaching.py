@@ -12,7 +12,8 @@ demonstration as a new mode instead:
   ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
 - **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
   batch is the demonstration's windows at the new latent, the rest *rehearses* the training windows at their
-  own latents, so the old modes keep acting as before. The loss is the training loss L_DP.
+  own latents, and the demonstrations of modes taught before at theirs (the policy keeps them:
+  :mod:`.taught_demos`), so the old modes keep acting as before. The loss is the training loss L_DP.
 
 LeRobot's training loop is not reused for it: it samples one dataset uniformly and trains every parameter of
 the optimizer groups, while teaching needs a fixed demonstration share and all but theta frozen.
@@ -105,9 +106,11 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     demo_win = policy._demo_windows(demo)
     z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
     rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
+    rehearsal, z_old = with_taught_demos(policy, rehearsal, z_old)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
     mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new)  # + delta^X
+    model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)
     warn_if_known_route(model.bank, len(z_bank), mode)
     if latent == "geometry":
         delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
@@ -255,6 +258,32 @@ def rehearsal_windows(policy: Any, root: str | Path,
         zs.append(z_bank[torch.as_tensor(ids)][w.segment])
     windows = DemoWindows(torch.cat([w.obs_cond for w in parts]), torch.cat([w.actions for w in parts]),
                           torch.cat([w.is_pad for w in parts]), torch.cat([w.segment for w in parts]),
+                          max(w.n_segments for w in parts))
+    return windows, torch.cat(zs)
+
+
+def with_taught_demos(policy: Any, rehearsal: DemoWindows, z_old: Tensor) -> tuple[DemoWindows, Tensor]:
+    """The rehearsal windows and latents with those of every mode taught before, at its taught latent(s): the
+    training dataset does not hold them. A mode taught by a release that did not keep its demonstration cannot be
+    rehearsed: said in a warning."""
+    bank = policy.model.bank
+    missing = [m for m in bank.taught_modes() if m not in bank.taught_demos]
+    if missing:
+        logger.warning("teach: taught mode(s) %s were taught by a release that did not keep their demonstrations: "
+                       "they are not rehearsed, and this teaching may change how they act (teach the base checkpoint "
+                       "each demonstration again to keep them all)", missing)
+    if not bank.taught_demos:
+        return rehearsal, z_old
+    with torch.no_grad():
+        z_bank = policy.model.behavior_latents().detach().cpu()
+    parts, zs = [rehearsal], [z_old]
+    for mode, demo in sorted(bank.taught_demos.items()):
+        rows = torch.nonzero(bank.mode.cpu() == mode).flatten()  # one behaviour per phase, in order
+        w = policy._demo_windows(demo)
+        parts.append(w)
+        zs.append(z_bank[rows][w.segment.cpu()])
+    windows = DemoWindows(torch.cat([w.obs_cond.cpu() for w in parts]), torch.cat([w.actions.cpu() for w in parts]),
+                          torch.cat([w.is_pad.cpu() for w in parts]), torch.cat([w.segment.cpu() for w in parts]),
                           max(w.n_segments for w in parts))
     return windows, torch.cat(zs)
 

@@ -1,0 +1,95 @@
+"""The demonstrations a policy was taught, kept with its checkpoint so that teaching it again rehearses them.
+
+Teaching fine-tunes the denoiser on the new demonstration while rehearsing what the policy acts on, so that it
+forgets nothing. The training dataset holds the training modes; a taught mode's only data is its
+demonstration, so each taught demonstration is kept with the policy (``BehaviorBank.taught_demos``, by mode)
+and saved beside the weights as ``taught_demonstrations.safetensors``: a later ``teach`` rehearses it at its
+taught latent(s) together with the training data. Its arrays are the demonstration as the steering API reads
+it (unnormalised vectors, float64; camera frames as uint8, a 1/255 step in [0, 1]) with its phase segments.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .demonstration import Demonstration
+
+logger = logging.getLogger(__name__)
+
+TAUGHT_DEMOS = "taught_demonstrations.safetensors"
+_SEGMENTS = "segments"  # [M, 2] int64 frame ranges of the demonstration's phases
+_PER_PHASE = "per_phase"
+
+
+def demos_to_tensors(demos: dict[int, Demonstration], image_keys: set[str]) -> dict[str, Tensor]:
+    """``mode<m>/<feature key>`` per array (cameras as uint8), ``mode<m>/segments``, ``mode<m>/per_phase``."""
+    out: dict[str, Tensor] = {}
+    for mode, demo in sorted(demos.items()):
+        for key, v in demo.arrays.items():
+            a = np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8) if key in image_keys else np.asarray(v, np.float64)
+            out[f"mode{mode}/{key}"] = torch.from_numpy(np.ascontiguousarray(a))
+        out[f"mode{mode}/{_SEGMENTS}"] = torch.tensor(demo.segments, dtype=torch.long).reshape(-1, 2)
+        out[f"mode{mode}/{_PER_PHASE}"] = torch.tensor([demo.per_phase])
+    return out
+
+
+def tensors_to_demos(tensors: dict[str, Tensor], where: str) -> dict[int, Demonstration]:
+    """The inverse of :func:`demos_to_tensors`; a tensor of another form is an error naming ``where``."""
+    grouped: dict[int, dict[str, Tensor]] = {}
+    for name, t in tensors.items():
+        head, _, key = name.partition("/")
+        if not head.startswith("mode") or not head[4:].isdigit() or not key:
+            raise ValueError(f"{where}: tensor {name!r} is not 'mode<id>/<key>'")
+        grouped.setdefault(int(head[4:]), {})[key] = t
+    demos = {}
+    for mode, group in sorted(grouped.items()):
+        if _SEGMENTS not in group:
+            raise ValueError(f"{where}: mode {mode} has no '{_SEGMENTS}' tensor")
+        segments = [(int(a), int(b)) for a, b in group.pop(_SEGMENTS).tolist()]
+        per_phase = bool(group.pop(_PER_PHASE, torch.tensor([len(segments) > 1])).item())
+        arrays = {k: (v.numpy().astype(np.float32) / 255 if v.dtype == torch.uint8 else v.numpy().astype(np.float64))
+                  for k, v in group.items()}
+        demos[mode] = Demonstration(arrays, segments, per_phase)
+    return demos
+
+
+def write_taught_demos(bank: Any, image_keys: set[str], directory: Path) -> bool:
+    """``bank``'s taught demonstrations as :data:`TAUGHT_DEMOS` in ``directory`` (nothing, and False, if none)."""
+    from safetensors.torch import save_file
+
+    demos = getattr(bank, "taught_demos", None)
+    if not demos:
+        return False
+    save_file(demos_to_tensors(demos, image_keys), str(directory / TAUGHT_DEMOS))
+    return True
+
+
+def read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
+    """Give ``policy``'s behaviour bank the taught demonstrations its checkpoint ``pretrained`` keeps, if any
+    (a local folder or a Hub repo); a mode the bank does not hold as taught is dropped with a warning."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    from .checkpoint_files import optional_checkpoint_file
+
+    path = optional_checkpoint_file(pretrained, TAUGHT_DEMOS, **hub)
+    if path is None:
+        return
+    try:
+        demos = tensors_to_demos(load_file(str(path)), str(path))
+    except (SafetensorError, OSError) as e:
+        raise ValueError(f"{path} is damaged ({e}); its taught modes act as saved, but teaching this checkpoint "
+                         "again needs their demonstrations: remove the file to teach without rehearsing them") from e
+    bank = policy.model.bank
+    taught = set(bank.taught_modes())
+    unknown = sorted(set(demos) - taught)
+    if unknown:
+        logger.warning("%s keeps demonstrations of modes %s, which this checkpoint's behaviour bank does not hold as "
+                       "taught modes: ignored", path, unknown)
+    bank.taught_demos = {m: d for m, d in demos.items() if m in taught}
