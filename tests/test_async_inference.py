@@ -9,6 +9,7 @@ plumbing, not the behaviour); the slow test runs both commands as processes and 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -206,25 +207,33 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    import os
-
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **env}
-    served = subprocess.Popen([sys.executable, "-m", "lerobot_pdp.policy_server", "--host=127.0.0.1", f"--port={port}",
-                               "--fps=50", f"--policy.steer_dataset_root={demo}", "--policy.steer_episode_index=0"],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=full_env)
+    server_log, client_log = tmp_path / "server.log", tmp_path / "client.log"
+    with server_log.open("w") as out:
+        served = subprocess.Popen([sys.executable, "-m", "lerobot_pdp.policy_server", "--host=127.0.0.1",
+                                   f"--port={port}", "--fps=50", f"--policy.steer_dataset_root={demo}",
+                                   "--policy.steer_episode_index=0"], stdout=out, stderr=subprocess.STDOUT, env=full_env)
     try:
-        client = subprocess.run(
-            [sys.executable, "-m", "lerobot.async_inference.robot_client", "--robot.type=pdp_sim",
-             "--robot.env=reach-around", "--robot.scene=3", "--robot.episodes=5", f"--robot.outcomes={outcomes}",
-             f"--robot.calibration_dir={tmp_path / 'cal'}", f"--server_address=127.0.0.1:{port}",
-             "--policy_type=pdp", f"--pretrained_name_or_path={reach_around_pdp}", "--policy_device=cpu",
-             "--actions_per_chunk=8", "--fps=50", "--task=reach the goal"],
-            capture_output=True, text=True, timeout=300, env=full_env)
+        with client_log.open("w") as out:
+            client = subprocess.Popen(
+                [sys.executable, "-m", "lerobot.async_inference.robot_client", "--robot.type=pdp_sim",
+                 "--robot.env=reach-around", "--robot.scene=3", "--robot.episodes=5", f"--robot.outcomes={outcomes}",
+                 f"--robot.calibration_dir={tmp_path / 'cal'}", f"--server_address=127.0.0.1:{port}",
+                 "--policy_type=pdp", f"--pretrained_name_or_path={reach_around_pdp}", "--policy_device=cpu",
+                 "--actions_per_chunk=8", "--fps=50", "--task=reach the goal"],
+                stdout=out, stderr=subprocess.STDOUT, env=full_env)
+        try:
+            code = client.wait(timeout=300)
+        except subprocess.TimeoutExpired:
+            client.kill()
+            code = "killed after 300 s"
     finally:
         served.terminate()
-        server_log = served.communicate(timeout=30)[0]
-    log = client.stdout + client.stderr
+        served.wait(timeout=30)
+    logs = (f"client ({code}): {client_log.read_text()[-4000:]}\nserver: {server_log.read_text()[-4000:]}\n"
+            f"outcomes: {_outcomes(outcomes)}")
     lines = _outcomes(outcomes)
-    assert client.returncode == 0 and len(lines) == 5, (log[-3000:], server_log[-3000:])
+    assert code == 0 and len(lines) == 5, logs
+    server_log = server_log.read_text()
     assert "fitted latent to" in server_log, server_log[-3000:]
     assert sum(d["success"] for d in lines) >= 3, lines
