@@ -238,8 +238,15 @@ def write_adaptation(steering: Any, directory: Path) -> bool:
 
 def apply_adaptation(policy: Any, pretrained: str | Path, **hub: Any) -> None:
     """Make ``policy`` act under the adaptation its checkpoint ``pretrained`` carries, if any (and unless
-    ``config.use_adaptation`` is false): the active latent(s), chunk noises and provenance."""
+    ``config.use_adaptation`` is false): the active latent(s), chunk noises and provenance. Not when it is loaded
+    to train (``hub`` holds lerobot-train's ``dataset_meta``): the adaptation was fitted to the weights it trains."""
     adaptation = read_adaptation(pretrained, **hub) if policy.config.use_adaptation else None
+    if adaptation is not None and hub.get("dataset_meta") is not None:  # lerobot-train's fine-tune or resume
+        logger.warning("%s is an adapted checkpoint (latent %s, %d chunk noise(s)), loaded to train: training moves "
+                       "the weights that adaptation was fitted to, so this policy trains and is saved without it; adapt "
+                       "the trained checkpoint again (lerobot-pdp adapt)", pretrained, adaptation[0]["latent"].tolist(),
+                       len(adaptation[0].get("noise", ())))
+        return
     if adaptation is not None:
         tensors, info = adaptation
         policy.steering.load_state_tensors(tensors, info)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import filecmp
 import json
+import logging
 import shutil
 
 import pytest
@@ -34,7 +35,7 @@ def _chunks(p, obs, n=3):
     return torch.stack([p.predict_action_chunk(obs) for _ in range(n)])
 
 
-def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path):
+def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path, caplog):
     p = small_policy(synthetic_meta)
     p.eval()
     res = p.fit_latent((synthetic_meta.root, 2), steps=2, noise="chunks")
@@ -62,6 +63,17 @@ def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path)
     cfg = PDPPolicy.from_pretrained(tmp_path / "adapted").config
     cfg.use_adaptation = False  # what --policy.use_adaptation=false does
     assert len(PDPPolicy.from_pretrained(tmp_path / "adapted", config=cfg).active_latent) == 0
+    # loaded to train (lerobot-train --policy.path=ADAPTED passes the dataset): trained and saved without it
+    from lerobot.policies.factory import make_policy
+
+    cfg = PDPPolicy.from_pretrained(tmp_path / "adapted").config
+    cfg.pretrained_path = tmp_path / "adapted"
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.checkpoint"):
+        trained = make_policy(cfg, ds_meta=synthetic_meta)
+    assert len(trained.active_latent) == 0 and len(trained.active_noise) == 0
+    assert "is an adapted checkpoint" in caplog.text and "trains and is saved without it" in caplog.text
+    trained.save_pretrained(tmp_path / "fine_tuned")
+    assert not (tmp_path / "fine_tuned" / ADAPTATION_TENSORS).exists()
     q.save_pretrained(tmp_path / "adapted")  # a policy without an adaptation leaves no stale adaptation files
     assert not (tmp_path / "adapted" / ADAPTATION_TENSORS).exists()
     assert not (tmp_path / "adapted" / ADAPTATION_INFO).exists()
