@@ -11,6 +11,7 @@ import json
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,6 +25,29 @@ if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only whe
 # The suite's envs, named in help texts. Listed here because importing lerobot_pdp.envs registers LeRobot's env
 # configs (seconds); tests/test_cli_startup.py checks the list against envs.SUITE.
 SUITE_ENVS = ("avoiding", "kitchen-microwave", "pick-place", "reach-around")
+
+
+def _check_new_path(path: Path | None, flag: str) -> None:
+    """An output path checked before any work: it must not exist, and :func:`_check_parent`."""
+    if path is None:
+        return
+    if path.exists():
+        raise FileExistsError(f"{flag} {path} exists{' (a folder)' if path.is_dir() else ''}: give a new path")
+    _check_parent(path, flag)
+
+
+def _check_parent(path: Path, flag: str) -> None:
+    """The folder ``path`` goes into (its nearest existing ancestor) is a folder this process can write into: a
+    file on the way, or an unwritable place, is named."""
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise NotADirectoryError(f"{flag} {path}: {parent} is a file, not a folder")
+    try:  # a probe, not os.access: root may write anywhere by permissions, yet not into /proc
+        os.rmdir(tempfile.mkdtemp(prefix=".pdp-probe-", dir=parent))
+    except OSError as e:
+        raise PermissionError(f"{flag} {path}: cannot write into {parent} ({e.strerror})") from e
 
 
 def _env_names() -> list[str]:
@@ -184,6 +208,9 @@ def cmd_latent_map(args: argparse.Namespace) -> int:
 
     if not (args.checkpoint / "model.safetensors").is_file():
         raise FileNotFoundError(f"{args.checkpoint} holds no model.safetensors: give a PDP pretrained_model folder")
+    if args.out.is_dir():
+        raise IsADirectoryError(f"--out {args.out} is a folder: give the PNG file to write (e.g. {args.out / 'map.png'})")
+    _check_parent(args.out, "--out")
     policy = PDPPolicy.from_pretrained(args.checkpoint)
     policy.eval()
     print(f"wrote {draw_latent_map(policy, args.out, k=args.k)}")
@@ -299,7 +326,7 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
                    "with 'waypoints') or 'scene' for the scene's own")
     p.add_argument("--radius", type=float, default=0.05, help="a way-point counts as passed within this distance "
                    "(metres, default 0.05)")
-    p.add_argument("--score", choices=("success", "reward"), default="success",
+    p.add_argument("--score", choices=("success", "reward"), default=None,
                    help="without --waypoints: task success (default) or the summed reward")
     p.add_argument("--finish", action="store_true",
                    help="with --waypoints: a rollout that passes every way-point scores 1 more if it then succeeds "
@@ -338,16 +365,22 @@ def cmd_search(args: argparse.Namespace) -> int:
     from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS, LatentSearchError
     from lerobot_pdp.outcome_scores import SCORES, WaypointScore
 
-    for path, flag in ((args.out, "--out"), (args.history, "--history")):
-        if path is not None and path.exists():
-            raise FileExistsError(f"{flag} {path} exists: give a new path")
-    if args.history is not None and not args.history.parent.is_dir():  # before the search, not after it
+    for path, flag in ((args.out, "--out"), (args.history, "--history")):  # before the search, not after it
+        _check_new_path(path, flag)
+    if args.history is not None and not args.history.parent.is_dir():
         raise FileNotFoundError(f"--history {args.history}: folder {args.history.parent} does not exist")
+    if args.out is not None and args.history is not None and args.out.resolve() == args.history.resolve():
+        raise ValueError(f"--out and --history are both {args.out}: the checkpoint is a folder, the history a file")
     for flag, value in (("--budget", args.budget), ("--rollouts-per-candidate", args.rollouts_per_candidate)):
         if value < 1:
             raise ValueError(f"{flag} must be >= 1, got {value}")
+    if args.seed < 0:
+        raise ValueError(f"--seed must be >= 0 (it seeds the env's resets too), got {args.seed}")
     if args.finish and args.waypoints is None:
         raise ValueError("--finish adds the task's success to the way-point score: give --waypoints too")
+    if args.score is not None and args.waypoints is not None:
+        raise ValueError(f"--score {args.score} and --waypoints are two objectives: way-points score the route "
+                         "passed (--finish adds the task's success); give one of them")
     if args.budget < args.rollouts_per_candidate:
         raise ValueError(f"--budget {args.budget} rollouts pays for no candidate of --rollouts-per-candidate "
                          f"{args.rollouts_per_candidate} rollouts")
@@ -363,7 +396,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         score = WaypointScore(points, args.radius, dims=suite.trace_dims, finish=args.finish)
         objective["waypoints_from"] = str(source)
     else:
-        score = SCORES[args.score]
+        score = SCORES[args.score or "success"]
     cfg = _checkpoint_config(args.checkpoint)
     factory = functools.partial(gym.make, suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
                                 disable_env_checker=True, **env_camera_kwargs(cfg))

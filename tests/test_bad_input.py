@@ -225,6 +225,8 @@ def test_latent_map_on_a_damaged_checkpoint_names_the_file(checkpoint, tmp_path,
     (ckpt / "model.safetensors").write_bytes((ckpt / "model.safetensors").read_bytes()[:100])
     assert lerobot_pdp(["latent-map", str(ckpt), "--out", str(tmp_path / "map.png")]) == 2
     assert f"{ckpt / 'model.safetensors'} is not a readable safetensors file" in capsys.readouterr().err
+    assert lerobot_pdp(["latent-map", str(checkpoint), "--out", str(tmp_path)]) == 2  # a folder: named before loading
+    assert f"--out {tmp_path} is a folder: give the PNG file to write" in capsys.readouterr().err
 
 
 def test_a_damaged_config_json_is_named(checkpoint, tmp_path):

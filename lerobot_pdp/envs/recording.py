@@ -63,8 +63,14 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
         return np.asarray(sc.waypoints, dtype=float)
     if isinstance(waypoints, (str, Path)):
         path = Path(waypoints)
+        if path.is_dir():
+            raise IsADirectoryError(f"way-point file {path} is a folder: give a JSON/YAML file (a list of points or "
+                                    "a scene file with 'waypoints') or 'scene'")
         if not path.is_file():
-            raise FileNotFoundError(f"way-point file {path} does not exist")
+            inline = str(waypoints).lstrip().startswith("[")
+            raise FileNotFoundError(f"way-point file {path} does not exist" + (
+                "; points are not read from the command line: write them to a JSON file ([[x, y, z], ...]) or give "
+                "'scene'" if inline else ""))
         try:
             if path.suffix.lower() in (".yaml", ".yml"):
                 import yaml
