@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
+
+from .steering_state import as_latent_tensor
 
 
 def interpolate(z_a: Tensor, z_b: Tensor, n: int, path: str = "linear") -> Tensor:
@@ -19,11 +22,14 @@ def interpolate(z_a: Tensor, z_b: Tensor, n: int, path: str = "linear") -> Tenso
     no plane, and the arc then turns towards the coordinate axis least aligned with ``z_a``. Each row
     of a per-phase latent [P, d_z] gets its own arc.
     """
-    z_a, z_b = torch.as_tensor(z_a).float(), torch.as_tensor(z_b).float()
+    z_a, z_b = as_latent_tensor(z_a), as_latent_tensor(z_b)
     if z_a.shape != z_b.shape:
         raise ValueError(f"z_a {tuple(z_a.shape)} and z_b {tuple(z_b.shape)} must have the same shape")
-    if n < 2:
-        raise ValueError(f"n must be >= 2 (both endpoints), got {n}")
+    for name, z in (("z_a", z_a), ("z_b", z_b)):
+        if not bool(torch.isfinite(z).all()):
+            raise ValueError(f"{name} {z.tolist()} has non-finite values; both ends must be finite latents")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+        raise ValueError(f"n must be an integer >= 2 (both endpoints), got {n!r}")
     if path not in ("linear", "elliptical"):
         raise ValueError(f"path must be 'linear' or 'elliptical', got {path!r}")
     t = torch.linspace(0, 1, n).view(-1, *([1] * z_a.dim()))

@@ -138,6 +138,12 @@ def test_elliptical_interpolation_goes_around_the_map():
     assert torch.allclose(PDPPolicy.interpolate(torch.zeros(2), b, 3, path="elliptical")[1], b / 2)
     with pytest.raises(ValueError, match="path must be"):
         PDPPolicy.interpolate(a, b, 3, path="spiral")
+    with pytest.raises(ValueError, match=r"z_b \[inf, 0.0\] has non-finite values"):
+        PDPPolicy.interpolate(a, [float("inf"), 0.0], 3)
+    for n in (2.5, "3", True):
+        with pytest.raises(ValueError, match=r"n must be an integer >= 2"):
+            PDPPolicy.interpolate(a, b, n)
+    assert PDPPolicy.interpolate([0, 0], np.array([1.0, 2.0]), 3).tolist() == [[0, 0], [0.5, 1.0], [1.0, 2.0]]
 
 def test_encode_and_fit_latent_inputs(synthetic_meta):
     p = small_policy(synthetic_meta)
