@@ -122,10 +122,11 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
             sel = (groups == g) & (phase == ph)
             ax.scatter(xy[sel, 0], xy[sel, 1], s=14, color=color[g], marker="os^v"[int(ph) % 4],
                        label=label if ph == 0 else None)
-        if tag:
-            # beside the mode's points (up and right, in points), not on them
-            ax.annotate(tag, xy[groups == g].mean(0), xytext=(5, 5), textcoords="offset points", fontsize=8,
-                        ha="left", va="bottom", weight="bold")
+            if tag and sel.any():
+                # beside the points of each of the mode's phases (up and right, in points), not on them: the
+                # phases of one mode sit in different places, and their mean in none
+                ax.annotate(tag, xy[sel].mean(0), xytext=(5, 5), textcoords="offset points", fontsize=8,
+                            ha="left", va="bottom", weight="bold")
     ax.set_xlabel(axes_label[0])
     ax.set_ylabel(axes_label[1])
     ax.set_title(f"latent map: {len(z)} behaviors" + (f" ({unlabelled} unlabelled, grey)" if unlabelled else "") +

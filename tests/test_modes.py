@@ -2,6 +2,7 @@
 
 import logging
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -301,3 +302,26 @@ def test_lerobot_train_on_an_instruction_dataset_without_labels(instruction_data
 
     p = PDPPolicy.from_pretrained(ckpt)
     assert len(p.discover_modes(k=4).labels) == 12
+
+
+def test_a_segmented_policys_map_labels_each_phase_beside_its_points():
+    """A pick-place policy's two phases of one mode sit in different places: each phase's points get the mode's
+    number beside them (not one number at their mean, where no point is)."""
+    import matplotlib.pyplot as plt
+
+    from lerobot_pdp import PDPPolicy
+    from lerobot_pdp.latent_map import latent_map_figure
+
+    p = PDPPolicy.from_pretrained(Path(__file__).parent / "data" / "pdp_checkpoints_v2" / "adapted_pick_place")
+    drawn = latent_map_figure(p)
+    try:
+        xy = drawn.projection.to_map(p.behavior_table()["z"])
+        phase = p.behavior_phase().cpu().numpy()
+        labels = [t for t in drawn.axes.texts if t.get_text().isdigit()]
+        assert len(labels) == sum(len(np.unique(phase[drawn.groups == g])) for g in np.unique(drawn.groups))
+        span = np.ptp(xy, axis=0).max()
+        for t in labels:
+            own = xy[drawn.groups == int(t.get_text())]
+            assert np.linalg.norm(own - np.asarray(t.xy), axis=1).min() < 0.15 * span, t.get_text()
+    finally:
+        plt.close(drawn.figure)
