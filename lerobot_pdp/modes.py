@@ -34,6 +34,9 @@ MAX_K_LIMIT = 100
 # into 7 groups; 5 merges pick-place's 3-demonstration modes. A route with fewer demonstrations joins its
 # nearest mode (reported as outliers).
 MIN_CLUSTER_SIZE = 3
+# Below this silhouette the clusters found are said to be loose: "weak structure" in Kaufman & Rousseeuw's reading
+# of silhouettes (0.26-0.50); not a choice that changes any result, only when a warning is given.
+LOOSE_SILHOUETTE = 0.5
 SPACES = ("traces", "latents")
 
 
@@ -209,6 +212,12 @@ def discover(z: np.ndarray, episode: np.ndarray, phase: np.ndarray, k: int | Non
             from sklearn.metrics import silhouette_score
 
             scores[k] = float(silhouette_score(dist, labels, metric="precomputed"))
+    if scores.get(k, 1.0) < LOOSE_SILHOUETTE:
+        logger.warning("discover_modes: the %d clusters found are loose (silhouette %.2f < %.1f: weak structure): "
+                       "routes with fewer than %d demonstrations form no cluster of their own and join others, so a "
+                       "cluster's mean latent may lie between routes no demonstration took. Label the episodes "
+                       "(lerobot-pdp label-modes) or look at the clusters first (lerobot-pdp latent-map)",
+                       k, scores[k], LOOSE_SILHOUETTE, MIN_CLUSTER_SIZE)
     n_phases, d = feats.shape[1] // z.shape[1], z.shape[1]
     means = {}
     for c in range(k):

@@ -325,3 +325,20 @@ def test_a_segmented_policys_map_labels_each_phase_beside_its_points():
             assert np.linalg.norm(own - np.asarray(t.xy), axis=1).min() < 0.15 * span, t.get_text()
     finally:
         plt.close(drawn.figure)
+
+
+def test_loose_clusters_are_said_to_be_loose(caplog):
+    """Routes of one demonstration each form no clusters of their own; when what is found is loose (silhouette
+    under 0.5), a warning says that a cluster's mean may lie between routes. Clear clusters: no warning."""
+    import logging
+
+    from lerobot_pdp.modes import discover
+
+    rng = np.random.default_rng(0)
+    clear = np.concatenate([rng.normal(c, 0.05, (4, 2)) for c in ([0, 0], [3, 0], [0, 3])]).astype(np.float32)
+    ring = np.stack([np.cos(np.arange(12) / 2), np.sin(np.arange(12) / 2)], 1).astype(np.float32)  # 12 routes
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.modes"):
+        found = discover(clear, np.arange(12), np.zeros(12, int))
+        assert found.k == 3 and "loose" not in caplog.text
+        found = discover(ring, np.arange(12), np.zeros(12, int))  # by latents: k by silhouette, all weak
+    assert found.silhouette[found.k] < 0.5 and "clusters found are loose" in caplog.text
