@@ -234,6 +234,7 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
             f"outcomes: {_outcomes(outcomes)}")
     lines = _outcomes(outcomes)
     assert code == 0 and len(lines) == 5, logs
+    assert "Error receiving actions" not in client_log.read_text(), logs  # the run ended cleanly
     server_log = server_log.read_text()
     assert "fitted latent to" in server_log, server_log[-3000:]
     assert sum(d["success"] for d in lines) >= 3, lines

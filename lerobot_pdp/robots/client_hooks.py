@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import logging
 import sys
+import threading
 from typing import Any
 
 from .hooks import split_environment_state, wrap_once
@@ -28,6 +29,9 @@ from .live import LIVE
 logger = logging.getLogger(__name__)
 
 CLIENT_MODULE = "lerobot.async_inference.robot_client"
+# longest wait for the receiving thread at the end of a run: LeRobot's server answers a request within its
+# --obs_queue_timeout (2 s by default)
+RECEIVER_WAIT_S = 5.0
 
 
 def client_module() -> Any:
@@ -90,6 +94,20 @@ def _wrap_client(original):
             self._pdp_sim = _ours(self.robot)
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
+
+        def receive_actions(self, verbose: bool = False):
+            self._pdp_receiver = threading.current_thread()
+            return super().receive_actions(verbose)
+
+        def stop(self):
+            """The receiving thread leaves its pending request (the server answers within its observation timeout)
+            before the channel closes: LeRobot's stop closes it under the request, which logs an error at every
+            end of a run."""
+            receiver = getattr(self, "_pdp_receiver", None)
+            if self._pdp_sim and receiver is not None and receiver is not threading.current_thread():
+                self.shutdown_event.set()
+                receiver.join(timeout=RECEIVER_WAIT_S)
+            super().stop()
 
         def control_loop_observation(self, task: str, verbose: bool = False):
             if self._pdp_sim and self.robot.done:
