@@ -44,12 +44,14 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
                      device: str = "cpu") -> Path:
     """Fit ``base`` to one demonstration (``episode``: a ``(dataset folder, episode index)`` pair or arrays) and
     write the adapted checkpoint ``out`` (which must not exist); ``None`` settings take the checkpoint's
-    ``fit_*`` defaults. Returns ``out``."""
+    ``fit_*`` defaults. An adapted ``base`` is fitted as its weights act: the new adaptation replaces its own
+    (an adapted checkpoint shares its base's weights; one saved from Python after ``teach`` or received from
+    elsewhere may name no base at hand). Returns ``out``."""
     base, out = Path(base), Path(out)
     _check_folders(base, out)
-    if (base / ADAPTATION_INFO).is_file():  # its card and provenance would describe two adaptations
-        raise ValueError(f"{base} is already an adapted checkpoint ({ADAPTATION_INFO}): adapt its base checkpoint "
-                         f"{_origin(base) or '(named in that file)'} instead")
+    if (base / ADAPTATION_INFO).is_file():  # its weights are what is fitted; the new adaptation replaces its own
+        logger.warning("%s carries an adaptation (%s): fitting its weights without it; %s gets the new adaptation "
+                       "in its place", base, ADAPTATION_INFO, out)
     policy = load_base_policy(base, device)
     t0 = time.perf_counter()
     result = policy.fit_latent(episode, steps=steps, lr=lr, seed=seed, noise=noise, progress=True)

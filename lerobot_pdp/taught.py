@@ -18,7 +18,7 @@ import shutil
 from pathlib import Path
 
 from .atomic import move_into_place, staging_dir
-from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS
+from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
@@ -75,9 +75,9 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
     if out.exists():
         raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
-    if (base / ADAPTATION_INFO).is_file():
-        raise ValueError(f"{base} is an adapted checkpoint ({ADAPTATION_INFO}): teach its base checkpoint, whose "
-                         "weights it shares")
+    if (base / ADAPTATION_INFO).is_file():  # the weights are taught; the taught checkpoint acts unadapted
+        logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
+                       "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
     data = Path(training_data) if training_data is not None else training_data_of(base)
     cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
@@ -92,7 +92,8 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
                 (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
         policy.save_pretrained(tmp)
         (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
-        (tmp / "README.md").write_text(checkpoint_card(base, policy.config).rstrip() + "\n\n" + _card_section(info))
+        card = checkpoint_card(base, policy.config).split(f"\n{CARD_HEADING}\n")[0]  # no adaptation section
+        (tmp / "README.md").write_text(card.rstrip() + "\n\n" + _card_section(info))
         move_into_place(tmp, Path(out))
     return out, result
 

@@ -171,10 +171,15 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     assert f"{out} exists" in capsys.readouterr().err
     assert cli(["adapt", str(tmp_path), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
     assert "is not a PDP checkpoint folder" in capsys.readouterr().err
-    # an adapted checkpoint is not adapted again: its base is named
-    assert cli(["adapt", str(out), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "twice")]) == 2
-    assert f"{out} is already an adapted checkpoint (adaptation.json): adapt its base checkpoint {base.resolve()}" \
-        in capsys.readouterr().err and not (tmp_path / "twice").exists()
+    # an adapted checkpoint adapted again: its weights are fitted, the new adaptation replaces the old (one card
+    # section, one adaptation), whether or not the base it names is at hand
+    assert cli(["adapt", str(out), "--demo", str(synthetic_meta.root), "--episode", "1", "--steps", "1",
+                "--out", str(tmp_path / "twice")]) == 0
+    twice = json.loads((tmp_path / "twice" / ADAPTATION_INFO).read_text())
+    assert twice["demonstration"]["episode"] == 1 and twice["noise_chunks"] == 0
+    assert twice["base_checkpoint"] == str(out.resolve())
+    assert (tmp_path / "twice" / "README.md").read_text().count("## Adaptation") == 1
+    assert filecmp.cmp(out / "model.safetensors", tmp_path / "twice" / "model.safetensors", shallow=False)
     # a base without a model card (lerobot-train writes one only when it pushes) gets PDP's card with the section
     (base / "README.md").unlink()
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--steps", "1", "--out", str(tmp_path / "c")]) == 0

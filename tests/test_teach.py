@@ -193,11 +193,14 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     assert "taken exists" in capsys.readouterr().err
     assert cli(["teach", str(base), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "t")]) == 2
     assert "has no train_config.json naming its training dataset" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
+    # an adapted checkpoint saved from Python (it names no base): its weights are taught, the result acts unadapted
     p.fit_latent((synthetic_meta.root, 1), steps=1)
     p.save_pretrained(tmp_path / "adapted")
-    assert cli(["teach", str(tmp_path / "adapted"), *args[2:], "--out", str(tmp_path / "t")]) == 2
-    assert "is an adapted checkpoint" in capsys.readouterr().err
-    assert not (tmp_path / "t").exists()
+    assert cli(["teach", str(tmp_path / "adapted"), *args[2:], "--steps", "1", "--name", "x",
+                "--out", str(tmp_path / "t")]) == 0
+    assert not (tmp_path / "t" / "adaptation.json").exists() and "## Adaptation" not in (tmp_path / "t" / "README.md").read_text()
+    assert len(PDPPolicy.from_pretrained(tmp_path / "t").active_latent) == 0
 
 
 def test_a_latent_placed_by_the_geometry_is_kept_with_the_checkpoint(synthetic_meta, tmp_path):
