@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from .behavior import check_finite, gripper_segments, read_episodes
 from .configuration_pdp import PDPConfig
-from .episodes import read_episode_frames, recording_info  # noqa: F401  (re-exported)
+from .episodes import check_recording, read_episode_frames, recording_info  # noqa: F401  (re-exported)
 from .latent_fitting import DemoWindows, frame_windows
 from .normalization import FeatureStats
 
@@ -171,47 +171,3 @@ def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) 
         raise ValueError(f"{where}: camera '{key}' has float values in [{v.min():.3g}, {v.max():.3g}]; expected "
                          "[0, 1] (as LeRobotDataset yields frames) or uint8")
     return v
-
-
-def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]]) -> None:
-    """Fail early, naming the problem, on a recording PDP cannot fit z to.
-
-    Checks what deep reads would report obscurely: a missing folder, an empty recording (no episode saved), an
-    interrupted one (a data file without its parquet footer), an episode index out of range, and features
-    that differ from the checkpoint's (``required``: key -> shape the policy was trained on; cameras are
-    compared as (C, H, W) against the recording's (H, W, C)).
-    """
-    root = Path(root)
-    info = recording_info(root)
-    total = int(info.get("total_episodes") or 0)
-    files = sorted((root / "data").glob("**/*.parquet"))
-    if total == 0 or not files:
-        raise ValueError(f"recording {root} is empty (no saved episode): record at least one whole episode "
-                         "(an episode cut off by Ctrl-C is dropped, not saved)")
-    import pyarrow.parquet as pq
-
-    for f in files:
-        try:
-            pq.ParquetFile(f)
-        except Exception as e:  # noqa: BLE001 - any unreadable file means the same thing here
-            raise ValueError(f"recording {root}: {f.relative_to(root)} is unreadable ({e}); the recording was "
-                             "probably interrupted while writing: record it again") from e
-    if not 0 <= int(episode) < total:
-        raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
-    features = info.get("features", {})
-    problems = []
-    for key, shape in required.items():
-        ft = features.get(key)
-        if ft is None:
-            problems.append(f"lacks '{key}'")
-            continue
-        got = tuple(ft.get("shape") or ())
-        if ft.get("dtype") in ("image", "video") and len(got) == 3:
-            got = (got[2], got[0], got[1])  # stored (H, W, C)
-        if got != tuple(shape):
-            names = ft.get("names")
-            problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
-                            f"the policy was trained on {tuple(shape)}")
-    if problems:
-        raise ValueError(f"recording {root} does not match the checkpoint: " + "; ".join(problems)
-                         + ". Record with the robot/env (and features) the policy was trained on")

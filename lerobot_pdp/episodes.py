@@ -215,3 +215,69 @@ def recording_info(root: str | Path) -> dict:
         return json.loads(info_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
+
+
+def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]],
+                    min_frames: int | None = None) -> None:
+    """Fail early, naming the problem, on a recording PDP cannot fit z to.
+
+    Checks what deep reads would report obscurely: a missing folder, an empty recording (no episode saved), an
+    interrupted one (a data file without its parquet footer), an episode index out of range, and features
+    that differ from the checkpoint's (``required``: key -> shape the policy was trained on; cameras are
+    compared as (C, H, W) against the recording's (H, W, C)); with ``min_frames``, an episode shorter than that
+    (one action chunk: the horizon). Torch-free: ``lerobot-pdp steer`` checks a recording with it.
+    """
+    root = Path(root)
+    info = recording_info(root)
+    total = int(info.get("total_episodes") or 0)
+    files = sorted((root / "data").glob("**/*.parquet"))
+    if total == 0 or not files:
+        raise ValueError(f"recording {root} is empty (no saved episode): record at least one whole episode "
+                         "(an episode cut off by Ctrl-C is dropped, not saved)")
+    import pyarrow.parquet as pq
+
+    for f in files:
+        try:
+            pq.ParquetFile(f)
+        except Exception as e:  # noqa: BLE001 - any unreadable file means the same thing here
+            raise ValueError(f"recording {root}: {f.relative_to(root)} is unreadable ({e}); the recording was "
+                             "probably interrupted while writing: record it again") from e
+    if not 0 <= int(episode) < total:
+        raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
+    features = info.get("features", {})
+    problems = []
+    for key, shape in required.items():
+        ft = features.get(key)
+        if ft is None:
+            problems.append(f"lacks '{key}'")
+            continue
+        got = tuple(ft.get("shape") or ())
+        if ft.get("dtype") in ("image", "video") and len(got) == 3:
+            got = (got[2], got[0], got[1])  # stored (H, W, C)
+        if got != tuple(shape):
+            names = ft.get("names") if ft.get("dtype") not in ("image", "video") else None  # cameras: (C, H, W) both
+            problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
+                            f"the policy was trained on {tuple(shape)}")
+    if problems:
+        raise ValueError(f"recording {root} does not match the checkpoint: " + "; ".join(problems)
+                         + ". Record with the robot/env (and features) the policy was trained on")
+    if min_frames is not None:
+        length = _episode_length(root, int(episode))
+        if length is not None and length < min_frames:
+            raise ValueError(f"recording {root}: episode {episode} has {length} frames, shorter than one action chunk "
+                             f"(horizon {min_frames})")
+
+
+def _episode_length(root: Path, episode: int) -> int | None:
+    """An episode's frame count from the recording's episode metadata (None where it does not say)."""
+    import pyarrow.parquet as pq
+
+    for f in sorted((root / "meta" / "episodes").glob("**/*.parquet")):
+        try:
+            table = pq.read_table(f, columns=["episode_index", "length"]).to_pydict()
+        except Exception:  # noqa: BLE001 - other metadata: the fit's own check reads the frames
+            return None
+        for ep, length in zip(table["episode_index"], table["length"], strict=True):
+            if int(ep) == episode:
+                return int(length)
+    return None

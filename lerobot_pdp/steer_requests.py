@@ -16,14 +16,15 @@ from typing import Any
 
 from .atomic import write_text_atomic
 from .checkpoint_files import read_config_json
-from .episodes import recording_info
+from .episodes import check_recording, recording_info
 
 REQUEST_KEYS = ("mode", "latent", "dataset")
 
 
 def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
     """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes; a
-    recording to fit, its folder and episode) and write it atomically to ``path`` as strict JSON (no NaN /
+    recording to fit, its folder and episode, and with a checkpoint's ``expect`` its features and length) and write
+    it atomically to ``path`` as strict JSON (no NaN /
     Infinity, which the policy would reject)."""
     check_request(request, expect)
     path = Path(path)
@@ -31,7 +32,9 @@ def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarge
         raise FileNotFoundError(f"cannot write the steering file {path}: folder {path.parent} does not exist "
                                 "(give the path the running policy's --policy.steer_file names)")
     if "dataset" in request:  # the recording as the policy will look for it (relative: to the file's folder)
-        fit_request(request, base=path.parent)
+        root, episode, _ = fit_request(request, base=path.parent)
+        if expect is not None and expect.recording is not None:  # what the policy's fit would refuse
+            check_recording(root, episode, expect.recording, min_frames=expect.horizon)
     write_text_atomic(path, json.dumps(request, allow_nan=False) + "\n")
 
 
@@ -44,6 +47,8 @@ class SteerTarget:
     modes: dict[int, str] | None
     source: str  # "checkpoint DIR", named with an unknown mode
     latent_source: str  # why latent_dim is expected, named with a latent of another size
+    recording: dict[str, tuple[int, ...]] | None = None  # features a recording to fit must have (key -> shape)
+    horizon: int | None = None  # frames a recording's episode needs at least (one action chunk)
 
 
 def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
@@ -64,8 +69,10 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
     names = {int(k): v for k, v in (cfg.get("mode_names") or {}).items()}
     labelled = sorted({int(m) for m in labels if m >= 0})
     modes = {m: names.get(m, str(m)) for m in labelled} if labelled else None
+    features = {**(cfg.get("input_features") or {}), **(cfg.get("output_features") or {})}
+    recording = {k: tuple(ft["shape"]) for k, ft in features.items() if isinstance(ft, dict) and "shape" in ft}
     return SteerTarget(int(cfg.get("latent_dim", 2)), modes, f"checkpoint {folder}",
-                       f"latent_dim of checkpoint {folder}")
+                       f"latent_dim of checkpoint {folder}", recording or None, cfg.get("horizon"))
 
 
 def file_target(path: str | Path) -> SteerTarget | None:

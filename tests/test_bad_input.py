@@ -164,6 +164,26 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert lerobot_pdp(["steer", str(f), "--mode", "1", "--episode", "4"]) == 2
     assert "--episode and --steps go with --dataset" in capsys.readouterr().err
     assert json.loads(f.read_text()) == {"latent": [0.4, -1.5e-05]}  # none of them written
+    # with --policy-path, a recording the policy's fit would refuse: other features, an episode shorter than a chunk
+    other = Path(shutil.copytree(synthetic_meta.root, tmp_path / "other"))
+    info = json.loads((other / "meta" / "info.json").read_text())
+    info["features"]["observation.state"]["shape"] = [3]
+    (other / "meta" / "info.json").write_text(json.dumps(info))
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(other), "--policy-path", str(checkpoint)]) == 2
+    assert "does not match the checkpoint: 'observation.state' has shape (3,)" in capsys.readouterr().err
+    import pyarrow.parquet as pq
+
+    short = Path(shutil.copytree(synthetic_meta.root, tmp_path / "short"))
+    (episodes,) = (short / "meta" / "episodes").glob("**/*.parquet")
+    table = pq.read_table(episodes)
+    lengths = table.column("length").to_pylist()
+    pq.write_table(table.set_column(table.schema.get_field_index("length"), "length",
+                                    __import__("pyarrow").array([5] + lengths[1:], table.schema.field("length").type)),
+                   episodes)
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(short), "--policy-path", str(checkpoint)]) == 2
+    assert "episode 0 has 5 frames, shorter than one action chunk (horizon 16)" in capsys.readouterr().err
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(short), "--episode", "1", "--policy-path", str(checkpoint)]) == 0
+    assert json.loads(f.read_text())["episode"] == 1
 
 
 def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
