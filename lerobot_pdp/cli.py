@@ -259,9 +259,13 @@ def cmd_steer(args: argparse.Namespace) -> int:
         request = {"latent": None if args.default else args.latent}
     target = checkpoint_target(args.policy_path) if args.policy_path is not None else file_target(args.file)
     write_steering(args.file, request, target)
-    unchecked = "mode" in request and (target is None or target.modes is None)
-    print(f"wrote {args.file}: {request}" + (" (mode not checked against a checkpoint: --policy-path checks it)"
-                                             if unchecked else ""))
+    note = ""
+    if "mode" in request and args.policy_path is None:
+        note = " (mode not checked against a checkpoint: --policy-path checks it)"
+    elif "mode" in request and target.modes is None:
+        note = (f" (mode not checked: {args.policy_path} has no mode labels; its modes are the clusters the policy "
+                "discovers when it loads, shown by lerobot-pdp latent-map)")
+    print(f"wrote {args.file}: {request}{note}")
     return 0
 
 

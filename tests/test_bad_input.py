@@ -184,6 +184,15 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert "episode 0 has 5 frames, shorter than one action chunk (horizon 16)" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--dataset", str(short), "--episode", "1", "--policy-path", str(checkpoint)]) == 0
     assert json.loads(f.read_text())["episode"] == 1
+    # a checkpoint without mode labels: its modes are discovered at load, so a mode cannot be checked here; said so
+    from safetensors.torch import load_file, save_file
+
+    unlabelled = _copy(checkpoint, tmp_path)
+    weights = load_file(str(unlabelled / "model.safetensors"))
+    weights["behavior_mode"] = torch.full_like(weights["behavior_mode"], -1)
+    save_file(weights, str(unlabelled / "model.safetensors"))
+    assert lerobot_pdp(["steer", str(f), "--mode", "3", "--policy-path", str(unlabelled)]) == 0
+    assert f"(mode not checked: {unlabelled} has no mode labels; its modes are the clusters" in capsys.readouterr().out
 
 
 def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
