@@ -214,6 +214,14 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
                                    f"--port={port}", "--fps=50", f"--policy.steer_dataset_root={demo}",
                                    "--policy.steer_episode_index=0"], stdout=out, stderr=subprocess.STDOUT, env=full_env)
     try:
+        deadline = time.monotonic() + 120
+        while True:  # the client gives up at once when no server listens yet
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert served.poll() is None and time.monotonic() < deadline, server_log.read_text()[-3000:]
+                time.sleep(0.5)
         with client_log.open("w") as out:
             client = subprocess.Popen(
                 [sys.executable, "-m", "lerobot.async_inference.robot_client", "--robot.type=pdp_sim",

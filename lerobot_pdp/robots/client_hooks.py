@@ -95,6 +95,14 @@ def _wrap_client(original):
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
+        def start(self) -> bool:
+            """LeRobot's; when it fails (no server listening, the policy refused) the robot is disconnected and
+            the channel closed, so that the process ends instead of waiting on them."""
+            started = super().start()
+            if not started and self._pdp_sim:
+                super().stop()
+            return started
+
         def receive_actions(self, verbose: bool = False):
             self._pdp_receiver = threading.current_thread()
             return super().receive_actions(verbose)
