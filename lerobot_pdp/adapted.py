@@ -81,6 +81,12 @@ def search_checkpoint(base: str | Path, env_factory: EnvFactory, score: str | Sc
                              "start from 'modes' or give a latent")
         init = carried[0]["latent"]
         init = init[0] if len(init) == 1 else init
+        noises = len(carried[0].get("noise", ()))
+        if noises:  # the search moves the latent alone; the fitted noises were fitted to the old one
+            logger.warning("init 'adaptation': %s carries %d fitted chunk noises besides its latent; the search moves "
+                           "the latent alone and scores it with drawn noises, and %s carries no chunk noises (adapt "
+                           "it with --noise chunks again to fit them to the searched latent)", base, noises,
+                           out if out is not None else "the result")
     if "processors" not in search and (base / "policy_preprocessor.json").is_file():  # as lerobot-eval loads them
         from lerobot.policies.factory import make_pre_post_processors
 

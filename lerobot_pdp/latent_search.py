@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import logging
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -32,6 +33,8 @@ from tqdm.auto import tqdm
 from .candidate_rollouts import CandidateRollouts, EnvFactory
 from .outcome_scores import Outcome, Score, resolve_score
 from .steering_state import as_latent_tensor
+
+logger = logging.getLogger(__name__)
 
 METHODS = ("cma", "cem")
 CEM_ELITE_FRACTION = 0.25
@@ -150,6 +153,12 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         raise ValueError(f"sigma must be a finite number > 0, got {sigma!r}")
     score_fn, objective = resolve_score(score)
     starts = start_latents(policy, init)
+    if budget // rollouts_per_candidate < len(starts):  # the starts are scored in order, as the budget pays for them
+        logger.warning("latent search: budget %d pays for %d of the %d starting latents (%d rollouts each): the last %d "
+                       "are not tried and no search step is taken; give budget >= %d to score every start and search "
+                       "beyond them", budget, budget // rollouts_per_candidate, len(starts), rollouts_per_candidate,
+                       len(starts) - budget // rollouts_per_candidate, len(starts) * rollouts_per_candidate
+                       + max(rollouts_per_candidate, confirm_rollouts))
     if processors is None:
         from .processor_pdp import make_pdp_pre_post_processors
 

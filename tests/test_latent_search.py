@@ -295,8 +295,12 @@ def test_bad_search_arguments_are_named(policy):
         search_latent(policy, short_env(name="avoiding"), budget=2, progress=False)
 
 
-def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(policy, tmp_path):
-    res = policy.search_latent(short_env(), "reward", budget=4, rollouts_per_candidate=1, progress=False)
+def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(policy, tmp_path, caplog):
+    with caplog.at_level("WARNING", logger="lerobot_pdp.latent_search"):
+        res = policy.search_latent(short_env(), "reward", budget=4, rollouts_per_candidate=1, progress=False)
+    n = len(policy.mode_latents())  # a budget short of the starts says which were not tried
+    assert f"budget 4 pays for 4 of the {n} starting latents (1 rollouts each): the last {n - 4} are not tried" \
+        in caplog.text
     assert torch.equal(policy.active_latent[0], res.latent)
     assert policy.steering.provenance["source"] == "search" and policy.steering.provenance["budget"] == 4
     assert policy.steering.provenance["confirm_rollouts"] == 6  # the default: a best is confirmed before it counts
@@ -309,7 +313,7 @@ def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(po
 # -------------------------------------------------------------------------------------------------- CLI
 
 
-def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoint, tmp_path, capsys):
+def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoint, tmp_path, capsys, caplog):
     wps = tmp_path / "wps.json"
     wps.write_text(json.dumps(SCENE3_WAYPOINTS))
     out, hist = tmp_path / "searched", tmp_path / "history.json"
@@ -344,6 +348,12 @@ def test_cli_search_writes_an_adapted_checkpoint_acting_under_the_best(checkpoin
     assert info2["base_checkpoint"] == str(checkpoint.resolve())
     card = (again / "README.md").read_text()
     assert card.count("## Adaptation") == 1 and "its score `success`" in card and "way-points" not in card
+    # from an adaptation with fitted chunk noises: the search moves the latent alone, and says the noises go
+    noisy = Path(__file__).parent / "data" / "pdp_checkpoints_v2" / "adapted"
+    with caplog.at_level("WARNING", logger="lerobot_pdp.adapted"):
+        assert cli(["search", str(noisy), "--env", "reach-around", "--scene", "3", "--budget", "1",
+                    "--rollouts-per-candidate", "1", "--init", "adaptation", "--no-progress"]) == 0
+    assert "carries 13 fitted chunk noises besides its latent; the search moves the latent alone" in caplog.text
 
 
 def test_cli_search_with_finish_scores_the_tasks_success_after_the_way_points(checkpoint, tmp_path, capsys):
