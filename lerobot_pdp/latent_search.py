@@ -31,7 +31,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .candidate_rollouts import CandidateRollouts, EnvFactory
-from .outcome_scores import Outcome, Score, resolve_score
+from .outcome_scores import Outcome, Score, WaypointScore, resolve_score
 from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
@@ -152,6 +152,12 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
     if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a finite number > 0, got {sigma!r}")
     score_fn, objective = resolve_score(score)
+    if isinstance(score_fn, WaypointScore):  # before any rollout: points the agent can never pass
+        probe = env_factory()
+        try:
+            score_fn.check_env(probe)
+        finally:
+            probe.close()
     starts = start_latents(policy, init)
     if budget // rollouts_per_candidate < len(starts):  # the starts are scored in order, as the budget pays for them
         logger.warning("latent search: budget %d pays for %d of the %d starting latents (%d rollouts each): the last %d "

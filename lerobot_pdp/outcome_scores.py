@@ -98,6 +98,21 @@ class WaypointScore:
         progress = waypoint_progress(s[:, self.dims], self.waypoints, self.radius)
         return progress + float(self.finish and progress >= 1.0 and bool(outcome.success))
 
+    def check_env(self, env: Any) -> None:
+        """Way-points the agent of ``env`` can pass: inside its workspace where it declares one (the suite envs'
+        ``workspace_low`` / ``workspace_high``, one bound per path dim); else a ValueError naming the point."""
+        low, high = getattr(env.unwrapped, "workspace_low", None), getattr(env.unwrapped, "workspace_high", None)
+        if low is None or high is None:
+            return
+        low, high = np.asarray(low, float), np.asarray(high, float)
+        if len(low) != len(self.dims) or len(high) != len(self.dims):
+            raise ValueError(f"way-points have {len(self.dims)} coordinates; this env's path has {len(low)} (its "
+                             f"workspace {low.tolist()} .. {high.tolist()})")
+        for i, p in enumerate(self.waypoints):
+            if np.any(p < low) or np.any(p > high):
+                raise ValueError(f"way-point {i} {p.tolist()} lies outside the env's workspace {low.tolist()} .. "
+                                 f"{high.tolist()}: the agent can never pass it")
+
     def describe(self) -> dict[str, Any]:
         d: dict[str, Any] = {"waypoints": self.waypoints.tolist(), "radius": self.radius, "dims": self.dims}
         if self.finish:  # absent otherwise: searches recorded before the option existed keep their provenance

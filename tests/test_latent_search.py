@@ -293,6 +293,11 @@ def test_bad_search_arguments_are_named(policy):
     with pytest.raises(ValueError, match=r"'observation.state' has shape \(4,\) but the checkpoint was trained on "
                        r"\(6,\)"):
         search_latent(policy, short_env(name="avoiding"), budget=2, progress=False)
+    # way-points the agent can never pass, from Python as on the command line: before any rollout
+    for points, match in (([[0.0, 0.0, 5.0]], r"way-point 0 \[0.0, 0.0, 5.0\] lies outside the env's workspace"),
+                          ([[0.0, 0.3]], "way-points have 2 coordinates; this env's path has 3")):
+        with pytest.raises(ValueError, match=match):
+            search_latent(policy, env, WaypointScore(points, radius=0.05), budget=2, progress=False)
 
 
 def test_policy_search_latent_activates_the_best_and_save_pretrained_keeps_it(policy, tmp_path, caplog):
