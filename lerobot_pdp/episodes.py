@@ -218,7 +218,8 @@ def recording_info(root: str | Path) -> dict:
 
 
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]],
-                    min_frames: int | None = None) -> None:
+                    min_frames: int | None = None, what: str = "recording",
+                    advice: str = "Record with the robot/env (and features) the policy was trained on") -> None:
     """Fail early, naming the problem, on a recording PDP cannot fit z to.
 
     Checks what deep reads would report obscurely: a missing folder, an empty recording (no episode saved), an
@@ -259,8 +260,7 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
             problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
                             f"the policy was trained on {tuple(shape)}")
     if problems:
-        raise ValueError(f"recording {root} does not match the checkpoint: " + "; ".join(problems)
-                         + ". Record with the robot/env (and features) the policy was trained on")
+        raise ValueError(f"{what} {root} does not match the checkpoint: " + "; ".join(problems) + f". {advice}")
     if min_frames is not None:
         length = _episode_length(root, int(episode))
         if length is not None and length < min_frames:

@@ -45,7 +45,11 @@ def training_data_of(checkpoint: str | Path) -> Path:
     root = dataset.get("root") if isinstance(dataset, dict) else None
     if not root:
         raise ValueError(f"{path} names no local dataset root (dataset.root): give the training dataset with --data")
-    return _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
+    found = _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
+    if not found.is_dir():
+        raise FileNotFoundError(f"{path} names the training dataset {root}, which is not here (moved or on another "
+                                "machine): give the dataset the checkpoint was trained on with --data")
+    return found
 
 
 def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) -> Path:
@@ -86,6 +90,9 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
                           latent=latent, progress=True)
     policy.eval()
     info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""))
+    if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own record goes along
+        before = read_config_json(base / TEACHING_INFO)
+        info["earlier_teachings"] = [*before.pop("earlier_teachings", []), before]
     with staging_dir(out, prefix=".pdp-teach-") as tmp:
         for f in base.iterdir():
             if f.name not in _REWRITTEN:
@@ -100,15 +107,18 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
 
 def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str) -> dict:
     """What ``teaching.json`` records: the base, the demonstration, the rehearsal data, the new mode, settings, the
-    loss at the start and end, the time, the date."""
+    mean loss over the first and the last ``loss_window`` steps (50, or half a shorter run), the time, the date;
+    a taught checkpoint taught again adds its base's records as ``earlier_teachings``."""
     demo: dict = {"arrays": "given in memory"}
     if isinstance(episode, tuple):
         demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
-    head, tail = result.losses[:50], result.losses[-50:]
+    n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice
+    head, tail = result.losses[:n], result.losses[-n:]
     return {"source": "teach", "base_checkpoint": str(base.resolve()), "demonstration": demo,
             "training_data": str(data.resolve()), "mode": result.mode, "mode_name": name, "latent": result.z.tolist(),
             "nearest_training_latent_spreads": result.nearest_spreads, "settings": result.settings,
             "loss_first_50": sum(head) / max(1, len(head)), "loss_last_50": sum(tail) / max(1, len(tail)),
+            "loss_window": n,
             "demo_windows": result.demo_windows, "rehearsal_windows": result.rehearsal_windows,
             "seconds": round(result.seconds, 1),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}

@@ -4,6 +4,7 @@ denoiser moves, the old modes keep their latents, the taught checkpoint carries 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -146,6 +147,8 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     assert code == 0
     info2 = json.loads((tmp_path / "taught2" / TEACHING_INFO).read_text())
     assert info2["rehearsal_windows"] == info["rehearsal_windows"] + info["demo_windows"]
+    assert [t["mode"] for t in info2["earlier_teachings"]] == [4] and info2["mode"] == 5  # both teachings recorded
+    assert info2["loss_window"] == 1  # one step: its only loss, not a window counted as before and after
     r = PDPPolicy.from_pretrained(tmp_path / "taught2")
     assert sorted(r.mode_latents()) == [0, 1, 2, 3, 4, 5] and sorted(r.model.bank.taught_demos) == [4, 5]
     np.testing.assert_allclose(r.model.bank.taught_demos[4].arrays["action"], new_route()["action"], atol=1e-6)
@@ -193,6 +196,20 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     assert "taken exists" in capsys.readouterr().err
     assert cli(["teach", str(base), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "t")]) == 2
     assert "has no train_config.json naming its training dataset" in capsys.readouterr().err
+    (base / "train_config.json").write_text(json.dumps({"dataset": {"root": str(tmp_path / "moved")}}))
+    assert cli(["teach", str(base), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "t")]) == 2
+    assert (f"{base / 'train_config.json'} names the training dataset {tmp_path / 'moved'}, which is not here"
+            in capsys.readouterr().err)
+    (base / "train_config.json").unlink()
+    import shutil
+
+    wrong = Path(shutil.copytree(synthetic_meta.root, tmp_path / "wrong"))
+    info = json.loads((wrong / "meta" / "info.json").read_text())
+    info["features"]["observation.state"]["shape"] = [3]
+    (wrong / "meta" / "info.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=r"training dataset .*wrong does not match the checkpoint: 'observation.state' "
+                                         r"has shape \(3,\).* Give the dataset the policy was trained on \(--data\)"):
+        p.teach(new_route(), wrong)
     assert not (tmp_path / "t").exists()
     # an adapted checkpoint saved from Python (it names no base): its weights are taught, the result acts unadapted
     p.fit_latent((synthetic_meta.root, 1), steps=1)
