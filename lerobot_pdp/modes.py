@@ -50,6 +50,16 @@ class ModeLatents(dict):
         self.discovered = discovered
 
     def __missing__(self, mode: object) -> Tensor:
+        # a one-element integer tensor or array (a cluster id read from a tensor) and a mode's name (as
+        # `lerobot-pdp steer --mode` takes it) find their mode too
+        if hasattr(mode, "item") and getattr(mode, "numel", lambda: getattr(mode, "size", 0))() == 1:
+            value = mode.item()
+            if isinstance(value, int) and value in self:
+                return self[value]
+        if isinstance(mode, str):
+            named = [m for m, n in self.names.items() if n == mode and m in self]
+            if len(named) == 1:
+                return self[named[0]]
         known = ", ".join(f"{m} ({self.names[m]})" if m in self.names else str(m) for m in sorted(self))
         what = "discovered modes (cluster ids)" if self.discovered else "training modes"
         raise KeyError(f"no mode {mode!r}: the {what} are {known}")

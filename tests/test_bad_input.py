@@ -109,6 +109,8 @@ def test_an_unknown_mode_lists_the_modes(policy):
                                        r"2 \(right-tight\), 3 \(right-wide\)"):
         means[99]
     assert 99 not in means and means.get(99) is None  # still a dict: membership and get() do not raise
+    # a cluster id read from a tensor, and a mode's name (as `lerobot-pdp steer --mode` takes it), find their mode
+    assert torch.equal(means[torch.tensor(1)], means[1]) and torch.equal(means["left-wide"], means[1])
 
 
 def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
