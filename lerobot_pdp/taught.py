@@ -45,11 +45,7 @@ def training_data_of(checkpoint: str | Path) -> Path:
     root = dataset.get("root") if isinstance(dataset, dict) else None
     if not root:
         raise ValueError(f"{path} names no local dataset root (dataset.root): give the training dataset with --data")
-    found = _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
-    if not found.is_dir():
-        raise FileNotFoundError(f"{path} names the training dataset {root}, which is not here (moved or on another "
-                                "machine): give the dataset the checkpoint was trained on with --data")
-    return found
+    return _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
 
 
 def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) -> Path:
@@ -83,6 +79,9 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
     data = Path(training_data) if training_data is not None else training_data_of(base)
+    if training_data is None and not data.is_dir():  # a path the user never typed: say where it came from
+        raise FileNotFoundError(f"{base / 'train_config.json'} names the training dataset {data}, which is not here "
+                                "(moved, or on another machine): give the dataset the checkpoint was trained on with --data")
     cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
     policy = PDPPolicy.from_pretrained(base, config=cfg)

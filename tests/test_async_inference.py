@@ -27,10 +27,29 @@ from lerobot_pdp.robots import PDPSimConfig, client_hooks
 CHECKPOINTS = Path(__file__).parent / "data" / "pdp_checkpoints_v2"
 
 
+def _import_in(folder: Path, name: str):
+    """LeRobot's async modules, when imported, open a log file under ./logs and reset the root logger (its level,
+    its handlers): imported from ``folder``, the root logger put back after, so that later tests' log captures
+    see what they expect."""
+    import importlib
+    import logging
+
+    root = logging.getLogger()
+    level, handlers = root.level, root.handlers[:]
+    cwd = Path.cwd()
+    os.chdir(folder)
+    try:
+        return importlib.import_module(name)
+    finally:
+        os.chdir(cwd)
+        root.setLevel(level)
+        root.handlers[:] = handlers
+
+
 @pytest.fixture
-def server_module(monkeypatch):
+def server_module(monkeypatch, tmp_path):
     """LeRobot's policy-server module; what ``admit_pdp`` changes in it is restored after the test."""
-    from lerobot.async_inference import policy_server as server
+    server = _import_in(tmp_path, "lerobot.async_inference.policy_server")
 
     for name in ("SUPPORTED_POLICIES", "raw_observation_to_observation", "get_policy_class"):
         monkeypatch.setattr(server, name, getattr(server, name))
@@ -38,9 +57,9 @@ def server_module(monkeypatch):
 
 
 @pytest.fixture
-def client_module(monkeypatch):
+def client_module(monkeypatch, tmp_path):
     """LeRobot's robot-client module with pdp_sim's hooks; restored after the test."""
-    from lerobot.async_inference import robot_client
+    robot_client = _import_in(tmp_path, "lerobot.async_inference.robot_client")
 
     for name in ("map_robot_keys_to_lerobot_features", "RobotClient"):
         monkeypatch.setattr(robot_client, name, getattr(robot_client, name))
@@ -212,7 +231,8 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
     with server_log.open("w") as out:
         served = subprocess.Popen([sys.executable, "-m", "lerobot_pdp.policy_server", "--host=127.0.0.1",
                                    f"--port={port}", "--fps=50", f"--policy.steer_dataset_root={demo}",
-                                   "--policy.steer_episode_index=0"], stdout=out, stderr=subprocess.STDOUT, env=full_env)
+                                   "--policy.steer_episode_index=0"], stdout=out, stderr=subprocess.STDOUT, env=full_env,
+                                  cwd=tmp_path)  # LeRobot's log files go under ./logs
     try:
         deadline = time.monotonic() + 120
         while True:  # the client gives up at once when no server listens yet
@@ -229,7 +249,7 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
                  f"--robot.calibration_dir={tmp_path / 'cal'}", f"--server_address=127.0.0.1:{port}",
                  "--policy_type=pdp", f"--pretrained_name_or_path={reach_around_pdp}", "--policy_device=cpu",
                  "--actions_per_chunk=8", "--fps=50", "--task=reach the goal"],
-                stdout=out, stderr=subprocess.STDOUT, env=full_env)
+                stdout=out, stderr=subprocess.STDOUT, env=full_env, cwd=tmp_path)
         try:
             code = client.wait(timeout=300)
         except subprocess.TimeoutExpired:
