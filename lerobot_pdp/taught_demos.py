@@ -72,7 +72,8 @@ def write_taught_demos(bank: Any, image_keys: set[str], directory: Path) -> bool
 
 def read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
     """Give ``policy``'s behaviour bank the taught demonstrations its checkpoint ``pretrained`` keeps, if any
-    (a local folder or a Hub repo); a mode the bank does not hold as taught is dropped with a warning."""
+    (a local folder or a Hub repo); a mode the bank does not hold as taught, or a damaged file, is left out with
+    a warning."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
@@ -83,9 +84,10 @@ def read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
         return
     try:
         demos = tensors_to_demos(load_file(str(path)), str(path))
-    except (SafetensorError, OSError) as e:
-        raise ValueError(f"{path} is damaged ({e}); its taught modes act as saved, but teaching this checkpoint "
-                         "again needs their demonstrations: remove the file to teach without rehearsing them") from e
+    except (SafetensorError, OSError, ValueError) as e:  # acting does not need them: said, and the policy loads
+        logger.warning("%s is damaged (%s): the taught modes act as saved, but teaching this checkpoint again will "
+                       "not rehearse them", path, e)
+        return
     bank = policy.model.bank
     taught = set(bank.taught_modes())
     unknown = sorted(set(demos) - taught)

@@ -140,6 +140,10 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     # teaching the taught checkpoint again: its own taught episode is not mistaken for a foreign dataset, the
     # first taught demonstration is rehearsed too (kept with the checkpoint), and both are kept for the next time
     assert (tmp_path / "taught" / TAUGHT_DEMOS).is_file() and sorted(q.model.bank.taught_demos) == [4]
+    damaged = tmp_path / "damaged"
+    __import__("shutil").copytree(tmp_path / "taught", damaged)
+    (damaged / TAUGHT_DEMOS).write_bytes(b"not a safetensors file")
+    assert PDPPolicy.from_pretrained(damaged).model.bank.taught_demos == {}  # acts as saved; said in a warning
     second = tmp_path / "second"
     _write_demo(second, new_route(x_via=1.9))
     code = cli(["teach", str(tmp_path / "taught"), "--demo", str(second), "--data", str(synthetic_meta.root),

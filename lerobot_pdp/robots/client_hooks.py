@@ -8,9 +8,11 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on
   (``python -m lerobot_pdp.policy_server`` passes the second on to the policy);
 * ``RobotClient`` is wrapped so that the robot, when it resets its scene (a new episode), drops the actions
-  still queued from the episode that ended, and the run ends after ``--robot.episodes`` (the client's shutdown
-  event, as Ctrl-C would, set in place of the next observation). The server's observation history is not reset: the new episode's first
-  chunk is conditioned on the last frame of the previous one too (``n_obs_steps`` = 2).
+  still queued from the episode that ended; the run ends after ``--robot.episodes`` (the client's shutdown
+  event, as Ctrl-C would, set in place of the next observation) and ends cleanly (the receiving thread leaves
+  its request before the channel closes); a failed start (no server listening, the policy refused) ends the
+  process. The server's observation history is not reset: the new episode's first chunk is conditioned on the
+  last frame of the previous one too (``n_obs_steps`` = 2).
 
 Nothing of LeRobot is changed on disk; other robots are untouched.
 """
