@@ -140,7 +140,7 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     for name, value, low in (("budget", budget, 1), ("rollouts_per_candidate", rollouts_per_candidate, 1),
                              ("max_envs", max_envs, 1), ("popsize", 2 if popsize is None else popsize, 2),
-                             ("confirm_rollouts", confirm_rollouts, 0)):
+                             ("confirm_rollouts", confirm_rollouts, 0), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if budget < rollouts_per_candidate:

@@ -287,7 +287,8 @@ def test_bad_search_arguments_are_named(policy):
                       ({"init": "encoder"}, "init must be 'modes'"),
                       ({"init": torch.zeros(3)}, r"init latent must have shape \[2\]"),
                       ({"score": "distance"}, "score must be one of"),
-                      ({"sigma": -1.0}, "sigma must be")):
+                      ({"sigma": -1.0}, "sigma must be"),
+                      ({"seed": -1}, "seed must be an integer >= 0, got -1")):
         with pytest.raises(ValueError, match=match):
             search_latent(policy, env, **{"budget": 4, "progress": False, **kw})
     with pytest.raises(ValueError, match=r"'observation.state' has shape \(4,\) but the checkpoint was trained on "
