@@ -25,7 +25,7 @@ import sys
 import threading
 from typing import Any
 
-from .hooks import split_environment_state, wrap_once
+from .hooks import split_environment_state, wrap_all
 from .live import LIVE
 
 logger = logging.getLogger(__name__)
@@ -47,16 +47,8 @@ def client_module() -> Any:
 
 def install() -> bool:
     """Wrap the client's functions once; False when LeRobot's robot client is not loaded."""
-    mod = client_module()
-    if mod is None:
-        return False
-    if not (hasattr(mod, "map_robot_keys_to_lerobot_features") and hasattr(mod, "RobotClient")):
-        logger.warning("pdp_sim: this LeRobot robot client has no map_robot_keys_to_lerobot_features/RobotClient; "
-                       "environment_state stays in the state and episodes do not end the run")
-        return False
-    wrap_once(mod, "map_robot_keys_to_lerobot_features", _wrap_features)
-    wrap_once(mod, "RobotClient", _wrap_client)
-    return True
+    return wrap_all(client_module(), {"map_robot_keys_to_lerobot_features": _wrap_features, "RobotClient": _wrap_client},
+                    "LeRobot robot client", "environment_state stays in the state and episodes do not end the run")
 
 
 def _ours(robot: Any) -> bool:

@@ -9,9 +9,12 @@ most once per function, and every wrapper passes other robots' calls through unc
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable, Iterable
 from types import ModuleType
 from typing import Any
+
+logger = logging.getLogger(__name__)
 
 _MARK = "_pdp_sim_hook"
 
@@ -25,6 +28,22 @@ def wrap_once(module: ModuleType | None, name: str, make_wrapper: Callable[[Call
         wrapper = make_wrapper(original)
         setattr(wrapper, _MARK, True)
         setattr(module, name, wrapper)
+    return True
+
+
+def wrap_all(module: ModuleType | None, wrappers: dict[str, Callable[[Callable], Callable]], script: str,
+             lost: str) -> bool:
+    """Wrap each function ``wrappers`` names in ``module`` once (name -> wrapper factory). False, wrapping
+    nothing, when ``module`` is not loaded; or when it lacks one of them (another LeRobot): a warning names
+    ``script``, what it lacks and what is ``lost``."""
+    if module is None:
+        return False
+    missing = [name for name in wrappers if not hasattr(module, name)]
+    if missing:
+        logger.warning("pdp_sim: this %s has no %s; %s", script, "/".join(missing), lost)
+        return False
+    for name, make in wrappers.items():
+        wrap_once(module, name, make)
     return True
 
 

@@ -21,7 +21,7 @@ import logging
 import sys
 from typing import Any
 
-from .hooks import splitting_features, wrap_once
+from .hooks import splitting_features, wrap_all
 from .live import LIVE
 
 logger = logging.getLogger(__name__)
@@ -35,15 +35,9 @@ def install() -> bool:
     if mod is None:
         main = sys.modules.get("__main__")
         mod = main if main is not None and hasattr(main, "record_loop") and hasattr(main, "RecordConfig") else None
-    if mod is None:
-        return False
-    if not (hasattr(mod, "record_loop") and hasattr(mod, "aggregate_pipeline_dataset_features")):
-        logger.warning("pdp_sim: this lerobot-record has no record_loop/aggregate_pipeline_dataset_features; "
-                       "episodes will end on episode_time_s only and environment_state stays in the state")
-        return False
-    wrap_once(mod, "record_loop", _wrap_record_loop)
-    wrap_once(mod, "aggregate_pipeline_dataset_features", splitting_features(lambda: list(LIVE.values())))
-    return True
+    return wrap_all(mod, {"record_loop": _wrap_record_loop,
+                          "aggregate_pipeline_dataset_features": splitting_features(lambda: list(LIVE.values()))},
+                    "lerobot-record", "episodes will end on episode_time_s only and environment_state stays in the state")
 
 
 def _wrap_record_loop(original):

@@ -22,14 +22,11 @@ Nothing of LeRobot is changed on disk; other robots are untouched.
 from __future__ import annotations
 
 import functools
-import logging
 import sys
 from typing import Any
 
-from .hooks import split_environment_state, splitting_features, wrap_once
+from .hooks import split_environment_state, splitting_features, wrap_all, wrap_once
 from .live import LIVE
-
-logger = logging.getLogger(__name__)
 
 CONTEXT_MODULE = "lerobot.rollout.context"
 EPISODIC_MODULE = "lerobot.rollout.strategies.episodic"
@@ -53,15 +50,11 @@ def building_rollout_context(max_depth: int = 12) -> bool:
 
 def install() -> bool:
     """Wrap the context builder's functions once; False when LeRobot's rollout is not loaded."""
-    mod = sys.modules.get(CONTEXT_MODULE)
-    if mod is None:
+    if not wrap_all(sys.modules.get(CONTEXT_MODULE), {
+            "aggregate_pipeline_dataset_features": splitting_features(_rollout_robots),
+            "create_inference_engine": _wrap_create_engine}, "lerobot-rollout",
+            "environment_state stays in the state and episodes do not reset the policy"):
         return False
-    if not (hasattr(mod, "aggregate_pipeline_dataset_features") and hasattr(mod, "create_inference_engine")):
-        logger.warning("pdp_sim: this lerobot-rollout has no aggregate_pipeline_dataset_features/create_inference_engine; "
-                       "environment_state stays in the state and episodes do not reset the policy")
-        return False
-    wrap_once(mod, "aggregate_pipeline_dataset_features", splitting_features(_rollout_robots))
-    wrap_once(mod, "create_inference_engine", _wrap_create_engine)
     wrap_once(sys.modules.get(EPISODIC_MODULE), "init_keyboard_listener", _wrap_keyboard)
     return True
 
