@@ -31,7 +31,6 @@ from .checkpoint import (
 )
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
-from .episodes import check_recording
 from .latent_search import SearchResult
 from .model_card import checkpoint_card
 from .outcome_scores import Score
@@ -53,11 +52,6 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
     if (base / ADAPTATION_INFO).is_file():  # its weights are what is fitted; the new adaptation replaces its own
         logger.warning("%s carries an adaptation (%s): fitting its weights without it; %s gets the new adaptation "
                        "in its place", base, ADAPTATION_INFO, out)
-    if isinstance(episode, tuple) and isinstance(episode[0], (str, Path)) and isinstance(episode[1], int):
-        cfg = PDPConfig.from_pretrained(base)  # the recording checked before the weights load (seconds)
-        features = {**cfg.input_features, **cfg.output_features}
-        check_recording(episode[0], episode[1], {k: tuple(ft.shape) for k, ft in features.items()},
-                        min_frames=cfg.horizon)
     policy = load_base_policy(base, device)
     t0 = time.perf_counter()
     result = policy.fit_latent(episode, steps=steps, lr=lr, seed=seed, noise=noise, progress=True)

@@ -52,7 +52,7 @@ class ModeLatents(dict):
     def __missing__(self, mode: object) -> Tensor:
         # a one-element integer tensor or array (a cluster id read from a tensor) and a mode's name (as
         # `lerobot-pdp steer --mode` takes it) find their mode too
-        if hasattr(mode, "item") and getattr(mode, "numel", lambda: getattr(mode, "size", 0))() == 1:
+        if isinstance(mode, (Tensor, np.ndarray)) and (mode.numel() if isinstance(mode, Tensor) else mode.size) == 1:
             value = mode.item()
             if isinstance(value, int) and value in self:
                 return self[value]

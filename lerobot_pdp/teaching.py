@@ -105,10 +105,10 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
     demo_win = policy._demo_windows(demo)
     z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
-    rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
-    rehearsal, z_old = with_taught_demos(policy, rehearsal, z_old)
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
+    rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
+    rehearsal, z_old = with_taught_demos(policy, rehearsal, z_old, z_bank)
     mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new)  # + delta^X
     model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)
     warn_if_known_route(model.bank, len(z_bank), mode)
@@ -263,10 +263,11 @@ def rehearsal_windows(policy: Any, root: str | Path,
     return windows, torch.cat(zs)
 
 
-def with_taught_demos(policy: Any, rehearsal: DemoWindows, z_old: Tensor) -> tuple[DemoWindows, Tensor]:
-    """The rehearsal windows and latents with those of every mode taught before, at its taught latent(s): the
-    training dataset does not hold them. A mode taught by a release that did not keep its demonstration cannot be
-    rehearsed: said in a warning."""
+def with_taught_demos(policy: Any, rehearsal: DemoWindows, z_old: Tensor,
+                      z_bank: Tensor) -> tuple[DemoWindows, Tensor]:
+    """The rehearsal windows and latents with those of every mode taught before, at its taught latent(s) (rows of
+    ``z_bank``, the bank's latents): the training dataset does not hold them. A mode taught by a release that did
+    not keep its demonstration cannot be rehearsed: said in a warning."""
     bank = policy.model.bank
     missing = [m for m in bank.taught_modes() if m not in bank.taught_demos]
     if missing:
@@ -275,8 +276,6 @@ def with_taught_demos(policy: Any, rehearsal: DemoWindows, z_old: Tensor) -> tup
                        "each demonstration again to keep them all)", missing)
     if not bank.taught_demos:
         return rehearsal, z_old
-    with torch.no_grad():
-        z_bank = policy.model.behavior_latents().detach().cpu()
     parts, zs = [rehearsal], [z_old]
     for mode, demo in sorted(bank.taught_demos.items()):
         rows = torch.nonzero(bank.mode.cpu() == mode).flatten()  # one behaviour per phase, in order
