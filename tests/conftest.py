@@ -36,6 +36,42 @@ import pytest  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+# LeRobot's AV1 video encoder (SVT-AV1) raises the encoding thread to real-time SCHED_FIFO priority 99 where it
+# may (as root) and leaves it there. A test that writes a video dataset in this process would otherwise run every
+# later test here, and every process they start (lerobot-train, lerobot-eval), at that priority: on two cores they
+# starve the other worker (a full run went past CI's 90 minutes that way). Each test phase ends at the priority
+# the session started with; make-dataset undoes it itself (recording.keep_cpu_scheduling, tested there).
+_SCHEDULING = (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
+
+
+def _restore_scheduling() -> None:
+    if _SCHEDULING is not None and (os.sched_getscheduler(0), os.sched_getparam(0)) != _SCHEDULING:
+        os.sched_setscheduler(0, *_SCHEDULING)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item):
+    try:
+        return (yield)
+    finally:
+        _restore_scheduling()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item):
+    try:
+        return (yield)
+    finally:
+        _restore_scheduling()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    try:
+        return (yield)
+    finally:
+        _restore_scheduling()
+
 VENV_BIN = Path(sys.executable).parent
 
 
@@ -51,6 +87,7 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
 
     # the benchmark's trainings read datasets through column views (a child asks for them by its environment)
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **column_views.child_env(), **(env or {})}
+    _restore_scheduling()  # the process inherits this one's priority: never a video encoder's real-time one
     proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=full_env)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")

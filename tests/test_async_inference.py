@@ -195,10 +195,13 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
         assert client.start()
         receiver = threading.Thread(target=client.receive_actions, daemon=True)
         receiver.start()
-        t0 = time.monotonic()
-        client.control_loop(task="")  # returns when the robot ends the run
-        assert time.monotonic() - t0 < 120
-        client.stop()
+        loop = threading.Thread(target=client.control_loop, kwargs={"task": ""}, daemon=True)
+        loop.start()  # returns when the robot ends the run
+        loop.join(120)
+        stalled = loop.is_alive()
+        client.stop()  # ends a stalled loop too
+        loop.join(10)
+        assert not stalled, f"the run did not end within 120 s; episodes ended: {_outcomes(outcomes)}"
         receiver.join(10)
     finally:
         grpc_server.stop(0)
