@@ -358,17 +358,7 @@ def cmd_search(args: argparse.Namespace) -> int:
     import functools
     import math
 
-    import gymnasium as gym
-
-    import lerobot_pdp.envs as envs
-    from lerobot_pdp.adapted import search_checkpoint
-    from lerobot_pdp.atomic import write_text_atomic
-    from lerobot_pdp.candidate_rollouts import env_camera_kwargs
-    from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
-    from lerobot_pdp.envs.scene import load_scene
-    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS, LatentSearchError
-    from lerobot_pdp.outcome_scores import SCORES, WaypointScore
-
+    # the arguments first: the imports below take seconds (torch, LeRobot, MuJoCo)
     for path, flag in ((args.out, "--out"), (args.history, "--history")):  # before the search, not after it
         _check_new_path(path, flag)
     if args.history is not None and not args.history.parent.is_dir():
@@ -388,12 +378,25 @@ def cmd_search(args: argparse.Namespace) -> int:
     if args.budget < args.rollouts_per_candidate:
         raise ValueError(f"--budget {args.budget} rollouts pays for no candidate of --rollouts-per-candidate "
                          f"{args.rollouts_per_candidate} rollouts")
+    if args.waypoints is not None and not (math.isfinite(args.radius) and args.radius > 0):
+        raise ValueError(f"--radius must be a finite number > 0 (metres), got {args.radius}")
+    _check_checkpoint_folder(args.checkpoint)
+
+    import gymnasium as gym
+
+    import lerobot_pdp.envs as envs
+    from lerobot_pdp.adapted import search_checkpoint
+    from lerobot_pdp.atomic import write_text_atomic
+    from lerobot_pdp.candidate_rollouts import env_camera_kwargs
+    from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
+    from lerobot_pdp.envs.scene import load_scene
+    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS, LatentSearchError
+    from lerobot_pdp.outcome_scores import SCORES, WaypointScore
+
     suite = envs.get_suite_env(args.env)
     scene = load_scene(args.scene, suite.scene_key)
     objective: dict = {"env": suite.name, "scene": scene.name}
     if args.waypoints is not None:
-        if not (math.isfinite(args.radius) and args.radius > 0):
-            raise ValueError(f"--radius must be a finite number > 0 (metres), got {args.radius}")
         source = f"way-points of {scene.source}" if args.waypoints == "scene" else args.waypoints
         points = resolve_waypoints(args.waypoints, scene, suite)
         check_waypoints(suite, points, source)
@@ -426,13 +429,17 @@ def cmd_search(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_checkpoint_folder(checkpoint: Path) -> None:
+    if not checkpoint.is_dir():
+        raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
+                                "config.json and model.safetensors)")
+
+
 def _checkpoint_config(checkpoint: Path):
     from lerobot_pdp import PDPConfig
     from lerobot_pdp.checkpoint_files import check_checkpoint_source
 
-    if not checkpoint.is_dir():
-        raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
-                                "config.json and model.safetensors)")
+    _check_checkpoint_folder(checkpoint)
     check_checkpoint_source(checkpoint)
     cfg = PDPConfig.from_pretrained(checkpoint)
     if not isinstance(cfg, PDPConfig):

@@ -1,6 +1,7 @@
 """`lerobot-pdp` starts without importing torch or LeRobot for what needs neither: `--help`, a subcommand's help,
-and `steer` (typed beside a running robot: it must answer at once, not after LeRobot's policies import). The
-policy's public names still register `--policy.type=pdp` on first use."""
+`steer` (typed beside a running robot: it must answer at once, not after LeRobot's policies import), and `search`'s
+argument errors (named before seconds of imports). The policy's public names still register `--policy.type=pdp`
+on first use."""
 
 import json
 import subprocess
@@ -35,7 +36,7 @@ def _cli(*argv: str) -> dict:
     proc = subprocess.run([sys.executable, "-c", PROBE, json.dumps(list(argv))], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return {**json.loads(proc.stdout.strip().splitlines()[-1]), "err": proc.stderr}
 
 
 @pytest.mark.parametrize(("argv", "shown"), [(["--help"], "steer"), (["teach", "--help"], "(default 3000)"),
@@ -58,6 +59,16 @@ def test_steer_writes_and_checks_without_torch_or_lerobot(tmp_path, small_checkp
     res = _cli("steer", str(steer), "--mode", "left-wide", "--policy-path", str(small_checkpoint))
     assert res["rc"] == 0 and res["heavy"] == [], res
     assert json.loads(steer.read_text()) == {"mode": "left-wide"}
+
+
+@pytest.mark.parametrize(("extra", "said"), [(["--budget", "0"], "--budget must be >= 1, got 0"),
+                                             (["--seed", "-1"], "--seed must be >= 0"),
+                                             (["--waypoints", "scene", "--radius", "0"], "--radius must be a finite")])
+def test_search_names_a_bad_argument_before_importing_torch(tmp_path, small_checkpoint, extra, said):
+    res = _cli("search", str(small_checkpoint), "--env", "reach-around", *extra)
+    assert res["rc"] == 2 and res["heavy"] == [] and said in res["err"], res
+    res = _cli("search", str(tmp_path / "nope"), "--env", "reach-around")
+    assert res["rc"] == 2 and res["heavy"] == [] and "no such checkpoint folder" in res["err"], res
 
 
 def test_the_suite_envs_named_in_help_are_the_suite():
