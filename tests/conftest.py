@@ -36,17 +36,18 @@ import pytest  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-# LeRobot's AV1 video encoder (SVT-AV1) raises the encoding thread to real-time SCHED_FIFO priority 99 where it
-# may (as root) and leaves it there. A test that writes a video dataset in this process would otherwise run every
+# LeRobot's AV1 video encoder raises the encoding thread to real-time priority where it may (as root) and leaves it
+# there (lerobot_pdp/cpu_priority.py). A test that writes a video dataset in this process would otherwise run every
 # later test here, and every process they start (lerobot-train, lerobot-eval), at that priority: on two cores they
 # starve the other worker (a full run went past CI's 90 minutes that way). Each test phase ends at the priority
-# the session started with; make-dataset undoes it itself (recording.keep_cpu_scheduling, tested there).
-_SCHEDULING = (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
+# the session started with; make-dataset and pdp_sim's record loop undo it themselves (tested there).
+from lerobot_pdp import cpu_priority  # noqa: E402
+
+_SCHEDULING = cpu_priority.current()
 
 
 def _restore_scheduling() -> None:
-    if _SCHEDULING is not None and (os.sched_getscheduler(0), os.sched_getparam(0)) != _SCHEDULING:
-        os.sched_setscheduler(0, *_SCHEDULING)
+    cpu_priority.restore(_SCHEDULING)
 
 
 @pytest.hookimpl(wrapper=True)

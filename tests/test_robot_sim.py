@@ -228,6 +228,28 @@ def _record_one(root: Path, tmp_path: Path, resume: bool, robot_kw: dict | None 
     return robot
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling calls")
+def test_the_record_loop_runs_at_the_priority_the_video_encoder_took(tmp_path):
+    """LeRobot's AV1 encoder leaves lerobot-record at real-time priority after an episode with cameras (as root):
+    pdp_sim's next record loop runs at the priority the process had when the robot was made."""
+    from lerobot_pdp.robots import record_hooks
+
+    robot = make_robot_from_config(PDPSimConfig(calibration_dir=tmp_path))
+    record_hooks.install()  # as the robot does inside lerobot-record (nothing to wrap here: it is not running)
+    seen = []
+    loop = record_hooks._wrap_record_loop(lambda robot, events, **kw: seen.append(os.sched_getscheduler(0)))
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # what the encoder does to its thread
+    except PermissionError:
+        pytest.skip("not allowed to raise this process's priority (not root): the encoder could not either")
+    try:
+        loop(robot=robot, events={"exit_early": False})
+    finally:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        robot.disconnect() if robot.is_connected else None
+    assert seen == [os.SCHED_OTHER]
+
+
 @pytest.mark.parametrize("label_file", [True, False])
 def test_a_resumed_recording_extends_the_mode_labels(two_demos, tmp_path, label_file):
     """--resume=true: the new episode is numbered after the dataset's (env episode and outcome line too), the

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 from ..atomic import staging_dir
+from ..cpu_priority import keep_cpu_scheduling
 from .camera import DEFAULT_IMAGE_SIZE, parse_image_size
 from .scene import VALIDATION_SCENE, Scene, SceneError, load_scene, read_scene_file
 from .suite import NOVEL, SuiteEnv, get_suite_env
@@ -170,23 +170,6 @@ def _dataset_features(env: gym.Env) -> dict[str, dict]:
                 "names": ["height", "width", "channels"],
             }
     return features
-
-
-@contextlib.contextmanager
-def keep_cpu_scheduling() -> Iterator[None]:
-    """Undo what LeRobot's AV1 video encoder (SVT-AV1) does to the calling thread when it may, i.e. as root:
-    it raises the thread to real-time ``SCHED_FIFO`` priority 99 and leaves it there, so every process
-    started afterwards (the benchmark's ``lerobot-train``) would inherit it and starve the machine's other
-    work. Restores the thread's scheduling policy on exit (Linux; elsewhere a no-op)."""
-    if not hasattr(os, "sched_getscheduler"):
-        yield
-        return
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        yield
-    finally:
-        if os.sched_getscheduler(0) != policy or os.sched_getparam(0) != param:
-            os.sched_setscheduler(0, policy, param)
 
 
 @contextlib.contextmanager

@@ -7,6 +7,8 @@ time unless a person presses the next-episode key) and turns every float observa
 * wrap ``record_loop`` to tell the robot whether a record or a reset phase runs and hand it the keyboard
   ``events`` dict, so the robot ends the recorded episode when the env episode ends (it sets
   ``events["exit_early"]``, the flag the next-episode key sets) and holds still while "resetting";
+* put the record loop back to the CPU priority the process had when the robot was made: LeRobot's AV1 encoder
+  leaves the process at real-time priority after it saved an episode with cameras (:mod:`lerobot_pdp.cpu_priority`);
 * wrap ``aggregate_pipeline_dataset_features`` to split ``observation.state`` into ``observation.state`` and
   ``observation.environment_state`` by name, the layout ``make-dataset`` writes (``build_dataset_frame``
   fills both by name, so frames need nothing else).
@@ -21,6 +23,7 @@ import logging
 import sys
 from typing import Any
 
+from .. import cpu_priority
 from .hooks import splitting_features, wrap_all
 from .live import LIVE
 
@@ -29,8 +32,14 @@ logger = logging.getLogger(__name__)
 RECORD_MODULE = "lerobot.scripts.lerobot_record"
 
 
+# the process's scheduling before any episode was encoded (taken when the first pdp_sim robot installs the hooks)
+_SCHEDULING: list[cpu_priority.Scheduling | None] = []
+
+
 def install() -> bool:
     """Wrap the record script's functions once; False when ``lerobot-record`` is not running here."""
+    if not _SCHEDULING:
+        _SCHEDULING.append(cpu_priority.current())
     mod = sys.modules.get(RECORD_MODULE)
     if mod is None:
         main = sys.modules.get("__main__")
@@ -53,6 +62,8 @@ def _wrap_record_loop(original):
         if recording and fps is not None and int(fps) != robot.suite.fps:
             logger.warning("pdp_sim: recording at %s fps; make-dataset writes %s fps for %s", fps,
                            robot.suite.fps, robot.suite.name)
+        if _SCHEDULING and cpu_priority.restore(_SCHEDULING[0]):
+            logger.info("pdp_sim: the video encoder had left this process at real-time priority: set back")
         robot.begin_phase(events, recording=recording, dataset=dataset)
         try:
             result = original(*args, **kwargs)
