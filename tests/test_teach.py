@@ -90,9 +90,10 @@ def test_teaching_makes_the_new_route_the_denoisers_own(synthetic_meta):
 
 
 def test_teaching_again_rehearses_the_mode_taught_before(synthetic_meta, caplog):
-    """A second taught mode does not make the policy forget the first as much: the first demonstration is
-    rehearsed at its latent (kept with the policy), which without it drifts further. Measured on weight seeds 0
-    and 1: the first mode's error rose 1.14x / 1.11x with its rehearsal, 1.30x / 1.25x without."""
+    """A second taught mode does not make the policy forget the first: the first demonstration is rehearsed at its
+    latent (kept with the policy), as many windows per batch as the new one, and without it the first mode drifts.
+    Measured on weight seeds 0 and 1: the first mode's error 0.97x / 0.99x with its rehearsal, 1.28x / 1.26x
+    without."""
     import copy
 
     p = small_policy(synthetic_meta, optimizer_lr=1e-3)
@@ -112,7 +113,7 @@ def test_teaching_again_rehearses_the_mode_taught_before(synthetic_meta, caplog)
         forgetful.teach(second, synthetic_meta.root, steps=60, lr=1e-3, seed=0, name="far left")
     assert "taught mode(s) [4, 5] were taught by a release that did not keep their demonstrations" in caplog.text
     kept, lost = error(p), error(forgetful)
-    assert kept < 1.2 * before and kept < lost, (before, kept, lost)
+    assert kept < 1.1 * before and kept < lost, (before, kept, lost)
 
 
 def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, capsys):
