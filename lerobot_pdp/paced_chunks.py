@@ -35,6 +35,9 @@ def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:
     return key is not None and batch[key].dim() == 1 + len(features[key].shape)
 
 
+# Left out of torch.compile's graph (``lerobot-rollout --use_torch_compile`` compiles ``predict_action_chunk``, this
+# included): dynamo tracing the deques' mutation did not finish in 30 minutes; run eagerly it is a few stacks.
+@torch.compiler.disable
 def paced_history(policy: Any, batch: dict[str, Tensor]) -> dict[str, Tensor]:
     """The observation history [B, n_obs_steps, *frame] per conditioning key after ``batch``'s one observation
     joins it; steering that needs ``select_action``'s pace is refused first (the module docstring)."""
