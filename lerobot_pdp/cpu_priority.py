@@ -2,8 +2,8 @@
 
 LeRobot 0.6 encodes camera frames with SVT-AV1, which raises the encoding thread to real-time ``SCHED_FIFO``
 priority 99 where it may (as root, in a container say) and leaves it there: the rest of that process, and every
-process it starts afterwards, then competes with the whole machine at real-time priority (one test worker that
-had written a video dataset starved the other worker's trainings for an hour on two cores). Linux only;
+process it starts afterwards, then competes with the whole machine at real-time priority (a test worker that had
+written a video dataset ran its later trainings at SCHED_FIFO 99 beside the other worker, on two cores). Linux only;
 elsewhere every function here is a no-op.
 """
 

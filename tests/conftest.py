@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 # LeRobot's AV1 video encoder raises the encoding thread to real-time priority where it may (as root) and leaves it
 # there (lerobot_pdp/cpu_priority.py). A test that writes a video dataset in this process would otherwise run every
 # later test here, and every process they start (lerobot-train, lerobot-eval), at that priority: on two cores they
-# starve the other worker (a full run went past CI's 90 minutes that way). Each test phase ends at the priority
+# starve the other worker (seen in a full run: a worker at SCHED_FIFO 99). Each test phase ends at the priority
 # the session started with; make-dataset and pdp_sim's record loop undo it themselves (tested there).
 from lerobot_pdp import cpu_priority  # noqa: E402
 
