@@ -320,10 +320,10 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
             torch.manual_seed(int(seed))
             for _ in range(steps):
                 picks = [(w, z, torch.randint(0, len(w.actions), (n,), generator=g)) for w, z, n in pools]
-                obs = torch.cat([w.obs_cond[i] for w, _, i in picks]).to(device)
-                actions = torch.cat([w.actions[i] for w, _, i in picks]).to(device)
-                is_pad = torch.cat([w.is_pad[i] for w, _, i in picks]).to(device)
-                z = torch.cat([zp[i] for _, zp, i in picks]).to(device)
+                obs = torch.cat([w.obs_cond[i].to(device) for w, _, i in picks])  # pools may sit on the CPU
+                actions = torch.cat([w.actions[i].to(device) for w, _, i in picks])
+                is_pad = torch.cat([w.is_pad[i].to(device) for w, _, i in picks])
+                z = torch.cat([zp[i].to(device) for _, zp, i in picks])
                 eps = torch.randn_like(actions)
                 k = torch.randint(0, cfg.num_train_timesteps, (len(actions),), device=device)
                 pred = model.denoiser(model.noise_schedule.add_noise(actions, eps, k), k, obs, z)
