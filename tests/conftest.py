@@ -46,32 +46,10 @@ from lerobot_pdp import cpu_priority  # noqa: E402
 _SCHEDULING = cpu_priority.current()
 
 
-def _restore_scheduling() -> None:
+def pytest_runtest_makereport(item, call):
+    """Called after each phase of a test (setup, call, teardown): the next phase starts at the session's priority."""
     cpu_priority.restore(_SCHEDULING)
 
-
-@pytest.hookimpl(wrapper=True)
-def pytest_runtest_setup(item):
-    try:
-        return (yield)
-    finally:
-        _restore_scheduling()
-
-
-@pytest.hookimpl(wrapper=True)
-def pytest_runtest_call(item):
-    try:
-        return (yield)
-    finally:
-        _restore_scheduling()
-
-
-@pytest.hookimpl(wrapper=True)
-def pytest_runtest_teardown(item, nextitem):
-    try:
-        return (yield)
-    finally:
-        _restore_scheduling()
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -88,7 +66,7 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
 
     # the benchmark's trainings read datasets through column views (a child asks for them by its environment)
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **column_views.child_env(), **(env or {})}
-    _restore_scheduling()  # the process inherits this one's priority: never a video encoder's real-time one
+    cpu_priority.restore(_SCHEDULING)  # the process inherits this one's priority: never a video encoder's real-time one
     proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=full_env)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")

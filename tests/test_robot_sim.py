@@ -246,7 +246,8 @@ def test_the_record_loop_runs_at_the_priority_the_video_encoder_took(tmp_path):
         loop(robot=robot, events={"exit_early": False})
     finally:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        robot.disconnect() if robot.is_connected else None
+        if robot.is_connected:
+            robot.disconnect()
     assert seen == [os.SCHED_OTHER]
 
 
