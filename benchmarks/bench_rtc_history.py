@@ -21,6 +21,8 @@ import types
 import numpy as np
 import torch
 
+from lerobot_pdp.benchmark.machine import cpu_model
+
 
 def _engine(h: int, w: int):
     import lerobot.rollout.inference.rtc as rtc
@@ -78,7 +80,8 @@ def main() -> None:
         history_ms = _ms(lambda: published.history(e._policy, batch), args.calls)  # noqa: B023
         print(json.dumps({"bench": "rtc_history", "image": [h, w], "n_obs_steps": published.n_obs_steps,
                           "engine_preprocess_ms": round(engine_ms, 3), "history_ms": round(history_ms, 3),
-                          "ratio": round(history_ms / engine_ms, 2), "threads": args.threads}))
+                          "ratio": round(history_ms / engine_ms, 2), "threads": args.threads,
+                          "cpu": cpu_model()}))
 
 
 if __name__ == "__main__":
