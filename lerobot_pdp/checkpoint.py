@@ -135,14 +135,39 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
     loaded = bank.snapshot()
     if bank.same_behaviors(loaded, read):
         return
-    n_old, n_new = len(loaded["episode"].unique()), len(read["episode"].unique())
-    taught = (f"; its {loaded['taught'].shape[0]} taught behaviour(s) are not in this dataset and are dropped"
-              if loaded["taught"].numel() else "")
+    n_taught = loaded["taught"].shape[0]
+    trained = {k: v[: len(v) - n_taught] for k, v in loaded.items() if k in ("episode", "start", "end", "global_start",
+                                                                            "mode", "traces")}
+    if n_taught:  # lerobot-train samples the dataset alone: a taught mode would not be rehearsed, and drift unseen
+        taught = _taught_modes_text(loaded["mode"][-n_taught:], model_file)
+        again = (f"teach them to the trained checkpoint again from the demonstrations {Path(model_file).parent} "
+                 f"keeps: lerobot-pdp teach <trained checkpoint> --taught-from {Path(model_file).parent} --out <folder>")
+        if bank.same_behaviors(trained, read):
+            logger.warning("%s was taught %s, which lerobot-train cannot rehearse (it trains on the dataset's episodes "
+                           "alone): they are dropped, and the trained policy holds this dataset's behaviours; %s",
+                           model_file, taught, again)
+            bank.restore(read)
+            return
+        taught = f"; its taught {taught} are not in this dataset and are dropped ({again})"
+    else:
+        taught = ""
     logger.warning("%s holds the behaviours of other data (%d episode(s), %d behaviours) than the dataset this "
                    "policy trains on (%d episode(s), %d behaviours): training goes on with this dataset's behaviour "
                    "bank (its traces, modes and soft-DTW distances), so mode latents now describe this dataset%s",
-                   model_file, n_old, len(loaded["episode"]), n_new, len(read["episode"]), taught)
+                   model_file, len(trained["episode"].unique()), len(trained["episode"]), len(read["episode"].unique()),
+                   len(read["episode"]), taught)
     bank.restore(read)
+
+
+def _taught_modes_text(modes: Tensor, model_file: str) -> str:
+    """"mode(s) 4 ('around the crate')": the taught modes, named as the checkpoint's config.json names them."""
+    saved = Path(model_file).with_name(CONFIG_NAME)
+    try:
+        names = (read_config_json(saved).get("mode_names") or {}) if saved.is_file() else {}
+    except ValueError:  # a damaged config.json was reported where it was read; the ids alone here
+        names = {}
+    ids = sorted({int(m) for m in modes.tolist()})
+    return "mode(s) " + ", ".join(f"{m} ({names[str(m)]!r})" if str(m) in names else str(m) for m in ids)
 
 
 def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[int, ...]]) -> None:

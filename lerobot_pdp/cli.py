@@ -269,10 +269,10 @@ def cmd_steer(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_demonstration_arguments(p: argparse.ArgumentParser, written: str) -> None:
+def add_demonstration_arguments(p: argparse.ArgumentParser, written: str, demo_required: bool = True) -> None:
     """The checkpoint, the demonstration (dataset folder and episode) and the ``written`` checkpoint's folder."""
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
-    p.add_argument("--demo", required=True, type=Path, help="the demonstration: a LeRobotDataset folder")
+    p.add_argument("--demo", required=demo_required, type=Path, help="the demonstration: a LeRobotDataset folder")
     p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
     p.add_argument("--out", required=True, type=Path, help=f"the {written} checkpoint folder to write (must not exist)")
 
@@ -464,9 +464,13 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
         "latent is the encoder's mean of the demonstration; the denoiser is fine-tuned with a share of each batch "
         "from the demonstration and the rest rehearsing the training data. Writes a complete LeRobot checkpoint "
         "(config naming the new mode, weights, processors, teaching.json, model card); steer to the new mode with "
-        "--policy.steer_mode=<id>.",
+        "--policy.steer_mode=<id>. With --taught-from instead of --demo: teach the checkpoint every mode a taught "
+        "checkpoint was taught, from the demonstrations it keeps (lerobot-train drops taught modes).",
     )
-    add_demonstration_arguments(p, "taught")
+    add_demonstration_arguments(p, "taught", demo_required=False)
+    p.add_argument("--taught-from", type=Path, default=None,
+                   help="a taught checkpoint: teach every mode it was taught, in order and under its name, from the "
+                   "demonstrations it keeps (instead of --demo; e.g. onto a checkpoint lerobot-train trained further)")
     p.add_argument("--data", type=Path, default=None,
                    help="the dataset the checkpoint was trained on, rehearsed while teaching (default: the one its "
                    "train_config.json names)")
@@ -484,8 +488,23 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_teach(args: argparse.Namespace) -> int:
-    from lerobot_pdp.taught import teach_checkpoint
+    if (args.demo is None) == (args.taught_from is None):
+        raise ValueError("give the demonstration with --demo, or a taught checkpoint whose modes to teach again with "
+                         "--taught-from (one of them)")
+    if args.taught_from is not None and args.name is not None:
+        raise ValueError("--name names a --demo's mode; --taught-from keeps the taught modes' names")
+    # torch and LeRobot are imported after the argument checks
+    from lerobot_pdp.taught import teach_again_from, teach_checkpoint
 
+    if args.taught_from is not None:
+        out, done = teach_again_from(args.checkpoint, args.taught_from, args.out, training_data=args.data,
+                                     steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
+                                     latent=args.latent, device=args.device)
+        for old, res in done:
+            print(f"mode {old} of {args.taught_from} -> mode {res.mode}, latent {res.z.tolist()}, {res.steps} steps in "
+                  f"{res.seconds:.0f} s")
+        print(f"wrote {out}: {len(done)} taught mode(s); steer with --policy.steer_mode=<id>")
+        return 0
     out, res = teach_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, training_data=args.data,
                                 steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
                                 latent=args.latent, name=args.name, device=args.device)

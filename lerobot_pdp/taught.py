@@ -6,6 +6,10 @@ config, the fine-tuned weights with the grown behaviour bank, the config naming 
 (where the demonstration came from, the settings, the loss, the time), the taught demonstrations
 (``taught_demonstrations.safetensors``: rehearsed when it is taught again) and a model card section. The new mode is
 then a mode like the others: ``--policy.steer_mode=<id>`` in ``lerobot-eval`` / ``lerobot-rollout``.
+
+``lerobot-pdp teach CKPT --taught-from TAUGHT --out NEW`` (:func:`teach_again_from`) teaches CKPT every mode TAUGHT
+was taught, from the demonstrations TAUGHT keeps: how taught modes are carried over to a checkpoint that
+``lerobot-train`` trained further (its loop trains the dataset's behaviours only; it warns that they are dropped).
 """
 
 from __future__ import annotations
@@ -21,9 +25,9 @@ from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
-from .demonstration import Episode
+from .demonstration import Demonstration, Episode
 from .model_card import checkpoint_card
-from .taught_demos import TAUGHT_DEMOS
+from .taught_demos import TAUGHT_DEMOS, tensors_to_demos
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult
 
 logger = logging.getLogger(__name__)
@@ -48,6 +52,15 @@ def training_data_of(checkpoint: str | Path) -> Path:
     return _from_launch_folder(Path(root), Path(checkpoint), train.get("output_dir"))
 
 
+def _training_data(base: Path, training_data: str | Path | None) -> Path:
+    """``training_data``, or the dataset ``base``'s train_config.json names (an error if it is not here)."""
+    data = Path(training_data) if training_data is not None else training_data_of(base)
+    if training_data is None and not data.is_dir():  # a path the user never typed: say where it came from
+        raise FileNotFoundError(f"{base / 'train_config.json'} names the training dataset {data}, which is not here "
+                                "(moved, or on another machine): give the dataset the checkpoint was trained on with --data")
+    return data
+
+
 def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) -> Path:
     """lerobot-train records ``--dataset.root`` as typed: a relative root is relative to the folder it was run
     in. Found from here as given; else from that folder, which a checkpoint under ``OUTPUT_DIR/checkpoints/
@@ -65,9 +78,10 @@ def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) ->
 def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, training_data: str | Path | None = None,
                      steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
                      seed: int = 0, name: str | None = None, latent: str = TEACH_LATENT,
-                     device: str = "cpu") -> tuple[Path, TeachResult]:
+                     device: str = "cpu", demo_record: dict | None = None) -> tuple[Path, TeachResult]:
     """Teach ``base`` one demonstration as a new mode and write the taught checkpoint ``out`` (which must not
-    exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names."""
+    exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names. ``demo_record``:
+    what ``teaching.json`` says of a demonstration given as arrays (default: "given in memory")."""
     from .modeling_pdp import PDPPolicy
 
     base, out = Path(base), Path(out)
@@ -78,17 +92,14 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
     if (base / ADAPTATION_INFO).is_file():  # the weights are taught; the taught checkpoint acts unadapted
         logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
-    data = Path(training_data) if training_data is not None else training_data_of(base)
-    if training_data is None and not data.is_dir():  # a path the user never typed: say where it came from
-        raise FileNotFoundError(f"{base / 'train_config.json'} names the training dataset {data}, which is not here "
-                                "(moved, or on another machine): give the dataset the checkpoint was trained on with --data")
+    data = _training_data(base, training_data)
     cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
     policy = PDPPolicy.from_pretrained(base, config=cfg)
     result = policy.teach(episode, data, steps=steps, lr=lr, demo_share=demo_share, seed=seed, name=name,
                           latent=latent, progress=True)
     policy.eval()
-    info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""))
+    info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""), demo_record)
     if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own record goes along
         before = read_config_json(base / TEACHING_INFO)
         info["earlier_teachings"] = [*before.pop("earlier_teachings", []), before]
@@ -104,11 +115,64 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
     return out, result
 
 
-def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str) -> dict:
+def taught_demonstrations(checkpoint: str | Path) -> list[tuple[int, str, Demonstration]]:
+    """The demonstrations a taught checkpoint keeps (``taught_demonstrations.safetensors``), in the order they were
+    taught: ``(mode id, mode name, demonstration)``. An error naming the file when it keeps none or is damaged."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    checkpoint = Path(checkpoint)
+    path = checkpoint / TAUGHT_DEMOS
+    if not path.is_file():
+        raise FileNotFoundError(f"{checkpoint} keeps no taught demonstrations ({TAUGHT_DEMOS}): it is no taught "
+                                "checkpoint, or one taught by a release that did not keep them (teach each "
+                                "demonstration again with --demo)")
+    try:
+        demos = tensors_to_demos(load_file(str(path)), str(path))
+    except (SafetensorError, OSError) as e:
+        raise ValueError(f"{path} is damaged ({e}): its taught demonstrations cannot be read") from e
+    if not demos:
+        raise ValueError(f"{path} holds no demonstration")
+    names = (read_config_json(checkpoint / "config.json").get("mode_names") or {}) if (checkpoint / "config.json").is_file() else {}
+    return [(mode, str(names.get(str(mode), f"taught mode {mode}")), demo) for mode, demo in sorted(demos.items())]
+
+
+def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
+                     training_data: str | Path | None = None, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
+                     demo_share: float = TEACH_DEMO_SHARE, seed: int = 0, latent: str = TEACH_LATENT,
+                     device: str = "cpu") -> tuple[Path, list[tuple[int, TeachResult]]]:
+    """Teach ``base`` every mode the taught checkpoint ``taught_from`` was taught, from the demonstrations it keeps,
+    in their order and under their names, and write the result to ``out``: each teaching rehearses the ones
+    before, as teaching them one by one would. For a checkpoint trained further with ``lerobot-train`` (which
+    trains the dataset's behaviours only, so a taught checkpoint's taught modes do not survive it).
+    Returns ``out`` and ``(mode id in taught_from, result)`` per mode."""
+    base, taught_from, out = Path(base), Path(taught_from), Path(out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
+    demos = taught_demonstrations(taught_from)
+    # one dataset for every teaching: the intermediate checkpoints sit elsewhere than base, so a relative
+    # dataset.root in the train_config.json they copy would not be found from them
+    data = _training_data(base, training_data)
+    done: list[tuple[int, TeachResult]] = []
+    with staging_dir(out, prefix=".pdp-teach-again-") as work:
+        current = base
+        for i, (mode, name, demo) in enumerate(demos):
+            target = out if i == len(demos) - 1 else work / f"mode{mode}"
+            record = {"taught_checkpoint": str(taught_from.resolve()), "mode": mode}
+            logger.info("teaching mode %d (%s) of %s (%d of %d)", mode, name, taught_from, i + 1, len(demos))
+            current, res = teach_checkpoint(current, demo.arrays, target, data, steps=steps, lr=lr,
+                                            demo_share=demo_share, seed=seed, name=name, latent=latent,
+                                            device=device, demo_record=record)
+            done.append((mode, res))
+    return out, done
+
+
+def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str,
+                  demo_record: dict | None = None) -> dict:
     """What ``teaching.json`` records: the base, the demonstration, the rehearsal data, the new mode, settings, the
     mean loss over the first and the last ``loss_window`` steps (50, or half a shorter run), the time, the date;
     a taught checkpoint taught again adds its base's records as ``earlier_teachings``."""
-    demo: dict = {"arrays": "given in memory"}
+    demo: dict = demo_record or {"arrays": "given in memory"}
     if isinstance(episode, tuple):
         demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
     n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice

@@ -159,6 +159,67 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     np.testing.assert_allclose(r.model.bank.taught_demos[4].arrays["action"], new_route()["action"], atol=1e-6)
 
 
+def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_checkpoint(synthetic_meta, tmp_path,
+                                                                                       caplog, capsys):
+    """lerobot-train on a taught checkpoint trains the dataset's behaviours alone: the taught modes are dropped with
+    a warning that names them and the way back, ``teach <trained> --taught-from <taught>``, which teaches them
+    again from the demonstrations the taught checkpoint keeps, in order and under their names."""
+    import logging
+
+    from lerobot.policies.factory import make_policy
+
+    from lerobot_pdp import PDPConfig
+
+    base = tmp_path / "base"
+    small_policy(synthetic_meta).save_pretrained(base)
+    demos = (tmp_path / "demo1", tmp_path / "demo2")
+    _write_demo(demos[0], new_route())
+    _write_demo(demos[1], new_route(x_via=1.9))
+    data = ["--data", str(synthetic_meta.root), "--steps", "1"]
+    assert cli(["teach", str(base), "--demo", str(demos[0]), *data, "--name", "far right", "--out",
+                str(tmp_path / "t1")]) == 0
+    assert cli(["teach", str(tmp_path / "t1"), "--demo", str(demos[1]), *data, "--name", "farther right", "--out",
+                str(tmp_path / "t2")]) == 0
+
+    cfg = PDPConfig.from_pretrained(tmp_path / "t2")  # what lerobot-train --policy.path builds, on the same dataset
+    cfg.pretrained_path = tmp_path / "t2"
+    caplog.set_level(logging.WARNING, logger="lerobot_pdp.checkpoint")
+    trained = make_policy(cfg, ds_meta=synthetic_meta)
+    assert ("was taught mode(s) 4 ('far right'), 5 ('farther right'), which lerobot-train cannot rehearse"
+            in caplog.text)
+    assert f"lerobot-pdp teach <trained checkpoint> --taught-from {tmp_path / 't2'} --out <folder>" in caplog.text
+    assert sorted(trained.mode_latents()) == [0, 1, 2, 3] and not trained.model.bank.taught_demos
+    trained.save_pretrained(tmp_path / "trained")
+    assert not (tmp_path / "trained" / TAUGHT_DEMOS).exists()
+
+    capsys.readouterr()
+    assert cli(["teach", str(tmp_path / "trained"), "--taught-from", str(tmp_path / "t2"), *data, "--out",
+                str(tmp_path / "again")]) == 0
+    out = capsys.readouterr().out
+    assert f"mode 4 of {tmp_path / 't2'} -> mode 4" in out and f"mode 5 of {tmp_path / 't2'} -> mode 5" in out
+    again = PDPPolicy.from_pretrained(tmp_path / "again")
+    assert sorted(again.mode_latents()) == [0, 1, 2, 3, 4, 5]
+    assert again.config.mode_names["4"] == "far right" and again.config.mode_names["5"] == "farther right"
+    assert sorted(again.model.bank.taught_demos) == [4, 5]
+    np.testing.assert_allclose(again.model.bank.taught_demos[5].arrays["action"], new_route(x_via=1.9)["action"],
+                               atol=1e-6)
+    info = json.loads((tmp_path / "again" / TEACHING_INFO).read_text())  # the second teaching rehearsed the first
+    assert info["demonstration"] == {"taught_checkpoint": str((tmp_path / "t2").resolve()), "mode": 5}
+    assert [t["demonstration"]["mode"] for t in info["earlier_teachings"]] == [4]
+    assert info["rehearsal_windows"] == info["earlier_teachings"][0]["rehearsal_windows"] + len(new_route()["action"])
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".pdp-")) == []  # no stage left
+
+    # argument errors, before anything is read
+    for args, msg in (([], "give the demonstration with --demo, or a taught checkpoint"),
+                      (["--demo", str(demos[0]), "--taught-from", str(tmp_path / "t2")], "(one of them)"),
+                      (["--taught-from", str(tmp_path / "t2"), "--name", "x"], "--taught-from keeps the taught modes")):
+        assert cli(["teach", str(tmp_path / "trained"), *args, "--out", str(tmp_path / "x")]) == 2
+        assert msg in capsys.readouterr().err
+    assert cli(["teach", str(tmp_path / "trained"), "--taught-from", str(base), *data, "--out", str(tmp_path / "x")]) == 2
+    assert f"{base} keeps no taught demonstrations ({TAUGHT_DEMOS})" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def _write_demo(root, arrays: dict[str, np.ndarray]) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
