@@ -29,6 +29,7 @@ from .checkpoint import (
     read_adaptation,
     write_adaptation,
 )
+from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode
 from .latent_search import SearchResult
@@ -122,11 +123,21 @@ def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: s
                 continue
             (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
         write_adaptation(policy.steering, tmp)
+        _acting_adapted(tmp / "config.json")
         text = checkpoint_card(base)
         if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
             text = text.split(f"\n{CARD_HEADING}\n")[0]
         (tmp / "README.md").write_text(text.rstrip() + "\n\n" + card_section)
         move_into_place(tmp, Path(out))
+
+
+def _acting_adapted(config: Path) -> None:
+    """An adapted checkpoint acts under its adaptation: ``use_adaptation`` false in the base's config.json (as a
+    taught checkpoint of an earlier release saved it) would load it silently unadapted."""
+    cfg = read_config_json(config)
+    if cfg.get("use_adaptation", True) is not True:
+        cfg["use_adaptation"] = True
+        config.write_text(json.dumps(cfg, indent=4) + "\n")
 
 
 def _check_folders(base: Path, out: str | Path | None) -> None:

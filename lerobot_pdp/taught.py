@@ -93,12 +93,15 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
     data = _training_data(base, training_data)
-    cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,
+    saved = PDPConfig.from_pretrained(base)
+    cfg = dataclasses.replace(saved, device=device, use_adaptation=False, steer_latent=None,
                               steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
     policy = PDPPolicy.from_pretrained(base, config=cfg)
     result = policy.teach(episode, data, steps=steps, lr=lr, demo_share=demo_share, seed=seed, name=name,
                           latent=latent, progress=True)
     policy.eval()
+    # saved as the base was: use_adaptation=False here would make a later adaptation of it act as if absent
+    policy.config.use_adaptation, policy.config.device = saved.use_adaptation, saved.device
     info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""), demo_record)
     if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own record goes along
         before = read_config_json(base / TEACHING_INFO)

@@ -220,6 +220,49 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
     assert not (tmp_path / "x").exists()
 
 
+def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
+    """A checkpoint pushed to the Hub acts as its folder does: loaded by repo id from the Hub cache (offline, as on
+    a robot that downloaded it), it has its taught mode's name, the demonstration it keeps and its adaptation."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    base = tmp_path / "base"
+    small_policy(synthetic_meta).save_pretrained(base)
+    demo = tmp_path / "demo"
+    _write_demo(demo, new_route())
+    assert cli(["teach", str(base), "--demo", str(demo), "--data", str(synthetic_meta.root), "--steps", "1",
+                "--name", "far right", "--out", str(tmp_path / "taught")]) == 0
+    config = tmp_path / "taught" / "config.json"
+    saved = json.loads(config.read_text())
+    assert saved["use_adaptation"] is True  # as the base: teaching's own unadapted load is not saved
+    config.write_text(json.dumps({**saved, "use_adaptation": False}))  # as an earlier release saved a taught one
+    assert cli(["adapt", str(tmp_path / "taught"), "--demo", str(demo), "--steps", "2", "--out",
+                str(tmp_path / "adapted")]) == 0
+    assert json.loads((tmp_path / "adapted" / "config.json").read_text())["use_adaptation"] is True
+    commit = "0123456789abcdef0123456789abcdef01234567"  # huggingface_hub's cache layout of repo lab/pdp-taught
+    repo = tmp_path / "hub" / "models--lab--pdp-taught"
+    shutil.copytree(tmp_path / "adapted", repo / "snapshots" / commit)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text(commit)
+
+    script = ("import json; from lerobot_pdp import PDPPolicy; p = PDPPolicy.from_pretrained({!r}); "
+              "print(json.dumps({{'modes': sorted(p.mode_latents()), 'name': p.config.mode_names['4'], "
+              "'taught': sorted(p.model.bank.taught_demos), 'latent': p.active_latent.tolist()}}))")
+    env = {**os.environ, "HF_HUB_CACHE": str(tmp_path / "hub"), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    got = []
+    for source in ("lab/pdp-taught", str(tmp_path / "adapted")):
+        proc = subprocess.run([sys.executable, "-c", script.format(source)], capture_output=True, text=True, env=env,
+                              timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        got.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    hub, local = got
+    assert hub == local and hub["modes"] == [0, 1, 2, 3, 4] and hub["name"] == "far right" and hub["taught"] == [4]
+    adapted = json.loads((tmp_path / "adapted" / "adaptation.json").read_text())
+    np.testing.assert_allclose(np.array(hub["latent"]).reshape(-1), np.array(adapted["latent"]).reshape(-1), atol=1e-6)
+
+
 def _write_demo(root, arrays: dict[str, np.ndarray]) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
