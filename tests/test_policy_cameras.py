@@ -106,6 +106,25 @@ def test_fit_latent_on_a_camera_demonstration_reads_its_frames(image_dataset):
     assert torch.allclose(policy.encode(episode), policy.encode((image_dataset, 5)), atol=1e-6)
 
 
+def test_a_camera_policy_is_taught_and_taught_again_with_its_frames_kept(image_dataset, tmp_path):
+    """Teaching a camera policy keeps the demonstration's frames with the checkpoint (uint8, one 1/255 step), and
+    teaching the taught checkpoint again rehearses them; the taught mode acts from camera observations."""
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(image_dataset))
+    first = policy.teach((image_dataset, 5), image_dataset, steps=2, name="episode 5 again")
+    policy.save_pretrained(tmp_path / "taught")
+    taught = PDPPolicy.from_pretrained(tmp_path / "taught")
+    kept = taught.model.bank.taught_demos[first.mode].arrays
+    ds = LeRobotDataset("local/synthetic", root=image_dataset, episodes=[5])
+    frames = torch.stack([ds[i][TOP] for i in range(len(ds))]).numpy()
+    assert kept[TOP].shape == frames.shape and np.abs(kept[TOP] - frames).max() <= 0.5 / 255 + 1e-6
+    second = taught.teach((image_dataset, 6), image_dataset, steps=1, name="episode 6 again")
+    assert second.rehearsal_windows == first.rehearsal_windows + first.demo_windows  # the first one rehearsed
+    taught.set_latent(taught.mode_latents()[first.mode])
+    taught.reset()
+    obs = {k: ds[0][k][None] for k in taught.config.input_features}
+    assert torch.isfinite(taught.select_action(obs)).all()
+
+
 def test_separate_encoder_per_camera(image_dataset):
     policy = make_policy(PDPConfig(use_separate_rgb_encoder_per_camera=True, **SMALL), ds_meta=_meta(image_dataset))
     assert len(policy.model.obs_encoder.rgb_encoder) == 2
