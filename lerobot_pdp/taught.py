@@ -21,7 +21,7 @@ import logging
 import shutil
 from pathlib import Path
 
-from .atomic import move_into_place, staging_dir
+from .atomic import move_into_place, staging_dir, write_text_atomic
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
@@ -136,7 +136,8 @@ def taught_demonstrations(checkpoint: str | Path) -> list[tuple[int, str, Demons
         raise ValueError(f"{path} is damaged ({e}): its taught demonstrations cannot be read") from e
     if not demos:
         raise ValueError(f"{path} holds no demonstration")
-    names = (read_config_json(checkpoint / "config.json").get("mode_names") or {}) if (checkpoint / "config.json").is_file() else {}
+    config = checkpoint / "config.json"
+    names = (read_config_json(config).get("mode_names") or {}) if config.is_file() else {}
     return [(mode, str(names.get(str(mode), f"taught mode {mode}")), demo) for mode, demo in sorted(demos.items())]
 
 
@@ -167,6 +168,12 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
                                             demo_share=demo_share, seed=seed, name=name, latent=latent,
                                             device=device, demo_record=record)
             done.append((mode, res))
+        # the records name the base, not the intermediate checkpoints this removes
+        info = read_config_json(out / TEACHING_INFO)
+        for record in (info, *info.get("earlier_teachings", ())):
+            if str(record.get("base_checkpoint", "")).startswith(str(work.resolve())):
+                record["base_checkpoint"] = str(base.resolve())
+        write_text_atomic(out / TEACHING_INFO, json.dumps(info, indent=2) + "\n")
     return out, done
 
 

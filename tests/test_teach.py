@@ -206,6 +206,7 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
     info = json.loads((tmp_path / "again" / TEACHING_INFO).read_text())  # the second teaching rehearsed the first
     assert info["demonstration"] == {"taught_checkpoint": str((tmp_path / "t2").resolve()), "mode": 5}
     assert [t["demonstration"]["mode"] for t in info["earlier_teachings"]] == [4]
+    assert info["base_checkpoint"] == info["earlier_teachings"][0]["base_checkpoint"] == str((tmp_path / "trained").resolve())
     assert info["rehearsal_windows"] == info["earlier_teachings"][0]["rehearsal_windows"] + len(new_route()["action"])
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".pdp-")) == []  # no stage left
 
