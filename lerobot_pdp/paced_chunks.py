@@ -23,9 +23,9 @@ from torch import Tensor
 from .observation_encoder import check_observation
 from .realtime_chunking import check_rtc_steering
 
-check_paced_steering = functools.partial(
-    check_rtc_steering, engine="a caller that asks for chunks one observation at a time (LeRobot's async policy "
-    "server)", way_out="Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or")
+PACED_ENGINE = "a caller that asks for chunks one observation at a time (LeRobot's async policy server)"
+PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or"
+check_paced_steering = functools.partial(check_rtc_steering, engine=PACED_ENGINE, way_out=PACED_WAY_OUT)
 
 
 def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:

@@ -108,12 +108,14 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
         def from_pretrained(path: str, **kwargs: Any):
             from lerobot.configs.policies import PreTrainedConfig
 
-            from .paced_chunks import check_paced_steering
+            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, check_paced_steering
+            from .steering import paced_caller
 
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            policy = cls.from_pretrained(path, **kwargs)
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT):  # a start-up fit it cannot follow: refused before it runs
+                policy = cls.from_pretrained(path, **kwargs)
             check_paced_steering(policy)
             return policy
 

@@ -25,13 +25,15 @@ A checkpoint is also steered once, as it loads, by its config's ``steer_*`` fiel
 from __future__ import annotations
 
 import atexit
+import contextlib
+import contextvars
 import json
 import logging
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -102,15 +104,51 @@ def apply_config_steering(policy: Any) -> None:
         logger.info("steered to mode %s%s: latent %s", cfg.steer_mode, f" ({name})" if name else "",
                     means[cfg.steer_mode].tolist())
     elif cfg.steer_dataset_root is not None:
-        if cfg.fit_noise == "chunks" and _rollout_with_rtc():  # refused after the fit otherwise (minutes)
-            raise ValueError("--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which "
-                             "lerobot-rollout's RTC engine cannot replay in order (it replans at its own pace). "
-                             "Use --inference.type=sync, or --policy.fit_noise=none")
+        episode = (cfg.steer_dataset_root, int(cfg.steer_episode_index))
+        refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)
+        noises = " and one sampler noise per chunk" if cfg.fit_noise == "chunks" else ""
+        logger.info("fitting the latent%s to %s episode %d before the control loop starts", noises, *episode)
         t0 = time.perf_counter()
-        res = policy.fit_latent((cfg.steer_dataset_root, int(cfg.steer_episode_index)))
-        logger.info("fitted latent to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)",
+        res = policy.fit_latent(episode)
+        noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
+        logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)", noises,
                     cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
                     "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
+
+
+# (engine, way out) of a caller that replans at its own pace, set while it loads the policy: LeRobot's async
+# policy server (policy_server.py) sets it; lerobot-rollout's RTC engine is told from the command line
+_PACED: contextvars.ContextVar[tuple[str, str] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
+_RTC = ("lerobot-rollout's RTC engine", "Use --inference.type=sync, or")
+
+
+@contextlib.contextmanager
+def paced_caller(engine: str, way_out: str) -> Iterator[None]:
+    """Policies loaded in this block will be called by ``engine``, which replans at its own pace: a start-up fit
+    whose result it cannot follow is refused before it runs (:func:`refuse_paced_fit`)."""
+    token = _PACED.set((engine, way_out))
+    try:
+        yield
+    finally:
+        _PACED.reset(token)
+
+
+def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
+    """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
+    the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase (the chunk-time
+    checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it)."""
+    engine, way_out = _PACED.get() or (_RTC if _rollout_with_rtc() else (None, None))
+    if engine is None:
+        return
+    if policy.config.fit_noise == "chunks":
+        raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which {engine} "
+                         f"cannot replay in order (it replans at its own pace). {way_out} --policy.fit_noise=none")
+    phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
+    if phases > 1:
+        raise ValueError(f"{episode[0]} episode {episode[1]} splits into {phases} gripper phases, fitted one latent "
+                         f"each, which advance on the gripper commands the robot executes; {engine} replans at its "
+                         f"own pace, so phases cannot follow. {way_out} steer with one latent (--policy.steer_mode, "
+                         "--policy.steer_latent)")
 
 
 def _rollout_with_rtc() -> bool:

@@ -149,6 +149,26 @@ def test_the_server_loads_pdp_with_its_policy_options_and_refuses_what_it_cannot
         server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
 
 
+def test_a_start_up_fit_the_server_cannot_follow_is_refused_before_it_runs(server_module, tmp_path, monkeypatch):
+    """A fit at start-up whose result the server's paced calls cannot follow (chunk noises; one latent per gripper
+    phase) is refused as the client connects, before the fit's seconds to minutes, with the way out."""
+    from lerobot_pdp import PDPPolicy
+    from lerobot_pdp.envs.recording import make_dataset
+
+    server = server_module
+    monkeypatch.setattr(PDPPolicy, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={tmp_path}", "--steer_episode_index=0",
+                                     "--fit_noise=chunks"])
+    with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve an "
+                                         r"adapted checkpoint.* --policy.fit_noise=none"):
+        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    demo = make_dataset(env="pick-place", out=tmp_path / "pick", scene=0, episodes_per_mode=1, seed=0, modes=[0],
+                        progress=False)
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=none"])
+    with pytest.raises(ValueError, match=r"episode 0 splits into [2-9] gripper phases, .*async policy server"):
+        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
+
+
 @pytest.mark.parametrize("option, said", [
     ("--policy.steer_mod=2", r"unrecognized arguments: --steer_mod=2\) in --policy.steer_mod=2"),
     ("--policy.steer_mode=x", r"`steer_mode`: Could not decode"),
