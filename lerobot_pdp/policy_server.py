@@ -7,7 +7,8 @@ only (nothing of LeRobot is changed on disk):
 
 * plugins are loaded and ``pdp`` is admitted;
 * the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
-  reach the policy: LeRobot's server passes on the state and the cameras only;
+  reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
+  on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -78,6 +79,8 @@ def with_vector_features(original: Callable) -> Callable:
     def raw_observation_to_observation(raw: dict[str, Any], lerobot_features: dict[str, dict], *args: Any, **kw: Any):
         import torch
 
+        from .paced_chunks import EPISODE_KEY, EPISODE_MARK
+
         named = vectors(lerobot_features)
         for key, names in named.items():
             missing = [n for n in names if n not in raw]
@@ -87,6 +90,8 @@ def with_vector_features(original: Callable) -> Callable:
         for key, names in named.items():
             if key != STATE:
                 out[key] = torch.tensor([float(raw[n]) for n in names], dtype=torch.float32).unsqueeze(0)
+        if EPISODE_MARK in raw:  # pdp_sim's env episode (client_hooks.py): PDP starts a new one when it changes
+            out[EPISODE_KEY] = torch.tensor([float(raw[EPISODE_MARK])])
         return out
 
     return raw_observation_to_observation

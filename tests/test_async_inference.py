@@ -101,6 +101,23 @@ def test_one_observation_at_a_time_joins_the_policy_history(synthetic_meta):
     torch.testing.assert_close(third, p.predict_action_chunk(history(1, 2), noise=noise))
     assert not torch.allclose(first, third)
 
+    # pdp_sim's episode mark (LeRobot's client has no episodes): a new mark starts a new episode, whose first
+    # chunk sees none of the last episode's frames
+    from lerobot_pdp.paced_chunks import EPISODE_KEY
+
+    def marked(i, episode):
+        return {**frames[i], EPISODE_KEY: torch.tensor([float(episode)])}
+
+    p.reset()
+    resets = p.steering.resets
+    p.predict_action_chunk(marked(0, 0), noise=noise)
+    same = p.predict_action_chunk(marked(1, 0), noise=noise)
+    torch.testing.assert_close(same, p.predict_action_chunk(history(0, 1), noise=noise))
+    assert p.steering.resets == resets  # the same episode
+    new = p.predict_action_chunk(marked(2, 1), noise=noise)
+    torch.testing.assert_close(new, p.predict_action_chunk(history(2, 2), noise=noise))
+    assert p.steering.resets == resets + 1
+
 
 def test_steering_a_paced_caller_cannot_follow_is_refused(synthetic_meta):
     """Fitted chunk noises replay one per select_action chunk: asked for chunks at its own pace, PDP refuses
@@ -197,7 +214,7 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
     policy_server.admit_pdp(server, [])
     seen = []
     passes = server.raw_observation_to_observation
-    server.raw_observation_to_observation = lambda *a, **k: (obs := passes(*a, **k), seen.append(sorted(obs)))[0]
+    server.raw_observation_to_observation = lambda *a, **k: (obs := passes(*a, **k), seen.append(obs))[0]
     service = server.PolicyServer(PolicyServerConfig(host="127.0.0.1", fps=50))
     grpc_server = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
     services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, grpc_server)
@@ -227,7 +244,11 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
         grpc_server.stop(0)
     lines = _outcomes(outcomes)
     assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines), lines
-    assert seen and all(keys == ["observation.environment_state", "observation.state", "task"] for keys in seen)
+    keys = ["observation.environment_state", "observation.pdp_sim_episode", "observation.state", "task"]
+    assert seen and all(sorted(obs) == keys for obs in seen)
+    marks = [float(obs["observation.pdp_sim_episode"]) for obs in seen]  # each episode's chunks, in order
+    assert marks == sorted(marks) and set(marks) == {0.0, 1.0}, marks
+    assert service.policy._paced_episode == 1.0  # the served policy followed the episodes
 
 
 # ------------------------------------------------------------------------------------------------ real processes

@@ -11,8 +11,10 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   still queued from the episode that ended; the run ends after ``--robot.episodes`` (the client's shutdown
   event, as Ctrl-C would, set in place of the next observation) and ends cleanly (the receiving thread leaves
   its request before the channel closes); a failed start (no server listening, the policy refused) ends the
-  process. The server's observation history is not reset: the new episode's first chunk is conditioned on the
-  last frame of the previous one too (``n_obs_steps`` = 2).
+  process;
+* the robot marks each observation with its env episode (``paced_chunks.EPISODE_MARK``, not one of its features):
+  ``python -m lerobot_pdp.policy_server`` passes it on, and PDP starts a new episode (a fresh observation history)
+  when it changes.
 
 Nothing of LeRobot is changed on disk; other robots are untouched.
 """
@@ -69,6 +71,8 @@ def _wrap_features(original):
 class QueuedActions:
     """What the robot resets at a scene reset, in place of lerobot-rollout's inference engine: the client's
     queued actions, which belong to the episode that ended."""
+
+    marks_episodes = True  # the robot's observations carry their env episode, for the server's policy
 
     def __init__(self, client: Any):
         self.client = client
