@@ -290,8 +290,10 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
     return notify_observation
 
 
-def check_rtc_steering(policy: Any, engine: str = "lerobot-rollout's RTC engine",
-                       way_out: str = "Use --inference.type=sync, or") -> None:
+RTC_ENGINE, RTC_WAY_OUT = "lerobot-rollout's RTC engine", "Use --inference.type=sync, or"
+
+
+def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT) -> None:
     """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
     docstring), naming the way out."""
     steering = policy.steering

@@ -41,6 +41,7 @@ import torch
 
 from .adaptation import fit_provenance
 from .latent_fitting import cancellable
+from .realtime_chunking import RTC_ENGINE, RTC_WAY_OUT
 from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks and writer live there)
     REQUEST_KEYS,
     SteerTarget,
@@ -119,7 +120,6 @@ def apply_config_steering(policy: Any) -> None:
 # (engine, way out) of a caller that replans at its own pace, set while it loads the policy: LeRobot's async
 # policy server (policy_server.py) sets it; lerobot-rollout's RTC engine is told from the command line
 _PACED: contextvars.ContextVar[tuple[str, str] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
-_RTC = ("lerobot-rollout's RTC engine", "Use --inference.type=sync, or")
 
 
 @contextlib.contextmanager
@@ -137,7 +137,7 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
     the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase (the chunk-time
     checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it)."""
-    engine, way_out = _PACED.get() or (_RTC if _rollout_with_rtc() else (None, None))
+    engine, way_out = _PACED.get() or ((RTC_ENGINE, RTC_WAY_OUT) if _rollout_with_rtc() else (None, None))
     if engine is None:
         return
     if policy.config.fit_noise == "chunks":
