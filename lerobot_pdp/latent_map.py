@@ -90,6 +90,8 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     if (mode >= 0).any() and k is None:
         groups, what = mode, "mode label"
         names = {int(m): (policy.config.mode_names or {}).get(str(int(m)), "") for m in np.unique(mode[mode >= 0])}
+        for m in set(policy.model.bank.taught_modes()) & set(names):  # learned from one demonstration, not the data
+            names[m] = f"{names[m]}, taught" if names[m] else "taught"
     else:
         found = policy.discover_modes(k=k)
         groups, what = np.array([found.labels[int(e)] for e in episode]), f"discovered cluster (k = {found.k})"
@@ -148,7 +150,8 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
         tax.set_title(names[g] if g == UNLABELLED else f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
         tax.tick_params(labelsize=6)
     more = f"; traces of the first {MAX_PANELS} of {len(drawn)} shown" if len(drawn) > MAX_PANELS else ""
-    fig.suptitle(title or f"behaviors of the training data (traces: trace dims {d0} and {j}, the two they spread "
-                 f"most along{more})", fontsize=11)
+    taught = " and taught modes" if len(policy.model.bank.taught) else ""
+    fig.suptitle(title or f"behaviors of the training data{taught} (traces: trace dims {d0} and {j}, the two they "
+                 f"spread most along{more})", fontsize=11)
     fig.tight_layout()
     return LatentMap(fig, ax, projection, groups, color)

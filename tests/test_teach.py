@@ -56,6 +56,12 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
         torch.testing.assert_close(modes[m], z, rtol=0, atol=1e-6)  # rounding of a batch one behaviour larger)
     torch.testing.assert_close(modes[4], res.z[0], rtol=0, atol=1e-6)  # the new mode: the encoder's latent of the demo
     assert len(p.model.bank.traces) == n + 1 and p.model.bank.distances.shape == (n + 1, n + 1)
+    from lerobot_pdp.latent_map import latent_map_figure
+
+    fig = latent_map_figure(p).figure  # the taught mode is drawn as one, and said to be taught
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert "4 far right, taught" in labels and "taught modes" in fig.get_suptitle()
+    __import__("matplotlib.pyplot").pyplot.close(fig)
     d = p.model.bank.distances
     torch.testing.assert_close(d, d.T)
     assert float(d[-1, :-1].min()) > 0  # a route of its own, away from every training behaviour
