@@ -143,6 +143,8 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     if policy.config.fit_noise == "chunks":
         raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which {engine} "
                          f"cannot replay in order (it replans at its own pace). {way_out} --policy.fit_noise=none")
+    if policy.config.segment_gripper_dim is None:  # one latent per demonstration: nothing to read
+        return
     phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
     if phases > 1:
         raise ValueError(f"{episode[0]} episode {episode[1]} splits into {phases} gripper phases, fitted one latent "
