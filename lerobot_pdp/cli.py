@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lerobot_pdp import console
+from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
     from lerobot_pdp.benchmark.settings import BenchmarkConfig
@@ -137,7 +138,11 @@ def add_plot_dataset_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_plot_dataset(args: argparse.Namespace) -> int:
+    from lerobot_pdp.envs import get_suite_env
     from lerobot_pdp.envs.plotting import plot_dataset
+
+    if args.env is not None:
+        get_suite_env(args.env)  # an unknown name is said as such, before the dataset is compared with it
 
     out = plot_dataset(args.dataset, args.out, scene=args.scene, env=args.env)
     print(f"wrote {out}")
@@ -203,6 +208,9 @@ def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_latent_map(args: argparse.Namespace) -> int:
+    _check_checkpoint_folder(args.checkpoint)  # named before torch and LeRobot are imported
+    if args.k is not None and args.k < 1:
+        raise ValueError(f"--k must be >= 1 (clusters to colour by), got {args.k}")
     from lerobot_pdp import PDPPolicy
     from lerobot_pdp.latent_map import draw_latent_map
 
@@ -339,7 +347,7 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rollouts-per-candidate", type=int, default=2, help="rollouts scoring each latent (default 2)")
     p.add_argument("--confirm-rollouts", type=int, default=None,
                    help="a latent that beats the best so far is rolled out again up to this many rollouts in all and "
-                   "replaces it only if still better; 0 for none (default: latent_search.CONFIRM_ROLLOUTS)")
+                   f"replaces it only if still better; 0 for none (default {CONFIRM_ROLLOUTS})")
     p.add_argument("--method", choices=("cma", "cem"), default="cma", help="CMA-ES (default) or the cross-entropy method")
     p.add_argument("--init", choices=("modes", "adaptation"), default="modes",
                    help="start from every mode's mean latent (default), or from the latent CHECKPOINT carries (an "
@@ -390,7 +398,7 @@ def cmd_search(args: argparse.Namespace) -> int:
     from lerobot_pdp.candidate_rollouts import env_camera_kwargs
     from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
     from lerobot_pdp.envs.scene import load_scene
-    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS, LatentSearchError
+    from lerobot_pdp.latent_search import LatentSearchError
     from lerobot_pdp.outcome_scores import SCORES, WaypointScore
 
     suite = envs.get_suite_env(args.env)
@@ -422,6 +430,10 @@ def cmd_search(args: argparse.Namespace) -> int:
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
+    if len(res.history) > 1 and len({c.score for c in res.history}) == 1:  # no signal: "best" is the first tried
+        print(f"warning: every candidate scored {res.score:.3g}, so the search had nothing to follow and the written "
+              "latent is just the first one tried; score by way-points (--waypoints) to reward partial progress, or "
+              "give a larger --budget", file=sys.stderr)
     if not res.interrupted and all(c.generation == 0 for c in res.history):
         print(f"the budget ended with the starting latents ({len(res.history)} of them): no {res.method} step was "
               "taken; a larger --budget lets it search beyond them")
@@ -694,9 +706,10 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
         help="success against search rollouts on one shifted scene of a trained benchmark run",
         description="On a benchmark output folder's trained runs (runs/pdp/seed<k>, runs/dp/seed<k>): CMA-ES over "
         "PDP's latent from the gradient fit (z_fit) and from the mode means (z_modes), the gradient fit alone (fit) "
-        "and CMA-ES over LeRobot diffusion's initial noise with the same budget (dp_noise). One search per method at "
-        "the largest budget; the best candidate so far at each budget is evaluated on the protocol's evaluation "
-        "rollouts of the scene (seeds the search never used). Writes search_curves.json / .md / .png in --out; "
+        "and CMA-ES over LeRobot diffusion's initial noise with the same budget (dp_noise). Each budget runs its own "
+        "search (with --confirm-rollouts 0: one search per method at the largest budget, read at each budget); the "
+        "best candidate at each budget is evaluated on the protocol's evaluation rollouts of the scene (seeds the "
+        "search never used). Writes search_curves.json / .md / .png in --out; "
         "finished (method, scene, seed) records are reused.",
     )
     p.add_argument("results", type=Path, help="a benchmark output folder (runs/<method>/seed<k>/pretrained_model)")
@@ -710,7 +723,7 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
                    help="search rollouts scoring each candidate (default 2)")
     p.add_argument("--confirm-rollouts", type=int, default=None,
                    help="rollouts in all before a candidate replaces the search's best, 0 for none (default: the "
-                   "search's own, latent_search.CONFIRM_ROLLOUTS); with confirmation each budget runs its own search")
+                   f"search's own, {CONFIRM_ROLLOUTS}); with confirmation each budget runs its own search")
     p.add_argument("--score", choices=("success", "waypoints", "waypoints_finish"), default="success",
                    help="what the searches maximise: task success (default), the scene's way-points passed in "
                    "order, or those way-points and then the task's success (waypoints_finish); no demonstration "
@@ -731,7 +744,6 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_search_curves(args: argparse.Namespace) -> int:
     from lerobot_pdp.benchmark.search_curves import RECORD, TABLE, run_search_curves
-    from lerobot_pdp.latent_search import CONFIRM_ROLLOUTS
 
     if args.finish:  # one spelling with `lerobot-pdp search --finish`; records keep the score's name
         if args.score not in ("waypoints", "waypoints_finish"):

@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 
 from .candidate_rollouts import CandidateRollouts, EnvFactory
 from .outcome_scores import Outcome, Score, WaypointScore, resolve_score
+from .search_defaults import CONFIRM_ROLLOUTS
 from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
@@ -39,8 +40,6 @@ logger = logging.getLogger(__name__)
 METHODS = ("cma", "cem")
 CEM_ELITE_FRACTION = 0.25
 CEM_SMOOTHING = 0.7  # share of the elites' statistics in each CEM update (the rest: the previous ones)
-CONFIRM_ROLLOUTS = 6  # rollouts in all before a candidate replaces the best (0: none; chosen on validation:
-# docs/experiments.md, "Confirming the search's best")
 
 
 @dataclass

@@ -378,6 +378,18 @@ def test_cli_search_with_finish_scores_the_tasks_success_after_the_way_points(ch
     assert "--finish adds the task's success to the way-point score: give --waypoints too" in capsys.readouterr().err
 
 
+def test_cli_search_says_when_no_candidate_scored_apart(checkpoint, tmp_path, capsys):
+    """A search whose candidates all scored the same had nothing to follow: its "best" is the first latent tried,
+    and the command says so (with what gives a search a signal) instead of presenting it as found."""
+    hist = tmp_path / "history.json"
+    assert cli(["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--budget", "3",
+                "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--no-progress", "--history",
+                str(hist)]) == 0
+    err = capsys.readouterr().err
+    scores = {c["score"] for c in json.loads(hist.read_text())["history"]}
+    assert ("the written latent is just the first one tried" in err) == (len(scores) == 1), (scores, err)
+
+
 def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
     base = ["search", str(checkpoint), "--env", "reach-around", "--no-progress"]
     outside, flat = tmp_path / "outside.json", tmp_path / "flat.json"

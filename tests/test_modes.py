@@ -151,6 +151,10 @@ def test_latent_map_cli_draws_any_checkpoint_labels_or_clusters(embedded, tmp_pa
     capsys.readouterr()
     assert main(["latent-map", str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
     assert "holds no model.safetensors" in capsys.readouterr().err
+    assert main(["latent-map", str(tmp_path / "nope"), "--out", str(tmp_path / "x.png")]) == 2
+    assert f"no such checkpoint folder: {tmp_path / 'nope'}" in capsys.readouterr().err
+    assert main(["latent-map", str(ckpt), "--out", str(tmp_path / "x.png"), "--k", "0"]) == 2
+    assert "--k must be >= 1 (clusters to colour by), got 0" in capsys.readouterr().err
 
 
 INSTRUCTION = "move the point from the bottom to the top, around the disc"

@@ -155,5 +155,8 @@ def test_cli_make_and_plot(tmp_path, capsys):
     assert rc == 0 and (tmp_path / "plot").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert cli_main(["plot-dataset", str(out), "--out", str(tmp_path / "p.svg")]) == 0
     assert (tmp_path / "p.svg").read_text().lstrip().startswith("<?xml")
+    capsys.readouterr()
+    assert cli_main(["plot-dataset", str(out), "--env", "reach-arond", "--out", str(tmp_path / "q.png")]) == 2
+    assert "unknown env 'reach-arond'" in capsys.readouterr().err  # a typo, not "recorded in another env"
     rc = cli_main(["make-dataset", "--env", "reach-around", "--out", str(out), "--no-progress"])
     assert rc == 2 and "already exists" in capsys.readouterr().err

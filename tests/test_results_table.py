@@ -53,6 +53,12 @@ def test_mean_and_std_over_seeds_in_json_and_table():
     assert "| warm (encoder) | 60.0 ± 10.0 |" in md and "| random | 5.0 ± 5.0 |" in md
     assert "| init @ fitting steps | Shift 1 | Shift 3 |" in md  # where each initialisation wins or loses
     assert "| warm (encoder) @ 0 | 75.0 | 45.0 |" in md and "| random @ 0 | 0.0 | 10.0 |" in md
+    assert "| Shifted avg |" in md  # the test scenes 1-3: the protocol's average, named as such
+
+    # a run of some scenes only (--scenes 0 1): its average says what it averages
+    part = BenchmarkConfig(env="reach-around", out=Path("unused"), seeds=[0], scenes=[0, 1])
+    md = results_markdown(aggregate("reach-around", part, {"pdp": {0: _run([1.0, 0.5])}}, {}, TrainSettings(steps=10), 10))
+    assert "| Original (scene 0) | Shift 1 | Shifted avg (shift 1) |" in md and "| pdp | 100.0 | 50.0 | 50.0 |" in md
 
 
 def test_the_device_each_evaluation_ran_on_is_recorded_and_merged():

@@ -82,7 +82,8 @@ def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollout
     if score not in SCORES:
         raise ValueError(f"score must be one of {SCORES}, got {score!r}")
     if scene == 0 or scene == "0":
-        raise ValueError("scene 0 has no adaptation: give a shifted scene (1, 2, 3, 4 or val<k>)")
+        raise ValueError("scene 0 has no adaptation: give a shifted scene (1-3, the env's zero-mode test scene 4 where "
+                         "it ships one, or val<k>)")
     if methods is None:
         methods = [m for m in METHODS if score == "success" or m not in NEEDS_DEMO]
     unknown = [m for m in methods if m not in METHODS]
@@ -297,7 +298,9 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     for name in [n for n in ("pdp", "dp") if any((m == "dp_noise") == (n == "dp") for m in methods)]:
         if not (runs[name] / "pretrained_model" / "model.safetensors").is_file():
             raise FileNotFoundError(f"no trained {name} run at {runs[name]} (pretrained_model/model.safetensors): "
-                                    f"give a benchmark output folder holding runs/{name}/seed{seed}")
+                                    f"give a benchmark output folder holding runs/{name}/seed{seed}"
+                                    + (", another folder's DP run with --dp-results, or leave dp_noise out (--methods "
+                                       "z_fit z_modes fit)" if name == "dp" else ""))
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     with hold_folder(dest, "search-curves"):  # one writer: the records are read, extended and rewritten
@@ -500,8 +503,8 @@ def curves_markdown(book: dict[str, Any]) -> str:
     at each budget, and the search's wall time at its largest budget."""
     lines = ["# Search curves", "",
              "Success over the evaluation rollouts (the protocol's seeds for the scene) of each search's best "
-             "candidate after the first b rollouts (in brackets, scored by way-points: their mean progress through "
-             "the way-points); the search's own rollouts reset on other seeds. search s: the search's wall time at "
+             "candidate after the first b rollouts (in brackets, in tables scored by way-points: their mean progress "
+             "through the way-points); the search's own rollouts reset on other seeds. search s: the search's wall time at "
              "its largest budget; fit s: the gradient fit's (z_fit searches after it). Wall time on "
              f"{book.get('cpu', 'an unrecorded CPU')}, {book.get('threads', '?')} torch thread(s).", ""]
     for (env, scene, seed, score), recs in _groups(book).items():
