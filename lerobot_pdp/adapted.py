@@ -103,8 +103,14 @@ def search_checkpoint(base: str | Path, env_factory: EnvFactory, score: str | Sc
     return result
 
 
+# the config fields load_base_policy sets for its load alone (a checkpoint written from that policy restores them)
+LOAD_ONLY_FIELDS = ("device", "use_adaptation", "steer_latent", "steer_mode", "steer_dataset_root",
+                    "steer_episode_index", "steer_file")
+
+
 def load_base_policy(base: Path, device: str = "cpu") -> Any:
-    """``base`` as its weights act, whatever adaptation or steering it carries, in eval mode."""
+    """``base`` as its weights act, whatever adaptation or steering it carries, in eval mode (the config fields
+    :data:`LOAD_ONLY_FIELDS` differ from the saved ones)."""
     from .modeling_pdp import PDPPolicy
 
     cfg = dataclasses.replace(PDPConfig.from_pretrained(base), device=device, use_adaptation=False, steer_latent=None,

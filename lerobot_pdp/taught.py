@@ -14,14 +14,13 @@ was taught, from the demonstrations TAUGHT keeps: how taught modes are carried o
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 import logging
 import shutil
 from pathlib import Path
 
-from .atomic import move_into_place, staging_dir, write_text_atomic
+from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
@@ -78,13 +77,21 @@ def _from_launch_folder(root: Path, checkpoint: Path, output_dir: str | None) ->
 def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, training_data: str | Path | None = None,
                      steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
                      seed: int = 0, name: str | None = None, latent: str = TEACH_LATENT,
-                     device: str = "cpu", demo_record: dict | None = None) -> tuple[Path, TeachResult]:
+                     device: str = "cpu") -> tuple[Path, TeachResult]:
     """Teach ``base`` one demonstration as a new mode and write the taught checkpoint ``out`` (which must not
-    exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names. ``demo_record``:
-    what ``teaching.json`` says of a demonstration given as arrays (default: "given in memory")."""
-    from .modeling_pdp import PDPPolicy
+    exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names."""
+    settings = {"steps": steps, "lr": lr, "demo_share": demo_share, "seed": seed, "latent": latent}
+    results = _teach_and_write(Path(base), [(episode, name, None)], Path(out), training_data, device, settings)
+    return Path(out), results[0]
 
-    base, out = Path(base), Path(out)
+
+def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict | None]], out: Path,
+                     training_data: str | Path | None, device: str, settings: dict) -> list[TeachResult]:
+    """Load ``base`` once, teach it each ``(demonstration, mode name, what teaching.json says of it)`` in turn
+    (each rehearsing the ones before), and write the taught checkpoint ``out`` whole, its teaching.json holding
+    every teaching (the last one's record, the others as ``earlier_teachings``)."""
+    from .adapted import LOAD_ONLY_FIELDS, load_base_policy
+
     if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
         raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
     if out.exists():
@@ -93,19 +100,24 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
     data = _training_data(base, training_data)
-    saved = PDPConfig.from_pretrained(base)
-    cfg = dataclasses.replace(saved, device=device, use_adaptation=False, steer_latent=None,
-                              steer_mode=None, steer_dataset_root=None, steer_episode_index=None, steer_file=None)
-    policy = PDPPolicy.from_pretrained(base, config=cfg)
-    result = policy.teach(episode, data, steps=steps, lr=lr, demo_share=demo_share, seed=seed, name=name,
-                          latent=latent, progress=True)
-    policy.eval()
-    # saved as the base was: use_adaptation=False here would make a later adaptation of it act as if absent
-    policy.config.use_adaptation, policy.config.device = saved.use_adaptation, saved.device
-    info = teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""), demo_record)
-    if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own record goes along
+    policy = load_base_policy(base, device)
+    records = []
+    if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own records go along
         before = read_config_json(base / TEACHING_INFO)
-        info["earlier_teachings"] = [*before.pop("earlier_teachings", []), before]
+        records = [*before.pop("earlier_teachings", []), before]
+    results = []
+    for i, (episode, name, demo_record) in enumerate(lessons):
+        if len(lessons) > 1:
+            logger.info("teaching %s (%d of %d)", name, i + 1, len(lessons))
+        result = policy.teach(episode, data, name=name, progress=True, **settings)
+        results.append(result)
+        records.append(teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""),
+                                     demo_record))
+    policy.eval()
+    saved = PDPConfig.from_pretrained(base)  # written as the base's: use_adaptation=False would hide a later adaptation
+    for field in LOAD_ONLY_FIELDS:
+        setattr(policy.config, field, getattr(saved, field))
+    info = {**records[-1], "earlier_teachings": records[:-1]} if len(records) > 1 else records[-1]
     with staging_dir(out, prefix=".pdp-teach-") as tmp:
         for f in base.iterdir():
             if f.name not in _REWRITTEN:
@@ -114,8 +126,8 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
         (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
         card = checkpoint_card(base, policy.config).split(f"\n{CARD_HEADING}\n")[0]  # no adaptation section
         (tmp / "README.md").write_text(card.rstrip() + "\n\n" + _card_section(info))
-        move_into_place(tmp, Path(out))
-    return out, result
+        move_into_place(tmp, out)
+    return results
 
 
 def taught_demonstrations(checkpoint: str | Path) -> list[tuple[int, str, Demonstration]]:
@@ -150,31 +162,13 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
     before, as teaching them one by one would. For a checkpoint trained further with ``lerobot-train`` (which
     trains the dataset's behaviours only, so a taught checkpoint's taught modes do not survive it).
     Returns ``out`` and ``(mode id in taught_from, result)`` per mode."""
-    base, taught_from, out = Path(base), Path(taught_from), Path(out)
-    if out.exists():
-        raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
+    taught_from = Path(taught_from)
     demos = taught_demonstrations(taught_from)
-    # one dataset for every teaching: the intermediate checkpoints sit elsewhere than base, so a relative
-    # dataset.root in the train_config.json they copy would not be found from them
-    data = _training_data(base, training_data)
-    done: list[tuple[int, TeachResult]] = []
-    with staging_dir(out, prefix=".pdp-teach-again-") as work:
-        current = base
-        for i, (mode, name, demo) in enumerate(demos):
-            target = out if i == len(demos) - 1 else work / f"mode{mode}"
-            record = {"taught_checkpoint": str(taught_from.resolve()), "mode": mode}
-            logger.info("teaching mode %d (%s) of %s (%d of %d)", mode, name, taught_from, i + 1, len(demos))
-            current, res = teach_checkpoint(current, demo.arrays, target, data, steps=steps, lr=lr,
-                                            demo_share=demo_share, seed=seed, name=name, latent=latent,
-                                            device=device, demo_record=record)
-            done.append((mode, res))
-        # the records name the base, not the intermediate checkpoints this removes
-        info = read_config_json(out / TEACHING_INFO)
-        for record in (info, *info.get("earlier_teachings", ())):
-            if str(record.get("base_checkpoint", "")).startswith(str(work.resolve())):
-                record["base_checkpoint"] = str(base.resolve())
-        write_text_atomic(out / TEACHING_INFO, json.dumps(info, indent=2) + "\n")
-    return out, done
+    lessons = [(demo.arrays, name, {"taught_checkpoint": str(taught_from.resolve()), "mode": mode})
+               for mode, name, demo in demos]
+    settings = {"steps": steps, "lr": lr, "demo_share": demo_share, "seed": seed, "latent": latent}
+    results = _teach_and_write(Path(base), lessons, Path(out), training_data, device, settings)
+    return Path(out), [(mode, res) for (mode, _, _), res in zip(demos, results, strict=True)]
 
 
 def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str,
