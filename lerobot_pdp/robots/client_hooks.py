@@ -72,10 +72,12 @@ class QueuedActions:
     """What the robot resets at a scene reset, in place of lerobot-rollout's inference engine: the client's
     queued actions, which belong to the episode that ended."""
 
-    marks_episodes = True  # the robot's observations carry their env episode, for the server's policy
-
     def __init__(self, client: Any):
+        # torch: imported when a client drives the robot, not with the plugin
+        from ..paced_chunks import EPISODE_MARK
+
         self.client = client
+        self.episode_mark = EPISODE_MARK  # the key under which the robot's observations carry their env episode
 
     def reset(self) -> None:
         with self.client.action_queue_lock:

@@ -153,10 +153,9 @@ class PDPSim(Robot):
         out: dict[str, float | np.ndarray] = dict(zip(self.state_keys + self.env_state_keys, values.tolist(),
                                                       strict=True))
         out.update({name: self.obs["pixels"][name] for name in self.config.camera_names})  # uint8 (H, W, 3)
-        if getattr(self._engine, "marks_episodes", False):  # LeRobot's async client: the server's policy resets on it
-            from ..paced_chunks import EPISODE_MARK
-
-            out[EPISODE_MARK] = float(self.episode)
+        mark = getattr(self._engine, "episode_mark", None)  # LeRobot's async client: the served policy resets on it
+        if mark is not None:
+            out[mark] = float(self.episode)
         return out
 
     def send_action(self, action: dict[str, Any]) -> dict[str, Any]:
