@@ -3,7 +3,9 @@ lerobot-train."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -67,7 +69,27 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
     # the benchmark's trainings read datasets through column views (a child asks for them by its environment)
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **column_views.child_env(), **(env or {})}
     cpu_priority.restore(_SCHEDULING)  # the process inherits this one's priority: never a video encoder's real-time one
-    proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=full_env)
+    # Its own process group: on a timeout the whole tree goes (accelerate's ranks, a server's workers), not only
+    # the launcher. SIGABRT first: with PYTHONFAULTHANDLER each Python process prints every thread's stack, so
+    # the error shows where it hung, then SIGKILL for what is left.
+    full_env["PYTHONFAULTHANDLER"] = "1"
+    with subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=full_env,
+                          start_new_session=True) as popen:
+        try:
+            out, err = popen.communicate(timeout=timeout)
+        except BaseException as exc:
+            out, err = "", ""
+            for sig, wait in ((signal.SIGABRT, 10), (signal.SIGKILL, 60)):
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(popen.pid, sig)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    out, err = popen.communicate(timeout=wait)
+                    break
+            if isinstance(exc, subprocess.TimeoutExpired):
+                raise AssertionError(f"{' '.join(args)} still ran after {timeout} s (its process group was killed; "
+                                     f"stacks at the kill below):\n{out[-3000:]}\n{err[-12000:]}") from None
+            raise
+    proc = subprocess.CompletedProcess(args, popen.returncode, out, err)
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")
     return proc
