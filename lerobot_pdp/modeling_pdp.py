@@ -56,7 +56,7 @@ from .realtime_chunking import prepare_rtc, rtc_chunk
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering
 from .taught_demos import read_taught_demos
-from .teaching import TeachResult, teach_new_mode
+from .teaching import TeachResult, TrainingRehearsal, teach_new_mode
 
 logger = logging.getLogger(__name__)
 
@@ -296,7 +296,7 @@ class PDPPolicy(PreTrainedPolicy):
             self.steering.activate(result.latent, provenance=search_provenance(result))
         return result
 
-    def teach(self, episode: Episode, training_data: str | Path, **settings: Any) -> TeachResult:
+    def teach(self, episode: Episode, training_data: str | Path | TrainingRehearsal, **settings: Any) -> TeachResult:
         """Add one demonstration of a route no latent makes as a new mode (``result.mode``), rehearsing ``training_data``
         (the policy's training dataset); ``settings``: :func:`lerobot_pdp.teaching.teach_new_mode`."""
         return teach_new_mode(self, episode, training_data, **settings)

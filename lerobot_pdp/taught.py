@@ -27,7 +27,7 @@ from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode
 from .model_card import checkpoint_card
 from .taught_demos import TAUGHT_DEMOS, tensors_to_demos
-from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult
+from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult, read_rehearsal
 
 logger = logging.getLogger(__name__)
 
@@ -106,10 +106,12 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
         before = read_config_json(base / TEACHING_INFO)
         records = [*before.pop("earlier_teachings", []), before]
     results = []
+    # several lessons rehearse the same training windows: read (and, with cameras, decode) the dataset once
+    rehearsal = read_rehearsal(policy, data) if len(lessons) > 1 else data
     for i, (episode, name, demo_record) in enumerate(lessons):
         if len(lessons) > 1:
             logger.info("teaching %s (%d of %d)", name, i + 1, len(lessons))
-        result = policy.teach(episode, data, name=name, progress=True, **settings)
+        result = policy.teach(episode, rehearsal, name=name, progress=True, **settings)
         results.append(result)
         records.append(teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""),
                                      demo_record))

@@ -54,7 +54,6 @@ from .teach_defaults import (  # noqa: F401  (re-exported)
 logger = logging.getLogger(__name__)
 
 
-
 @dataclass
 class TeachResult:
     """What :func:`teach` did: the new mode, its latent(s), the loss history and the windows it trained on."""
@@ -71,14 +70,36 @@ class TeachResult:
     settings: dict[str, Any] = field(default_factory=dict)
 
 
-def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
+@dataclass
+class TrainingRehearsal:
+    """The training dataset read, checked and cut into rehearsal windows once, for several teachings of one policy
+    (:func:`read_rehearsal`): the windows and their latents do not change while teaching (encoder and observation
+    encoder are frozen, the training behaviours keep their latents), and reading them decodes every camera frame."""
+
+    root: Path  # the training dataset's folder
+    windows: DemoWindows
+    latents: Tensor  # [N, d_z], each window's behaviour latent
+    policy: Any  # the policy it was read for: its bank is what the dataset was checked against
+
+
+def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
+    """Check that ``training_data`` is ``policy``'s training dataset and read its rehearsal windows; pass the result
+    as ``training_data`` to :func:`teach_new_mode` to teach the policy several modes with one read."""
+    episodes = check_training_data(policy, training_data)
+    windows, latents = rehearsal_windows(policy, training_data, episodes)
+    return TrainingRehearsal(Path(training_data), windows, latents, policy)
+
+
+def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal, steps: int = TEACH_STEPS,
+          lr: float = TEACH_LR,
           demo_share: float = TEACH_DEMO_SHARE, batch_size: int = TEACH_BATCH_SIZE, seed: int = 0,
           name: str | None = None, latent: str = TEACH_LATENT, progress: bool = False) -> TeachResult:
     """Add one demonstration to ``policy`` (a ``PDPPolicy``, changed in place) as a new mode; see the module.
 
     Args:
         episode: the demonstration, a ``(dataset folder, episode index)`` pair or a dict of arrays.
-        training_data: the folder of the dataset the policy was trained on (its behaviour bank must match).
+        training_data: the folder of the dataset the policy was trained on (its behaviour bank must match), or
+            its :func:`read_rehearsal` for this policy (several teachings, one read).
         steps, lr, batch_size: Adam steps on theta, their step size, windows per step.
         demo_share: the demonstration's share of each batch; the rest rehearses the training windows.
         name: the new mode's name (default: where the demonstration came from).
@@ -100,14 +121,20 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path, ste
     same = sorted(int(k) for k, v in (cfg.mode_names or {}).items() if v == name)
     if same:  # steering by that name would reach the old mode
         raise ValueError(f"teach: mode {same[0]} is already named {name!r}; give the new mode another name")
-    episodes = check_training_data(policy, training_data)
+    prepared = training_data if isinstance(training_data, TrainingRehearsal) else None
+    if prepared is not None and prepared.policy is not policy:
+        raise ValueError("teach: the TrainingRehearsal given was read for another policy (read_rehearsal(policy, ...))")
+    episodes = check_training_data(policy, training_data) if prepared is None else None
     t0 = time.perf_counter()
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
     demo_win = policy._demo_windows(demo)
     z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
     with torch.no_grad():
         z_bank = model.behavior_latents().cpu()
-    rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
+    if prepared is None:
+        rehearsal, z_old = rehearsal_windows(policy, training_data, episodes)
+    else:
+        rehearsal, z_old = prepared.windows, prepared.latents
     taught = taught_windows(policy, z_bank)  # the modes taught before, which the training data does not hold
     mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new)  # + delta^X
     model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)

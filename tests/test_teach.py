@@ -165,8 +165,30 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     np.testing.assert_allclose(r.model.bank.taught_demos[4].arrays["action"], new_route()["action"], atol=1e-6)
 
 
+def test_a_rehearsal_read_once_teaches_as_the_dataset_folder_does(synthetic_meta):
+    """``read_rehearsal`` reads and checks the training dataset once for several teachings of one policy: a teaching
+    from it is the teaching from the folder (same losses, same weights), and it refuses another policy."""
+    import copy
+
+    from lerobot_pdp.teaching import read_rehearsal
+
+    p = small_policy(synthetic_meta)
+    q = copy.deepcopy(p)
+    a = p.teach(new_route(), synthetic_meta.root, steps=5, seed=0, name="far right")
+    rehearsal = read_rehearsal(q, synthetic_meta.root)
+    b = q.teach(new_route(), rehearsal, steps=5, seed=0, name="far right")
+    assert a.losses == b.losses and a.rehearsal_windows == b.rehearsal_windows == len(rehearsal.windows.actions)
+    torch.testing.assert_close(a.z, b.z)
+    for (k, v), w in zip(p.model.denoiser.state_dict().items(), q.model.denoiser.state_dict().values(), strict=True):
+        assert torch.equal(v, w), k
+    c = q.teach(new_route(-1.7), rehearsal, steps=2, seed=0, name="far left")  # a second teaching, no new read
+    assert c.mode == b.mode + 1 and c.rehearsal_windows == b.rehearsal_windows + len(new_route()["action"])
+    with pytest.raises(ValueError, match="read for another policy"):
+        p.teach(new_route(-1.7), rehearsal, steps=2, name="far left")
+
+
 def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_checkpoint(synthetic_meta, tmp_path,
-                                                                                       caplog, capsys):
+                                                                                       caplog, capsys, monkeypatch):
     """lerobot-train on a taught checkpoint trains the dataset's behaviours alone: the taught modes are dropped with
     a warning that names them and the way back, ``teach <trained> --taught-from <taught>``, which teaches them
     again from the demonstrations the taught checkpoint keeps, in order and under their names."""
@@ -198,9 +220,15 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
     trained.save_pretrained(tmp_path / "trained")
     assert not (tmp_path / "trained" / TAUGHT_DEMOS).exists()
 
+    from lerobot_pdp import teaching
+
+    reads = []
+    check = teaching.check_training_data
+    monkeypatch.setattr(teaching, "check_training_data", lambda *a: reads.append(a) or check(*a))
     capsys.readouterr()
     assert cli(["teach", str(tmp_path / "trained"), "--taught-from", str(tmp_path / "t2"), *data, "--out",
                 str(tmp_path / "again")]) == 0
+    assert len(reads) == 1  # two modes taught again, the training dataset read once
     out = capsys.readouterr().out
     assert f"mode 4 of {tmp_path / 't2'} -> mode 4" in out and f"mode 5 of {tmp_path / 't2'} -> mode 5" in out
     again = PDPPolicy.from_pretrained(tmp_path / "again")
