@@ -37,7 +37,12 @@ from torch import Tensor, nn
 
 from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
 from .configuration_pdp import PDPConfig
-from .distributed import agree_across_ranks, warn_if_cpu_launch_ran_one_process, world
+from .distributed import (
+    agree_across_ranks,
+    release_process_group_at_exit,
+    warn_if_cpu_launch_ran_one_process,
+    world,
+)
 from .modes import SPACES, DiscoveredModes, ModeLatents, discover, labelled_mode_latents
 from .steering_state import as_latent_tensor
 
@@ -218,6 +223,7 @@ class BehaviorBank(nn.Module):
         if size == 1:
             warn_if_cpu_launch_ran_one_process()
             return
+        release_process_group_at_exit()  # lerobot-train's ranks exit after the run (a torch deadlock otherwise)
         digest = self.digest()
         sources = agree_across_ranks("the behavior bank", digest, distance_source)
         if rank == 0:

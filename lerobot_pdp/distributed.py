@@ -7,10 +7,13 @@ computes and caches, the others then read the cache, and all check that they hol
 
 Everything here is a no-op without an initialised ``torch.distributed`` process group (``accelerate`` creates
 one for multi-process runs only), so single-process use is unchanged.
+
+:func:`release_process_group_at_exit` works around a torch deadlock at the end of a multi-process CPU training.
 """
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 from collections.abc import Iterator
@@ -47,6 +50,30 @@ def main_process_first() -> Iterator[None]:
     finally:
         if rank == 0:
             torch.distributed.barrier()
+
+
+_HELD_GROUPS: list = []
+
+
+def release_process_group_at_exit() -> None:
+    """Keep a reference to the default process group until the interpreter exits, and drop it there.
+
+    lerobot-train destroys the process group (``accelerator.end_training``) before its DDP-wrapped model is freed,
+    so the DDP ``Reducer`` holds the group's last reference. Its Python binding frees it holding the GIL, and
+    ``~ProcessGroupGloo`` joins gloo's worker threads, one of which may still be freeing the last collective's
+    tensors, which takes the GIL: a rank that had saved its checkpoint never exits (seen: a 2-process CPU
+    training, rank 1 stuck there for 20 min; pytorch/pytorch#56297). The group's own Python object releases
+    the GIL before destroying it, so freeing the group through this reference, at exit, cannot deadlock.
+    """
+    dist = torch.distributed
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    group = dist.distributed_c10d._get_default_group()
+    if any(g is group for g in _HELD_GROUPS):
+        return
+    if not _HELD_GROUPS:
+        atexit.register(_HELD_GROUPS.clear)
+    _HELD_GROUPS.append(group)
 
 
 def agree_across_ranks(what: str, digest: str, note: str = "") -> list[str]:

@@ -18,9 +18,11 @@ import pytest
 import torch
 from conftest import lerobot_cli, run_cli
 
+from lerobot_pdp import distributed
 from lerobot_pdp.distributed import (
     agree_across_ranks,
     main_process_first,
+    release_process_group_at_exit,
     warn_if_cpu_launch_ran_one_process,
     world,
 )
@@ -31,6 +33,31 @@ def test_helpers_are_no_ops_in_a_single_process():
     with main_process_first():
         pass
     assert agree_across_ranks("x", "digest", "note") == ["note"]
+    release_process_group_at_exit()
+    assert distributed._HELD_GROUPS == []
+
+
+def test_the_process_group_outlives_its_destruction_until_exit(monkeypatch):
+    """lerobot-train destroys the group before its DDP model (whose Reducer would then free it holding the GIL):
+    the group is held once, past destroy_process_group, and let go by an exit handler."""
+    import atexit
+
+    import torch.distributed as dist
+
+    handlers = []
+    monkeypatch.setattr(atexit, "register", handlers.append)
+    monkeypatch.setattr(distributed, "_HELD_GROUPS", [])
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        group = dist.distributed_c10d._get_default_group()
+        release_process_group_at_exit()
+        release_process_group_at_exit()
+    finally:
+        dist.destroy_process_group()
+    assert distributed._HELD_GROUPS == [group] and len(handlers) == 1
+    assert group.size() == 1  # still a live object after destroy_process_group
+    handlers[0]()
+    assert distributed._HELD_GROUPS == []
 
 
 def test_a_cpu_launch_that_ran_one_process_is_reported(monkeypatch, caplog):
