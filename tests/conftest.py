@@ -62,6 +62,21 @@ def lerobot_cli(name: str) -> str:
     return str(p) if p.exists() else name
 
 
+def _descendants(pid: int) -> list[int]:
+    """Every live process below ``pid`` (Linux /proc; elsewhere none)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        found += kids
+        todo += kids
+    return found
+
+
 def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run a console script as a real subprocess; on failure show its output tail."""
     from lerobot_pdp import column_views
@@ -69,24 +84,25 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
     # the benchmark's trainings read datasets through column views (a child asks for them by its environment)
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **column_views.child_env(), **(env or {})}
     cpu_priority.restore(_SCHEDULING)  # the process inherits this one's priority: never a video encoder's real-time one
-    # Its own process group: on a timeout the whole tree goes (accelerate's ranks, a server's workers), not only
-    # the launcher. SIGABRT first: with PYTHONFAULTHANDLER each Python process prints every thread's stack, so
-    # the error shows where it hung, then SIGKILL for what is left.
+    # On a timeout the whole tree goes (accelerate's ranks, which torchrun starts in sessions of their own), not
+    # only the launcher. SIGABRT first: with PYTHONFAULTHANDLER each Python process prints every thread's stack,
+    # so the error shows where it hung; then SIGKILL for what is left.
     full_env["PYTHONFAULTHANDLER"] = "1"
-    with subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=full_env,
-                          start_new_session=True) as popen:
+    with subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=full_env) as popen:
         try:
             out, err = popen.communicate(timeout=timeout)
         except BaseException as exc:
             out, err = "", ""
+            tree = [popen.pid, *_descendants(popen.pid)]  # before a signal: orphans are reparented
             for sig, wait in ((signal.SIGABRT, 10), (signal.SIGKILL, 60)):
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(popen.pid, sig)
+                for pid in tree:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, sig)
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     out, err = popen.communicate(timeout=wait)
                     break
             if isinstance(exc, subprocess.TimeoutExpired):
-                raise AssertionError(f"{' '.join(args)} still ran after {timeout} s (its process group was killed; "
+                raise AssertionError(f"{' '.join(args)} still ran after {timeout} s (it and its children were killed; "
                                      f"stacks at the kill below):\n{out[-3000:]}\n{err[-12000:]}") from None
             raise
     proc = subprocess.CompletedProcess(args, popen.returncode, out, err)
