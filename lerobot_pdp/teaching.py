@@ -90,10 +90,10 @@ def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
     return TrainingRehearsal(Path(training_data), windows, latents, policy)
 
 
-def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal, steps: int = TEACH_STEPS,
-          lr: float = TEACH_LR,
-          demo_share: float = TEACH_DEMO_SHARE, batch_size: int = TEACH_BATCH_SIZE, seed: int = 0,
-          name: str | None = None, latent: str = TEACH_LATENT, progress: bool = False) -> TeachResult:
+def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal,
+                   steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
+                   batch_size: int = TEACH_BATCH_SIZE, seed: int = 0, name: str | None = None,
+                   latent: str = TEACH_LATENT, progress: bool = False) -> TeachResult:
     """Add one demonstration to ``policy`` (a ``PDPPolicy``, changed in place) as a new mode; see the module.
 
     Args:
