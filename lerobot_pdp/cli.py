@@ -277,11 +277,16 @@ def cmd_steer(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_demonstration_arguments(p: argparse.ArgumentParser, written: str, demo_required: bool = True) -> None:
-    """The checkpoint, the demonstration (dataset folder and episode) and the ``written`` checkpoint's folder."""
+def add_demonstration_arguments(p: argparse.ArgumentParser, written: str, demo_required: bool = True,
+                                episode_help: str | None = None) -> None:
+    """The checkpoint, the demonstration (dataset folder and episode) and the ``written`` checkpoint's folder;
+    ``episode_help``: ``--episode`` takes several indices, so described."""
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
     p.add_argument("--demo", required=demo_required, type=Path, help="the demonstration: a LeRobotDataset folder")
-    p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+    if episode_help is None:
+        p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+    else:
+        p.add_argument("--episode", type=int, nargs="+", default=[0], help=episode_help)
     p.add_argument("--out", required=True, type=Path, help=f"the {written} checkpoint folder to write (must not exist)")
 
 
@@ -479,15 +484,19 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
         "--policy.steer_mode=<id>. With --taught-from instead of --demo: teach the checkpoint every mode a taught "
         "checkpoint was taught, from the demonstrations it keeps (lerobot-train drops taught modes).",
     )
-    add_demonstration_arguments(p, "taught", demo_required=False)
+    add_demonstration_arguments(p, "taught", demo_required=False,
+                                episode_help="its episode index (default 0); several: one new mode each, taught in "
+                                "order into one checkpoint, e.g. the routes one lerobot-record session recorded")
     p.add_argument("--taught-from", type=Path, default=None,
                    help="a taught checkpoint: teach every mode it was taught, in order and under its name, from the "
                    "demonstrations it keeps (instead of --demo; e.g. onto a checkpoint lerobot-train trained further)")
     p.add_argument("--data", type=Path, default=None,
                    help="the dataset the checkpoint was trained on, rehearsed while teaching (default: the one its "
                    "train_config.json names)")
-    p.add_argument("--name", default=None, help="the new mode's name (default: where the demonstration came from)")
-    p.add_argument("--steps", type=int, default=TEACH_STEPS, help=f"fine-tuning steps (default {TEACH_STEPS})")
+    p.add_argument("--name", nargs="+", default=None,
+                   help="the new mode's name, one per --episode (default: where the demonstration came from)")
+    p.add_argument("--steps", type=int, default=TEACH_STEPS,
+                   help=f"fine-tuning steps, per new mode (default {TEACH_STEPS})")
     p.add_argument("--lr", type=float, default=TEACH_LR, help=f"their Adam step size (default {TEACH_LR:g})")
     p.add_argument("--demo-share", type=float, default=TEACH_DEMO_SHARE,
                    help=f"the demonstration's share of each batch (default {TEACH_DEMO_SHARE:g})")
@@ -505,8 +514,13 @@ def cmd_teach(args: argparse.Namespace) -> int:
                          "--taught-from (one of them)")
     if args.taught_from is not None and args.name is not None:
         raise ValueError("--name names a --demo's mode; --taught-from keeps the taught modes' names")
+    if args.name is not None and len(args.name) != len(args.episode):
+        raise ValueError(f"--name gives {len(args.name)} name(s) for {len(args.episode)} --episode(s): one per "
+                         "episode, or none")
+    if len(set(args.episode)) != len(args.episode):
+        raise ValueError(f"--episode {' '.join(map(str, args.episode))} repeats an episode")
     # torch and LeRobot are imported after the argument checks
-    from lerobot_pdp.taught import teach_again_from, teach_checkpoint
+    from lerobot_pdp.taught import teach_again_from, teach_checkpoint_modes
 
     if args.taught_from is not None:
         out, done = teach_again_from(args.checkpoint, args.taught_from, args.out, training_data=args.data,
@@ -517,12 +531,16 @@ def cmd_teach(args: argparse.Namespace) -> int:
                   f"{res.seconds:.0f} s")
         print(f"wrote {out}: {len(done)} taught mode(s); steer with --policy.steer_mode=<id>")
         return 0
-    out, res = teach_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, training_data=args.data,
-                                steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
-                                latent=args.latent, name=args.name, device=args.device)
-    print(f"wrote {out}: mode {res.mode}, latent {res.z.tolist()} ({res.nearest_spreads:.1f} spreads from the "
-          f"nearest training latent), {res.steps} steps in {res.seconds:.0f} s; steer with --policy.steer_mode="
-          f"{res.mode}")
+    out, done = teach_checkpoint_modes(args.checkpoint, [(args.demo, ep) for ep in args.episode], args.out,
+                                       training_data=args.data, steps=args.steps, lr=args.lr,
+                                       demo_share=args.demo_share, seed=args.seed, names=args.name,
+                                       latent=args.latent, device=args.device)
+    for ep, res in zip(args.episode, done, strict=True):
+        print(f"{'episode ' + str(ep) + ': ' if len(done) > 1 else ''}mode {res.mode}, latent {res.z.tolist()} "
+              f"({res.nearest_spreads:.1f} spreads from the nearest training latent), {res.steps} steps in "
+              f"{res.seconds:.0f} s")
+    modes = ", ".join(str(res.mode) for res in done)
+    print(f"wrote {out}: taught mode(s) {modes}; steer with --policy.steer_mode={done[-1].mode if len(done) == 1 else '<id>'}")
     return 0
 
 

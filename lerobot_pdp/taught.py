@@ -80,9 +80,30 @@ def teach_checkpoint(base: str | Path, episode: Episode, out: str | Path, traini
                      device: str = "cpu") -> tuple[Path, TeachResult]:
     """Teach ``base`` one demonstration as a new mode and write the taught checkpoint ``out`` (which must not
     exist); ``training_data`` defaults to the dataset the base's ``train_config.json`` names."""
+    out, results = teach_checkpoint_modes(base, [episode], out, training_data, steps, lr, demo_share, seed,
+                                          None if name is None else [name], latent, device)
+    return out, results[0]
+
+
+def teach_checkpoint_modes(base: str | Path, episodes: list[Episode], out: str | Path,
+                           training_data: str | Path | None = None, steps: int = TEACH_STEPS, lr: float = TEACH_LR,
+                           demo_share: float = TEACH_DEMO_SHARE, seed: int = 0, names: list[str | None] | None = None,
+                           latent: str = TEACH_LATENT, device: str = "cpu") -> tuple[Path, list[TeachResult]]:
+    """Teach ``base`` several demonstrations, a new mode each, in order (each rehearsing the ones before), and
+    write one taught checkpoint ``out``: one load and one read of the training dataset for them all, as
+    :func:`teach_checkpoint` one by one would teach them otherwise. ``names``: one per demonstration (or None)."""
+    if not episodes:
+        raise ValueError("teach: no demonstration given")
+    names = list(names) if names is not None else [None] * len(episodes)
+    if len(names) != len(episodes):
+        raise ValueError(f"teach: {len(names)} mode name(s) for {len(episodes)} demonstration(s): give one per "
+                         "demonstration, or none")
+    given = [n for n in names if n is not None]
+    if len(set(given)) != len(given):
+        raise ValueError(f"teach: mode names {given} repeat a name; each new mode needs its own")
     settings = {"steps": steps, "lr": lr, "demo_share": demo_share, "seed": seed, "latent": latent}
-    results = _teach_and_write(Path(base), [(episode, name, None)], Path(out), training_data, device, settings)
-    return Path(out), results[0]
+    lessons = [(episode, name, None) for episode, name in zip(episodes, names, strict=True)]
+    return Path(out), _teach_and_write(Path(base), lessons, Path(out), training_data, device, settings)
 
 
 def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict | None]], out: Path,

@@ -298,15 +298,50 @@ def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_
     np.testing.assert_allclose(np.array(hub["latent"]).reshape(-1), np.array(adapted["latent"]).reshape(-1), atol=1e-6)
 
 
-def _write_demo(root, arrays: dict[str, np.ndarray]) -> None:
+def _write_demo(root, arrays: dict[str, np.ndarray], *more: dict[str, np.ndarray]) -> None:
+    """A LeRobotDataset with one episode per demonstration given."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     features = {k: {"dtype": "float32", "shape": (v.shape[1],), "names": None} for k, v in arrays.items()}
     ds = LeRobotDataset.create(repo_id="local/demo", fps=10, features=features, root=root, use_videos=False)
-    for t in range(len(arrays["action"])):
-        ds.add_frame({**{k: v[t] for k, v in arrays.items()}, "task": "new route"})
-    ds.save_episode()
+    for episode in (arrays, *more):
+        for t in range(len(episode["action"])):
+            ds.add_frame({**{k: v[t] for k, v in episode.items()}, "task": "new route"})
+        ds.save_episode()
     ds.finalize()
+
+
+def test_several_routes_recorded_together_are_taught_in_one_command(synthetic_meta, tmp_path, capsys, monkeypatch):
+    """`teach --episode 0 1 --name A B`: one new mode per episode, in order, each rehearsing the one before, into one
+    checkpoint; the training dataset is read once. Names and episodes are checked before anything loads."""
+    from lerobot_pdp import teaching
+
+    base = tmp_path / "base"
+    small_policy(synthetic_meta).save_pretrained(base)
+    routes = tmp_path / "routes"
+    _write_demo(routes, new_route(), new_route(x_via=-1.7))
+    reads = []
+    check = teaching.check_training_data
+    monkeypatch.setattr(teaching, "check_training_data", lambda *a: reads.append(a) or check(*a))
+    args = ["teach", str(base), "--demo", str(routes), "--data", str(synthetic_meta.root), "--steps", "1"]
+    assert cli([*args, "--episode", "0", "1", "--name", "far right", "far left", "--out", str(tmp_path / "t")]) == 0
+    out = capsys.readouterr().out
+    assert "episode 0: mode 4" in out and "episode 1: mode 5" in out and "taught mode(s) 4, 5" in out
+    assert len(reads) == 1
+    taught = PDPPolicy.from_pretrained(tmp_path / "t")
+    assert taught.config.mode_names["4"] == "far right" and taught.config.mode_names["5"] == "far left"
+    np.testing.assert_allclose(taught.model.bank.taught_demos[5].arrays["action"], new_route(x_via=-1.7)["action"],
+                               atol=1e-6)
+    info = json.loads((tmp_path / "t" / TEACHING_INFO).read_text())
+    assert info["demonstration"]["episode"] == 1 and info["earlier_teachings"][0]["demonstration"]["episode"] == 0
+    assert info["rehearsal_windows"] == info["earlier_teachings"][0]["rehearsal_windows"] + len(new_route()["action"])
+
+    for extra, msg in ((["--episode", "0", "1", "--name", "a"], "--name gives 1 name(s) for 2 --episode(s)"),
+                       (["--episode", "1", "1"], "--episode 1 1 repeats an episode"),
+                       (["--episode", "0", "1", "--name", "a", "a"], "mode names ['a', 'a'] repeat a name")):
+        assert cli([*args, *extra, "--out", str(tmp_path / "x")]) == 2
+        assert msg in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
