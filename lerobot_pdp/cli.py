@@ -539,8 +539,9 @@ def cmd_teach(args: argparse.Namespace) -> int:
         print(f"{'episode ' + str(ep) + ': ' if len(done) > 1 else ''}mode {res.mode}, latent {res.z.tolist()} "
               f"({res.nearest_spreads:.1f} spreads from the nearest training latent), {res.steps} steps in "
               f"{res.seconds:.0f} s")
-    modes = ", ".join(str(res.mode) for res in done)
-    print(f"wrote {out}: taught mode(s) {modes}; steer with --policy.steer_mode={done[-1].mode if len(done) == 1 else '<id>'}")
+    steer = str(done[0].mode) if len(done) == 1 else "<id>"
+    print(f"wrote {out}: taught mode(s) {', '.join(str(res.mode) for res in done)}; steer with "
+          f"--policy.steer_mode={steer}")
     return 0
 
 

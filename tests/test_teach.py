@@ -338,7 +338,8 @@ def test_several_routes_recorded_together_are_taught_in_one_command(synthetic_me
 
     for extra, msg in ((["--episode", "0", "1", "--name", "a"], "--name gives 1 name(s) for 2 --episode(s)"),
                        (["--episode", "1", "1"], "--episode 1 1 repeats an episode"),
-                       (["--episode", "0", "1", "--name", "a", "a"], "mode names ['a', 'a'] repeat a name")):
+                       (["--episode", "0", "1", "--name", "a", "a"], "mode names ['a', 'a'] repeat a name"),
+                       (["--episode", "0", "7"], "no episode 7")):  # named before the first teaching
         assert cli([*args, *extra, "--out", str(tmp_path / "x")]) == 2
         assert msg in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
