@@ -6,7 +6,8 @@ Times, interleaved round by round in one process (so load changes on the machine
   ``reference``: ``FiLMUnet1d.forward`` per step; ``precomputed``: ``FrozenDenoiser`` (modulation computed once
   per chunk), eager, PyTorch's convolutions; ``precomputed_unfold``: the same with unfolded convolutions;
   ``traced_unfold``: the TorchScript trace the policy runs (``FastDenoiser.run``, unfolded convolutions);
-  ``traced``: a trace of the path with PyTorch's convolutions. Plus ``latent_terms``: z's FiLM terms alone (B = 1), the
+  ``traced``: a trace of the path with PyTorch's convolutions; ``frozen_traced_unfold``: the policy's trace with its
+  weights folded in by ``torch.jit.freeze`` (not used by the policy: a weight update would need a new freeze). Plus ``latent_terms``: z's FiLM terms alone (B = 1), the
   work a per-z cache would save per chunk;
 - a 10-step ``fit_latent`` on one ~150-frame demonstration, with the default gradient (finite differences
   at d_z = 2: batches of 96 chunks without autograd) and with autograd, the denoiser called as
@@ -99,6 +100,18 @@ def main() -> None:
 
         traced_conv = torch.jit.trace(_Conv(), (noise, *ctx0), check_trace=False)
 
+        class _Unfold(torch.nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.net = net
+
+            def forward(self, x, *ctx):
+                return fi.modulated_forward(self.net, x, list(ctx), True)
+
+        # the policy's trace with its weights folded in as constants (``torch.jit.freeze``; a weight update
+        # would need a new freeze)
+        frozen_unfold = torch.jit.freeze(torch.jit.trace(_Unfold().eval(), (noise, *ctx0), check_trace=False))
+
     def chunk(variant: str, n: int):
         steps = schedule.timesteps(n)
         with torch.inference_mode():
@@ -108,10 +121,11 @@ def main() -> None:
             call = {"precomputed": lambda x, c: fi.modulated_forward(net, x, c, False),
                     "precomputed_unfold": lambda x, c: fi.modulated_forward(net, x, c, True),
                     "traced": lambda x, c: traced_conv(x, *c),
-                    "traced_unfold": fast.run}[variant]
+                    "traced_unfold": fast.run,
+                    "frozen_traced_unfold": lambda x, c: frozen_unfold(x, *c)}[variant]
             return schedule.sample(lambda x, i, k: call(x, ctx[i]), noise, n)
 
-    variants = ["reference", "precomputed", "precomputed_unfold", "traced", "traced_unfold"]
+    variants = ["reference", "precomputed", "precomputed_unfold", "traced", "traced_unfold", "frozen_traced_unfold"]
     for n in (5, 20):
         med = _interleaved({v: (lambda v=v, n=n: chunk(v, n)) for v in variants}, args.calls)
         for v in variants:
