@@ -99,18 +99,9 @@ def main() -> None:
                 return fi.modulated_forward(self.net, x, list(ctx), False)
 
         traced_conv = torch.jit.trace(_Conv(), (noise, *ctx0), check_trace=False)
-
-        class _Unfold(torch.nn.Module):
-            def __init__(self):
-                super().__init__()
-                self.net = net
-
-            def forward(self, x, *ctx):
-                return fi.modulated_forward(self.net, x, list(ctx), True)
-
-        # the policy's trace with its weights folded in as constants (``torch.jit.freeze``; a weight update
+        # the policy's own trace with its weights folded in as constants (``torch.jit.freeze``; a weight update
         # would need a new freeze)
-        frozen_unfold = torch.jit.freeze(torch.jit.trace(_Unfold().eval(), (noise, *ctx0), check_trace=False))
+        frozen_unfold = torch.jit.freeze(fast._trace(noise, list(ctx0)).eval())
 
     def chunk(variant: str, n: int):
         steps = schedule.timesteps(n)

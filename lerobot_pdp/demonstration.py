@@ -88,24 +88,43 @@ def episode_index(index: Any, root: Any = None) -> int:
                         f"got {type(index).__name__} {index!r}") from None
 
 
+def _required_features(cfg: PDPConfig, action_dim: int, need_action: bool) -> dict[str, tuple[int, ...]]:
+    required = {cfg.trace_key: tuple(cfg.input_features[cfg.trace_key].shape)}
+    if need_action:
+        required.update({k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
+        required[ACTION] = (action_dim,)
+    return required
+
+
+def _recorded_episode(episode: tuple, required: dict[str, tuple[int, ...]]) -> tuple[Path | str, int]:
+    """A ``(dataset, episode index)`` pair's folder and index, the recording checked (empty, interrupted,
+    index out of range, features that differ: a clear error) without reading its frames."""
+    source, index = episode
+    root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
+    if root is None:
+        raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
+    index = episode_index(index, root)
+    check_recording(root, index, required)
+    return root, index
+
+
+def check_demonstration(episode: Episode, config: PDPConfig, action_dim: int, need_action: bool = True) -> None:
+    """What :func:`read_demonstration` refuses about a recorded episode before reading it, without reading it (so
+    a bad one of several is named before work on the first); arrays given in memory are checked when read."""
+    if isinstance(episode, tuple):
+        _recorded_episode(episode, _required_features(config, action_dim, need_action))
+
+
 def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_action: bool) -> dict[str, np.ndarray]:
     """Validate a demonstration and return its arrays (unnormalised) by feature key: vectors as float64
     [T, dim], cameras as float32 [T, 3, H, W] in [0, 1]. The trace is always needed; the denoiser's
     observations and the actions only where the demonstration is fitted (``need_action``)."""
     cfg = config
-    required = {cfg.trace_key: tuple(cfg.input_features[cfg.trace_key].shape)}
-    if need_action:
-        required.update({k: tuple(ft.shape) for k, ft in cfg.condition_features.items()})
-        required[ACTION] = (action_dim,)
+    required = _required_features(cfg, action_dim, need_action)
     where = "episode"
     if isinstance(episode, tuple):
-        source, index = episode
-        root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
-        if root is None:
-            raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
-        index = episode_index(index, root)
+        root, index = _recorded_episode(episode, required)
         where = f"episode {index} of {root}"
-        check_recording(root, index, required)  # empty / interrupted / mismatched: a clear error
         cameras = [k for k in required if k in cfg.image_features]
         eps = read_episodes(root, [k for k in required if k not in cameras], [index])
         if index not in eps:

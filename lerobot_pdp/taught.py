@@ -24,7 +24,7 @@ from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json
 from .configuration_pdp import PDPConfig
-from .demonstration import Demonstration, Episode, read_demonstration
+from .demonstration import Demonstration, Episode, check_demonstration
 from .model_card import checkpoint_card
 from .taught_demos import TAUGHT_DEMOS, tensors_to_demos
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult, read_rehearsal
@@ -127,9 +127,9 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
         before = read_config_json(base / TEACHING_INFO)
         records = [*before.pop("earlier_teachings", []), before]
     results = []
-    if len(lessons) > 1:  # a demonstration that cannot be read is named before the first teaching's minutes
+    if len(lessons) > 1:  # a recording that cannot be taught is named before the first teaching's minutes
         for episode, _, _ in lessons:
-            read_demonstration(episode, policy.config, policy.action_dim, "auto", need_action=True)
+            check_demonstration(episode, policy.config, policy.action_dim)
     # several lessons rehearse the same training windows: read (and, with cameras, decode) the dataset once
     rehearsal = read_rehearsal(policy, data) if len(lessons) > 1 else data
     for i, (episode, name, demo_record) in enumerate(lessons):

@@ -76,7 +76,6 @@ class TrainingRehearsal:
     (:func:`read_rehearsal`): the windows and their latents do not change while teaching (encoder and observation
     encoder are frozen, the training behaviours keep their latents), and reading them decodes every camera frame."""
 
-    root: Path  # the training dataset's folder
     windows: DemoWindows
     latents: Tensor  # [N, d_z], each window's behaviour latent
     policy: Any  # the policy it was read for: its bank is what the dataset was checked against
@@ -87,7 +86,7 @@ def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
     as ``training_data`` to :func:`teach_new_mode` to teach the policy several modes with one read."""
     episodes = check_training_data(policy, training_data)
     windows, latents = rehearsal_windows(policy, training_data, episodes)
-    return TrainingRehearsal(Path(training_data), windows, latents, policy)
+    return TrainingRehearsal(windows, latents, policy)
 
 
 def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal,
