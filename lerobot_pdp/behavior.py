@@ -256,15 +256,17 @@ class TrajectoryVAE(nn.Module):
         """z [B, d_z] -> standardised trace [B, L, d]."""
         return self.decoder(z).view(-1, self.trace_length, self.trace_dim)
 
-    def loss(self, traces: Tensor, distances: Tensor, kappa: float | Tensor, beta_kl: float, beta_geo: float
-             ) -> tuple[Tensor, dict[str, Tensor]]:
-        """L_embed on a batch of behaviors; ``distances`` [B, B] are their delta^X.
+    def loss(self, traces: Tensor, distances: Tensor, kappa: float | Tensor, beta_kl: float, beta_geo: float,
+             rec_reduction: str = "mean") -> tuple[Tensor, dict[str, Tensor]]:
+        """L_embed on a batch of behaviors; ``distances`` [B, B] are their delta^X. ``rec_reduction``: L_rec
+        is each trace's squared error averaged ("mean") or summed ("sum", the paper's) over its elements.
 
         Returns the loss and its terms as detached 0-d tensors (no host sync: the caller reads them once).
         """
         mu, logvar = self.encode(traces)
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp()
-        rec = (self.decode(z) - self.standardize(traces)).pow(2).mean()
+        err = (self.decode(z) - self.standardize(traces)).pow(2)
+        rec = err.flatten(1).sum(1).mean() if rec_reduction == "sum" else err.mean()
         kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).mean()
         geo = mu.new_zeros(())
         if len(mu) > 1 and beta_geo > 0:

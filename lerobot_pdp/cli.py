@@ -667,6 +667,9 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
                    help="PDP's FiLM form, z -> (gamma, beta) through the paper's [16, 32] MLP or one linear layer "
                    "(default: the env's, settings.FILM: affine on pick-place, mlp elsewhere); a training setting, "
                    "compared on --split validation")
+    p.add_argument("--rec-reduction", choices=("mean", "sum"), default="mean",
+                   help="how PDP's L_rec reduces a trace's squared error: mean over its elements (default) or the "
+                   "paper's sum; a training setting, compared on --split validation")
     p.add_argument("--obs", choices=("state", "images"), default="state",
                    help="images: the camera variant - datasets, policies and rollouts observe one camera "
                    "(observation.images.<camera>) besides the state; methods pdp, dp and vqbet (default state)")
@@ -703,6 +706,7 @@ def benchmark_config(args: argparse.Namespace) -> BenchmarkConfig:
                            lr=args.lr, batch_size=args.batch_size, episodes_per_mode=args.episodes_per_mode, inference_steps=args.inference_steps,
                            timestep_spacing=args.timestep_spacing, validate=args.validate,
                            figures=not args.no_figures, device=args.device, jobs=args.jobs, film=args.film,
+                           rec_reduction=args.rec_reduction,
                            reuse_validation=args.reuse_validation, teach=args.teach,
                            **camera)
 

@@ -131,6 +131,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     beta_geo: float = 1.0
     # Behaviors per embedding step (all pairs among them enter L_geo).
     embed_batch_size: int = 64
+    # How L_rec reduces a trace's squared error: "mean" over its elements (every reported run), or the
+    # paper's "sum" (||tau - D(z)||^2), which weighs reconstruction trace_length x trace dims (128-192) times
+    # more against beta_kl and beta_geo (compared on validation in docs/experiments.md).
+    embed_rec_reduction: str = "mean"
 
     # ---- Denoiser: 1-D conditional U-Net with FiLM ----
     # "film": gamma(z) * h + beta(z) in every residual block (the paper); "concat": z appended to the
@@ -314,6 +318,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"inference_latent must be one of {INFERENCE_LATENTS}, got {self.inference_latent!r}")
         if self.trace_normalize not in TRACE_NORMALIZE:
             errors.append(f"trace_normalize must be one of {TRACE_NORMALIZE}, got {self.trace_normalize!r}")
+        if self.embed_rec_reduction not in ("mean", "sum"):
+            errors.append(f"embed_rec_reduction must be 'mean' or 'sum', got {self.embed_rec_reduction!r}")
         if self.beta_schedule not in ("squaredcos_cap_v2", "linear"):
             errors.append(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
         for name in ("beta_kl", "beta_geo", "fit_lambda"):

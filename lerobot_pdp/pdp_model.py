@@ -187,7 +187,7 @@ class PDPModel(nn.Module):
             idx = pool.to(idx.device)[idx]
         return self.vae.loss(
             bank.traces[idx], bank.distances[idx][:, idx], bank.kappa,
-            self.config.beta_kl, self.config.beta_geo,
+            self.config.beta_kl, self.config.beta_geo, self.config.embed_rec_reduction,
         )
 
     def check_batch(self, batch: dict[str, Tensor]) -> None:

@@ -102,6 +102,22 @@ def test_short_episode_is_rejected():
         build_behavior_traces(eps, "observation.state", None, 8, "none", min_length=2)
 
 
+def test_summed_rec_is_the_mean_times_a_traces_elements():
+    """The paper's L_rec sums each trace's squared error; the default averages it (L x D times smaller), and
+    the other terms are the same either way."""
+    vae = TrajectoryVAE(16, 3, 2, (32,))
+    x = torch.randn(8, 16, 3)
+    vae.set_trace_stats(x)
+    dx = torch.rand(8, 8)
+    out = {}
+    for reduction in ("mean", "sum"):
+        torch.manual_seed(0)  # the same reparameterisation noise
+        out[reduction] = vae.loss(x, dx + dx.T, 1.0, 1e-3, 1.0, reduction)[1]
+    assert torch.allclose(out["sum"]["embed_rec"], out["mean"]["embed_rec"] * 16 * 3, rtol=1e-5)
+    for term in ("embed_kl", "embed_geo"):
+        assert torch.equal(out["sum"][term], out["mean"][term])
+
+
 def test_vae_geometry_alignment_orders_latents_like_traces():
     """Four clusters of 1-D offsets: after training, latent distances follow trace distances."""
     torch.manual_seed(0)

@@ -46,6 +46,7 @@ def test_delta_indices():
         ({"film_hidden_dims": (16, 0)}, "every entry of film_hidden_dims must be >= 1, got (16, 0)"),
         ({"vae_hidden_dims": (-4,)}, "every entry of vae_hidden_dims must be >= 1"),
         ({"down_dims": ()}, "down_dims must list at least one U-Net level"),
+        ({"embed_rec_reduction": "max"}, "embed_rec_reduction must be 'mean' or 'sum', got 'max'"),
     ],
 )
 def test_invalid_values_are_named(kwargs, message):

@@ -50,6 +50,21 @@ def test_film_option_trains_pdp_and_its_ablations_with_that_form_only(env):
         methods_for(suite, "mlp2")
 
 
+def test_rec_reduction_option_changes_pdp_and_its_ablations_only():
+    """``benchmark --rec-reduction sum`` trains PDP with the paper's summed L_rec; "mean" (the default) keeps
+    the arguments of every run before the option, so cached runs stay reusable."""
+    suite = get_suite_env("reach-around")
+    assert methods_for(suite, rec_reduction="mean") == methods_for(suite)
+    summed = methods_for(suite, rec_reduction="sum")
+    for name in ("pdp", "pdp_unaligned"):
+        assert _pdp_config(summed[name].overrides).embed_rec_reduction == "sum"
+        assert _pdp_config(methods_for(suite)[name].overrides).embed_rec_reduction == "mean"
+    for name in ("dp", "bc"):
+        assert summed[name].overrides == methods_for(suite)[name].overrides
+    with pytest.raises(ValueError, match="rec_reduction must be one of"):
+        methods_for(suite, rec_reduction="median")
+
+
 def test_a_checkpoint_trained_with_other_arguments_is_not_reused(tmp_path):
     """Resuming into an old --out after the protocol changed (here: the step budget, a method flag) must not
     put the stale run into the new table; the output folder, logging, loader workers and sampler steps may

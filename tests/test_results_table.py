@@ -189,6 +189,12 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
     with pytest.raises(ValueError, match="b: PDP's FiLM form is 'affine' but a has 'mlp'"):
         merge_results([("a", a), ("b", affine)])
     assert merge_results([("a", a), ("b", refrozen | {"frozen": a["frozen"]})])["film"] == "mlp"
+    summed = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}}, rec_reduction="sum")
+    assert a["rec_reduction"] == "mean" and summed["rec_reduction"] == "sum"
+    with pytest.raises(ValueError, match="b: PDP's L_rec reduction is 'sum' but a has 'mean'"):
+        merge_results([("a", a), ("b", summed)])
+    older = {k: v for k, v in refrozen.items() if k != "rec_reduction"} | {"frozen": a["frozen"]}
+    assert merge_results([("a", a), ("older", older)])["rec_reduction"] == "mean"  # every older run: the mean
     # a file from before per-method seeds whose method finished fewer seeds than the table's
     old = _results([1, 2], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
     del old["methods"]["pdp"]["seeds"]
@@ -238,6 +244,8 @@ def test_quick_changes_only_the_defaults_of_the_benchmark_command(argv, expected
     film = benchmark_config(build_parser().parse_args(["benchmark", "--env", "avoiding", "--out", "o", "--film",
                                                        "affine", *argv]))
     assert film.film == "affine" and (film.seeds, film.rollouts, film.methods) == expected
+    assert cfg.rec_reduction == "mean" and benchmark_config(build_parser().parse_args(
+        ["benchmark", "--env", "avoiding", "--out", "o", "--rec-reduction", "sum", *argv])).rec_reduction == "sum"
 
 
 def test_rollout_figures_split_main_methods_from_ablations_whatever_was_asked(tmp_path, monkeypatch):

@@ -234,6 +234,9 @@ def test_a_training_setting_is_chosen_on_validation_runs_by_the_same_rule():
         validation.choose_training_setting("pdp", "film", {"mlp": mlp, "affine": res([1.0] * 5, rollouts=20)})
     with pytest.raises(ValueError, match="no dp in its results"):
         validation.choose_training_setting("dp", "film", {"mlp": mlp})
+    summed = res([1.0, 0.9, 0.95, 0.05, 0.0]) | {"rec_reduction": "sum"}  # files before the option: the mean
+    rows = validation.choose_training_setting("pdp", "rec_reduction", {"mean": mlp, "sum": summed})["candidates"]
+    assert [r["rec_reduction"] for r in rows] == ["mean", "sum"]
 
 
 @pytest.mark.slow

@@ -95,7 +95,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
                          f"got {cfg.inference_steps}")
     check_device(cfg.device)
     frozen = frozen_record(suite.name, cfg)  # what this run samples and adapts with, whatever changes meanwhile
-    all_methods = methods_for(suite, cfg.film)
+    all_methods = methods_for(suite, cfg.film, cfg.rec_reduction)
     names = list(dict.fromkeys(cfg.methods + (list(ABLATIONS) if cfg.ablations else [])))
     unknown = [n for n in names if n not in all_methods]
     if unknown:

@@ -56,6 +56,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
                            "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
+                           "rec_reduction": cfg.rec_reduction,
                            "device": cfg.device, "cpu": cpu_model(),
                            "frozen": frozen if frozen is not None else frozen_record(env, cfg),
                            "methods": {}}
@@ -166,6 +167,9 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         if None not in (res.get("film"), first.get("film")) and res["film"] != first["film"]:  # older: unrecorded
             raise ValueError(f"{name}: PDP's FiLM form is {res['film']!r} but {first_name} has {first['film']!r}; "
                              "only runs of the same protocol can be merged")
+        if res.get("rec_reduction", "mean") != first.get("rec_reduction", "mean"):  # older files: the mean
+            raise ValueError(f"{name}: PDP's L_rec reduction is {res.get('rec_reduction', 'mean')!r} but {first_name} "
+                             f"has {first.get('rec_reduction', 'mean')!r}; only runs of the same protocol can be merged")
     frozen = _merged_frozen(results)
     # method -> [(seed, source name, entry)] with each seed's index into the entry's per-seed lists
     rows: dict[str, list[tuple[int, str, dict[str, Any], int]]] = {}
@@ -191,6 +195,7 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     films = {res["film"] for _, res in results if res.get("film")}
     if films:
         out["film"] = films.pop()
+    out["rec_reduction"] = first.get("rec_reduction", "mean")
     if all(res.get("scenes") == first.get("scenes") for _, res in results) and "scenes" in first:
         out["scenes"] = first["scenes"]
     out["device"] = "/".join(sorted({str(res.get("device", "unrecorded")) for _, res in results}))
@@ -300,6 +305,8 @@ def results_markdown(res: dict[str, Any]) -> str:
               f"{t['episodes_per_mode']} demos/mode (same for every method)."]
     if res.get("film"):
         lines.append(f"PDP's FiLM form: {res['film']}.")
+    if res.get("rec_reduction", "mean") != "mean":
+        lines.append(f"PDP's L_rec: the {res['rec_reduction']} of each trace's squared error.")
     sampler = [f"{name} {'/'.join(map(str, e['inference_steps']))}"
                + (f" ({'/'.join(e['timestep_spacing'])})" if e.get("timestep_spacing") else "")
                for name, e in res["methods"].items() if e.get("inference_steps")]

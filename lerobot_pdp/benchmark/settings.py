@@ -184,6 +184,9 @@ SETTINGS: dict[str, tuple[TrainSettings, TrainSettings]] = {
 # settings (steps, lr, the |z|^2 weight) are not training flags: they are chosen per env in FROZEN.
 FILM_FORMS: dict[str, tuple[str, ...]] = {"mlp": (), "affine": ("--policy.film_hidden_dims=[]",)}
 FILM: dict[str, str] = {"pick-place": "affine"}
+# How PDP's L_rec reduces a trace's squared error, a training setting like FILM (``benchmark --rec-reduction``):
+# "mean" over its elements (PDPConfig's default, every env), or the paper's "sum".
+REC_REDUCTIONS: dict[str, tuple[str, ...]] = {"mean": (), "sum": ("--policy.embed_rec_reduction=sum",)}
 
 
 # What the validation split chose per method (``benchmark --split validation --validate``, validation.py),
@@ -295,10 +298,11 @@ def film_form(env: str, film: str | None = None) -> str:
     return form
 
 
-def methods_for(suite: SuiteEnv, film: str | None = None) -> dict[str, Method]:
+def methods_for(suite: SuiteEnv, film: str | None = None, rec_reduction: str = "mean") -> dict[str, Method]:
     """Main methods and ablations for ``suite`` (PDP's trace dims and gripper segmentation come from it).
 
-    ``film`` trains PDP and its ablations with that FiLM form instead of the env's (:func:`film_form`). For a
+    ``film`` trains PDP and its ablations with that FiLM form instead of the env's (:func:`film_form`),
+    ``rec_reduction`` with that L_rec reduction (:data:`REC_REDUCTIONS`). For a
     camera variant of an env (``suite.camera_kwargs``) only the methods that take images, each with the same
     :data:`VISION_FLAGS`."""
     try:
@@ -311,7 +315,9 @@ def methods_for(suite: SuiteEnv, film: str | None = None) -> dict[str, Method]:
     pdp = [f"--policy.trace_dims=[{','.join(map(str, suite.trace_dims))}]"]
     if suite.segment_on_gripper is not None:
         pdp += [f"--policy.segment_gripper_dim={suite.segment_on_gripper}", "--policy.trace_normalize=endpoints"]
-    pdp = (*pdp, *FILM_FORMS[film_form(suite.name, film)])
+    if rec_reduction not in REC_REDUCTIONS:
+        raise ValueError(f"rec_reduction must be one of {sorted(REC_REDUCTIONS)}, got {rec_reduction!r}")
+    pdp = (*pdp, *FILM_FORMS[film_form(suite.name, film)], *REC_REDUCTIONS[rec_reduction])
     if suite.camera_kwargs:
         # VQ-BeT adapts like BC, by fine-tuning its weights (LeRobot's vqbet has no goal input for the
         # paper's way-point goals); its discrete codes are sampled, not steered
@@ -367,6 +373,8 @@ class BenchmarkConfig:
     # PDP's FiLM form ("mlp" | "affine"; None: the env's, settings.FILM): a training setting, so that forms
     # can be compared on the validation split
     film: str | None = None
+    # PDP's L_rec reduction ("mean" | "sum", REC_REDUCTIONS): a training setting like film
+    rec_reduction: str = "mean"
     # "state" (default) or "images": the camera variant (CAMERAS[env] at IMAGE_SIZE, or camera / image_size)
     obs: str = "state"
     camera: str | None = None

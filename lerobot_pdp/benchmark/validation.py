@@ -310,6 +310,7 @@ def choose_training_setting(method: str, setting: str, candidates: dict[str, dic
         success = {k: entry[k]["success"] for k in keys}
         score = float(np.mean([v for vals in success.values() for v in vals]))
         rows.append({"candidate": name, "score": score, "success": success, "film": res.get("film"),
+                     "rec_reduction": res.get("rec_reduction", "mean"),
                      "train": res["train"]})
     if first is None:
         raise ValueError("no candidates")
