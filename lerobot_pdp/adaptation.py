@@ -124,7 +124,7 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0 (gradient steps on z; 0: the warm start alone), got {steps!r}")
     if lr is not None and not (math.isfinite(lr) and lr > 0):
-        raise ValueError(f"lr must be a finite number > 0 (Adam's step size on z), got {lr!r}")
+        raise ValueError(f"lr must be a finite number > 0 (the step size on z), got {lr!r}")
     if lam is not None and not (math.isfinite(lam) and lam >= 0):
         raise ValueError(f"lam must be a finite number >= 0 (the weight of lambda |z|^2), got {lam!r}")
     sample_steps = cfg.num_inference_steps if (objective or cfg.fit_objective) == "sample" else None
@@ -144,7 +144,7 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
                 model.denoiser, model.noise_schedule, windows, z0.to(device), steps=steps,
                 lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
                 batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
-                progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps,
+                progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps, optimizer=cfg.fit_optimizer,
             )
         chunks = (noise or cfg.fit_noise) == "chunks"
         judge_fit(model, config, result, windows, seed, chunks)

@@ -218,8 +218,13 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # ---- Latent fitting defaults (policy.fit_latent) ----
     # Gradient steps S on z after the encoder warm start (0 = the warm start alone).
     fit_steps: int = 100
-    # Adam step size on z.
+    # Step size on z (of fit_optimizer).
     fit_lr: float = 0.05
+    # How z takes its steps: "adam", returning the mean of the last 20 % of iterates (L_fit is a Monte-Carlo
+    # estimate, so they jitter around the optimum), or the paper's plain "gradient" steps z <- z - fit_lr *
+    # grad, returning the last (its step size is on another scale: compared on validation in
+    # docs/experiments.md).
+    fit_optimizer: str = "adam"
     # lambda in L_fit = E|eps - eps_theta(A~^k, k, c~, z)|^2 + lambda |z|^2.
     fit_lambda: float = 1e-3
     # What z is fitted to: "denoise" (the paper's L_fit, the noise-prediction error at random diffusion
@@ -352,6 +357,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         if self.fit_noise_steps < 1 or not self.fit_noise_lr > 0:
             errors.append(f"fit_noise_steps must be >= 1 and fit_noise_lr > 0, got {self.fit_noise_steps}, "
                           f"{self.fit_noise_lr}")
+        if self.fit_optimizer not in ("adam", "gradient"):
+            errors.append(f"fit_optimizer must be 'adam' or 'gradient', got {self.fit_optimizer!r}")
         if self.fit_objective not in ("denoise", "sample"):
             errors.append(f"fit_objective must be 'denoise' or 'sample', got {self.fit_objective!r}")
         if self.compile_mode not in COMPILE_MODES:

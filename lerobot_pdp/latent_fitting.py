@@ -253,8 +253,11 @@ def fit_loss_and_grad_fd(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, window
 
 def fit_latent(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWindows, z0: Tensor, steps: int, lr: float, lam: float,
                batch_size: int, noise_samples: int = 1, seed: int | None = 0, progress: bool = False,
-               gradient: str = "auto", sample_steps: int | None = None) -> FitResult:
-    """Adam on z (weights frozen). Each step samples demonstration chunks and noise afresh (Alg. 3).
+               gradient: str = "auto", sample_steps: int | None = None, optimizer: str = "adam") -> FitResult:
+    """Gradient steps on z (weights frozen). Each step samples demonstration chunks and noise afresh (Alg. 3).
+
+    ``optimizer``: ``"adam"`` returns the mean of the last 20 % of its iterates, ``"gradient"`` takes the
+    paper's plain steps z <- z - lr * grad and returns the last.
 
     ``gradient``: ``"autograd"`` (backward to z), ``"finite_difference"`` (:func:`fit_loss_and_grad_fd`)
     or ``"auto"`` (finite differences for d_z <= 3 where they are cheaper, on the noise-prediction loss only).
@@ -263,16 +266,19 @@ def fit_latent(denoiser: FiLMUnet1d | FrozenDenoiser, schedule, windows: DemoWin
     """
     if gradient not in FIT_GRADIENTS:
         raise ValueError(f"gradient must be one of {FIT_GRADIENTS}, got {gradient!r}")
+    if optimizer not in ("adam", "gradient"):
+        raise ValueError(f"optimizer must be 'adam' or 'gradient', got {optimizer!r}")
     # the sampled-chunk loss has kinks where x0 clipping starts to act, which one-sided differences smear
     use_fd = gradient == "finite_difference" or (gradient == "auto" and z0.shape[-1] <= 3 and sample_steps is None)
     g = torch.Generator()
     g.manual_seed(int(seed) if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
     z = z0.detach().clone().float().requires_grad_(True)
-    opt = torch.optim.Adam([z], lr=lr)
+    opt = torch.optim.Adam([z], lr=lr) if optimizer == "adam" else torch.optim.SGD([z], lr=lr)
     losses: list[float] = []
-    # L_fit is a Monte-Carlo estimate (random chunks, k and eps each step), so the last iterates jitter
-    # around the optimum; averaging the final 20 % of them (Polyak averaging) returns its centre.
-    tail_start = steps - max(1, steps // 5)
+    # L_fit is a Monte-Carlo estimate (random chunks, k and eps each step), so Adam's last iterates jitter
+    # around the optimum; averaging the final 20 % of them (Polyak averaging) returns its centre. The
+    # paper's plain steps return the last iterate.
+    tail_start = steps - max(1, steps // 5) if optimizer == "adam" else steps - 1
     z_sum = torch.zeros_like(z)
     iterator = range(steps)
     if progress:

@@ -47,6 +47,7 @@ def test_delta_indices():
         ({"vae_hidden_dims": (-4,)}, "every entry of vae_hidden_dims must be >= 1"),
         ({"down_dims": ()}, "down_dims must list at least one U-Net level"),
         ({"embed_rec_reduction": "max"}, "embed_rec_reduction must be 'mean' or 'sum', got 'max'"),
+        ({"fit_optimizer": "sgd"}, "fit_optimizer must be 'adam' or 'gradient', got 'sgd'"),
     ],
 )
 def test_invalid_values_are_named(kwargs, message):

@@ -118,6 +118,29 @@ def test_finite_difference_gradient_matches_autograd_on_the_same_draws():
         fit_latent(net, sched, w, torch.zeros(2, 2), steps=1, lr=0.05, lam=0.0, batch_size=4, gradient="exact")
 
 
+@pytest.mark.numerics
+def test_plain_gradient_steps_are_the_papers_update_and_return_the_last_iterate():
+    """``optimizer="gradient"``: z <- z - lr * grad on each step's draws (paper Alg. 3), the last z returned (Adam's
+    result is the mean of its last iterates)."""
+    from lerobot_pdp.latent_fitting import _stratified_batch, frozen_denoiser
+
+    net, sched, w, T = _two_phase_setup("film")
+    z0, lr, lam = torch.randn(2, 2), 0.5, 1e-2
+    frozen = frozen_denoiser(net, sched)
+    obs = frozen.observations(w.obs_cond)
+    z, g = z0.clone(), torch.Generator().manual_seed(3)
+    for _ in range(2):  # the fit's own draws, in its order
+        idx = _stratified_batch(w.segment, w.n_segments, 8, g)
+        zg = z.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(fit_loss(frozen, sched, w, zg, idx, 1, lam, g, obs), zg)
+        z = z - lr * grad
+    res = fit_latent(net, sched, w, z0, steps=2, lr=lr, lam=lam, batch_size=8, seed=3, gradient="autograd",
+                     optimizer="gradient")
+    torch.testing.assert_close(res.z, z)
+    with pytest.raises(ValueError, match="optimizer must be 'adam' or 'gradient'"):
+        fit_latent(net, sched, w, z0, steps=1, lr=lr, lam=lam, batch_size=8, optimizer="sgd")
+
+
 def _learned_setup():
     """:func:`_two_phase_setup` after 150 denoising steps on its demonstration at z = 0 (an untrained
     denoiser's chunks are its random outputs clipped, which neither the step nor the noise changes much)."""

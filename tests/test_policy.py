@@ -895,3 +895,18 @@ def test_lerobot_trains_eval_split_stays_out_of_the_latent_space(synthetic_datas
     monkeypatch.setattr("sys.argv", ["python"])  # outside lerobot-train: every behaviour trains the latent
     assert len(small_policy(synthetic_meta).model.bank.embed_pool) == 0
 
+
+
+def test_fit_optimizer_reaches_the_fit_and_the_benchmarks_adaptation(synthetic_meta):
+    """``fit_optimizer="gradient"`` (the paper's plain steps) is what ``fit_latent`` then takes, and the
+    benchmark's adaptation sets it from its ``optimizer`` setting (scripts/compare_fit_optimizer.py)."""
+    from lerobot_pdp.benchmark.evaluation import adapt
+    from lerobot_pdp.benchmark.settings import Method
+
+    p = small_policy(synthetic_meta)
+    demo = (synthetic_meta.root, 2)
+    adam = p.fit_latent(demo, steps=3, lr=0.5, activate=False)
+    _, info = adapt(Method("pdp", "pdp"), p, None, demo, 0, steps=3, lr=0.5, optimizer="gradient")
+    assert p.config.fit_optimizer == "gradient"
+    plain = p.fit_latent(demo, steps=3, lr=0.5, activate=False)
+    assert info["z"] == plain.z.tolist() and not torch.equal(plain.z, adam.z)
