@@ -203,6 +203,7 @@ def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **sett
     defaults = {"steps": config.fit_steps, "lr": config.fit_lr, "lam": config.fit_lambda,
                 "objective": config.fit_objective, "noise": config.fit_noise}
     fit = {k: (defaults.get(k) if v is None else v) for k, v in settings.items()}
+    fit["optimizer"] = config.fit_optimizer  # a config field: how the steps were taken
     fit = {k: (v.tolist() if isinstance(v, Tensor) else v if isinstance(v, (int, float, str, bool, list)) or v is None
                else str(v)) for k, v in fit.items()}
     return {"source": "fit_latent", "demonstration": source, "fit": fit, "fit_error": result.fit_error,

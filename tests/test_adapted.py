@@ -44,6 +44,7 @@ def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path,
     assert info["source"] == "fit_latent" and info["latent"] == [res.z.tolist()]  # [M, d_z]
     assert info["demonstration"] == {"dataset": str(synthetic_meta.root.resolve()), "episode": 2}
     assert info["fit"]["steps"] == 2 and info["fit"]["noise"] == "chunks" and info["fit"]["lr"] == p.config.fit_lr
+    assert info["fit"]["optimizer"] == "adam"
     assert info["noise_chunks"] == len(res.noise) > 1 and "error_ratio" in info and info["date"]
     assert (tmp_path / "adapted" / ADAPTATION_TENSORS).stat().st_size < 20_000  # small beside the weights
 
