@@ -5,8 +5,8 @@ validation split.
         --out docs/results/reach-around/validation_fit_optimizer.json
 
 Takes a finished ``lerobot-pdp benchmark --split validation`` folder (its PDP checkpoints and the validation
-scenes' demonstrations). Every candidate adapts as that run's PDP does (its frozen adaptation,
-``settings.FROZEN``: objective, chunk noises) with only the optimizer changed: Adam at ``fit_lr`` first (the
+scenes' demonstrations). Every candidate adapts as that run's PDP does (the frozen adaptation
+its results.json records: objective, chunk noises) with only the optimizer changed: Adam at ``fit_lr`` first (the
 run's own evaluation), then plain steps ``z <- z - lr * grad`` at each ``--lr`` (their step size is on the
 gradient's scale, not Adam's, so it gets a sweep of its own; the record holds the gradient's norm at each
 demonstration's encoder latent, ``--grad-draws`` draws of the fit's batch, to centre that sweep). Scored on the validation scenes over every seed and
@@ -53,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
                           scenes=tuple(scenes), split="validation", film=res.get("film"),
                           rec_reduction=res.get("rec_reduction", "mean"))
     method = methods_for(suite, cfg.film, cfg.rec_reduction)["pdp"]
-    chosen = frozen_for(suite.name, cfg.quick, "pdp")
+    # what the run itself sampled and adapted with (results.json's "frozen"; older runs: the settings now)
+    chosen = (res["frozen"]["methods"].get("pdp", {}) if "frozen" in res
+              else frozen_for(suite.name, cfg.quick, "pdp"))
     settings = SETTINGS[suite.name][1 if cfg.quick else 0]
     sampler = tuple(chosen.get("sampler") or (settings.inference_steps, settings.timestep_spacing))
     base = dict(chosen.get("adapt", {}))
