@@ -81,7 +81,8 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
 def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
                          init: str | Tensor = "encoder", steps: int | None = None, lr: float | None = None,
                          lam: float | None = None, seed: int | None = 0, progress: bool = False,
-                         objective: str | None = None, noise: str | None = None) -> FitResult:
+                         objective: str | None = None, noise: str | None = None,
+                         optimizer: str | None = None) -> FitResult:
     """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 with segments): the
     warm start, then the fit; what ``PDPPolicy.fit_latent`` runs between reading the demonstration and
     activating the result.
@@ -92,24 +93,26 @@ def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration
         init: ``"encoder"`` (z0 = mu_phi(X(tau)), the semantic warm start), ``"random"`` (N(0, I)),
             ``"zero"``, or a tensor.
         steps: gradient steps S (default ``config.fit_steps``); 0 returns the warm start.
-        lr, lam: Adam step size and the weight of lambda |z|^2.
+        lr, lam: the step size on z and the weight of lambda |z|^2.
         seed: the fit's random draws (windows, noise); also the ``"random"`` warm start's.
         objective: "denoise" or "sample" (default ``config.fit_objective``, which documents both).
         noise: "chunks" or "none" (default ``config.fit_noise``, which documents both): also fit one
             initial sampler noise per executed chunk, z fixed (``FitResult.noise``).
+        optimizer: "adam" or "gradient" (default ``config.fit_optimizer``, which documents both).
 
     Returns:
         :class:`FitResult` with ``z`` ([d_z], or [M, d_z] for a demonstration split into M segments), the
         initial z and the loss history.
     """
     z0 = initial_latent(model, config, demo, init, seed)
-    return fit_demonstration(model, config, demo, windows, z0, steps, lr, lam, seed, progress, objective, noise)
+    return fit_demonstration(model, config, demo, windows, z0, steps, lr, lam, seed, progress, objective, noise,
+                             optimizer)
 
 
 def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,
                       z0: Tensor, steps: int | None = None, lr: float | None = None, lam: float | None = None,
                       seed: int | None = 0, progress: bool = False, objective: str | None = None,
-                      noise: str | None = None) -> FitResult:
+                      noise: str | None = None, optimizer: str | None = None) -> FitResult:
     """z (and, with ``noise="chunks"``, one sampler noise per chunk) fitted to ``demo``'s ``windows`` from
     ``z0``; ``None`` arguments take the config's ``fit_*`` defaults. The model is put in eval mode meanwhile."""
     cfg = config
@@ -117,6 +120,8 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
         raise ValueError(f"objective must be 'denoise' or 'sample', got {objective!r}")
     if noise not in (None, "none", "chunks"):
         raise ValueError(f"noise must be 'none' or 'chunks', got {noise!r}")
+    if optimizer not in (None, "adam", "gradient"):
+        raise ValueError(f"optimizer must be 'adam' or 'gradient', got {optimizer!r}")
     if not cfg.do_mask_loss_for_padding:  # fit on the same loss the denoiser was trained with
         windows = dataclasses.replace(windows, is_pad=torch.zeros_like(windows.is_pad))
     device = model.device
@@ -144,7 +149,8 @@ def fit_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, w
                 model.denoiser, model.noise_schedule, windows, z0.to(device), steps=steps,
                 lr=cfg.fit_lr if lr is None else lr, lam=cfg.fit_lambda if lam is None else lam,
                 batch_size=cfg.fit_batch_size, noise_samples=cfg.fit_noise_samples, seed=seed,
-                progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps, optimizer=cfg.fit_optimizer,
+                progress=progress, gradient=cfg.fit_gradient, sample_steps=sample_steps,
+                optimizer=optimizer or cfg.fit_optimizer,
             )
         chunks = (noise or cfg.fit_noise) == "chunks"
         judge_fit(model, config, result, windows, seed, chunks)
@@ -201,9 +207,8 @@ def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **sett
         source = {"dataset": str(Path(root).resolve()) if isinstance(root, (str, Path)) else str(root),
                   "episode": int(episode[1])}
     defaults = {"steps": config.fit_steps, "lr": config.fit_lr, "lam": config.fit_lambda,
-                "objective": config.fit_objective, "noise": config.fit_noise}
+                "objective": config.fit_objective, "noise": config.fit_noise, "optimizer": config.fit_optimizer}
     fit = {k: (defaults.get(k) if v is None else v) for k, v in settings.items()}
-    fit["optimizer"] = config.fit_optimizer  # a config field: how the steps were taken
     fit = {k: (v.tolist() if isinstance(v, Tensor) else v if isinstance(v, (int, float, str, bool, list)) or v is None
                else str(v)) for k, v in fit.items()}
     return {"source": "fit_latent", "demonstration": source, "fit": fit, "fit_error": result.fit_error,

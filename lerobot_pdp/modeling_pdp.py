@@ -270,7 +270,7 @@ class PDPPolicy(PreTrainedPolicy):
                    lr: float | None = None, lam: float | None = None,
                    segments: list[tuple[int, int]] | str | None = "auto", seed: int | None = 0,
                    activate: bool = True, progress: bool = False, objective: str | None = None,
-                   noise: str | None = None) -> FitResult:
+                   noise: str | None = None, optimizer: str | None = None) -> FitResult:
         """Fit z to one demonstration with every weight frozen (paper Alg. 3 / Eq. 11, Eq. 12 per segment);
         ``activate``: act under the result. ``episode``, ``segments``: :func:`lerobot_pdp.demonstration.read_demonstration`;
         the other arguments: :func:`lerobot_pdp.adaptation.fit_to_demonstration`."""
@@ -278,11 +278,11 @@ class PDPPolicy(PreTrainedPolicy):
             demo = self._demonstration(episode, segments, need_action=True)  # prepare: read, validate, split
             result = fit_to_demonstration(self.model, self.config, demo, self._demo_windows(demo), init=init,  # fit
                                           steps=steps, lr=lr, lam=lam, seed=seed, progress=progress,
-                                          objective=objective, noise=noise)
+                                          objective=objective, noise=noise, optimizer=optimizer)
         if activate:  # act under it, and keep where it came from (an adapted checkpoint saves it)
             self.steering.activate(result.z, result.noise, fit_provenance(
                 episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
-                objective=objective, noise=noise))
+                objective=objective, noise=noise, optimizer=optimizer))
         return result
 
     def search_latent(self, env_factory: EnvFactory, score: str | Score = "success", budget: int = 200, init: Any = "modes",

@@ -898,15 +898,20 @@ def test_lerobot_trains_eval_split_stays_out_of_the_latent_space(synthetic_datas
 
 
 def test_fit_optimizer_reaches_the_fit_and_the_benchmarks_adaptation(synthetic_meta):
-    """``fit_optimizer="gradient"`` (the paper's plain steps) is what ``fit_latent`` then takes, and the
-    benchmark's adaptation sets it from its ``optimizer`` setting (scripts/compare_fit_optimizer.py)."""
+    """The paper's plain steps (``optimizer="gradient"``) are taken as a fit_latent argument, as the config's
+    ``fit_optimizer`` default and as the benchmark's ``optimizer`` adaptation setting, alike; another value is
+    refused by name."""
     from lerobot_pdp.benchmark.evaluation import adapt
     from lerobot_pdp.benchmark.settings import Method
 
     p = small_policy(synthetic_meta)
     demo = (synthetic_meta.root, 2)
     adam = p.fit_latent(demo, steps=3, lr=0.5, activate=False)
+    plain = p.fit_latent(demo, steps=3, lr=0.5, activate=False, optimizer="gradient")
+    assert not torch.equal(plain.z, adam.z)
     _, info = adapt(Method("pdp", "pdp"), p, None, demo, 0, steps=3, lr=0.5, optimizer="gradient")
-    assert p.config.fit_optimizer == "gradient"
-    plain = p.fit_latent(demo, steps=3, lr=0.5, activate=False)
-    assert info["z"] == plain.z.tolist() and not torch.equal(plain.z, adam.z)
+    assert info["z"] == plain.z.tolist() and p.config.fit_optimizer == "adam"  # an argument, not a config change
+    p.config.fit_optimizer = "gradient"
+    assert torch.equal(p.fit_latent(demo, steps=3, lr=0.5, activate=False).z, plain.z)
+    with pytest.raises(ValueError, match="optimizer must be 'adam' or 'gradient', got 'sgd'"):
+        p.fit_latent(demo, steps=3, optimizer="sgd")

@@ -91,15 +91,12 @@ def adapt(method: Method, policy, pre, demo: dict[str, np.ndarray], seed: int, s
     """Adapt a policy to one demonstration the method's own way; returns (policy to roll out, info).
 
     ``kwargs``: the adaptation's settings besides the defaults (``steps``, ``lr``; PDP also ``lam``, ``objective``,
-    ``noise`` and ``optimizer``, its ``fit_optimizer``), as the validation sweep varies them."""
+    ``noise`` and ``optimizer``), as the validation sweep varies them."""
     from .baselines import FixedNoisePolicy, adapt_dp_noise, finetune_bc
 
     if steps is not None:
         kwargs["steps"] = steps
     if method.adapt == "fit_latent":
-        optimizer = kwargs.pop("optimizer", None)
-        if optimizer is not None:  # PDPConfig.fit_optimizer, a config field rather than an argument of fit_latent
-            policy.config.fit_optimizer = optimizer
         # segments="auto": a gripper-segmented policy fits one z per phase (paper Eq. 12)
         res = policy.fit_latent(demo, init=init, seed=seed, **kwargs)
         return policy, {"z": res.z.tolist(), "z_init": res.z_init.tolist(), "fit_loss": res.losses[-1:] or None,
