@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_pdp.atomic import write_text_atomic
     from lerobot_pdp.benchmark.data import ensure_demo
     from lerobot_pdp.benchmark.settings import SETTINGS, BenchmarkConfig, frozen_for, methods_for
+    from lerobot_pdp.benchmark.training import load_policy
     from lerobot_pdp.benchmark.validation import _evaluate, _score, candidate_tag, choose
     from lerobot_pdp.envs.suite import get_suite_env
 
@@ -63,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     demos = {s: ensure_demo(suite, args.run, s)[0] for s in scenes}
     candidates = [("adam", base), *[(f"gradient lr {lr:g}", {**base, "optimizer": "gradient", "lr": lr})
                                     for lr in args.lr]]
-    norms = {str(s): gradient_norms(runs[seeds[0]], demos[s], base, args.grad_draws) for s in scenes}
+    policy = load_policy(runs[seeds[0]] / "pretrained_model")[0]
+    norms = {str(s): gradient_norms(policy, demos[s], base, args.grad_draws) for s in scenes}
     print(f"gradient norms at the encoder's latent (seed {seeds[0]}): {norms}", flush=True)
     rows = []
     for name, adapt in candidates:
@@ -85,17 +87,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def gradient_norms(run: Path, demo: Path, adapt: dict, draws: int) -> list[float]:
-    """|grad L_fit| at the encoder's latent of ``demo``, one per fitting batch drawn as the fit draws them, with
-    the adaptation's objective (the sampled chunks with ``objective="sample"``)."""
+def gradient_norms(policy, demo: Path, adapt: dict, draws: int) -> list[float]:
+    """|grad L_fit| of ``policy`` at the encoder's latent of ``demo``, one per fitting batch drawn as the fit
+    draws them, with the adaptation's objective (the sampled chunks with ``objective="sample"``)."""
     import torch
 
     from lerobot_pdp.adaptation import initial_latent
     from lerobot_pdp.benchmark.data import demo_episode
-    from lerobot_pdp.benchmark.training import load_policy
     from lerobot_pdp.latent_fitting import _stratified_batch, fit_loss, frozen_denoiser
 
-    policy, _, _ = load_policy(run / "pretrained_model")
     cfg, model = policy.config, policy.model
     objective = adapt.get("objective", cfg.fit_objective)
     with torch.inference_mode(False), torch.enable_grad():
