@@ -8,6 +8,7 @@ plumbing, not the behaviour); the slow test runs both commands as processes and 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -201,16 +202,14 @@ def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):
 # ------------------------------------------------------------------------------ server and client, in process
 
 
-def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_its_episodes(
-        server_module, client_module, tmp_path):
-    """LeRobot's client and server classes over a real gRPC channel: pdp_sim's features reach PDP as trained
-    (state and environment state), each episode's end drops the queued actions, and the run ends after
-    ``--robot.episodes``."""
+@contextlib.contextmanager
+def _serving(server):
+    """LeRobot's policy server admitting PDP, over a real gRPC channel on a free port: (service, port, the
+    observations it passed to the policy)."""
     import grpc
-    from lerobot.async_inference.configs import PolicyServerConfig, RobotClientConfig
+    from lerobot.async_inference.configs import PolicyServerConfig
     from lerobot.transport import services_pb2_grpc
 
-    server = server_module
     policy_server.admit_pdp(server, [])
     seen = []
     passes = server.raw_observation_to_observation
@@ -220,13 +219,38 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
     services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, grpc_server)
     port = grpc_server.add_insecure_port("127.0.0.1:0")
     grpc_server.start()
-    outcomes = tmp_path / "outcomes.jsonl"
     try:
-        client = client_module.RobotClient(RobotClientConfig(
-            policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / "trained"), actions_per_chunk=8,
-            server_address=f"127.0.0.1:{port}", fps=100,
-            robot=PDPSimConfig(env="reach-around", scene="0", episodes=2, outcomes=str(outcomes),
-                               calibration_dir=tmp_path)))
+        yield service, port, seen, grpc_server
+    finally:
+        grpc_server.stop(0)
+
+
+def _client_config(port: int, tmp_path: Path, episodes: int = 2):
+    from lerobot.async_inference.configs import RobotClientConfig
+
+    return RobotClientConfig(
+        policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / "trained"), actions_per_chunk=8,
+        server_address=f"127.0.0.1:{port}", fps=100,
+        robot=PDPSimConfig(env="reach-around", scene="0", episodes=episodes, outcomes=str(tmp_path / "outcomes.jsonl"),
+                           calibration_dir=tmp_path))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_its_episodes(
+        server_module, client_module, tmp_path):
+    """LeRobot's client and server classes over a real gRPC channel: pdp_sim's features reach PDP as trained
+    (state and environment state), each episode's end drops the queued actions, and the run ends after
+    ``--robot.episodes``."""
+    outcomes = tmp_path / "outcomes.jsonl"
+    with _serving(server_module) as (service, port, seen, _):
+        client = client_module.RobotClient(_client_config(port, tmp_path))
         features = client.policy_config.lerobot_features
         assert features["observation.environment_state"]["names"] == client.robot.env_state_names
         assert client.start()
@@ -240,8 +264,6 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
         loop.join(10)
         assert not stalled, f"the run did not end within 120 s; episodes ended: {_outcomes(outcomes)}"
         receiver.join(10)
-    finally:
-        grpc_server.stop(0)
     lines = _outcomes(outcomes)
     assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines), lines
     keys = ["observation.environment_state", "observation.pdp_sim_episode", "observation.state", "task"]
@@ -249,6 +271,74 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
     marks = [float(obs["observation.pdp_sim_episode"]) for obs in seen]  # each episode's chunks, in order
     assert marks == sorted(marks) and set(marks) == {0.0, 1.0}, marks
     assert service.policy._paced_episode == 1.0  # the served policy followed the episodes
+    assert not client_hooks.FAILURES
+
+
+def test_a_chunk_that_arrives_before_the_must_go_flag_is_cleared_does_not_stall_the_run(
+        server_module, client_module, tmp_path):
+    """LeRobot's control loop clears "must go" after sending a must-go observation; the chunk answering it can
+    arrive first (a fast server) and its set would be undone, leaving every later observation filterable as
+    too similar. Forced here: the send returns only once the real server's chunk has reached the receiver."""
+    with _serving(server_module) as (_, port, _, _):
+        client = client_module.RobotClient(_client_config(port, tmp_path))
+        assert client.start()
+        receiver = threading.Thread(target=client.receive_actions, daemon=True)
+        receiver.start()
+        client.start_barrier.wait()  # the control loop's side of LeRobot's start barrier
+        send = client.stub.SendObservations
+
+        def send_then_wait_for_the_chunk(*args, **kwargs):
+            reply = send(*args, **kwargs)
+            deadline = time.monotonic() + 60
+            while client._pdp_chunks == 0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            return reply
+
+        client.stub.SendObservations = send_then_wait_for_the_chunk
+        try:
+            assert client.must_go.is_set() and not client.actions_available()
+            client.control_loop_observation("")  # a must-go observation; its chunk arrives before the clear
+            assert client._pdp_chunks == 1 and client.actions_available()
+            assert client.must_go.is_set()  # LeRobot's clear would leave it unset: the next empty queue stalls
+        finally:
+            client.stop()
+            receiver.join(10)
+
+
+def test_a_client_that_cannot_reach_a_server_exits_with_status_1(client_module, tmp_path):
+    """LeRobot's entry point returns (status 0) when the client could not start; with pdp_sim it exits 1 and
+    says why."""
+    config = _client_config(_free_port(), tmp_path)  # nothing listens there
+    with pytest.raises(SystemExit) as ended:
+        client_module.async_client(config)
+    assert "could not start with the policy server at 127.0.0.1:" in str(ended.value.code)
+    assert not _outcomes(tmp_path / "outcomes.jsonl")
+
+
+def test_a_server_lost_mid_run_ends_the_run_with_status_1(server_module, client_module, tmp_path, monkeypatch):
+    """LeRobot's client keeps sending to a server that is gone, for ever; a pdp_sim run ends once no
+    observation has reached it for ``SERVER_LOST_S``, and the entry point exits 1 naming it."""
+    monkeypatch.setattr(client_hooks, "SERVER_LOST_S", 1.0)
+    with _serving(server_module) as (_, port, seen, grpc_server):
+        config = _client_config(port, tmp_path, episodes=50)
+        ended: list = []
+
+        def run():
+            try:
+                client_module.async_client(config)
+            except SystemExit as e:
+                ended.append(e.code)
+
+        main = threading.Thread(target=run, daemon=True)
+        main.start()
+        deadline = time.monotonic() + 120
+        while len(seen) < 3 and time.monotonic() < deadline and main.is_alive():
+            time.sleep(0.05)
+        assert len(seen) >= 3, "the run never reached the server"
+        grpc_server.stop(0)
+        main.join(60)
+    assert not main.is_alive(), "the run did not end after its server was lost"
+    assert ended and "lost the policy server at 127.0.0.1:" in str(ended[0]), ended
 
 
 # ------------------------------------------------------------------------------------------------ real processes
@@ -267,9 +357,7 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
     env = {**CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home")}
     demo, outcomes = tmp_path / "demo", tmp_path / "outcomes.jsonl"
     run_cli(_record(tmp_path, demo, 1, "--robot.scene=3", "--teleop.waypoints=scene"), timeout=300, env=env)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = _free_port()
     full_env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1", **env}
     server_log, client_log = tmp_path / "server.log", tmp_path / "client.log"
     with server_log.open("w") as out:

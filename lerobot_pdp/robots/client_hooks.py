@@ -11,7 +11,13 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   still queued from the episode that ended; the run ends after ``--robot.episodes`` (the client's shutdown
   event, as Ctrl-C would, set in place of the next observation) and ends cleanly (the receiving thread leaves
   its request before the channel closes); a failed start (no server listening, the policy refused) ends the
-  process;
+  process, and so does a server lost mid-run (observations undeliverable for :data:`SERVER_LOST_S`);
+* ``async_client`` (the command's entry point) is wrapped so that a run that could not start or lost its server
+  exits with status 1 and says why (LeRobot's exits 0 and only logs it);
+* LeRobot's control loop clears its "must go" flag after sending a must-go observation; when the chunk answering
+  it arrives before that clear (a fast server), the receiver's set is undone and the next observations, sent
+  without it, can all be filtered by the server as too similar (a robot standing still: a stalled run). For
+  ``pdp_sim`` the flag is set again when a chunk arrived while the observation was in flight;
 * the robot marks each observation with its env episode (``paced_chunks.EPISODE_MARK``, not one of its features):
   ``python -m lerobot_pdp.policy_server`` passes it on, and PDP starts a new episode (a fresh observation history)
   when it changes.
@@ -25,6 +31,7 @@ import functools
 import logging
 import sys
 import threading
+import time
 from typing import Any
 
 from .hooks import split_environment_state, wrap_all
@@ -36,6 +43,11 @@ CLIENT_MODULE = "lerobot.async_inference.robot_client"
 # longest wait for the receiving thread at the end of a run: LeRobot's server answers a request within its
 # --obs_queue_timeout (2 s by default)
 RECEIVER_WAIT_S = 5.0
+# how long observations may fail to reach the server before a pdp_sim run counts it as lost and ends
+SERVER_LOST_S = 5.0
+
+# why a pdp_sim run ended in failure, for ``async_client``'s exit status (one run per process)
+FAILURES: list[str] = []
 
 
 def client_module() -> Any:
@@ -49,12 +61,25 @@ def client_module() -> Any:
 
 def install() -> bool:
     """Wrap the client's functions once; False when LeRobot's robot client is not loaded."""
-    return wrap_all(client_module(), {"map_robot_keys_to_lerobot_features": _wrap_features, "RobotClient": _wrap_client},
+    return wrap_all(client_module(), {"map_robot_keys_to_lerobot_features": _wrap_features, "RobotClient": _wrap_client,
+                                      "async_client": _wrap_main},
                     "LeRobot robot client", "environment_state stays in the state and episodes do not end the run")
 
 
 def _ours(robot: Any) -> bool:
     return any(r is robot for r in list(LIVE.values()))
+
+
+def _wrap_main(original):
+    @functools.wraps(original)
+    def async_client(*args: Any, **kwargs: Any):
+        FAILURES.clear()
+        result = original(*args, **kwargs)
+        if FAILURES:
+            raise SystemExit(f"pdp_sim: {FAILURES[0]}")  # exit status 1, the reason on stderr
+        return result
+
+    return async_client
 
 
 def _wrap_features(original):
@@ -92,6 +117,8 @@ def _wrap_client(original):
         def __init__(self, *args: Any, **kwargs: Any):
             super().__init__(*args, **kwargs)
             self._pdp_sim = _ours(self.robot)
+            self._pdp_chunks = 0  # chunks received, counted before LeRobot's receiver sets must_go
+            self._pdp_unsent_since: float | None = None
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
@@ -100,8 +127,29 @@ def _wrap_client(original):
             the channel closed, so that the process ends instead of waiting on them."""
             started = super().start()
             if not started and self._pdp_sim:
+                FAILURES.append(f"could not start with the policy server at {self.config.server_address} (no server "
+                                "listening, or it refused the policy: see the log above)")
                 super().stop()
             return started
+
+        def send_observation(self, obs: Any) -> bool:
+            sent = super().send_observation(obs)
+            if self._pdp_sim:
+                now = time.monotonic()
+                if sent:
+                    self._pdp_unsent_since = None
+                elif self._pdp_unsent_since is None:
+                    self._pdp_unsent_since = now
+                elif now - self._pdp_unsent_since > SERVER_LOST_S and self.running:
+                    FAILURES.append(f"lost the policy server at {self.config.server_address}: no observation "
+                                    f"reached it for {SERVER_LOST_S:.0f} s")
+                    logger.error("pdp_sim: %s; ending the run", FAILURES[-1])
+                    self.shutdown_event.set()
+            return sent
+
+        def _aggregate_action_queues(self, *args: Any, **kwargs: Any):
+            super()._aggregate_action_queues(*args, **kwargs)
+            self._pdp_chunks += 1  # LeRobot's receiver sets must_go right after this
 
         def receive_actions(self, verbose: bool = False):
             self._pdp_receiver = threading.current_thread()
@@ -123,7 +171,13 @@ def _wrap_client(original):
                     logger.info("pdp_sim: %d episodes done, ending the run", self.robot.finished)
                     self.shutdown_event.set()  # as the operator's Ctrl-C would
                 return None
-            return super().control_loop_observation(task, verbose)
+            if not self._pdp_sim:
+                return super().control_loop_observation(task, verbose)
+            chunks = self._pdp_chunks
+            observation = super().control_loop_observation(task, verbose)
+            if self._pdp_chunks != chunks:  # a chunk arrived in flight: its must_go.set() may have been cleared since
+                self.must_go.set()
+            return observation
 
     RobotClient.__doc__ = original.__doc__
     return RobotClient
