@@ -197,13 +197,13 @@ class PDPPolicy(PreTrainedPolicy):
 
     init_rtc_processor = prepare_rtc  # lerobot-rollout calls it once config.rtc_config is set
 
-    def _advance_phase(self, action: Tensor) -> None:
-        """Count each env's gripper flips (phases.py); one that moved on to its next phase latent replans."""
+    def _advance_phase(self, action: Tensor, replan: bool = True) -> None:
+        """Count each env's gripper flips in ``action`` [B, A] (phases.py); a switch replans if ``replan`` (not RTC)."""
         cfg = self.config
         if cfg.segment_gripper_dim is None:
             return
         closed = self.stats.normalized_value(ACTION, cfg.segment_gripper_dim, cfg.segment_gripper_threshold)
-        if self.steering.observe(action[:, cfg.segment_gripper_dim] > closed, cfg.phase_switch_steps):
+        if self.steering.observe(action[:, cfg.segment_gripper_dim] > closed, cfg.phase_switch_steps) and replan:
             self._queues[ACTION].clear()  # the envs that did not switch just replan early
 
     def current_latent(self, batch_size: int = 1, device: torch.device | str | None = None) -> Tensor:

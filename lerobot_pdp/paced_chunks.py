@@ -29,7 +29,8 @@ from .realtime_chunking import check_rtc_steering
 
 PACED_ENGINE = "a caller that asks for chunks one observation at a time (LeRobot's async policy server)"
 PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or"
-check_paced_steering = functools.partial(check_rtc_steering, engine=PACED_ENGINE, way_out=PACED_WAY_OUT)
+check_paced_steering = functools.partial(check_rtc_steering, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
+                                         phases_follow=False)
 # pdp_sim's episode mark in the raw observations LeRobot's async client sends, and as the policy gets it, [B] (the
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"

@@ -20,10 +20,13 @@ What differs from ``select_action``:
   chunk's observation, as at an episode's first chunk;
 - the whole predicted future is returned (``horizon - n_obs_steps + 1`` actions, not ``n_action_steps``), so
   the engine's queue has slack while the next chunk is generated;
-- per-phase latents advance on the gripper commands ``select_action`` sees, and fitted chunk noises replay one
-  per ``n_action_steps`` chunk: neither has a meaning when the engine replans at its own pace, so both are
-  refused with a message (``--inference.type=sync`` runs them): at start-up, and as live requests (the robot
-  keeps its latent);
+- per-phase latents advance on the gripper commands the robot executes: ``select_action`` counts those it hands
+  out, and under RTC PDP's queue (:class:`ConsumedDelayQueue`, below) tells PDP each action the loop takes from it;
+  the next chunk the engine generates after a phase ends is conditioned on the next phase's latent (``select_action``
+  replans at once). With LeRobot's own queue (``rtc_consumed_delay=false``) nothing reports the executed actions,
+  and per-phase latents are refused. Fitted chunk noises replay one per ``n_action_steps`` chunk, which has no
+  meaning when the engine replans at its own pace: refused with a message (``--inference.type=sync`` runs them).
+  Refused at start-up, and as live requests (the robot keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
   before it, is returned empty: its observation belongs to the episode that ended (the observations the loop
   published tell which episode a chunk's is from, with or without the history; LeRobot's engine keeps its last
@@ -36,7 +39,8 @@ that step's action, so the engine usually reads an observation whose step's acti
 prefix starts one step late, and the number dropped is off by one either way. PDP's chunks are short and
 replanned every few actions, so that misalignment recurs (avoiding, pick-place: docs/performance.md). With
 ``rtc_consumed_delay`` (the default) PDP has the engine use :class:`ConsumedDelayQueue`, which counts the
-actions executed since the observation (the engine's ``notify_observation`` announces each one). It is set on
+actions executed since the observation (the engine's ``notify_observation`` announces each one) and tells PDP
+each executed action (its gripper phases). It is set on
 LeRobot's engine module when a PDP policy is prepared for RTC, so an engine started later in the same process, for
 any policy, builds it too (``lerobot-rollout`` runs one policy per process).
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
@@ -44,6 +48,7 @@ On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 import threading
@@ -84,6 +89,8 @@ class ConsumedDelayQueue(ActionQueue):
         self.executed_at_observation: int | None = None  # None: no observation announced
         self._chunk_from: int | None = None  # ``executed`` at the observation the pending chunk comes from
         self._last_original: Tensor | None = None  # the last executed action, normalised
+        # told each executed action [A], normalised, outside the lock (PDP's gripper phases; set by _announcing)
+        self.on_executed: Callable[[Tensor], None] | None = None
 
     def observed(self) -> None:
         """The loop published an observation (before executing that step's action)."""
@@ -94,10 +101,13 @@ class ConsumedDelayQueue(ActionQueue):
         with self.lock:  # LeRobot's get, counting what it hands out
             if self.queue is None or self.last_index >= len(self.queue):
                 return None
-            self._last_original = self.original_queue[self.last_index]
+            self._last_original = executed = self.original_queue[self.last_index]
             self.last_index += 1
             self.executed += 1
-            return self.queue[self.last_index - 1].clone()
+            action = self.queue[self.last_index - 1].clone()
+        if self.on_executed is not None:
+            self.on_executed(executed)
+        return action
 
     def clear(self) -> None:
         super().clear()
@@ -229,13 +239,11 @@ def _same_frame(a: dict[str, Tensor], b: dict[str, Tensor], keys: list[str]) -> 
 
 def prepare_rtc(policy: Any) -> None:
     """What ``lerobot-rollout`` calls once ``config.rtc_config`` is set (``init_rtc_processor``), before the
-    engine starts: refuse steering RTC cannot honour (now, and in live requests of ``steer_file``); name the run's
-    prefix length against the recommended one; keep the observations the loop publishes (the chunks' episodes,
-    and with ``rtc_observation_history`` their history); with ``rtc_consumed_delay`` have the engine build its
-    queue as :class:`ConsumedDelayQueue`."""
-    check_rtc_steering(policy)
-    if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
-        policy._steer_file.check = check_rtc_steering
+    engine starts: name the run's prefix length against the recommended one; keep the observations the loop
+    publishes (the chunks' episodes, and with ``rtc_observation_history`` their history); with
+    ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue` (which also reports the
+    executed actions to PDP's gripper phases); refuse steering RTC cannot honour (now, and in live requests of
+    ``steer_file``)."""
     logger.info("PDP under RTC: this run holds each new chunk to the last one over its first %d actions "
                 "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place about "
                 "20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
@@ -243,27 +251,38 @@ def prepare_rtc(policy: Any) -> None:
     cfg = policy.config
     keep_history = cfg.rtc_observation_history and cfg.n_obs_steps > 1
     policy._rtc_observations = PublishedObservations(cfg.n_obs_steps, keep_history)
-    engine = sys.modules.get(ENGINE_MODULE)  # loaded by lerobot-rollout before it loads the policy
+    policy._rtc_phases_follow = _install_queue(policy, sys.modules.get(ENGINE_MODULE), keep_history)
+    check_rtc_steering(policy)
+    if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
+        policy._steer_file.check = check_rtc_steering
+
+
+def _install_queue(policy: Any, engine: Any, keep_history: bool) -> bool:
+    """Give LeRobot's RTC ``engine`` module (loaded by lerobot-rollout before it loads the policy) PDP's
+    announcements and queue; True when the queue will report each executed action (the gripper phases follow)."""
     if engine is None:
-        return
+        return False
+    cfg = policy.config
     announce = getattr(engine.RTCInferenceEngine, "notify_observation", None)
     if announce is None:
         logger.warning("PDP: this LeRobot's RTC engine has no notify_observation; each chunk is conditioned on its "
                        "observation repeated, aligned with the moment the engine reads it (it may be one step late), "
                        "and a chunk from the last episode's observation is not told apart")
-    else:
-        if not getattr(announce, "announces_to_pdp", False):
-            engine.RTCInferenceEngine.notify_observation = _announcing(announce)
-        if keep_history:
-            logger.info("PDP under RTC: each chunk is conditioned on the last %d observations the loop published, "
-                        "as select_action is (--policy.rtc_observation_history=false: on its own, repeated)",
-                        cfg.n_obs_steps)
-    if not cfg.rtc_consumed_delay or engine.ActionQueue is ConsumedDelayQueue:
-        return
+        return False
+    if not getattr(announce, "announces_to_pdp", False):
+        engine.RTCInferenceEngine.notify_observation = _announcing(announce)
+    if keep_history:
+        logger.info("PDP under RTC: each chunk is conditioned on the last %d observations the loop published, "
+                    "as select_action is (--policy.rtc_observation_history=false: on its own, repeated)",
+                    cfg.n_obs_steps)
+    if not cfg.rtc_consumed_delay:
+        return False
+    if engine.ActionQueue is ConsumedDelayQueue:
+        return True
     if engine.ActionQueue is not ActionQueue or not hasattr(ActionQueue, "_check_and_resolve_delays"):
         logger.warning("PDP: this LeRobot's RTC engine has another action queue (%s); its delay rule is kept",
                        engine.ActionQueue)
-        return
+        return False
     engine.ActionQueue = ConsumedDelayQueue
     future = cfg.horizon - cfg.n_obs_steps + 1  # what rtc_chunk returns
     logger.info("PDP under RTC: a new chunk replaces the queue less the actions executed since its observation "
@@ -271,6 +290,13 @@ def prepare_rtc(policy: Any) -> None:
                 "LeRobot's default --inference.queue_threshold=30 generates chunks back to back, one core busy; "
                 "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
                 future, future - cfg.n_action_steps, cfg.n_action_steps)
+    return True
+
+
+def _executed(policy: Any, action: Tensor) -> None:
+    """An action the RTC loop executed ([A], normalised): counted in the policy's gripper phases; a phase that
+    ends takes effect at the engine's next chunk (no replan forced: the robot keeps executing the queue)."""
+    policy._advance_phase(action[None], replan=False)
 
 
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
@@ -278,10 +304,12 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
     was published."""
 
     def notify_observation(engine: Any, obs: dict) -> None:
-        queue = getattr(engine, "_action_queue", None)
+        queue, policy = getattr(engine, "_action_queue", None), getattr(engine, "_policy", None)
         if isinstance(queue, ConsumedDelayQueue):
             queue.observed()
-        published = getattr(getattr(engine, "_policy", None), "_rtc_observations", None)
+            if queue.on_executed is None and getattr(policy, "_rtc_phases_follow", False):
+                queue.on_executed = functools.partial(_executed, policy)
+        published = getattr(policy, "_rtc_observations", None)
         if published is not None:
             published.published(engine, obs)
         notify(engine, obs)
@@ -293,14 +321,20 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
 RTC_ENGINE, RTC_WAY_OUT = "lerobot-rollout's RTC engine", "Use --inference.type=sync, or"
 
 
-def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT) -> None:
+def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT,
+                       phases_follow: bool | None = None) -> None:
     """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
-    docstring), naming the way out."""
+    docstring), naming the way out. ``phases_follow``: whether the executed actions reach the policy's gripper
+    phases (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine)."""
     steering = policy.steering
-    if steering.per_phase:
+    if phases_follow is None:
+        phases_follow = getattr(policy, "_rtc_phases_follow", False)
+    if steering.per_phase and not phases_follow:
+        how = ("with --policy.rtc_consumed_delay=true (the default) PDP's queue reports them"
+               if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay else "they do not reach PDP")
         raise ValueError(
             f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
-            f"commands the robot executes; {engine} replans at its own pace, so phases cannot "
+            f"commands the robot executes; {engine} replans at its own pace and {how}, so phases cannot "
             f"follow. {way_out} steer with one latent (a mode or a latent of one phase)")
     if len(steering.noises.noise):
         raise ValueError(

@@ -135,8 +135,9 @@ def paced_caller(engine: str, way_out: str) -> Iterator[None]:
 
 def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
-    the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase (the chunk-time
-    checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it)."""
+    the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase unless the caller
+    reports the executed actions (lerobot-rollout's RTC engine with ``rtc_consumed_delay``); the chunk-time checks,
+    ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
     engine, way_out = _PACED.get() or ((RTC_ENGINE, RTC_WAY_OUT) if _rollout_with_rtc() else (None, None))
     if engine is None:
         return
@@ -145,12 +146,14 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
                          f"cannot replay in order (it replans at its own pace). {way_out} --policy.fit_noise=none")
     if policy.config.segment_gripper_dim is None:  # one latent per demonstration: nothing to read
         return
+    if engine == RTC_ENGINE and policy.config.rtc_consumed_delay:  # PDP's RTC queue reports the executed actions
+        return
     phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
     if phases > 1:
         raise ValueError(f"{episode[0]} episode {episode[1]} splits into {phases} gripper phases, fitted one latent "
                          f"each, which advance on the gripper commands the robot executes; {engine} replans at its "
-                         f"own pace, so phases cannot follow. {way_out} steer with one latent (--policy.steer_mode, "
-                         "--policy.steer_latent)")
+                         f"own pace and they do not reach PDP, so phases cannot follow. {way_out} steer with one "
+                         "latent (--policy.steer_mode, --policy.steer_latent)")
 
 
 def _rollout_with_rtc() -> bool:

@@ -108,7 +108,10 @@ def test_steering_the_engine_cannot_follow_is_refused_with_the_way_out(synthetic
     p.config.segment_gripper_dim = 0  # a stand-in gripper: the policy has phases
     means = p.mode_latents()
     p.set_latent(torch.stack([means[0], means[1]]))  # one latent per phase
-    with pytest.raises(ValueError, match=r"one latent per phase \(2 phases\).*--inference.type=sync"):
+    p.init_rtc_processor()  # PDP's queue reports the executed gripper commands: phases follow
+    p.config.rtc_consumed_delay = False  # LeRobot's queue: nothing reports them
+    with pytest.raises(ValueError, match=r"one latent per phase \(2 phases\).*rtc_consumed_delay=true.*"
+                                         r"--inference.type=sync"):
         p.init_rtc_processor()
     with pytest.raises(ValueError, match="--inference.type=sync"):
         p.predict_action_chunk(OBS, inference_delay=0, prev_chunk_left_over=None)
@@ -206,6 +209,38 @@ def test_the_engine_announces_observations_to_pdps_queue(synthetic_meta):
     q.get()
     e.notify_observation({"x": 1})
     assert q.executed_at_observation == 1 and e._obs_holder["obs"] == {"x": 1}
+
+
+def test_per_phase_latents_advance_on_the_actions_the_rtc_loop_executes(synthetic_meta):
+    """Under RTC the engine replans at its own pace; PDP's queue tells the policy each action the loop takes from
+    it, so a gripper flip held for ``phase_switch_steps`` actions moves the next chunk to the next phase's latent,
+    and a new episode starts at the first phase again."""
+
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    p = _rtc_policy(synthetic_meta)
+    p.config.segment_gripper_dim = 0  # a stand-in gripper: normalised x above the threshold's value = closed
+    means = p.mode_latents()
+    phases = torch.stack([means[0], means[2]])
+    p.set_latent(phases)
+    p.init_rtc_processor()
+    e = _engine_for(p, synthetic_meta)
+    e._action_queue = q = ConsumedDelayQueue(RTCConfig())
+    closed = p.stats.normalized_value("action", 0, p.config.segment_gripper_threshold)
+    steps = p.config.phase_switch_steps
+    gripper = [closed - 1.0] * 3 + [closed + 1.0] * (steps + 2)  # open, then closed and held
+    chunk = torch.tensor([[g] + [0.0] * (p.action_dim - 1) for g in gripper])
+    q.merge(chunk, chunk, 0)
+    for k in range(len(gripper)):
+        e.notify_observation(_raw(k))  # the loop publishes, then executes that step's action
+        assert q.get() is not None
+        phase = int(p.steering.phases.phases(1, "cpu")[0])
+        assert phase == (1 if k >= 3 + steps - 1 else 0), (k, phase)
+    torch.testing.assert_close(p.current_latent(1), phases[1][None])  # the engine's next chunk: the carry latent
+    assert p.predict_action_chunk(_preprocessed(e, _raw(len(gripper) - 1)), inference_delay=0,
+                                  prev_chunk_left_over=None).shape[1] > 0
+    p.reset()  # a new episode
+    torch.testing.assert_close(p.current_latent(1), phases[0][None])
 
 
 def _engine_for(policy, meta):
@@ -344,7 +379,7 @@ def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(
     steer = tmp_path / "steer.json"
     steer.write_text(json.dumps({"mode": 1}))
     torch.manual_seed(0)
-    p = small_policy(synthetic_meta, steer_file=str(steer))
+    p = small_policy(synthetic_meta, steer_file=str(steer), rtc_consumed_delay=False)  # nothing reports executed actions
     p.eval()
     p.config.segment_gripper_dim = 0  # a stand-in gripper: the policy has phases
     p.config.rtc_config = RTCConfig()

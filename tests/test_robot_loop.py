@@ -29,6 +29,8 @@ from lerobot_pdp.robots import PDPSimConfig
 from lerobot_pdp.robots.rollout_hooks import check_policy_inputs
 from lerobot_pdp.steering import SteerFile, apply_steering, write_steering
 
+CHECKPOINTS = Path(__file__).parent / "data" / "pdp_checkpoints_v2"
+
 # ---------------------------------------------------------------------------------------------- helpers
 
 
@@ -217,6 +219,39 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     published = policy._rtc_observations  # each chunk conditioned on the history the loop published
     assert published.matched > 0 and published.unmatched == 0
     assert not ctx.hardware.robot_wrapper.inner.is_connected
+
+
+def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase(tmp_path, monkeypatch):
+    """``--inference.type=rtc`` on pick-place, steered by a start-up fit to a demonstration that splits into
+    gripper phases (one latent each): accepted, and every action the loop executes reaches the policy's phase
+    count through PDP's queue."""
+    import lerobot.rollout.inference.rtc as engine_module
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference import RTCInferenceConfig
+
+    from lerobot_pdp import realtime_chunking
+    from lerobot_pdp.envs.recording import make_dataset
+
+    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
+    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
+                        engine_module.RTCInferenceEngine.notify_observation)
+    monkeypatch.setattr("sys.argv", ["lerobot-rollout", "--inference.type=rtc"])  # the start-up fit knows its caller
+    reported = []
+    executed = realtime_chunking._executed
+    monkeypatch.setattr(realtime_chunking, "_executed", lambda policy, action: (reported.append(action),
+                                                                                 executed(policy, action))[1])
+    demo = make_dataset(env="pick-place", out=tmp_path / "demo", scene=0, episodes_per_mode=1, seed=0, modes=[0],
+                        progress=False)
+    outcomes = tmp_path / "o.jsonl"
+    ctx = run_rollout(CHECKPOINTS / "adapted_pick_place",
+                      PDPSimConfig(env="pick-place", scene="0", outcomes=str(outcomes), episodes=1,
+                                   calibration_dir=tmp_path),
+                      inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=3), queue_threshold=7),
+                      duration=20, steer_dataset_root=str(demo), steer_episode_index=0, fit_noise="none", fit_steps=2)
+    policy = ctx.policy.policy
+    assert policy.steering.per_phase and len(policy.active_latent) >= 2
+    queue = ctx.policy.inference.action_queue
+    assert queue.on_executed is not None and len(reported) == queue.executed > 0
 
 
 def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, monkeypatch):
