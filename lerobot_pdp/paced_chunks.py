@@ -5,10 +5,11 @@ LeRobot's asynchronous inference (``lerobot.async_inference``) runs the policy i
 the history ``select_action`` keeps, whenever the client's action queue runs low. PDP conditions on
 ``n_obs_steps`` frames, so such an observation joins the policy's own observation history (the one
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
-that history. Steering tied to ``select_action``'s chunks cannot follow a caller that replans at its own pace:
-per-phase latents (advanced on the gripper commands ``select_action`` returns) and fitted chunk noises (one
-per ``n_action_steps`` chunk) are refused, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`),
-at the first chunk and in live requests (the robot keeps its latent).
+that history. Fitted chunk noises (one per ``select_action`` chunk of ``n_action_steps``) cannot follow a caller
+that replans at its own pace: refused, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`), at
+the first chunk and in live requests (the robot keeps its latent). Per-phase latents advance on the gripper
+commands the robot executes: ``python -m lerobot_pdp.policy_server`` tells them to the policy
+(:class:`ExecutedActions`); any other paced caller has them refused likewise.
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -17,7 +18,6 @@ observation history, the default latent drawn anew), as callers of ``select_acti
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import torch
@@ -29,12 +29,48 @@ from .realtime_chunking import check_rtc_steering
 
 PACED_ENGINE = "a caller that asks for chunks one observation at a time (LeRobot's async policy server)"
 PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or"
-check_paced_steering = functools.partial(check_rtc_steering, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
-                                         phases_follow=False)
 # pdp_sim's episode mark in the raw observations LeRobot's async client sends, and as the policy gets it, [B] (the
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"
 EPISODE_KEY = "observation.pdp_sim_episode"
+
+
+def check_paced_steering(policy: Any) -> None:
+    """Refuse steering a paced caller cannot follow (the module docstring); per-phase latents only when nothing
+    tells the policy the executed actions."""
+    check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
+                       phases_follow=getattr(policy, "_paced_executed", None) is not None)
+
+
+class ExecutedActions:
+    """The gripper commands the robot of LeRobot's async client executed, counted in the served PDP's phases.
+
+    The client sends with each observation the timestep of the last action it executed, and executes each
+    timestep's action from the latest chunk that planned it (its default aggregation). So the server keeps the
+    latest planned gripper command per timestep and, before each chunk, counts those up to the observation's
+    timestep, in order. The first actions of a chunk that arrives after their timesteps were executed (from the
+    chunk before) are taken from it: a gripper flip is timed off by at most the inference delay."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+        self.commands: dict[int, bool] = {}  # timestep -> the gripper closed in the latest action planned for it
+        self.last = -1  # the last timestep counted
+
+    def planned(self, timed_actions: list[Any]) -> None:
+        """A chunk the server returns: LeRobot's ``TimedAction``s, actions in the robot's units."""
+        cfg = self.policy.config
+        for action in timed_actions:
+            if action.get_timestep() > self.last:
+                closed = float(action.get_action()[cfg.segment_gripper_dim]) > cfg.segment_gripper_threshold
+                self.commands[action.get_timestep()] = closed
+
+    def executed_up_to(self, timestep: int) -> None:
+        """The client executed every planned action up to ``timestep``: count them."""
+        cfg = self.policy.config
+        for t in sorted(k for k in self.commands if self.last < k <= timestep):
+            closed = torch.tensor([self.commands.pop(t)])
+            self.policy.steering.observe(closed, cfg.phase_switch_steps)
+            self.last = t
 
 
 def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:

@@ -9,6 +9,8 @@ only (nothing of LeRobot is changed on disk):
 * the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
   reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
+* the gripper commands the client executed (the timestep of its last action comes with each observation) reach
+  the policy's gripper phases, so a latent per phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -113,14 +115,17 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
         def from_pretrained(path: str, **kwargs: Any):
             from lerobot.configs.policies import PreTrainedConfig
 
-            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, check_paced_steering
+            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, ExecutedActions, check_paced_steering
             from .steering import paced_caller
 
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            with paced_caller(PACED_ENGINE, PACED_WAY_OUT):  # a start-up fit it cannot follow: refused before it runs
+            # a start-up fit it cannot follow (chunk noises) is refused before it runs; phases follow (below)
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, phases_follow=True):
                 policy = cls.from_pretrained(path, **kwargs)
+            if policy.config.segment_gripper_dim is not None:
+                policy._paced_executed = ExecutedActions(policy)
             check_paced_steering(policy)
             return policy
 
@@ -129,10 +134,33 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
     return get_policy_class
 
 
+def with_executed_actions(original: Callable) -> Callable:
+    """Wrap LeRobot's ``PolicyServer._predict_action_chunk``: before a PDP chunk with gripper phases, the actions
+    the client executed up to the observation's timestep are counted; the chunk's actions are then noted as
+    planned (:class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
+
+    @functools.wraps(original)
+    def _predict_action_chunk(self: Any, observation_t: Any):
+        executed = getattr(getattr(self, "policy", None), "_paced_executed", None)
+        if executed is not None:
+            executed.executed_up_to(observation_t.get_timestep())
+        chunk = original(self, observation_t)
+        if executed is not None:
+            executed.planned(chunk)
+        return chunk
+
+    return _predict_action_chunk
+
+
 def admit_pdp(server: Any, overrides: list[str]) -> None:
     """Make LeRobot's policy-server module (``server``) serve PDP, in this process (the module docstring)."""
     if SERVED not in server.SUPPORTED_POLICIES:
         server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
+    predict = server.PolicyServer._predict_action_chunk
+    if not hasattr(predict, _ORIGINAL):
+        wrapper = with_executed_actions(predict)
+        setattr(wrapper, _ORIGINAL, predict)
+        server.PolicyServer._predict_action_chunk = wrapper
     for name, wrap in (("raw_observation_to_observation", with_vector_features),
                        ("get_policy_class", functools.partial(with_policy_options, overrides=overrides))):
         original = getattr(server, name)

@@ -119,14 +119,15 @@ def apply_config_steering(policy: Any) -> None:
 
 # (engine, way out) of a caller that replans at its own pace, set while it loads the policy: LeRobot's async
 # policy server (policy_server.py) sets it; lerobot-rollout's RTC engine is told from the command line
-_PACED: contextvars.ContextVar[tuple[str, str] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
+_PACED: contextvars.ContextVar[tuple[str, str, bool] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
 
 
 @contextlib.contextmanager
-def paced_caller(engine: str, way_out: str) -> Iterator[None]:
-    """Policies loaded in this block will be called by ``engine``, which replans at its own pace: a start-up fit
-    whose result it cannot follow is refused before it runs (:func:`refuse_paced_fit`)."""
-    token = _PACED.set((engine, way_out))
+def paced_caller(engine: str, way_out: str, phases_follow: bool = False) -> Iterator[None]:
+    """Policies loaded in this block will be called by ``engine``, which replans at its own pace (and tells the
+    policy the executed actions when ``phases_follow``): a start-up fit whose result it cannot follow is refused
+    before it runs (:func:`refuse_paced_fit`)."""
+    token = _PACED.set((engine, way_out, phases_follow))
     try:
         yield
     finally:
@@ -136,17 +137,16 @@ def paced_caller(engine: str, way_out: str) -> Iterator[None]:
 def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
     the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase unless the caller
-    reports the executed actions (lerobot-rollout's RTC engine with ``rtc_consumed_delay``); the chunk-time checks,
-    ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
-    engine, way_out = _PACED.get() or ((RTC_ENGINE, RTC_WAY_OUT) if _rollout_with_rtc() else (None, None))
+    reports the executed actions (lerobot-rollout's RTC engine with ``rtc_consumed_delay``, PDP's policy server);
+    the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
+    rtc = (RTC_ENGINE, RTC_WAY_OUT, bool(policy.config.rtc_consumed_delay))  # PDP's RTC queue reports them
+    engine, way_out, phases_follow = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
     if engine is None:
         return
     if policy.config.fit_noise == "chunks":
         raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which {engine} "
                          f"cannot replay in order (it replans at its own pace). {way_out} --policy.fit_noise=none")
-    if policy.config.segment_gripper_dim is None:  # one latent per demonstration: nothing to read
-        return
-    if engine == RTC_ENGINE and policy.config.rtc_consumed_delay:  # PDP's RTC queue reports the executed actions
+    if policy.config.segment_gripper_dim is None or phases_follow:  # one latent, or phases that follow the robot
         return
     phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
     if phases > 1:

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from concurrent import futures
 from pathlib import Path
 
@@ -22,8 +23,10 @@ import pytest
 import torch
 from policies import small_policy
 
-from lerobot_pdp import policy_server
+from lerobot_pdp import PDPPolicy, policy_server
+from lerobot_pdp.paced_chunks import PACED_ENGINE, PACED_WAY_OUT
 from lerobot_pdp.robots import PDPSimConfig, client_hooks
+from lerobot_pdp.steering import paced_caller
 
 CHECKPOINTS = Path(__file__).parent / "data" / "pdp_checkpoints_v2"
 
@@ -54,6 +57,7 @@ def server_module(monkeypatch, tmp_path):
 
     for name in ("SUPPORTED_POLICIES", "raw_observation_to_observation", "get_policy_class"):
         monkeypatch.setattr(server, name, getattr(server, name))
+    monkeypatch.setattr(server.PolicyServer, "_predict_action_chunk", server.PolicyServer._predict_action_chunk)
     return server
 
 
@@ -169,22 +173,65 @@ def test_the_server_loads_pdp_with_its_policy_options_and_refuses_what_it_cannot
 
 def test_a_start_up_fit_the_server_cannot_follow_is_refused_before_it_runs(server_module, tmp_path, monkeypatch):
     """A fit at start-up whose result the server's paced calls cannot follow (chunk noises; one latent per gripper
-    phase) is refused as the client connects, before the fit's seconds to minutes, with the way out."""
-    from lerobot_pdp import PDPPolicy
+    phase, unless the executed actions reach the policy) is refused as the client connects, before the fit's seconds
+    to minutes, with the way out; the server tells them, so a latent per phase is fitted."""
     from lerobot_pdp.envs.recording import make_dataset
 
     server = server_module
-    monkeypatch.setattr(PDPPolicy, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
-    policy_server.admit_pdp(server, [f"--steer_dataset_root={tmp_path}", "--steer_episode_index=0",
-                                     "--fit_noise=chunks"])
-    with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve an "
-                                         r"adapted checkpoint.* --policy.fit_noise=none"):
-        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    with monkeypatch.context() as m:
+        m.setattr(PDPPolicy, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
+        policy_server.admit_pdp(server, [f"--steer_dataset_root={tmp_path}", "--steer_episode_index=0",
+                                         "--fit_noise=chunks"])
+        with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve "
+                                             r"an adapted checkpoint.* --policy.fit_noise=none"):
+            server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
     demo = make_dataset(env="pick-place", out=tmp_path / "pick", scene=0, episodes_per_mode=1, seed=0, modes=[0],
                         progress=False)
-    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=none"])
+    # a latent per gripper phase is fitted: the server tells the policy the executed actions
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=none",
+                                     "--fit_steps=2"])
+    policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
+    assert policy.steering.per_phase and policy._paced_executed is not None
     with pytest.raises(ValueError, match=r"episode 0 splits into [2-9] gripper phases, .*async policy server"):
-        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
+        with paced_caller(PACED_ENGINE, PACED_WAY_OUT):  # a paced caller that does not tell them
+            PDPPolicy.from_pretrained(str(CHECKPOINTS / "adapted_pick_place"), config=policy.config)
+
+
+def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
+    """LeRobot's client sends the timestep of the last action it executed with each observation and executes each
+    timestep's action from the latest chunk planning it: the policy's phases count those commands, in order."""
+    from lerobot.async_inference.helpers import TimedAction, TimedObservation
+
+    policy_server.admit_pdp(server_module, ["--steer_mode=0"])  # a mode: one latent per phase
+    policy = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
+    assert policy.steering.per_phase
+    cfg = policy.config
+    open_, closed = cfg.segment_gripper_threshold - 1.0, cfg.segment_gripper_threshold + 1.0
+
+    def chunk(start: int, grippers: list[float]) -> list:
+        actions = []
+        for i, g in enumerate(grippers):
+            a = torch.zeros(policy.action_dim)
+            a[cfg.segment_gripper_dim] = g
+            actions.append(TimedAction(timestamp=0.0, timestep=start + i, action=a))
+        return actions
+
+    served, planned = [], []
+
+    def predict(self, observation_t):  # stands for LeRobot's: the chunk it returns for this observation
+        served.append(observation_t.get_timestep())
+        return planned[-1]
+
+    predict_and_count = policy_server.with_executed_actions(predict)
+    server = types.SimpleNamespace(policy=policy)  # what the wrapper reads of LeRobot's PolicyServer
+    planned.append(chunk(0, [open_] * 8))
+    predict_and_count(server, TimedObservation(timestamp=0.0, timestep=0, observation={}))
+    planned.append(chunk(5, [open_] + [closed] * 7))  # replanned at 5: closes from 6 on (6, 7 replaced)
+    predict_and_count(server, TimedObservation(timestamp=0.0, timestep=5, observation={}))
+    assert policy._paced_executed.last == 5 and int(policy.steering.phases.phase[0]) == 0
+    predict_and_count(server, TimedObservation(timestamp=0.0, timestep=12, observation={}))  # 6..12 executed
+    assert served == [0, 5, 12] and policy._paced_executed.last == 12
+    assert int(policy.steering.phases.phase[0]) == 1  # closed for 7 commands, held for phase_switch_steps: carry
 
 
 @pytest.mark.parametrize("option, said", [
@@ -203,14 +250,14 @@ def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):
 
 
 @contextlib.contextmanager
-def _serving(server):
-    """LeRobot's policy server admitting PDP, over a real gRPC channel on a free port: (service, port, the
-    observations it passed to the policy)."""
+def _serving(server, options: list[str] | None = None):
+    """LeRobot's policy server admitting PDP (with ``--policy.*`` ``options`` as ``--<field>=...``), over a real
+    gRPC channel on a free port: (service, port, the observations it passed to the policy, the gRPC server)."""
     import grpc
     from lerobot.async_inference.configs import PolicyServerConfig
     from lerobot.transport import services_pb2_grpc
 
-    policy_server.admit_pdp(server, [])
+    policy_server.admit_pdp(server, options or [])
     seen = []
     passes = server.raw_observation_to_observation
     server.raw_observation_to_observation = lambda *a, **k: (obs := passes(*a, **k), seen.append(obs))[0]
@@ -225,14 +272,30 @@ def _serving(server):
         grpc_server.stop(0)
 
 
-def _client_config(port: int, tmp_path: Path, episodes: int = 2):
+def _client_config(port: int, tmp_path: Path, episodes: int = 2, env: str = "reach-around",
+                   checkpoint: str = "trained"):
     from lerobot.async_inference.configs import RobotClientConfig
 
     return RobotClientConfig(
-        policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / "trained"), actions_per_chunk=8,
+        policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / checkpoint), actions_per_chunk=8,
         server_address=f"127.0.0.1:{port}", fps=100,
-        robot=PDPSimConfig(env="reach-around", scene="0", episodes=episodes, outcomes=str(tmp_path / "outcomes.jsonl"),
+        robot=PDPSimConfig(env=env, scene="0", episodes=episodes, outcomes=str(tmp_path / "outcomes.jsonl"),
                            calibration_dir=tmp_path))
+
+
+def _run_client(client, outcomes: Path) -> None:
+    """LeRobot's client threads until the robot ends the run (at most 120 s)."""
+    assert client.start()
+    receiver = threading.Thread(target=client.receive_actions, daemon=True)
+    receiver.start()
+    loop = threading.Thread(target=client.control_loop, kwargs={"task": ""}, daemon=True)
+    loop.start()  # returns when the robot ends the run
+    loop.join(120)
+    stalled = loop.is_alive()
+    client.stop()  # ends a stalled loop too
+    loop.join(10)
+    assert not stalled, f"the run did not end within 120 s; episodes ended: {_outcomes(outcomes)}"
+    receiver.join(10)
 
 
 def _free_port() -> int:
@@ -253,17 +316,7 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
         client = client_module.RobotClient(_client_config(port, tmp_path))
         features = client.policy_config.lerobot_features
         assert features["observation.environment_state"]["names"] == client.robot.env_state_names
-        assert client.start()
-        receiver = threading.Thread(target=client.receive_actions, daemon=True)
-        receiver.start()
-        loop = threading.Thread(target=client.control_loop, kwargs={"task": ""}, daemon=True)
-        loop.start()  # returns when the robot ends the run
-        loop.join(120)
-        stalled = loop.is_alive()
-        client.stop()  # ends a stalled loop too
-        loop.join(10)
-        assert not stalled, f"the run did not end within 120 s; episodes ended: {_outcomes(outcomes)}"
-        receiver.join(10)
+        _run_client(client, outcomes)
     lines = _outcomes(outcomes)
     assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines), lines
     keys = ["observation.environment_state", "observation.pdp_sim_episode", "observation.state", "task"]
@@ -272,6 +325,28 @@ def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_i
     assert marks == sorted(marks) and set(marks) == {0.0, 1.0}, marks
     assert service.policy._paced_episode == 1.0  # the served policy followed the episodes
     assert not client_hooks.FAILURES
+
+
+def test_a_latent_per_gripper_phase_follows_the_commands_the_client_executed(server_module, client_module, tmp_path,
+                                                                            monkeypatch):
+    """pick-place served with a mode's latent per gripper phase: every chunk the server returns is noted, and the
+    commands the client executed reach the policy's phases before the next chunk."""
+    from lerobot_pdp.paced_chunks import ExecutedActions
+
+    counted = []
+    executed_up_to = ExecutedActions.executed_up_to
+    monkeypatch.setattr(ExecutedActions, "executed_up_to",
+                        lambda self, t: (counted.append((t, self.last)), executed_up_to(self, t))[1])
+    outcomes = tmp_path / "outcomes.jsonl"
+    with _serving(server_module, ["--steer_mode=0"]) as (service, port, seen, _):
+        client = client_module.RobotClient(_client_config(port, tmp_path, episodes=1, env="pick-place",
+                                                          checkpoint="adapted_pick_place"))
+        _run_client(client, outcomes)
+    policy = service.policy
+    assert policy.steering.per_phase and len(_outcomes(outcomes)) == 1
+    assert len(counted) == len(seen) >= 2
+    assert policy._paced_executed.last > 0  # executed commands were counted
+    assert all(t >= last for t, last in counted)  # in order, each once
 
 
 def test_a_chunk_that_arrives_before_the_must_go_flag_is_cleared_does_not_stall_the_run(
