@@ -5,11 +5,12 @@ LeRobot's asynchronous inference (``lerobot.async_inference``) runs the policy i
 the history ``select_action`` keeps, whenever the client's action queue runs low. PDP conditions on
 ``n_obs_steps`` frames, so such an observation joins the policy's own observation history (the one
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
-that history. Fitted chunk noises (one per ``select_action`` chunk of ``n_action_steps``) cannot follow a caller
-that replans at its own pace: refused, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`), at
-the first chunk and in live requests (the robot keeps its latent). Per-phase latents advance on the gripper
-commands the robot executes: ``python -m lerobot_pdp.policy_server`` tells them to the policy
-(:class:`ExecutedActions`); any other paced caller has them refused likewise.
+that history. Per-phase latents advance on the gripper commands the robot executes, and fitted chunk noises belong
+to the demonstration's frames (noise j to the frames from ``j * n_action_steps``): ``python -m
+lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
+advance on them and a chunk planned at the episode's step k starts from noise ``k // n_action_steps``, as under
+``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`). Any other paced caller has both refused, at the
+first chunk and in live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -39,11 +40,12 @@ def check_paced_steering(policy: Any) -> None:
     """Refuse steering a paced caller cannot follow (the module docstring); per-phase latents only when nothing
     tells the policy the executed actions."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
-                       phases_follow=getattr(policy, "_paced_executed", None) is not None)
+                       reports_executed=getattr(policy, "_paced_executed", None) is not None)
 
 
 class ExecutedActions:
-    """The gripper commands the robot of LeRobot's async client executed, counted in the served PDP's phases.
+    """The actions the robot of LeRobot's async client executed: the served PDP's steps in the episode and, with
+    gripper phases, its gripper commands.
 
     The client sends with each observation the timestep of the last action it executed, and executes each
     timestep's action from the latest chunk that planned it (its default aggregation). So the server keeps the
@@ -59,17 +61,20 @@ class ExecutedActions:
     def planned(self, timed_actions: list[Any]) -> None:
         """A chunk the server returns: LeRobot's ``TimedAction``s, actions in the robot's units."""
         cfg = self.policy.config
+        dim = cfg.segment_gripper_dim
         for action in timed_actions:
             if action.get_timestep() > self.last:
-                closed = float(action.get_action()[cfg.segment_gripper_dim]) > cfg.segment_gripper_threshold
+                closed = dim is not None and float(action.get_action()[dim]) > cfg.segment_gripper_threshold
                 self.commands[action.get_timestep()] = closed
 
     def executed_up_to(self, timestep: int) -> None:
         """The client executed every planned action up to ``timestep``: count them."""
-        cfg = self.policy.config
+        cfg, steering = self.policy.config, self.policy.steering
         for t in sorted(k for k in self.commands if self.last < k <= timestep):
             closed = torch.tensor([self.commands.pop(t)])
-            self.policy.steering.observe(closed, cfg.phase_switch_steps)
+            steering.executed_steps += 1
+            if cfg.segment_gripper_dim is not None:
+                steering.observe(closed, cfg.phase_switch_steps)
             self.last = t
 
 

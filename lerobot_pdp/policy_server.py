@@ -9,8 +9,9 @@ only (nothing of LeRobot is changed on disk):
 * the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
   reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
-* the gripper commands the client executed (the timestep of its last action comes with each observation) reach
-  the policy's gripper phases, so a latent per phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
+* the actions the client executed (the timestep of its last action comes with each observation) reach the
+  policy, so a latent per gripper phase and fitted chunk noises follow the robot
+  (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -121,11 +122,10 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            # a start-up fit it cannot follow (chunk noises) is refused before it runs; phases follow (below)
-            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, phases_follow=True):
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases and noises follow
                 policy = cls.from_pretrained(path, **kwargs)
-            if policy.config.segment_gripper_dim is not None:
-                policy._paced_executed = ExecutedActions(policy)
+            policy._paced_executed = ExecutedActions(policy)
+            policy.steering.by_step = True  # chunk noises by the episode's step, not in order
             check_paced_steering(policy)
             return policy
 
@@ -135,9 +135,9 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
 
 
 def with_executed_actions(original: Callable) -> Callable:
-    """Wrap LeRobot's ``PolicyServer._predict_action_chunk``: before a PDP chunk with gripper phases, the actions
-    the client executed up to the observation's timestep are counted; the chunk's actions are then noted as
-    planned (:class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
+    """Wrap LeRobot's ``PolicyServer._predict_action_chunk``: before a PDP chunk, the actions the client executed
+    up to the observation's timestep are counted; the chunk's actions are then noted as planned
+    (:class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
 
     @functools.wraps(original)
     def _predict_action_chunk(self: Any, observation_t: Any):

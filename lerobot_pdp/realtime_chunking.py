@@ -20,13 +20,14 @@ What differs from ``select_action``:
   chunk's observation, as at an episode's first chunk;
 - the whole predicted future is returned (``horizon - n_obs_steps + 1`` actions, not ``n_action_steps``), so
   the engine's queue has slack while the next chunk is generated;
-- per-phase latents advance on the gripper commands the robot executes: ``select_action`` counts those it hands
-  out, and under RTC PDP's queue (:class:`ConsumedDelayQueue`, below) tells PDP each action the loop takes from it;
-  the next chunk the engine generates after a phase ends is conditioned on the next phase's latent (``select_action``
-  replans at once). With LeRobot's own queue (``rtc_consumed_delay=false``) nothing reports the executed actions,
-  and per-phase latents are refused. Fitted chunk noises replay one per ``n_action_steps`` chunk, which has no
-  meaning when the engine replans at its own pace: refused with a message (``--inference.type=sync`` runs them).
-  Refused at start-up, and as live requests (the robot keeps its latent);
+- per-phase latents advance on the gripper commands the robot executes, and fitted chunk noises belong to the
+  demonstration's frames (noise j to the frames from ``j * n_action_steps``): ``select_action`` counts the actions
+  it hands out and its chunks; under RTC PDP's queue (:class:`ConsumedDelayQueue`, below) tells PDP each action the
+  loop takes from it, so the next chunk the engine generates after a phase ends is conditioned on the next phase's
+  latent (``select_action`` replans at once), and a chunk planned at the episode's step k starts from noise
+  ``k // n_action_steps`` (``Steering.by_step``). With LeRobot's own queue (``rtc_consumed_delay=false``) nothing
+  reports the executed actions: both are refused with a message (``--inference.type=sync`` runs them), at
+  start-up and as live requests (the robot keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
   before it, is returned empty: its observation belongs to the episode that ended (the observations the loop
   published tell which episode a chunk's is from, with or without the history; LeRobot's engine keeps its last
@@ -40,7 +41,7 @@ prefix starts one step late, and the number dropped is off by one either way. PD
 replanned every few actions, so that misalignment recurs (avoiding, pick-place: docs/performance.md). With
 ``rtc_consumed_delay`` (the default) PDP has the engine use :class:`ConsumedDelayQueue`, which counts the
 actions executed since the observation (the engine's ``notify_observation`` announces each one) and tells PDP
-each executed action (its gripper phases). It is set on
+each executed action (its gripper phases and its step in the episode). It is set on
 LeRobot's engine module when a PDP policy is prepared for RTC, so an engine started later in the same process, for
 any policy, builds it too (``lerobot-rollout`` runs one policy per process).
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
@@ -89,7 +90,7 @@ class ConsumedDelayQueue(ActionQueue):
         self.executed_at_observation: int | None = None  # None: no observation announced
         self._chunk_from: int | None = None  # ``executed`` at the observation the pending chunk comes from
         self._last_original: Tensor | None = None  # the last executed action, normalised
-        # told each executed action [A], normalised, outside the lock (PDP's gripper phases; set by _announcing)
+        # told each executed action [A], normalised, outside the lock (PDP's steps and phases; set by _announcing)
         self.on_executed: Callable[[Tensor], None] | None = None
 
     def observed(self) -> None:
@@ -242,8 +243,8 @@ def prepare_rtc(policy: Any) -> None:
     engine starts: name the run's prefix length against the recommended one; keep the observations the loop
     publishes (the chunks' episodes, and with ``rtc_observation_history`` their history); with
     ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue` (which also reports the
-    executed actions to PDP's gripper phases); refuse steering RTC cannot honour (now, and in live requests of
-    ``steer_file``)."""
+    executed actions: PDP's gripper phases and chunk noises follow them); refuse steering RTC cannot honour (now,
+    and in live requests of ``steer_file``)."""
     logger.info("PDP under RTC: this run holds each new chunk to the last one over its first %d actions "
                 "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place about "
                 "20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
@@ -251,7 +252,8 @@ def prepare_rtc(policy: Any) -> None:
     cfg = policy.config
     keep_history = cfg.rtc_observation_history and cfg.n_obs_steps > 1
     policy._rtc_observations = PublishedObservations(cfg.n_obs_steps, keep_history)
-    policy._rtc_phases_follow = _install_queue(policy, sys.modules.get(ENGINE_MODULE), keep_history)
+    policy._rtc_reports_executed = _install_queue(policy, sys.modules.get(ENGINE_MODULE), keep_history)
+    policy.steering.by_step = policy._rtc_reports_executed  # chunk noises by the episode's step, not in order
     check_rtc_steering(policy)
     if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
         policy._steer_file.check = check_rtc_steering
@@ -259,7 +261,7 @@ def prepare_rtc(policy: Any) -> None:
 
 def _install_queue(policy: Any, engine: Any, keep_history: bool) -> bool:
     """Give LeRobot's RTC ``engine`` module (loaded by lerobot-rollout before it loads the policy) PDP's
-    announcements and queue; True when the queue will report each executed action (the gripper phases follow)."""
+    announcements and queue; True when the queue will report each executed action."""
     if engine is None:
         return False
     cfg = policy.config
@@ -294,8 +296,10 @@ def _install_queue(policy: Any, engine: Any, keep_history: bool) -> bool:
 
 
 def _executed(policy: Any, action: Tensor) -> None:
-    """An action the RTC loop executed ([A], normalised): counted in the policy's gripper phases; a phase that
-    ends takes effect at the engine's next chunk (no replan forced: the robot keeps executing the queue)."""
+    """An action the RTC loop executed ([A], normalised): one more step of the episode, and counted in the
+    policy's gripper phases; a phase that ends takes effect at the engine's next chunk (no replan forced: the
+    robot keeps executing the queue)."""
+    policy.steering.executed_steps += 1
     policy._advance_phase(action[None], replan=False)
 
 
@@ -307,7 +311,7 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
         queue, policy = getattr(engine, "_action_queue", None), getattr(engine, "_policy", None)
         if isinstance(queue, ConsumedDelayQueue):
             queue.observed()
-            if queue.on_executed is None and getattr(policy, "_rtc_phases_follow", False):
+            if queue.on_executed is None and getattr(policy, "_rtc_reports_executed", False):
                 queue.on_executed = functools.partial(_executed, policy)
         published = getattr(policy, "_rtc_observations", None)
         if published is not None:
@@ -322,16 +326,19 @@ RTC_ENGINE, RTC_WAY_OUT = "lerobot-rollout's RTC engine", "Use --inference.type=
 
 
 def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT,
-                       phases_follow: bool | None = None) -> None:
+                       reports_executed: bool | None = None) -> None:
     """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
-    docstring), naming the way out. ``phases_follow``: whether the executed actions reach the policy's gripper
-    phases (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine)."""
+    docstring), naming the way out. ``reports_executed``: whether the actions the robot executes reach the policy
+    (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine); then per-phase latents and chunk
+    noises follow them."""
     steering = policy.steering
-    if phases_follow is None:
-        phases_follow = getattr(policy, "_rtc_phases_follow", False)
-    if steering.per_phase and not phases_follow:
-        how = ("with --policy.rtc_consumed_delay=true (the default) PDP's queue reports them"
-               if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay else "they do not reach PDP")
+    if reports_executed is None:
+        reports_executed = getattr(policy, "_rtc_reports_executed", False)
+    if reports_executed:
+        return
+    how = ("with --policy.rtc_consumed_delay=true (the default) PDP's queue reports them"
+           if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay else "they do not reach PDP")
+    if steering.per_phase:
         raise ValueError(
             f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
             f"commands the robot executes; {engine} replans at its own pace and {how}, so phases cannot "
@@ -339,8 +346,8 @@ def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC
     if len(steering.noises.noise):
         raise ValueError(
             f"the active adaptation carries {len(steering.noises.noise)} fitted chunk noises, one per "
-            f"{policy.config.n_action_steps}-action chunk of select_action; {engine} replans at "
-            f"its own pace, so they cannot be replayed in order. {way_out} use an adaptation fitted "
+            f"{policy.config.n_action_steps} executed actions of the demonstration; {engine} replans at its own "
+            f"pace and {how}, so they cannot be replayed in step. {way_out} use an adaptation fitted "
             "without noises (fit_noise=none)")
 
 
@@ -398,6 +405,8 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
     guide = None
     if rtc is not None and rtc.enabled and prev_chunk_left_over is not None:
         guide = prefix_guide(policy, prev_chunk_left_over, inference_delay or 0, b)
+    if noise is None:  # fitted noises: the one of the episode's step (Steering.by_step); None: drawn
+        noise = policy.steering.next_noise(b, obs_cond.device)
     chunk = policy.model.generate(obs_cond, z, noise, guide=guide)
     check_finite_actions(chunk, z, obs_cond)
     future = chunk[:, cfg.n_obs_steps - 1 :]

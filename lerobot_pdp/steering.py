@@ -123,11 +123,11 @@ _PACED: contextvars.ContextVar[tuple[str, str, bool] | None] = contextvars.Conte
 
 
 @contextlib.contextmanager
-def paced_caller(engine: str, way_out: str, phases_follow: bool = False) -> Iterator[None]:
+def paced_caller(engine: str, way_out: str, reports_executed: bool = False) -> Iterator[None]:
     """Policies loaded in this block will be called by ``engine``, which replans at its own pace (and tells the
-    policy the executed actions when ``phases_follow``): a start-up fit whose result it cannot follow is refused
-    before it runs (:func:`refuse_paced_fit`)."""
-    token = _PACED.set((engine, way_out, phases_follow))
+    policy the actions the robot executed when ``reports_executed``): a start-up fit whose result it cannot follow
+    is refused before it runs (:func:`refuse_paced_fit`)."""
+    token = _PACED.set((engine, way_out, reports_executed))
     try:
         yield
     finally:
@@ -135,18 +135,19 @@ def paced_caller(engine: str, way_out: str, phases_follow: bool = False) -> Iter
 
 
 def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
-    """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
-    the fit runs: one sampler noise per ``select_action`` chunk, or one latent per gripper phase unless the caller
-    reports the executed actions (lerobot-rollout's RTC engine with ``rtc_consumed_delay``, PDP's policy server);
-    the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
+    """Under a caller that replans at its own pace and does not report the executed actions (which lerobot-rollout's
+    RTC engine with ``rtc_consumed_delay`` and PDP's policy server do), refuse a start-up fit whose result it could
+    not follow, before the fit runs: sampler noises per chunk, or one latent per gripper phase; the chunk-time
+    checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
     rtc = (RTC_ENGINE, RTC_WAY_OUT, bool(policy.config.rtc_consumed_delay))  # PDP's RTC queue reports them
-    engine, way_out, phases_follow = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
-    if engine is None:
+    engine, way_out, reports_executed = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
+    if engine is None or reports_executed:
         return
     if policy.config.fit_noise == "chunks":
-        raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per select_action chunk, which {engine} "
-                         f"cannot replay in order (it replans at its own pace). {way_out} --policy.fit_noise=none")
-    if policy.config.segment_gripper_dim is None or phases_follow:  # one latent, or phases that follow the robot
+        raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per {policy.config.n_action_steps} "
+                         f"executed actions, which {engine} cannot replay in step (it replans at its own pace and "
+                         f"the executed actions do not reach PDP). {way_out} --policy.fit_noise=none")
+    if policy.config.segment_gripper_dim is None:  # one latent per demonstration: nothing to read
         return
     phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
     if phases > 1:

@@ -47,11 +47,16 @@ class ChunkNoises(nn.Module):
 
     def next(self, batch_size: int, device: torch.device | str, advance: bool = True) -> Tensor | None:
         """The noise of the next chunk, [batch_size, horizon, A] (None when there are none)."""
-        if len(self.noise) == 0:
-            return None
-        x = self.noise[min(self.chunk, len(self.noise) - 1)]
+        x = self.at(self.chunk, batch_size, device)
         if advance:
             self.chunk += 1
+        return x
+
+    def at(self, index: int, batch_size: int, device: torch.device | str) -> Tensor | None:
+        """Noise ``index`` (the last one past the end), [batch_size, horizon, A]; None when there are none."""
+        if len(self.noise) == 0:
+            return None
+        x = self.noise[min(index, len(self.noise) - 1)]
         return x.to(device).expand(batch_size, *x.shape)
 
 
@@ -88,6 +93,11 @@ class Steering(nn.Module):
         self.episode_latent: Tensor | None = None  # the default latent drawn for this episode
         self.provenance: dict | None = None  # where the active latent came from (kept with an adapted checkpoint)
         self.resets = 0  # episodes started (a chunk generated across a reset is stale: realtime_chunking.py)
+        # Callers that replan at their own pace (RTC, the async server) report the actions the robot executes;
+        # then a chunk planned at the episode's step k starts from noise k // n_action_steps, the noise fitted to
+        # the demonstration's frames from there (latent_fitting.fit_chunk_noise), instead of the next one in order
+        self.by_step = False
+        self.executed_steps = 0  # actions executed since the episode began, as reported
 
     @property
     def active(self) -> bool:
@@ -127,6 +137,7 @@ class Steering(nn.Module):
         """A new episode: phases and noises start over, the default latent is drawn anew."""
         self.phases.reset()
         self.noises.reset()
+        self.executed_steps = 0
         self.episode_latent = None
         self.resets += 1
 
@@ -144,6 +155,9 @@ class Steering(nn.Module):
         return self.episode_latent
 
     def next_noise(self, batch_size: int, device: torch.device | str) -> Tensor | None:
+        """The fitted noise of the next chunk: the next in order, or (``by_step``) the one of the step reached."""
+        if self.by_step:
+            return self.noises.at(self.executed_steps // self._config.n_action_steps, batch_size, device)
         return self.noises.next(batch_size, device)
 
     def observe(self, gripper_closed: Tensor, hold_steps: int) -> bool:

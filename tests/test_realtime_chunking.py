@@ -243,6 +243,37 @@ def test_per_phase_latents_advance_on_the_actions_the_rtc_loop_executes(syntheti
     torch.testing.assert_close(p.current_latent(1), phases[0][None])
 
 
+def test_fitted_chunk_noises_follow_the_episodes_step_under_rtc(synthetic_meta):
+    """Noise j is fitted to the demonstration's frames from ``j * n_action_steps``: under RTC a chunk planned at the
+    episode's step k (the actions the loop executed, reported by PDP's queue) starts from noise k // n_action_steps,
+    however often the engine replans; a new episode starts at noise 0."""
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    p = _rtc_policy(synthetic_meta)
+    n = p.config.n_action_steps
+    noises = torch.stack([torch.full((p.config.horizon, p.action_dim), float(j)) for j in range(3)])
+    p.steering.activate(p.mode_latents()[1], noise=noises)
+    p.init_rtc_processor()  # PDP's queue reports the executed actions: the noises are accepted
+    e = _engine_for(p, synthetic_meta)
+    e._action_queue = q = ConsumedDelayQueue(RTCConfig())
+    used = []
+    generate = p.model.generate
+    p.model.generate = lambda obs, z, noise=None, **k: (used.append(noise[0, 0, 0].item()), generate(obs, z, noise, **k))[1]
+    actions = torch.zeros(6 * n, p.action_dim)
+    q.merge(actions, actions, 0)
+    step = 0
+    for executed in (0, 2, n - 2, 1, n, 3 * n):  # the engine replans after this many more executed actions
+        for _ in range(executed):
+            e.notify_observation(_raw(step))
+            assert q.get() is not None
+            step += 1
+        p.predict_action_chunk(_preprocessed(e, _raw(step)), inference_delay=0, prev_chunk_left_over=None)
+    assert used == [0.0, 0.0, 1.0, 1.0, 2.0, 2.0]  # steps 0, 2, n, n + 1, 2n + 1, 5n + 1 (the last noise repeats)
+    p.reset()  # a new episode
+    p.predict_action_chunk(_preprocessed(e, _raw(step)), inference_delay=0, prev_chunk_left_over=None)
+    assert used[-1] == 0.0
+
+
 def _engine_for(policy, meta):
     """LeRobot's RTC engine with what its thread uses to turn a raw observation into the policy's input."""
     import types
@@ -398,9 +429,10 @@ def test_a_live_request_the_engine_cannot_follow_is_refused_and_the_latent_kept(
 
 
 def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synthetic_meta, monkeypatch):
-    """lerobot-rollout loads (and so fits at start-up) before it tells the policy about RTC: chunk noises, which
-    the engine cannot replay, are refused from its command line before minutes of fitting."""
-    from lerobot_pdp.steering import _rollout_with_rtc
+    """lerobot-rollout loads (and so fits at start-up) before it tells the policy about RTC: on LeRobot's queue,
+    which does not report the executed actions, chunk noises cannot be replayed in step and are refused from its
+    command line before minutes of fitting (PDP's queue, the default, reports them: allowed)."""
+    from lerobot_pdp.steering import _rollout_with_rtc, refuse_paced_fit
 
     for argv, rtc in ((["/venv/bin/lerobot-rollout", "--inference.type=rtc"], True),
                       (["lerobot-rollout", "--inference.type", "rtc"], True),
@@ -410,8 +442,10 @@ def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synt
         assert _rollout_with_rtc() is rtc, argv
     monkeypatch.setattr("sys.argv", ["lerobot-rollout", "--inference.type=rtc"])
     p = small_policy(synthetic_meta, steer_dataset_root=str(synthetic_meta.root), steer_episode_index=0,
-                     fit_noise="chunks", fit_steps=10**6)
+                     fit_noise="chunks", fit_steps=10**6, rtc_consumed_delay=False)
     monkeypatch.setattr(p, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
     with pytest.raises(ValueError, match=r"fit_noise=chunks .*Use --inference.type=sync, or --policy.fit_noise=none"):
         p.apply_config_steering()
     assert not p.steering.active
+    p.config.rtc_consumed_delay = True  # PDP's queue: the noises follow the executed actions
+    refuse_paced_fit(p, (str(synthetic_meta.root), 0))  # not refused

@@ -221,10 +221,10 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
-def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase(tmp_path, monkeypatch):
+def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase_with_chunk_noises(tmp_path, monkeypatch):
     """``--inference.type=rtc`` on pick-place, steered by a start-up fit to a demonstration that splits into
-    gripper phases (one latent each): accepted, and every action the loop executes reaches the policy's phase
-    count through PDP's queue."""
+    gripper phases (one latent each) with chunk noises: accepted, and every action the loop executes reaches the
+    policy (its phases, its step) through PDP's queue."""
     import lerobot.rollout.inference.rtc as engine_module
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceConfig
@@ -247,11 +247,13 @@ def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase(tmp_path
                       PDPSimConfig(env="pick-place", scene="0", outcomes=str(outcomes), episodes=1,
                                    calibration_dir=tmp_path),
                       inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=3), queue_threshold=7),
-                      duration=20, steer_dataset_root=str(demo), steer_episode_index=0, fit_noise="none", fit_steps=2)
+                      duration=20, steer_dataset_root=str(demo), steer_episode_index=0, fit_noise="chunks", fit_steps=2,
+                      fit_noise_steps=2)
     policy = ctx.policy.policy
-    assert policy.steering.per_phase and len(policy.active_latent) >= 2
+    assert policy.steering.per_phase and len(policy.active_latent) >= 2 and len(policy.steering.noises) > 0
     queue = ctx.policy.inference.action_queue
     assert queue.on_executed is not None and len(reported) == queue.executed > 0
+    assert policy.steering.by_step  # chunk noises by the episode's step
 
 
 def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, monkeypatch):
