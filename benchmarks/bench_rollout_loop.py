@@ -19,7 +19,7 @@ workers), already stepping.
 ``--checkpoint`` takes a trained checkpoint instead (``--env``, ``--scene``, ``--dataset`` for the fit variant);
 ``--modes 0 1 ...`` adds one variant per steered mode (``--policy.steer_mode``), run on the quiet machine only.
 
-    .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise] [--inference sync rtc]
+    .venv/bin/python benchmarks/bench_rollout_loop.py [--fps 50] [--episodes 2] [--noise | --only-noise] [--inference sync rtc]
         [--rtc-queue-threshold N [N ...]] [--rtc-execution-horizon N [N ...]] [--checkpoint DIR --env reach-around --scene 0 [--dataset DIR] [--policy-flag=--policy.X=Y] [--modes 0 1 2 [--only-modes]]] [--no-beside] [--out DIR]
 
 One JSON line per run on stdout (and DIR/rollout_loop.jsonl with --out).
@@ -120,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=50)
     ap.add_argument("--episodes", type=int, default=2)
     ap.add_argument("--noise", action="store_true", help="also a start-up fit with one sampler noise per chunk")
+    ap.add_argument("--only-noise", action="store_true",
+                    help="with --dataset: only the start-up fit with chunk noises (no unadapted or z-only run)")
     ap.add_argument("--inference", nargs="+", choices=sorted(ENGINES), default=["sync"])
     ap.add_argument("--rtc-queue-threshold", type=int, nargs="+", default=None,
                     help="rtc: generate a new chunk when this many actions are left (LeRobot's default: 30); "
@@ -156,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     variants = {"no adaptation": []}
     if data is not None:
         variants["fit at start-up"] = [f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0"]
-        if args.noise:
+        if args.noise or args.only_noise:
             variants["fit + chunk noises at start-up"] = [*variants["fit at start-up"], "--policy.fit_noise=chunks"]
+        if args.only_noise:
+            variants = {"fit + chunk noises at start-up": variants["fit + chunk noises at start-up"]}
     # name: (flags, queue threshold, execution horizon; None = LeRobot's)
     engines: dict[str, tuple[list[str], int | None, int | None]] = {}
     for e in args.inference:
