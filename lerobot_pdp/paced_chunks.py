@@ -37,8 +37,8 @@ EPISODE_KEY = "observation.pdp_sim_episode"
 
 
 def check_paced_steering(policy: Any) -> None:
-    """Refuse steering a paced caller cannot follow (the module docstring); per-phase latents only when nothing
-    tells the policy the executed actions."""
+    """Refuse steering a paced caller cannot follow (the module docstring): per-phase latents and chunk noises,
+    unless the policy is told the executed actions (``python -m lerobot_pdp.policy_server``)."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
                        reports_executed=getattr(policy, "_paced_executed", None) is not None)
 

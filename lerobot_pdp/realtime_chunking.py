@@ -336,8 +336,9 @@ def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC
         reports_executed = getattr(policy, "_rtc_reports_executed", False)
     if reports_executed:
         return
-    how = ("with --policy.rtc_consumed_delay=true (the default) PDP's queue reports them"
-           if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay else "they do not reach PDP")
+    how = "the actions the robot executes do not reach PDP"
+    if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay:
+        how += " (with --policy.rtc_consumed_delay=true, the default, PDP's queue reports them)"
     if steering.per_phase:
         raise ValueError(
             f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
