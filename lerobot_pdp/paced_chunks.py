@@ -5,12 +5,13 @@ LeRobot's asynchronous inference (``lerobot.async_inference``) runs the policy i
 the history ``select_action`` keeps, whenever the client's action queue runs low. PDP conditions on
 ``n_obs_steps`` frames, so such an observation joins the policy's own observation history (the one
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
-that history. Per-phase latents advance on the gripper commands the robot executes, and fitted chunk noises belong
-to the demonstration's frames (noise j to the frames from ``j * n_action_steps``): ``python -m
+that history. Per-phase latents advance on the gripper commands the robot executes: ``python -m
 lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
-advance on them and a chunk planned at the episode's step k starts from noise ``k // n_action_steps``, as under
-``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`). Any other paced caller has both refused, at the
-first chunk and in live requests (the robot keeps its latent).
+advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
+them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
+``j * n_action_steps``), and LeRobot's client asks for chunks wherever its queue runs low (every few actions), so no
+chunk starts where a noise was fitted: refused (on pick-place's val3 they took 0 of 20 episodes this way, 20 of
+20 under ``select_action``). Refusals come at the first chunk and in live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -37,15 +38,14 @@ EPISODE_KEY = "observation.pdp_sim_episode"
 
 
 def check_paced_steering(policy: Any) -> None:
-    """Refuse steering a paced caller cannot follow (the module docstring): per-phase latents and chunk noises,
+    """Refuse steering a paced caller cannot follow (the module docstring): chunk noises, and per-phase latents
     unless the policy is told the executed actions (``python -m lerobot_pdp.policy_server``)."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
-                       reports_executed=getattr(policy, "_paced_executed", None) is not None)
+                       reports_executed=getattr(policy, "_paced_executed", None) is not None, replays_noises=False)
 
 
 class ExecutedActions:
-    """The actions the robot of LeRobot's async client executed: the served PDP's steps in the episode and, with
-    gripper phases, its gripper commands.
+    """The gripper commands the robot of LeRobot's async client executed, counted in the served PDP's phases.
 
     The client sends with each observation the timestep of the last action it executed, and executes each
     timestep's action from the latest chunk that planned it (its default aggregation). So the server keeps the

@@ -10,8 +10,7 @@ only (nothing of LeRobot is changed on disk):
   reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
 * the actions the client executed (the timestep of its last action comes with each observation) reach the
-  policy, so a latent per gripper phase and fitted chunk noises follow the robot
-  (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
+  policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -122,10 +121,9 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases and noises follow
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases follow; noises refused
                 policy = cls.from_pretrained(path, **kwargs)
             policy._paced_executed = ExecutedActions(policy)
-            policy.steering.by_step = True  # chunk noises by the episode's step, not in order
             check_paced_steering(policy)
             return policy
 

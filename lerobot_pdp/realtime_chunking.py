@@ -25,9 +25,10 @@ What differs from ``select_action``:
   it hands out and its chunks; under RTC PDP's queue (:class:`ConsumedDelayQueue`, below) tells PDP each action the
   loop takes from it, so the next chunk the engine generates after a phase ends is conditioned on the next phase's
   latent (``select_action`` replans at once), and a chunk planned at the episode's step k starts from noise
-  ``k // n_action_steps`` (``Steering.by_step``). With LeRobot's own queue (``rtc_consumed_delay=false``) nothing
-  reports the executed actions: both are refused with a message (``--inference.type=sync`` runs them), at
-  start-up and as live requests (the robot keeps its latent);
+  ``k // n_action_steps`` (``Steering.by_step``; it matches the noises' frames when the engine replans every
+  ``n_action_steps`` actions, as ``--inference.queue_threshold=7`` does). With LeRobot's own queue
+  (``rtc_consumed_delay=false``) nothing reports the executed actions: both are refused with a message
+  (``--inference.type=sync`` runs them), at start-up and as live requests (the robot keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
   before it, is returned empty: its observation belongs to the episode that ended (the observations the loop
   published tell which episode a chunk's is from, with or without the history; LeRobot's engine keeps its last
@@ -326,30 +327,36 @@ RTC_ENGINE, RTC_WAY_OUT = "lerobot-rollout's RTC engine", "Use --inference.type=
 
 
 def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT,
-                       reports_executed: bool | None = None) -> None:
+                       reports_executed: bool | None = None, replays_noises: bool | None = None) -> None:
     """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
     docstring), naming the way out. ``reports_executed``: whether the actions the robot executes reach the policy
-    (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine); then per-phase latents and chunk
-    noises follow them."""
+    (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine), which per-phase latents need;
+    ``replays_noises``: whether fitted chunk noises are replayed by step (None: the same)."""
     steering = policy.steering
     if reports_executed is None:
         reports_executed = getattr(policy, "_rtc_reports_executed", False)
-    if reports_executed:
-        return
+    if replays_noises is None:
+        replays_noises = reports_executed
     how = "the actions the robot executes do not reach PDP"
     if engine == RTC_ENGINE and not policy.config.rtc_consumed_delay:
         how += " (with --policy.rtc_consumed_delay=true, the default, PDP's queue reports them)"
-    if steering.per_phase:
+    if steering.per_phase and not reports_executed:
         raise ValueError(
             f"PDP is steered with one latent per phase ({len(steering.latent)} phases), which advance on the gripper "
             f"commands the robot executes; {engine} replans at its own pace and {how}, so phases cannot "
             f"follow. {way_out} steer with one latent (a mode or a latent of one phase)")
-    if len(steering.noises.noise):
+    if len(steering.noises.noise) and not replays_noises:
+        why = how if not reports_executed else PACED_NOISES
         raise ValueError(
             f"the active adaptation carries {len(steering.noises.noise)} fitted chunk noises, one per "
             f"{policy.config.n_action_steps} executed actions of the demonstration; {engine} replans at its own "
-            f"pace and {how}, so they cannot be replayed in step. {way_out} use an adaptation fitted "
+            f"pace and {why}, so they cannot be replayed in step. {way_out} use an adaptation fitted "
             "without noises (fit_noise=none)")
+
+
+# why a caller that reports the executed actions still cannot replay chunk noises (LeRobot's async client)
+PACED_NOISES = ("its chunks start every few actions wherever its queue runs low, not where the noises were fitted "
+                "(measured on pick-place: docs/deploy.md)")
 
 
 def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int,

@@ -119,15 +119,16 @@ def apply_config_steering(policy: Any) -> None:
 
 # (engine, way out) of a caller that replans at its own pace, set while it loads the policy: LeRobot's async
 # policy server (policy_server.py) sets it; lerobot-rollout's RTC engine is told from the command line
-_PACED: contextvars.ContextVar[tuple[str, str, bool] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
+_PACED: contextvars.ContextVar[tuple[str, str, bool, bool] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
 
 
 @contextlib.contextmanager
-def paced_caller(engine: str, way_out: str, reports_executed: bool = False) -> Iterator[None]:
-    """Policies loaded in this block will be called by ``engine``, which replans at its own pace (and tells the
-    policy the actions the robot executed when ``reports_executed``): a start-up fit whose result it cannot follow
-    is refused before it runs (:func:`refuse_paced_fit`)."""
-    token = _PACED.set((engine, way_out, reports_executed))
+def paced_caller(engine: str, way_out: str, reports_executed: bool = False,
+                 replays_noises: bool = False) -> Iterator[None]:
+    """Policies loaded in this block will be called by ``engine``, which replans at its own pace (tells the policy
+    the actions the robot executed when ``reports_executed``; replays chunk noises by step when ``replays_noises``):
+    a start-up fit whose result it cannot follow is refused before it runs (:func:`refuse_paced_fit`)."""
+    token = _PACED.set((engine, way_out, reports_executed, replays_noises))
     try:
         yield
     finally:
@@ -135,19 +136,22 @@ def paced_caller(engine: str, way_out: str, reports_executed: bool = False) -> I
 
 
 def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
-    """Under a caller that replans at its own pace and does not report the executed actions (which lerobot-rollout's
-    RTC engine with ``rtc_consumed_delay`` and PDP's policy server do), refuse a start-up fit whose result it could
-    not follow, before the fit runs: sampler noises per chunk, or one latent per gripper phase; the chunk-time
-    checks, ``realtime_chunking.check_rtc_steering``, would refuse them only after it."""
-    rtc = (RTC_ENGINE, RTC_WAY_OUT, bool(policy.config.rtc_consumed_delay))  # PDP's RTC queue reports them
-    engine, way_out, reports_executed = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
-    if engine is None or reports_executed:
+    """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
+    the fit runs: sampler noises per chunk, unless it replays them by step (lerobot-rollout's RTC engine with
+    ``rtc_consumed_delay``), or one latent per gripper phase, unless it reports the executed actions (that engine,
+    PDP's policy server); the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only
+    after it."""
+    consumed = bool(policy.config.rtc_consumed_delay)  # PDP's RTC queue reports the executed actions
+    rtc = (RTC_ENGINE, RTC_WAY_OUT, consumed, consumed)
+    engine, way_out, reports_executed, replays_noises = (_PACED.get()
+                                                         or (rtc if _rollout_with_rtc() else (None, None, False, False)))
+    if engine is None:
         return
-    if policy.config.fit_noise == "chunks":
+    if policy.config.fit_noise == "chunks" and not replays_noises:
         raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per {policy.config.n_action_steps} "
-                         f"executed actions, which {engine} cannot replay in step (it replans at its own pace and "
-                         f"the executed actions do not reach PDP). {way_out} --policy.fit_noise=none")
-    if policy.config.segment_gripper_dim is None:  # one latent per demonstration: nothing to read
+                         f"executed actions, which {engine} cannot replay in step (it replans at its own pace). "
+                         f"{way_out} --policy.fit_noise=none")
+    if policy.config.segment_gripper_dim is None or reports_executed:  # one latent, or phases that follow the robot
         return
     phases = len(policy._demonstration(episode, "auto", need_action=True).segments)
     if phases > 1:

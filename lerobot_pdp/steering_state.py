@@ -93,9 +93,9 @@ class Steering(nn.Module):
         self.episode_latent: Tensor | None = None  # the default latent drawn for this episode
         self.provenance: dict | None = None  # where the active latent came from (kept with an adapted checkpoint)
         self.resets = 0  # episodes started (a chunk generated across a reset is stale: realtime_chunking.py)
-        # Callers that replan at their own pace (RTC, the async server) report the actions the robot executes;
-        # then a chunk planned at the episode's step k starts from noise k // n_action_steps, the noise fitted to
-        # the demonstration's frames from there (latent_fitting.fit_chunk_noise), instead of the next one in order
+        # lerobot-rollout's RTC engine (realtime_chunking.py) replans at its own pace and reports the actions the
+        # robot executes; then a chunk planned at the episode's step k starts from noise k // n_action_steps, the
+        # noise fitted to the demonstration's frames from there (latent_fitting.fit_chunk_noise), not the next one
         self.by_step = False
         self.executed_steps = 0  # actions executed since the episode began, as reported
 

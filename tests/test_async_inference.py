@@ -24,7 +24,7 @@ import torch
 from policies import small_policy
 
 from lerobot_pdp import PDPPolicy, policy_server
-from lerobot_pdp.paced_chunks import PACED_ENGINE, PACED_WAY_OUT, check_paced_steering
+from lerobot_pdp.paced_chunks import PACED_ENGINE, PACED_WAY_OUT
 from lerobot_pdp.robots import PDPSimConfig, client_hooks
 from lerobot_pdp.steering import paced_caller
 
@@ -153,7 +153,7 @@ def test_the_server_admits_pdp_and_passes_the_environment_state(server_module):
         server.raw_observation_to_observation({k: v for k, v in raw.items() if k != "oz"}, features, {})
 
 
-def test_the_server_loads_pdp_with_its_policy_options_and_an_adaptation_with_chunk_noises(server_module, tmp_path):
+def test_the_server_loads_pdp_with_its_policy_options_and_refuses_chunk_noises(server_module, tmp_path):
     from lerobot_pdp.steering import write_steering
 
     server = server_module
@@ -167,41 +167,38 @@ def test_the_server_loads_pdp_with_its_policy_options_and_an_adaptation_with_chu
     policy.predict_action_chunk(frame)
     torch.testing.assert_close(policy.active_latent, modes[2].reshape(1, -1))
     policy_server.admit_pdp(server, [])
-    adapted = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))  # with --noise chunks
-    assert len(adapted.steering.noises) > 0 and adapted.steering.by_step  # replayed by the client's executed steps
-    adapted._paced_executed = None  # a paced caller that does not report them
-    with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server"):
-        check_paced_steering(adapted)
+    with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server.*not where the noises were "
+                                         r"fitted.*fit_noise=none"):  # adapted with --noise chunks
+        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
 
 
-def test_a_start_up_fit_of_phases_and_noises_runs_on_the_server_and_is_refused_where_they_cannot_follow(server_module, tmp_path, monkeypatch):
+def test_a_start_up_fit_of_phases_runs_on_the_server_and_one_of_chunk_noises_is_refused_before_it_runs(server_module, tmp_path, monkeypatch):
     """The server tells the policy the actions the client executed, so a start-up fit of a latent per gripper phase
-    and chunk noises runs; under a paced caller that does not, either is refused before the fit's seconds to
-    minutes, with the way out."""
+    runs (under a paced caller that does not, it is refused); chunk noises, which the client's chunks cannot follow,
+    are refused before the fit's seconds to minutes, with the way out."""
     from lerobot_pdp.envs.recording import make_dataset
 
     server = server_module
     demo = make_dataset(env="pick-place", out=tmp_path / "pick", scene=0, episodes_per_mode=1, seed=0, modes=[0],
                         progress=False)
-    # the server tells the policy the executed actions: a latent per gripper phase and chunk noises are fitted
-    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=chunks",
-                                     "--fit_steps=2", "--fit_noise_steps=2"])
+    # the server tells the policy the executed actions: a latent per gripper phase is fitted
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=none",
+                                     "--fit_steps=2"])
     policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
-    assert policy.steering.per_phase and len(policy.steering.noises) > 0 and policy._paced_executed is not None
+    assert policy.steering.per_phase and policy._paced_executed is not None
     monkeypatch.setattr(PDPPolicy, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
     with paced_caller(PACED_ENGINE, PACED_WAY_OUT):  # a paced caller that does not report them
-        with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve "
-                                             r"an adapted checkpoint.* --policy.fit_noise=none"):
-            PDPPolicy.from_pretrained(str(CHECKPOINTS / "adapted_pick_place"), config=policy.config)
-        policy.config.fit_noise = "none"
         with pytest.raises(ValueError, match=r"episode 0 splits into [2-9] gripper phases, .*async policy server"):
             PDPPolicy.from_pretrained(str(CHECKPOINTS / "adapted_pick_place"), config=policy.config)
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=chunks"])
+    with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve "
+                                         r"an adapted checkpoint.* --policy.fit_noise=none"):
+        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
     """LeRobot's client sends the timestep of the last action it executed with each observation and executes each
-    timestep's action from the latest chunk planning it: the policy's phases count those commands, in order, and
-    its steps in the episode (which fitted chunk noise a chunk starts from) count the actions."""
+    timestep's action from the latest chunk planning it: the policy's phases count those commands, in order."""
     from lerobot.async_inference.helpers import TimedAction, TimedObservation
 
     policy_server.admit_pdp(server_module, ["--steer_mode=0"])  # a mode: one latent per phase
@@ -234,7 +231,7 @@ def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_polic
     predict_and_count(server, TimedObservation(timestamp=0.0, timestep=12, observation={}))  # 6..12 executed
     assert served == [0, 5, 12] and policy._paced_executed.last == 12
     assert int(policy.steering.phases.phase[0]) == 1  # closed for 7 commands, held for phase_switch_steps: carry
-    assert policy.steering.executed_steps == 13 and policy.steering.by_step  # steps 0..12: chunk noises by step
+    assert policy.steering.executed_steps == 13  # steps 0..12
 
 
 @pytest.mark.parametrize("option, said", [
