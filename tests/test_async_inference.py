@@ -66,10 +66,12 @@ def client_module(monkeypatch, tmp_path):
     """LeRobot's robot-client module with pdp_sim's hooks; restored after the test."""
     robot_client = _import_in(tmp_path, "lerobot.async_inference.robot_client")
 
-    for name in ("map_robot_keys_to_lerobot_features", "RobotClient"):
+    for name in ("map_robot_keys_to_lerobot_features", "RobotClient", "async_client"):
         monkeypatch.setattr(robot_client, name, getattr(robot_client, name))
+    client_hooks.FAILURES.clear()  # a run's failures are the run's own
     assert client_hooks.install()
     yield robot_client
+    client_hooks.FAILURES.clear()
     from lerobot_pdp.robots.pdp_sim import _LIVE
 
     for robot in list(_LIVE.values()):
