@@ -34,6 +34,9 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 # pdp_sim's episode mark in the raw observations LeRobot's async client sends, and as the policy gets it, [B] (the
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"
+# why chunk noises cannot be replayed for LeRobot's async client although its executed actions are reported
+PACED_NOISES = ("its chunks start every few actions wherever its queue runs low, not where the noises were fitted "
+                "(measured on pick-place: docs/deploy.md)")
 EPISODE_KEY = "observation.pdp_sim_episode"
 
 
@@ -41,7 +44,8 @@ def check_paced_steering(policy: Any) -> None:
     """Refuse steering a paced caller cannot follow (the module docstring): chunk noises, and per-phase latents
     unless the policy is told the executed actions (``python -m lerobot_pdp.policy_server``)."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
-                       reports_executed=getattr(policy, "_paced_executed", None) is not None, replays_noises=False)
+                       reports_executed=getattr(policy, "_paced_executed", None) is not None, replays_noises=False,
+                       noises_why=PACED_NOISES)
 
 
 class ExecutedActions:

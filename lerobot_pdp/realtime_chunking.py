@@ -327,11 +327,13 @@ RTC_ENGINE, RTC_WAY_OUT = "lerobot-rollout's RTC engine", "Use --inference.type=
 
 
 def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC_WAY_OUT,
-                       reports_executed: bool | None = None, replays_noises: bool | None = None) -> None:
+                       reports_executed: bool | None = None, replays_noises: bool | None = None,
+                       noises_why: str | None = None) -> None:
     """Refuse steering that ``engine``, which replans at its own pace, cannot honour (see the module
     docstring), naming the way out. ``reports_executed``: whether the actions the robot executes reach the policy
     (None: what :func:`prepare_rtc` found for lerobot-rollout's RTC engine), which per-phase latents need;
-    ``replays_noises``: whether fitted chunk noises are replayed by step (None: the same)."""
+    ``replays_noises``: whether fitted chunk noises are replayed by step (None: the same); ``noises_why``: why
+    they are not, when not for want of the executed actions."""
     steering = policy.steering
     if reports_executed is None:
         reports_executed = getattr(policy, "_rtc_reports_executed", False)
@@ -346,17 +348,12 @@ def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC
             f"commands the robot executes; {engine} replans at its own pace and {how}, so phases cannot "
             f"follow. {way_out} steer with one latent (a mode or a latent of one phase)")
     if len(steering.noises.noise) and not replays_noises:
-        why = how if not reports_executed else PACED_NOISES
+        why = noises_why or how
         raise ValueError(
             f"the active adaptation carries {len(steering.noises.noise)} fitted chunk noises, one per "
             f"{policy.config.n_action_steps} executed actions of the demonstration; {engine} replans at its own "
             f"pace and {why}, so they cannot be replayed in step. {way_out} use an adaptation fitted "
             "without noises (fit_noise=none)")
-
-
-# why a caller that reports the executed actions still cannot replay chunk noises (LeRobot's async client)
-PACED_NOISES = ("its chunks start every few actions wherever its queue runs low, not where the noises were fitted "
-                "(measured on pick-place: docs/deploy.md)")
 
 
 def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int,
