@@ -34,10 +34,10 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 # pdp_sim's episode mark in the raw observations LeRobot's async client sends, and as the policy gets it, [B] (the
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"
+EPISODE_KEY = "observation.pdp_sim_episode"
 # why chunk noises cannot be replayed for LeRobot's async client although its executed actions are reported
 PACED_NOISES = ("its chunks start every few actions wherever its queue runs low, not where the noises were fitted "
                 "(measured on pick-place: docs/deploy.md)")
-EPISODE_KEY = "observation.pdp_sim_episode"
 
 
 def check_paced_steering(policy: Any) -> None:
@@ -49,7 +49,8 @@ def check_paced_steering(policy: Any) -> None:
 
 
 class ExecutedActions:
-    """The gripper commands the robot of LeRobot's async client executed, counted in the served PDP's phases.
+    """The gripper commands the robot of LeRobot's async client executed, counted in the served PDP's phases (a
+    policy with gripper phases; without, there is nothing to count).
 
     The client sends with each observation the timestep of the last action it executed, and executes each
     timestep's action from the latest chunk that planned it (its default aggregation). So the server keeps the
@@ -65,20 +66,16 @@ class ExecutedActions:
     def planned(self, timed_actions: list[Any]) -> None:
         """A chunk the server returns: LeRobot's ``TimedAction``s, actions in the robot's units."""
         cfg = self.policy.config
-        dim = cfg.segment_gripper_dim
         for action in timed_actions:
             if action.get_timestep() > self.last:
-                closed = dim is not None and float(action.get_action()[dim]) > cfg.segment_gripper_threshold
+                closed = float(action.get_action()[cfg.segment_gripper_dim]) > cfg.segment_gripper_threshold
                 self.commands[action.get_timestep()] = closed
 
     def executed_up_to(self, timestep: int) -> None:
-        """The client executed every planned action up to ``timestep``: count them."""
-        cfg, steering = self.policy.config, self.policy.steering
+        """The client executed every planned action up to ``timestep``: count their gripper commands."""
+        cfg = self.policy.config
         for t in sorted(k for k in self.commands if self.last < k <= timestep):
-            closed = torch.tensor([self.commands.pop(t)])
-            steering.executed_steps += 1
-            if cfg.segment_gripper_dim is not None:
-                steering.observe(closed, cfg.phase_switch_steps)
+            self.policy.steering.observe(torch.tensor([self.commands.pop(t)]), cfg.phase_switch_steps)
             self.last = t
 
 

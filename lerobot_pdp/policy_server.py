@@ -123,7 +123,8 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
             with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases follow; noises refused
                 policy = cls.from_pretrained(path, **kwargs)
-            policy._paced_executed = ExecutedActions(policy)
+            if policy.config.segment_gripper_dim is not None:
+                policy._paced_executed = ExecutedActions(policy)
             check_paced_steering(policy)
             return policy
 
