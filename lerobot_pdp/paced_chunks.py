@@ -20,6 +20,7 @@ observation history, the default latent drawn anew), as callers of ``select_acti
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import torch
@@ -77,6 +78,66 @@ class ExecutedActions:
         for t in sorted(k for k in self.commands if self.last < k <= timestep):
             self.policy.steering.observe(torch.tensor([self.commands.pop(t)]), cfg.phase_switch_steps)
             self.last = t
+
+
+class ReceivedFrames:
+    """The observations LeRobot's async client sent, by timestep, so that each chunk is planned on a history of
+    consecutive frames, as PDP was trained (a served policy with ``n_obs_steps`` > 1).
+
+    LeRobot's server plans from one observation per chunk, so the frames of PDP's own history would be a chunk
+    apart (the client sends only while its queue runs low). Its client, while low, sends an observation every
+    control step, each with the timestep of the last action it executed; the server keeps them all here. An
+    observation whose predecessors (timesteps ``t - n_obs_steps + 1 .. t - 1``, the same env episode) were not
+    received is not planned from (:meth:`received` says so; the server drops it as it drops one too similar):
+    the next one, a control step later, is, with it before it (:meth:`preceding`). A must-go observation (the
+    client's queue empty: an episode's first, or a robot that ran out of actions) is planned from at once."""
+
+    KEEP = 64  # timesteps kept behind the newest (the client's low-queue windows are a few steps long)
+
+    def __init__(self, n_obs_steps: int) -> None:
+        self.n_obs_steps = n_obs_steps
+        self.frames: dict[int, Any] = {}  # timestep -> the latest TimedObservation sent for it
+        self.lock = threading.Lock()  # observations arrive on the server's threads, chunks are planned on another
+
+    @staticmethod
+    def _episode(obs: Any) -> Any:
+        return obs.get_observation().get(EPISODE_MARK)
+
+    def _run_before(self, obs: Any) -> list[Any]:
+        t, episode = obs.get_timestep(), self._episode(obs)
+        run = []
+        for k in range(1, self.n_obs_steps):
+            frame = self.frames.get(t - k)
+            if frame is None or self._episode(frame) != episode:
+                break
+            run.append(frame)
+        return run[::-1]
+
+    def received(self, obs: Any) -> bool:
+        """Keep ``obs``; whether it may be planned from now (its predecessors were received, or it must go)."""
+        t = obs.get_timestep()
+        with self.lock:
+            self.frames[t] = obs
+            for k in [k for k in self.frames if k < t - self.KEEP]:
+                del self.frames[k]
+            return bool(obs.must_go) or len(self._run_before(obs)) == self.n_obs_steps - 1
+
+    def preceding(self, obs: Any) -> list[Any]:
+        """The observations received for the timesteps just before ``obs``'s, oldest first, up to ``n_obs_steps - 1``
+        of them, stopping at the first one missing."""
+        with self.lock:
+            return self._run_before(obs)
+
+
+def precede_history(policy: Any, frames: list[dict[str, Tensor]]) -> None:
+    """Make ``frames`` (preprocessed observations [B, *frame], oldest first) the last ones of the policy's
+    observation history, which the next observation given one frame at a time then joins."""
+    if not frames:
+        return
+    for key in policy.config.condition_features:
+        policy._queues[key].clear()
+    for frame in frames:  # the first fills the history (populate_queues), as at an episode's start
+        policy._queues = populate_queues(policy._queues, {k: frame[k] for k in policy.config.condition_features})
 
 
 def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:

@@ -115,7 +115,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
         def from_pretrained(path: str, **kwargs: Any):
             from lerobot.configs.policies import PreTrainedConfig
 
-            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, ExecutedActions, check_paced_steering
+            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, ExecutedActions, ReceivedFrames, check_paced_steering
             from .steering import paced_caller
 
             if overrides:
@@ -125,6 +125,8 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 policy = cls.from_pretrained(path, **kwargs)
             if policy.config.segment_gripper_dim is not None:
                 policy._paced_executed = ExecutedActions(policy)
+            if policy.config.n_obs_steps > 1:
+                policy._paced_frames = ReceivedFrames(policy.config.n_obs_steps)
             check_paced_steering(policy)
             return policy
 
@@ -133,14 +135,38 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
     return get_policy_class
 
 
-def with_executed_actions(original: Callable) -> Callable:
-    """Wrap LeRobot's ``PolicyServer._predict_action_chunk``: before a PDP chunk, the actions the client executed
-    up to the observation's timestep are counted; the chunk's actions are then noted as planned
-    (:class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
+def with_frames_kept(original: Callable) -> Callable:
+    """Wrap LeRobot's ``PolicyServer._enqueue_observation``: a served PDP keeps every observation the client sends,
+    and one whose predecessors were not sent is not planned from (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`)."""
+
+    @functools.wraps(original)
+    def _enqueue_observation(self: Any, obs: Any) -> bool:
+        frames = getattr(getattr(self, "policy", None), "_paced_frames", None)
+        if frames is not None and not frames.received(obs):
+            logger.debug("observation #%d waits for the next one: its predecessor was not sent", obs.get_timestep())
+            return False
+        return original(self, obs)
+
+    return _enqueue_observation
+
+
+def with_paced_policy(original: Callable, server: Any) -> Callable:
+    """Wrap LeRobot's ``PolicyServer._predict_action_chunk`` (``server`` is its module): before a PDP chunk, the
+    observations received just before the one planned from join the policy's history, and the actions the client
+    executed up to its timestep are counted; the chunk's actions are then noted as planned
+    (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`, :class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
 
     @functools.wraps(original)
     def _predict_action_chunk(self: Any, observation_t: Any):
-        executed = getattr(getattr(self, "policy", None), "_paced_executed", None)
+        from .paced_chunks import precede_history
+
+        policy = getattr(self, "policy", None)
+        frames = getattr(policy, "_paced_frames", None)
+        if frames is not None:
+            precede_history(policy, [self.preprocessor(server.raw_observation_to_observation(
+                o.get_observation(), self.lerobot_features, self.policy_image_features))
+                for o in frames.preceding(observation_t)])
+        executed = getattr(policy, "_paced_executed", None)
         if executed is not None:
             executed.executed_up_to(observation_t.get_timestep())
         chunk = original(self, observation_t)
@@ -155,11 +181,13 @@ def admit_pdp(server: Any, overrides: list[str]) -> None:
     """Make LeRobot's policy-server module (``server``) serve PDP, in this process (the module docstring)."""
     if SERVED not in server.SUPPORTED_POLICIES:
         server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
-    predict = server.PolicyServer._predict_action_chunk
-    if not hasattr(predict, _ORIGINAL):
-        wrapper = with_executed_actions(predict)
-        setattr(wrapper, _ORIGINAL, predict)
-        server.PolicyServer._predict_action_chunk = wrapper
+    for name, wrap in (("_predict_action_chunk", functools.partial(with_paced_policy, server=server)),
+                       ("_enqueue_observation", with_frames_kept)):
+        method = getattr(server.PolicyServer, name)
+        if not hasattr(method, _ORIGINAL):
+            wrapper = wrap(method)
+            setattr(wrapper, _ORIGINAL, method)
+            setattr(server.PolicyServer, name, wrapper)
     for name, wrap in (("raw_observation_to_observation", with_vector_features),
                        ("get_policy_class", functools.partial(with_policy_options, overrides=overrides))):
         original = getattr(server, name)

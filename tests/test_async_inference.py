@@ -57,7 +57,8 @@ def server_module(monkeypatch, tmp_path):
 
     for name in ("SUPPORTED_POLICIES", "raw_observation_to_observation", "get_policy_class"):
         monkeypatch.setattr(server, name, getattr(server, name))
-    monkeypatch.setattr(server.PolicyServer, "_predict_action_chunk", server.PolicyServer._predict_action_chunk)
+    for name in ("_predict_action_chunk", "_enqueue_observation"):
+        monkeypatch.setattr(server.PolicyServer, name, getattr(server.PolicyServer, name))
     return server
 
 
@@ -124,6 +125,45 @@ def test_one_observation_at_a_time_joins_the_policy_history(synthetic_meta):
     new = p.predict_action_chunk(marked(2, 1), noise=noise)
     torch.testing.assert_close(new, p.predict_action_chunk(history(2, 2), noise=noise))
     assert p.steering.resets == resets + 1
+
+
+def test_the_server_plans_each_chunk_on_consecutive_frames_the_client_sent(synthetic_meta):
+    """LeRobot's server plans from one observation per chunk, a chunk apart; PDP's history must be consecutive
+    frames, as trained. An observation whose predecessors were not sent waits for the next one (unless it must
+    go); the frames before it then join the history, oldest first, within one env episode."""
+    from lerobot.async_inference.helpers import TimedObservation
+
+    from lerobot_pdp.paced_chunks import EPISODE_MARK, ReceivedFrames, precede_history
+
+    def obs(t: int, must_go: bool = False, episode: int = 0) -> TimedObservation:
+        o = TimedObservation(timestamp=0.0, timestep=t, observation={"x": float(t), EPISODE_MARK: float(episode)})
+        o.must_go = must_go
+        return o
+
+    frames = ReceivedFrames(n_obs_steps=3)
+    assert frames.received(obs(0, must_go=True)) and frames.preceding(obs(0)) == []  # an episode's first
+    assert not frames.received(obs(4)) and not frames.received(obs(5))  # 3 (and 2) were not sent
+    assert frames.received(obs(6))
+    assert [o.get_timestep() for o in frames.preceding(obs(6))] == [4, 5]
+    assert frames.received(obs(7, must_go=True)) and len(frames.preceding(obs(7))) == 2
+    assert not frames.received(obs(8, episode=1))  # 6 and 7 were another episode's
+    assert frames.received(obs(9, must_go=True, episode=1))
+    assert [o.get_timestep() for o in frames.preceding(obs(9, episode=1))] == [8]
+    frames.received(obs(9 + ReceivedFrames.KEEP + 1, must_go=True, episode=1))
+    assert min(frames.frames) > 9  # old timesteps are let go
+
+    p = small_policy(synthetic_meta)
+    p.eval()
+    g = torch.Generator().manual_seed(0)
+    f = [{k: torch.rand(1, *ft.shape, generator=g) for k, ft in p.config.condition_features.items()}
+         for _ in range(3)]
+    noise = torch.randn(1, p.config.horizon, p.action_dim, generator=g)
+    p.reset()
+    p.predict_action_chunk(f[0], noise=noise)  # the history the last chunk left: frame 0
+    precede_history(p, [f[1]])
+    planned = p.predict_action_chunk(f[2], noise=noise)
+    history = {k: torch.stack([f[1][k], f[2][k]], dim=1) for k in p.config.condition_features}
+    torch.testing.assert_close(planned, p.predict_action_chunk(history, noise=noise))
 
 
 def test_steering_a_paced_caller_cannot_follow_is_refused(synthetic_meta):
@@ -223,7 +263,7 @@ def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_polic
         served.append(observation_t.get_timestep())
         return planned[-1]
 
-    predict_and_count = policy_server.with_executed_actions(predict)
+    predict_and_count = policy_server.with_paced_policy(predict, server=server_module)
     server = types.SimpleNamespace(policy=policy)  # what the wrapper reads of LeRobot's PolicyServer
     planned.append(chunk(0, [open_] * 8))
     predict_and_count(server, TimedObservation(timestamp=0.0, timestep=0, observation={}))
@@ -308,16 +348,27 @@ def _free_port() -> int:
 
 
 def test_lerobot_robot_client_drives_pdp_sim_through_the_server_and_ends_after_its_episodes(
-        server_module, client_module, tmp_path):
+        server_module, client_module, tmp_path, monkeypatch):
     """LeRobot's client and server classes over a real gRPC channel: pdp_sim's features reach PDP as trained
-    (state and environment state), each episode's end drops the queued actions, and the run ends after
-    ``--robot.episodes``."""
+    (state and environment state), each chunk is planned on consecutive frames, each episode's end drops the
+    queued actions, and the run ends after ``--robot.episodes``."""
+    from lerobot_pdp.paced_chunks import ReceivedFrames
+
+    preceded = []  # (must go, timestep, the timesteps of the frames put before it) per chunk
+    preceding = ReceivedFrames.preceding
+    monkeypatch.setattr(ReceivedFrames, "preceding", lambda self, o: (
+        run := preceding(self, o), preceded.append((o.must_go, o.get_timestep(), [f.get_timestep() for f in run])))[0])
     outcomes = tmp_path / "outcomes.jsonl"
     with _serving(server_module) as (service, port, seen, _):
         client = client_module.RobotClient(_client_config(port, tmp_path))
         features = client.policy_config.lerobot_features
         assert features["observation.environment_state"]["names"] == client.robot.env_state_names
         _run_client(client, outcomes)
+    # every chunk but an episode's first was planned on the frame just before its own, as in training (the
+    # client sends an observation every step once its queue is low; an episode's first has none before it)
+    alone = [t for _, t, run in preceded if not run]
+    assert len(alone) <= 2 and len(preceded) > 2, preceded
+    assert all(run == [t - 1] for _, t, run in preceded if run), preceded
     lines = _outcomes(outcomes)
     assert [d["episode"] for d in lines] == [0, 1] and all(d["ended_by"] != "stopped" for d in lines), lines
     keys = ["observation.environment_state", "observation.pdp_sim_episode", "observation.state", "task"]
@@ -334,18 +385,19 @@ def test_a_latent_per_gripper_phase_follows_the_commands_the_client_executed(ser
     commands the client executed reach the policy's phases before the next chunk."""
     from lerobot_pdp.paced_chunks import ExecutedActions
 
-    counted = []
-    executed_up_to = ExecutedActions.executed_up_to
+    counted, chunks = [], []
+    executed_up_to, planned = ExecutedActions.executed_up_to, ExecutedActions.planned
     monkeypatch.setattr(ExecutedActions, "executed_up_to",
                         lambda self, t: (counted.append((t, self.last)), executed_up_to(self, t))[1])
+    monkeypatch.setattr(ExecutedActions, "planned", lambda self, c: (chunks.append(c), planned(self, c))[1])
     outcomes = tmp_path / "outcomes.jsonl"
-    with _serving(server_module, ["--steer_mode=0"]) as (service, port, seen, _):
+    with _serving(server_module, ["--steer_mode=0"]) as (service, port, _, _):
         client = client_module.RobotClient(_client_config(port, tmp_path, episodes=1, env="pick-place",
                                                           checkpoint="adapted_pick_place"))
         _run_client(client, outcomes)
     policy = service.policy
     assert policy.steering.per_phase and len(_outcomes(outcomes)) == 1
-    assert len(counted) == len(seen) >= 2
+    assert len(counted) == len(chunks) >= 2  # before every chunk
     assert policy._paced_executed.last > 0  # executed commands were counted
     assert all(t >= last for t, last in counted)  # in order, each once
 
