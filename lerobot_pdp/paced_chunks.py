@@ -5,7 +5,9 @@ LeRobot's asynchronous inference (``lerobot.async_inference``) runs the policy i
 the history ``select_action`` keeps, whenever the client's action queue runs low. PDP conditions on
 ``n_obs_steps`` frames, so such an observation joins the policy's own observation history (the one
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
-that history. Per-phase latents advance on the gripper commands the robot executes: ``python -m
+that history. Planned from alone, those frames would be a chunk apart; ``python -m lerobot_pdp.policy_server``
+keeps every observation the client sends and puts the ones just before the planned one in the history first
+(:class:`ReceivedFrames`), so its frames are consecutive, as in training. Per-phase latents advance on the gripper commands the robot executes: ``python -m
 lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
 advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
 them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
@@ -92,7 +94,7 @@ class ReceivedFrames:
     the next one, a control step later, is, with it before it (:meth:`preceding`). A must-go observation (the
     client's queue empty: an episode's first, or a robot that ran out of actions) is planned from at once."""
 
-    KEEP = 64  # timesteps kept behind the newest (the client's low-queue windows are a few steps long)
+    KEEP = 16  # timesteps kept behind the newest: a low-queue window is a few steps long (camera frames are large)
 
     def __init__(self, n_obs_steps: int) -> None:
         self.n_obs_steps = n_obs_steps

@@ -9,6 +9,9 @@ only (nothing of LeRobot is changed on disk):
 * the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
   reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
+* every observation the client sends is kept, and each chunk is planned on consecutive frames: the ones
+  received just before the planned one join PDP's history first; one whose predecessor was not sent waits for
+  the next, a control step later (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`);
 * the actions the client executed (the timestep of its last action comes with each observation) reach the
   policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
@@ -115,7 +118,13 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
         def from_pretrained(path: str, **kwargs: Any):
             from lerobot.configs.policies import PreTrainedConfig
 
-            from .paced_chunks import PACED_ENGINE, PACED_WAY_OUT, ExecutedActions, ReceivedFrames, check_paced_steering
+            from .paced_chunks import (
+                PACED_ENGINE,
+                PACED_WAY_OUT,
+                ExecutedActions,
+                ReceivedFrames,
+                check_paced_steering,
+            )
             from .steering import paced_caller
 
             if overrides:
