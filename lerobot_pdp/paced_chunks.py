@@ -22,6 +22,7 @@ observation history, the default latent drawn anew), as callers of ``select_acti
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any
 
@@ -129,6 +130,18 @@ class ReceivedFrames:
         of them, stopping at the first one missing."""
         with self.lock:
             return self._run_before(obs)
+
+
+def from_the_next_step(chunk: list[Any], dt: float) -> list[Any]:
+    """A chunk LeRobot's server timed (``TimedAction``s), its first action given the step after the observation's.
+
+    LeRobot's client sends an observation with the timestep of the last action it executed, taken after that
+    action; LeRobot's server gives the chunk's first action that same timestep, so the client drops it as done and
+    executes every later one a step early. PDP's chunk starts with the action for the step after the observation
+    (as ``select_action`` executes it): labelled so, the client executes each at its step. (Measured on the kitchen
+    served on consecutive frames: 60 % of 40 episodes a step early, 100 % of 20 at their steps, against 100 % under
+    ``select_action``: docs/performance.md.)"""
+    return [dataclasses.replace(a, timestamp=a.get_timestamp() + dt, timestep=a.get_timestep() + 1) for a in chunk]
 
 
 def precede_history(policy: Any, frames: list[dict[str, Tensor]]) -> None:

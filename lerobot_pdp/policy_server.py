@@ -12,6 +12,8 @@ only (nothing of LeRobot is changed on disk):
 * every observation the client sends is kept, and each chunk is planned on consecutive frames: the ones
   received just before the planned one join PDP's history first; one whose predecessor was not sent waits for
   the next, a control step later (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`);
+* a PDP chunk's first action is timed at the step after the observation's (LeRobot's times it at the
+  observation's, the last action the client executed, so its client skips it and runs each action a step early);
 * the actions the client executed (the timestep of its last action comes with each observation) reach the
   policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
@@ -162,12 +164,13 @@ def with_frames_kept(original: Callable) -> Callable:
 def with_paced_policy(original: Callable, server: Any) -> Callable:
     """Wrap LeRobot's ``PolicyServer._predict_action_chunk`` (``server`` is its module): before a PDP chunk, the
     observations received just before the one planned from join the policy's history, and the actions the client
-    executed up to its timestep are counted; the chunk's actions are then noted as planned
-    (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`, :class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
+    executed up to its timestep are counted; the chunk's first action is then timed at the step after the
+    observation's, and its actions are noted as planned (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`,
+    :func:`lerobot_pdp.paced_chunks.from_the_next_step`, :class:`lerobot_pdp.paced_chunks.ExecutedActions`)."""
 
     @functools.wraps(original)
     def _predict_action_chunk(self: Any, observation_t: Any):
-        from .paced_chunks import precede_history
+        from .paced_chunks import from_the_next_step, precede_history
 
         policy = getattr(self, "policy", None)
         frames = getattr(policy, "_paced_frames", None)
@@ -179,6 +182,8 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
         if executed is not None:
             executed.executed_up_to(observation_t.get_timestep())
         chunk = original(self, observation_t)
+        if self.policy_type == SERVED:
+            chunk = from_the_next_step(chunk, self.config.environment_dt)
         if executed is not None:
             executed.planned(chunk)
         return chunk

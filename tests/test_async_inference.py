@@ -240,7 +240,9 @@ def test_a_start_up_fit_of_phases_runs_on_the_server_and_one_of_chunk_noises_is_
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
     """LeRobot's client sends the timestep of the last action it executed with each observation and executes each
-    timestep's action from the latest chunk planning it: the policy's phases count those commands, in order."""
+    timestep's action from the latest chunk planning it: the policy's phases count those commands, in order. PDP's
+    chunk is timed from the step after the observation's (LeRobot's server times it from the observation's, and
+    its client would skip the first action and run the rest a step early)."""
     from lerobot.async_inference.helpers import TimedAction, TimedObservation
 
     policy_server.admit_pdp(server_module, ["--steer_mode=0"])  # a mode: one latent per phase
@@ -264,15 +266,17 @@ def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_polic
         return planned[-1]
 
     predict_and_count = policy_server.with_paced_policy(predict, server=server_module)
-    server = types.SimpleNamespace(policy=policy)  # what the wrapper reads of LeRobot's PolicyServer
-    planned.append(chunk(0, [open_] * 8))
-    predict_and_count(server, TimedObservation(timestamp=0.0, timestep=0, observation={}))
-    planned.append(chunk(5, [open_] + [closed] * 7))  # replanned at 5: closes from 6 on (6, 7 replaced)
+    # what the wrapper reads of LeRobot's PolicyServer
+    server = types.SimpleNamespace(policy=policy, policy_type="pdp", config=types.SimpleNamespace(environment_dt=0.02))
+    planned.append(chunk(0, [open_] * 8))  # timed 1..8: a chunk starts with the action after its observation
+    first = predict_and_count(server, TimedObservation(timestamp=0.0, timestep=0, observation={}))
+    assert [a.get_timestep() for a in first] == list(range(1, 9)) and first[0].get_timestamp() == 0.02
+    planned.append(chunk(5, [open_] + [closed] * 7))  # replanned at 5: 6..13, closes from 7 on (7, 8 replaced)
     predict_and_count(server, TimedObservation(timestamp=0.0, timestep=5, observation={}))
     assert policy._paced_executed.last == 5 and int(policy.steering.phases.phase[0]) == 0
     predict_and_count(server, TimedObservation(timestamp=0.0, timestep=12, observation={}))  # 6..12 executed
     assert served == [0, 5, 12] and policy._paced_executed.last == 12
-    assert int(policy.steering.phases.phase[0]) == 1  # closed for 7 commands, held for phase_switch_steps: carry
+    assert int(policy.steering.phases.phase[0]) == 1  # closed for 6 commands, held for phase_switch_steps: carry
 
 
 @pytest.mark.parametrize("option, said", [
