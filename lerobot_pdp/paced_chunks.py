@@ -11,9 +11,9 @@ keeps every observation the client sends and puts the ones just before the plann
 lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
 advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
 them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
-``j * n_action_steps``), and LeRobot's client asks for chunks wherever its queue runs low (every few actions), so no
-chunk starts where a noise was fitted: refused (on pick-place's val3 they took 0 of 20 episodes this way, 20 of
-20 under ``select_action``). Refusals come at the first chunk and in live requests (the robot keeps its latent).
+``j * n_action_steps``), and LeRobot's server plans a chunk whenever an observation passes its filter, not every
+``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
+replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``). Refusals come at the first chunk and in live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -40,8 +40,8 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 EPISODE_MARK = "pdp_sim_episode"
 EPISODE_KEY = "observation.pdp_sim_episode"
 # why chunk noises cannot be replayed for LeRobot's async client although its executed actions are reported
-PACED_NOISES = ("its chunks start every few actions wherever its queue runs low, not where the noises were fitted "
-                "(measured on pick-place: docs/deploy.md)")
+PACED_NOISES = ("its server plans a chunk whenever an observation passes its filter, so chunks start not where the "
+                "noises were fitted (measured on pick-place: docs/deploy.md)")
 
 
 def check_paced_steering(policy: Any) -> None:
@@ -139,7 +139,7 @@ def from_the_next_step(chunk: list[Any], dt: float) -> list[Any]:
     action; LeRobot's server gives the chunk's first action that same timestep, so the client drops it as done and
     executes every later one a step early. PDP's chunk starts with the action for the step after the observation
     (as ``select_action`` executes it): labelled so, the client executes each at its step. (Measured on the kitchen
-    served on consecutive frames: 60 % of 40 episodes a step early, 100 % of 20 at their steps, against 100 % under
+    served on consecutive frames: 60 % of 40 episodes a step early, 100 % of 40 at their steps, against 100 % under
     ``select_action``: docs/performance.md.)"""
     return [dataclasses.replace(a, timestamp=a.get_timestamp() + dt, timestep=a.get_timestep() + 1) for a in chunk]
 
