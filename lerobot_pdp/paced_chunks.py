@@ -7,13 +7,15 @@ the history ``select_action`` keeps, whenever the client's action queue runs low
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
 that history. Planned from alone, those frames would be a chunk apart; ``python -m lerobot_pdp.policy_server``
 keeps every observation the client sends and puts the ones just before the planned one in the history first
-(:class:`ReceivedFrames`), so its frames are consecutive, as in training. Per-phase latents advance on the gripper commands the robot executes: ``python -m
-lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
-advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
-them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
+(:class:`ReceivedFrames`), so its frames are consecutive, as in training, and times each chunk from the step after
+the observation's (:func:`from_the_next_step`). Per-phase latents advance on the gripper commands the robot
+executes: ``python -m lerobot_pdp.policy_server`` tells the policy the actions the robot executed
+(:class:`ExecutedActions`), so phases advance on them, as under ``lerobot-rollout``'s RTC engine
+(:mod:`.realtime_chunking`); any other paced caller has them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
 ``j * n_action_steps``), and LeRobot's server plans a chunk whenever an observation passes its filter, not every
 ``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
-replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``). Refusals come at the first chunk and in live requests (the robot keeps its latent).
+replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``). Refusals
+come at the first chunk and in live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
