@@ -88,15 +88,20 @@ def _outcomes(path: Path) -> list[dict]:
 # ------------------------------------------------------------------------------------ one observation at a time
 
 
-def test_one_observation_at_a_time_joins_the_policy_history(synthetic_meta):
-    """What the server passes (one frame [B, D] per chunk) conditions PDP as select_action's history does: the
-    frames it was given, newest last; the first one fills the history."""
-    p = small_policy(synthetic_meta)
+def _policy_frames_and_noise(meta):
+    """A small PDP in eval mode, three random one-observation frames [1, *frame] and one sampler noise."""
+    p = small_policy(meta)
     p.eval()
     g = torch.Generator().manual_seed(0)
     frames = [{k: torch.rand(1, *ft.shape, generator=g) for k, ft in p.config.condition_features.items()}
               for _ in range(3)]
-    noise = torch.randn(1, p.config.horizon, p.action_dim, generator=g)
+    return p, frames, torch.randn(1, p.config.horizon, p.action_dim, generator=g)
+
+
+def test_one_observation_at_a_time_joins_the_policy_history(synthetic_meta):
+    """What the server passes (one frame [B, D] per chunk) conditions PDP as select_action's history does: the
+    frames it was given, newest last; the first one fills the history."""
+    p, frames, noise = _policy_frames_and_noise(synthetic_meta)
 
     def history(*idx):
         return {k: torch.stack([frames[i][k] for i in idx], dim=1) for k in p.config.condition_features}
@@ -152,12 +157,7 @@ def test_the_server_plans_each_chunk_on_consecutive_frames_the_client_sent(synth
     frames.received(obs(9 + ReceivedFrames.KEEP + 1, must_go=True, episode=1))
     assert min(frames.frames) > 9  # old timesteps are let go
 
-    p = small_policy(synthetic_meta)
-    p.eval()
-    g = torch.Generator().manual_seed(0)
-    f = [{k: torch.rand(1, *ft.shape, generator=g) for k, ft in p.config.condition_features.items()}
-         for _ in range(3)]
-    noise = torch.randn(1, p.config.horizon, p.action_dim, generator=g)
+    p, f, noise = _policy_frames_and_noise(synthetic_meta)
     p.reset()
     p.predict_action_chunk(f[0], noise=noise)  # the history the last chunk left: frame 0
     precede_history(p, [f[1]])
