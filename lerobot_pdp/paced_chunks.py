@@ -7,14 +7,16 @@ the history ``select_action`` keeps, whenever the client's action queue runs low
 ``select_action`` keeps; the first one fills it, as at an episode's start) and the chunk is conditioned on
 that history. Planned from alone, those frames would be a chunk apart; ``python -m lerobot_pdp.policy_server``
 keeps every observation the client sends and puts the ones just before the planned one in the history first
-(:class:`ReceivedFrames`), so its frames are consecutive, as in training, and times each chunk from the step after
-the observation's (:func:`from_the_next_step`). Per-phase latents advance on the gripper commands the robot
+(:class:`ReceivedFrames`), so its frames are consecutive, as in training, times each chunk from the step after
+the observation's (:func:`from_the_next_step`), and plans once per chunk, just before the client's queue runs out
+(:class:`JustInTime`). Per-phase latents advance on the gripper commands the robot
 executes: ``python -m lerobot_pdp.policy_server`` tells the policy the actions the robot executed
 (:class:`ExecutedActions`), so phases advance on them, as under ``lerobot-rollout``'s RTC engine
 (:mod:`.realtime_chunking`); any other paced caller has them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
-``j * n_action_steps``), and LeRobot's server plans a chunk whenever an observation passes its filter, not every
+``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, not every
 ``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
-replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``). Refusals
+replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``, measured
+before chunks were planned just in time). Refusals
 come at the first chunk and in live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
@@ -25,6 +27,7 @@ observation history, the default latent drawn anew), as callers of ``select_acti
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from typing import Any
 
@@ -42,7 +45,7 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 EPISODE_MARK = "pdp_sim_episode"
 EPISODE_KEY = "observation.pdp_sim_episode"
 # why chunk noises cannot be replayed for LeRobot's async client although its executed actions are reported
-PACED_NOISES = ("its server plans a chunk whenever an observation passes its filter, so chunks start not where the "
+PACED_NOISES = ("its server plans a chunk when the client's queue runs low, so chunks start not where the "
                 "noises were fitted (measured on pick-place: docs/deploy.md)")
 
 
@@ -59,9 +62,10 @@ class ExecutedActions:
     policy with gripper phases; without, there is nothing to count).
 
     The client sends with each observation the timestep of the last action it executed, and executes each
-    timestep's action from the latest chunk that planned it (its default aggregation). So the server keeps the
-    latest planned gripper command per timestep and, before each chunk, counts those up to the observation's
-    timestep, in order. The first actions of a chunk that arrives after their timesteps were executed (from the
+    timestep's action from the latest chunk that planned it (``--aggregate_fn_name=latest_only``; LeRobot's
+    default blends it with the chunk before's, 0.7 to 0.3, which the latest's command mostly decides). So the
+    server keeps the latest planned gripper command per timestep and, before each chunk, counts those up to the
+    observation's timestep, in order. The first actions of a chunk that arrives after their timesteps were executed (from the
     chunk before) are taken from it: a gripper flip is timed off by at most the inference delay."""
 
     def __init__(self, policy: Any) -> None:
@@ -132,6 +136,58 @@ class ReceivedFrames:
         of them, stopping at the first one missing."""
         with self.lock:
             return self._run_before(obs)
+
+
+class JustInTime:
+    """When a served PDP plans its next chunk: from the observation sent when the client holds no more actions
+    than a chunk takes to plan, so that it arrives as the last one runs out (a served PDP with LeRobot's client).
+
+    LeRobot's server plans from every observation that passes its similarity filter, and its client sends one
+    every control step while its queue is low: when the robot's state passes the filter (joint degrees), the
+    server plans back to back, from the newest observation each time it returns a chunk, and the robot executes
+    two or three actions of each (pick-place at 50 fps: 50-65 % success, 97.5-100 % under ``select_action``).
+    With states in metres or radians the filter holds nearly every observation until the client's queue is empty,
+    and the robot waits for each chunk. A served PDP plans instead, as ``select_action`` does, once per chunk,
+    with no regard to that filter; when it plans is set by how long its last chunks took (the median of the last
+    :attr:`KEEP`, in control steps, plus :attr:`SLACK`); a chunk late all the same empties the client's queue, and
+    its must-go observation is planned from at once."""
+
+    KEEP = 5  # chunks whose planning time sets the lead
+    SLACK = 1  # control steps of margin: the client's loop and the channel
+
+    def __init__(self, dt: float) -> None:
+        self.dt = dt  # seconds per control step (the server's --fps)
+        self.planned_until: int | None = None  # the last timestep a planned chunk has an action for
+        self.seconds: list[float] = []  # how long the last chunks took to plan
+        self.lock = threading.Lock()  # observations arrive on the server's threads, chunks are planned on another
+
+    def lead(self) -> int:
+        """Control steps before the client's queue runs out at which the next chunk is planned."""
+        with self.lock:
+            seconds = sorted(self.seconds)
+        took = seconds[(len(seconds) - 1) // 2] if seconds else 0.0  # the lower median: not the first chunk's warm-up
+        return math.ceil(took / self.dt - 1e-9) + self.SLACK
+
+    def due(self, obs: Any) -> bool:
+        """Whether the next chunk is planned from ``obs`` (not a must-go one): the client holds at most
+        :meth:`lead` actions after its timestep, and no chunk is planned from a later one yet."""
+        with self.lock:
+            until = self.planned_until
+        return until is not None and until - obs.get_timestep() <= self.lead()
+
+    def planning(self, obs: Any, actions: int) -> None:
+        """A chunk of ``actions`` actions is planned from ``obs``: its actions follow the observation's timestep, so
+        later observations wait for its end."""
+        with self.lock:
+            self.planned_until = obs.get_timestep() + actions
+
+    def planned(self, chunk: list[Any], seconds: float) -> None:
+        """The chunk returned (``TimedAction``s, timed from the step after the observation's), ``seconds`` in the
+        making."""
+        with self.lock:
+            if chunk:  # a must-go observation may have been planned from since (a later one)
+                self.planned_until = max(self.planned_until or -1, chunk[-1].get_timestep())
+            self.seconds = [*self.seconds, seconds][-self.KEEP:]
 
 
 def from_the_next_step(chunk: list[Any], dt: float) -> list[Any]:

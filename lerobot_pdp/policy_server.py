@@ -9,6 +9,9 @@ only (nothing of LeRobot is changed on disk):
 * the observation vectors the robot client sends besides ``observation.state`` (``observation.environment_state``)
   reach the policy: LeRobot's server passes on the state and the cameras only; so does ``pdp_sim``'s episode mark,
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
+* a chunk is planned once per chunk, just in time: from the observation sent when the client holds no more
+  actions than a chunk takes to plan, whatever LeRobot's similarity filter says (it planned back to back on
+  states that pass it, and only from an empty queue on states in metres: :class:`lerobot_pdp.paced_chunks.JustInTime`);
 * every observation the client sends is kept, and each chunk is planned on consecutive frames: the ones
   received just before the planned one join PDP's history first; one whose predecessor was not sent waits for
   the next, a control step later (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`);
@@ -32,6 +35,7 @@ import functools
 import io
 import logging
 import sys
+import time
 from collections.abc import Callable, Sequence
 from types import SimpleNamespace
 from typing import Any
@@ -146,19 +150,59 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
     return get_policy_class
 
 
-def with_frames_kept(original: Callable) -> Callable:
-    """Wrap LeRobot's ``PolicyServer._enqueue_observation``: a served PDP keeps every observation the client sends,
-    and one whose predecessors were not sent is not planned from (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`)."""
+def paced_timing(server: Any) -> Any:
+    """The served PDP's :class:`lerobot_pdp.paced_chunks.JustInTime` (made with the policy: a new policy, a new
+    one); None when the server does not serve PDP."""
+    policy = getattr(server, "policy", None)
+    if getattr(server, "policy_type", None) != SERVED or policy is None:
+        return None
+    if getattr(policy, "_paced_timing", None) is None:
+        from .paced_chunks import JustInTime
+
+        policy._paced_timing = JustInTime(server.config.environment_dt)
+    return policy._paced_timing
+
+
+def with_paced_observations(original: Callable) -> Callable:
+    """Wrap LeRobot's ``PolicyServer._enqueue_observation``: a served PDP keeps every observation the client sends
+    (one whose predecessors were not sent is not planned from: :class:`lerobot_pdp.paced_chunks.ReceivedFrames`)
+    and plans its next chunk just in time, whatever LeRobot's similarity filter says
+    (:class:`lerobot_pdp.paced_chunks.JustInTime`); a must-go observation goes as in LeRobot's."""
 
     @functools.wraps(original)
     def _enqueue_observation(self: Any, obs: Any) -> bool:
-        frames = getattr(getattr(self, "policy", None), "_paced_frames", None)
+        timing = paced_timing(self)
+        if timing is None:
+            return original(self, obs)
+        frames = getattr(self.policy, "_paced_frames", None)
         if frames is not None and not frames.received(obs):
             logger.debug("observation #%d waits for the next one: its predecessor was not sent", obs.get_timestep())
             return False
-        return original(self, obs)
+        if obs.must_go:
+            queued = original(self, obs)
+        elif timing.due(obs):
+            queued = _enqueue(self, obs)
+        else:
+            logger.debug("observation #%d: the client holds actions beyond the next chunk's lead", obs.get_timestep())
+            return False
+        if queued:
+            timing.planning(obs, min(self.actions_per_chunk or self.policy.config.n_action_steps,
+                                     self.policy.config.n_action_steps))
+        return queued
 
     return _enqueue_observation
+
+
+def _enqueue(server: Any, obs: Any) -> bool:
+    """LeRobot's ``_enqueue_observation`` past its similarity filter (the newest observation replaces a queued one);
+    a timestep already planned from is not planned from again."""
+    with server._predicted_timesteps_lock:
+        if obs.get_timestep() in server._predicted_timesteps:
+            return False
+    if server.observation_queue.full():
+        server.observation_queue.get_nowait()
+    server.observation_queue.put(obs)
+    return True
 
 
 def with_paced_policy(original: Callable, server: Any) -> Callable:
@@ -172,6 +216,7 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
     def _predict_action_chunk(self: Any, observation_t: Any):
         from .paced_chunks import from_the_next_step, precede_history
 
+        started = time.perf_counter()
         policy = getattr(self, "policy", None)
         frames = getattr(policy, "_paced_frames", None)
         if frames is not None:
@@ -186,6 +231,9 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
             chunk = from_the_next_step(chunk, self.config.environment_dt)
         if executed is not None:
             executed.planned(chunk)
+        timing = paced_timing(self)
+        if timing is not None:
+            timing.planned(chunk, time.perf_counter() - started)
         return chunk
 
     return _predict_action_chunk
@@ -196,7 +244,7 @@ def admit_pdp(server: Any, overrides: list[str]) -> None:
     if SERVED not in server.SUPPORTED_POLICIES:
         server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
     for name, wrap in (("_predict_action_chunk", functools.partial(with_paced_policy, server=server)),
-                       ("_enqueue_observation", with_frames_kept)):
+                       ("_enqueue_observation", with_paced_observations)):
         method = getattr(server.PolicyServer, name)
         if not hasattr(method, _ORIGINAL):
             wrapper = wrap(method)

@@ -238,6 +238,63 @@ def test_a_start_up_fit_of_phases_runs_on_the_server_and_one_of_chunk_noises_is_
         server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
 
 
+def test_a_served_pdp_plans_each_chunk_just_in_time():
+    """LeRobot's server plans from every observation past its similarity filter; its client sends one every step
+    while its queue is low, so a robot whose state passes the filter got a chunk every inference time, each mostly
+    dropped. A served PDP plans once per chunk, when the client holds no more actions than the last chunks took
+    to plan (their median, in control steps, plus one), whatever the filter says; a must-go one goes at once."""
+    import queue
+
+    from lerobot.async_inference.helpers import TimedAction, TimedObservation
+
+    from lerobot_pdp.paced_chunks import JustInTime, ReceivedFrames
+
+    def obs(t: int, must_go: bool = False) -> TimedObservation:
+        o = TimedObservation(timestamp=0.0, timestep=t, observation={})
+        o.must_go = must_go
+        return o
+
+    def chunk(t: int) -> list:  # PDP's, timed from the step after its observation's
+        return [TimedAction(timestamp=0.0, timestep=t + 1 + i, action=torch.zeros(2)) for i in range(8)]
+
+    timing = JustInTime(dt=0.02)
+    assert not timing.due(obs(3)) and timing.lead() == 1  # nothing planned: a must-go observation starts
+    timing.planning(obs(0), 8)
+    assert not timing.due(obs(6)) and timing.due(obs(7))  # 1 action left: the slack alone
+    timing.planned(chunk(0), 0.05)  # 2.5 control steps
+    assert timing.lead() == 4 and timing.due(obs(4)) and not timing.due(obs(3))
+    timing.planning(obs(4), 8)
+    assert not timing.due(obs(5))  # that chunk is the next one, until 12
+    for seconds in (0.5, 0.05, 0.05, 0.05):  # one slow chunk does not set the lead
+        timing.planned(chunk(4), seconds)
+    assert timing.lead() == 4 and timing.planned_until == 12
+
+    filtered = []  # what reached LeRobot's enqueue (its similarity filter)
+
+    def lerobots(self, o) -> bool:
+        filtered.append(o.get_timestep())
+        self.observation_queue.put(o)
+        return True
+
+    enqueue = policy_server.with_paced_observations(lerobots)
+    policy = types.SimpleNamespace(config=types.SimpleNamespace(n_action_steps=8), _paced_frames=ReceivedFrames(2))
+    server = types.SimpleNamespace(policy=policy, policy_type="pdp", actions_per_chunk=10,
+                                   config=types.SimpleNamespace(environment_dt=0.02), observation_queue=queue.Queue(1),
+                                   _predicted_timesteps={0}, _predicted_timesteps_lock=threading.Lock())
+    assert enqueue(server, obs(0, must_go=True)) and filtered == [0]
+    server.observation_queue.get()
+    policy._paced_timing.planned(chunk(0), 0.05)  # lead 4: chunk 1..8 is planned from at 4
+    queued = [t for t in range(1, 8) if enqueue(server, obs(t))]
+    assert queued == [4] and filtered == [0]  # 5, 6, 7 wait for chunk 5..12; no filter asked
+    assert server.observation_queue.get().get_timestep() == 4 and policy._paced_timing.planned_until == 12
+    server._predicted_timesteps.add(8)
+    assert not enqueue(server, obs(8)) and server.observation_queue.empty()  # planned from already
+    assert enqueue(server, obs(13, must_go=True)) and filtered == [0, 13]  # a late chunk: the queue ran empty
+    server.observation_queue.get()
+    other = types.SimpleNamespace(**{**vars(server), "policy_type": "diffusion"})
+    assert enqueue(other, obs(14)) and filtered == [0, 13, 14]  # another policy type: LeRobot's rule
+
+
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
     """LeRobot's client sends the timestep of the last action it executed with each observation and executes each
     timestep's action from the latest chunk planning it: the policy's phases count those commands, in order. PDP's
@@ -318,12 +375,12 @@ def _serving(server, options: list[str] | None = None):
 
 
 def _client_config(port: int, tmp_path: Path, episodes: int = 2, env: str = "reach-around",
-                   checkpoint: str = "trained"):
+                   checkpoint: str = "trained", aggregation: str = "latest_only"):
     from lerobot.async_inference.configs import RobotClientConfig
 
     return RobotClientConfig(
         policy_type="pdp", pretrained_name_or_path=str(CHECKPOINTS / checkpoint), actions_per_chunk=8,
-        server_address=f"127.0.0.1:{port}", fps=100,
+        server_address=f"127.0.0.1:{port}", fps=100, aggregate_fn_name=aggregation,
         robot=PDPSimConfig(env=env, scene="0", episodes=episodes, outcomes=str(tmp_path / "outcomes.jsonl"),
                            calibration_dir=tmp_path))
 
@@ -437,6 +494,51 @@ def test_a_chunk_that_arrives_before_the_must_go_flag_is_cleared_does_not_stall_
             receiver.join(10)
 
 
+def test_a_client_serving_pdp_that_blends_chunks_or_sends_from_an_empty_queue_only_is_warned(client_module, tmp_path,
+                                                                                           caplog):
+    """LeRobot's client blends a chunk's actions with those still queued from the last one by default (0.3 old +
+    0.7 new): two samples of a multimodal policy averaged. With ``--chunk_size_threshold=0`` it sends observations
+    only when its queue is empty: none of the frames before them, which PDP's history holds. A client serving
+    PDP either way is told so, and the flag to use."""
+    port = _free_port()  # the client only connects at start()
+    with caplog.at_level("WARNING", logger=client_hooks.__name__):
+        client_module.RobotClient(_client_config(port, tmp_path, aggregation="latest_only"))
+        assert not caplog.records
+        client_module.RobotClient(_client_config(port, tmp_path / "2", aggregation="weighted_average"))
+        config = _client_config(port, tmp_path / "3")
+        config.chunk_size_threshold = 0.0
+        client_module.RobotClient(config)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and "blends the overlapping actions of two chunks (--aggregate_fn_name=weighted_average)" \
+        in said[0] and said[0].endswith("pass --aggregate_fn_name=latest_only"), said
+    assert said[1].startswith("--chunk_size_threshold=0.0: this client sends an observation only when its queue is "
+                              "empty") and said[1].endswith("keep LeRobot's default 0.5"), said
+
+
+def test_a_chunk_planned_before_the_scene_reset_is_dropped(client_module, tmp_path):
+    """pdp_sim drops the client's queued actions when it resets its scene; a chunk still in flight then (planned
+    from the ended episode's observation) arrives after it and would run at the next episode's start: dropped
+    too, by its observation's time (PDP's server times the first action a control step after it)."""
+    from lerobot.async_inference.helpers import TimedAction
+
+    client = client_module.RobotClient(_client_config(_free_port(), tmp_path))
+    dt = client.config.environment_dt
+
+    def chunk(observed_at: float) -> list:
+        return [TimedAction(timestamp=observed_at + (i + 1) * dt, timestep=5 + i, action=torch.zeros(2))
+                for i in range(8)]
+
+    planned_at = time.time()
+    client._aggregate_action_queues(chunk(planned_at), client.config.aggregate_fn)
+    assert client.action_queue.qsize() == 8
+    client.robot._engine.reset()  # the scene reset: a new episode
+    assert client.action_queue.qsize() == 0
+    client._aggregate_action_queues(chunk(planned_at), client.config.aggregate_fn)  # in flight at the reset
+    assert client.action_queue.qsize() == 0
+    client._aggregate_action_queues(chunk(time.time()), client.config.aggregate_fn)  # the new episode's
+    assert client.action_queue.qsize() == 8 and client._pdp_chunks == 3
+
+
 def test_a_client_that_cannot_reach_a_server_exits_with_status_1(client_module, tmp_path):
     """LeRobot's entry point returns (status 0) when the client could not start; with pdp_sim it exits 1 and
     says why."""
@@ -512,7 +614,7 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
                  "--robot.env=reach-around", "--robot.scene=3", "--robot.episodes=5", f"--robot.outcomes={outcomes}",
                  f"--robot.calibration_dir={tmp_path / 'cal'}", f"--server_address=127.0.0.1:{port}",
                  "--policy_type=pdp", f"--pretrained_name_or_path={reach_around_pdp}", "--policy_device=cpu",
-                 "--actions_per_chunk=8", "--fps=50", "--task=reach the goal"],
+                 "--actions_per_chunk=8", "--fps=50", "--aggregate_fn_name=latest_only", "--task=reach the goal"],
                 stdout=out, stderr=subprocess.STDOUT, env=full_env, cwd=tmp_path)
         try:
             code = client.wait(timeout=300)

@@ -8,7 +8,8 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   and ``observation.environment_state`` by name, the layout ``make-dataset`` writes and PDP was trained on
   (``python -m lerobot_pdp.policy_server`` passes the second on to the policy);
 * ``RobotClient`` is wrapped so that the robot, when it resets its scene (a new episode), drops the actions
-  still queued from the episode that ended; the run ends after ``--robot.episodes`` (the client's shutdown
+  still queued from the episode that ended, and a chunk planned from that episode's observations that arrives
+  after the reset (it was in flight); the run ends after ``--robot.episodes`` (the client's shutdown
   event, as Ctrl-C would, set in place of the next observation) and ends cleanly (the receiving thread leaves
   its request before the channel closes); a failed start (no server listening, the policy refused) ends the
   process, and so does a server lost mid-run (observations undeliverable for :data:`SERVER_LOST_S`);
@@ -18,11 +19,14 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   it arrives before that clear (a fast server), the receiver's set is undone and the next observations, sent
   without it, can all be filtered by the server as too similar (a robot standing still: a stalled run). For
   ``pdp_sim`` the flag is set again when a chunk arrived while the observation was in flight;
+* a client serving PDP (any robot) that blends overlapping chunks (LeRobot's default ``weighted_average``) is
+  warned, with the flag that executes each action from one chunk (``--aggregate_fn_name=latest_only``), and so is
+  one that sends observations only from an empty queue (``--chunk_size_threshold=0``: frames a chunk apart);
 * the robot marks each observation with its env episode (``paced_chunks.EPISODE_MARK``, not one of its features):
   ``python -m lerobot_pdp.policy_server`` passes it on, and PDP starts a new episode (a fresh observation history)
   when it changes.
 
-Nothing of LeRobot is changed on disk; other robots are untouched.
+Nothing of LeRobot is changed on disk; other robots are untouched but for those warnings.
 """
 
 from __future__ import annotations
@@ -48,6 +52,18 @@ SERVER_LOST_S = 5.0
 
 # why a pdp_sim run ended in failure, for ``async_client``'s exit status (one run per process)
 FAILURES: list[str] = []
+
+# the client's aggregation that executes each action from one PDP chunk; LeRobot's default blends two (0.3 old +
+# 0.7 new): two samples of a multimodal policy averaged (docs/deploy.md, "Asynchronous inference")
+PDP_AGGREGATION = "latest_only"
+BLENDED = ("this client blends the overlapping actions of two chunks (--aggregate_fn_name=%s); PDP's chunks are "
+           "samples of a multimodal policy, and an average of two can fall between their routes (measured: "
+           "lerobot_pdp's docs/deploy.md, Asynchronous inference): pass --aggregate_fn_name=latest_only")
+# a client that sends an observation only when its queue is empty sends none of the frames before it: PDP's
+# history, which is consecutive frames, would hold frames a chunk apart
+EMPTY_ONLY = ("--chunk_size_threshold=%s: this client sends an observation only when its queue is empty, so the "
+              "served PDP sees none of the frames before it and conditions on frames a chunk apart (measured: "
+              "lerobot_pdp's docs/deploy.md, Asynchronous inference): keep LeRobot's default 0.5")
 
 
 def client_module() -> Any:
@@ -106,6 +122,7 @@ class QueuedActions:
 
     def reset(self) -> None:
         with self.client.action_queue_lock:
+            self.client._pdp_reset_at = time.time()  # the clock of the observations' timestamps
             dropped = self.client.action_queue.qsize()
             self.client.action_queue.queue.clear()
         self.client.must_go.set()  # the next observation is answered whatever it looks like
@@ -118,7 +135,14 @@ def _wrap_client(original):
             super().__init__(*args, **kwargs)
             self._pdp_sim = _ours(self.robot)
             self._pdp_chunks = 0  # chunks received, counted before LeRobot's receiver sets must_go
+            self._pdp_reset_at: float | None = None  # when the robot last reset its scene (QueuedActions)
             self._pdp_unsent_since: float | None = None
+            if self.config.policy_type == "pdp":  # any robot serving PDP
+                aggregation = getattr(self.config, "aggregate_fn_name", PDP_AGGREGATION)
+                if aggregation != PDP_AGGREGATION:
+                    logger.warning(BLENDED, aggregation)
+                if self.config.chunk_size_threshold <= 0:
+                    logger.warning(EMPTY_ONLY, self.config.chunk_size_threshold)
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
@@ -147,9 +171,19 @@ def _wrap_client(original):
                     self.shutdown_event.set()
             return sent
 
-        def _aggregate_action_queues(self, *args: Any, **kwargs: Any):
-            super()._aggregate_action_queues(*args, **kwargs)
+        def _aggregate_action_queues(self, incoming_actions: list, *args: Any, **kwargs: Any):
+            if self._pdp_sim and incoming_actions and self._planned_before_reset(incoming_actions[0]):
+                logger.info("pdp_sim: a chunk planned in the episode that ended arrived after it: dropped")
+            else:
+                super()._aggregate_action_queues(incoming_actions, *args, **kwargs)
             self._pdp_chunks += 1  # LeRobot's receiver sets must_go right after this
+
+        def _planned_before_reset(self, first: Any) -> bool:
+            """Whether the chunk starting with ``first`` answers an observation taken before the last scene reset
+            (in flight when the episode ended, it would run at the next one's start). Its observation's time:
+            the first action's, one control step earlier for PDP's server (it times that action at the next step)."""
+            step = self.config.environment_dt if self.config.policy_type == "pdp" else 0.0
+            return self._pdp_reset_at is not None and first.get_timestamp() - step < self._pdp_reset_at
 
         def receive_actions(self, verbose: bool = False):
             self._pdp_receiver = threading.current_thread()
