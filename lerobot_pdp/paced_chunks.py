@@ -44,7 +44,8 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"
 EPISODE_KEY = "observation.pdp_sim_episode"
-# why chunk noises cannot be replayed for LeRobot's async client although its executed actions are reported
+# chunk noises are not replayed for LeRobot's async client although its executed actions are reported; why
+PACED_REPLAYS_NOISES = False
 PACED_NOISES = ("its server plans a chunk when the client's queue runs low, so chunks start not where the "
                 "noises were fitted (measured on pick-place: docs/deploy.md)")
 
@@ -53,7 +54,8 @@ def check_paced_steering(policy: Any) -> None:
     """Refuse steering a paced caller cannot follow (the module docstring): chunk noises, and per-phase latents
     unless the policy is told the executed actions (``python -m lerobot_pdp.policy_server``)."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
-                       reports_executed=getattr(policy, "_paced_executed", None) is not None, replays_noises=False,
+                       reports_executed=getattr(policy, "_paced_executed", None) is not None,
+                       replays_noises=PACED_REPLAYS_NOISES,
                        noises_why=PACED_NOISES)
 
 
@@ -158,6 +160,7 @@ class JustInTime:
     def __init__(self, dt: float) -> None:
         self.dt = dt  # seconds per control step (the server's --fps)
         self.planned_until: int | None = None  # the last timestep a planned chunk has an action for
+        self.planned_from: tuple[int, Any] | None = None  # (timestep, env episode) of the last observation planned from
         self.seconds: list[float] = []  # how long the last chunks took to plan
         self.lock = threading.Lock()  # observations arrive on the server's threads, chunks are planned on another
 
@@ -175,11 +178,19 @@ class JustInTime:
             until = self.planned_until
         return until is not None and until - obs.get_timestep() <= self.lead()
 
+    def repeats(self, obs: Any) -> bool:
+        """Whether ``obs`` is of the timestep (and env episode) of the last observation planned from: the client sent
+        it again, no action executed since (a must-go one, after its queue stayed empty: ``pdp_sim`` drops a chunk
+        planned before its scene reset), and the chunk planned from the first answers it."""
+        with self.lock:
+            return self.planned_from == (obs.get_timestep(), ReceivedFrames._episode(obs))
+
     def planning(self, obs: Any, actions: int) -> None:
         """A chunk of ``actions`` actions is planned from ``obs``: its actions follow the observation's timestep, so
         later observations wait for its end."""
         with self.lock:
             self.planned_until = obs.get_timestep() + actions
+            self.planned_from = (obs.get_timestep(), ReceivedFrames._episode(obs))
 
     def planned(self, chunk: list[Any], seconds: float) -> None:
         """The chunk returned (``TimedAction``s, timed from the step after the observation's), ``seconds`` in the

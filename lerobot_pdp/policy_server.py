@@ -126,6 +126,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
 
             from .paced_chunks import (
                 PACED_ENGINE,
+                PACED_REPLAYS_NOISES,
                 PACED_WAY_OUT,
                 ExecutedActions,
                 ReceivedFrames,
@@ -136,7 +137,8 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases follow; noises refused
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True,  # phases follow; noises refused
+                              replays_noises=PACED_REPLAYS_NOISES):
                 policy = cls.from_pretrained(path, **kwargs)
             if policy.config.segment_gripper_dim is not None:
                 policy._paced_executed = ExecutedActions(policy)
@@ -167,7 +169,8 @@ def with_paced_observations(original: Callable) -> Callable:
     """Wrap LeRobot's ``PolicyServer._enqueue_observation``: a served PDP keeps every observation the client sends
     (one whose predecessors were not sent is not planned from: :class:`lerobot_pdp.paced_chunks.ReceivedFrames`)
     and plans its next chunk just in time, whatever LeRobot's similarity filter says
-    (:class:`lerobot_pdp.paced_chunks.JustInTime`); a must-go observation goes as in LeRobot's."""
+    (:class:`lerobot_pdp.paced_chunks.JustInTime`); a must-go observation goes as in LeRobot's, unless it repeats
+    the last one planned from."""
 
     @functools.wraps(original)
     def _enqueue_observation(self: Any, obs: Any) -> bool:
@@ -177,6 +180,9 @@ def with_paced_observations(original: Callable) -> Callable:
         frames = getattr(self.policy, "_paced_frames", None)
         if frames is not None and not frames.received(obs):
             logger.debug("observation #%d waits for the next one: its predecessor was not sent", obs.get_timestep())
+            return False
+        if timing.repeats(obs):
+            logger.debug("observation #%d: planned from already (sent again)", obs.get_timestep())
             return False
         if obs.must_go:
             queued = original(self, obs)

@@ -242,15 +242,16 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     """LeRobot's server plans from every observation past its similarity filter; its client sends one every step
     while its queue is low, so a robot whose state passes the filter got a chunk every inference time, each mostly
     dropped. A served PDP plans once per chunk, when the client holds no more actions than the last chunks took
-    to plan (their median, in control steps, plus one), whatever the filter says; a must-go one goes at once."""
+    to plan (their median, in control steps, plus one), whatever the filter says; a must-go one goes at once,
+    unless the client sent the observation planned from again."""
     import queue
 
     from lerobot.async_inference.helpers import TimedAction, TimedObservation
 
-    from lerobot_pdp.paced_chunks import JustInTime, ReceivedFrames
+    from lerobot_pdp.paced_chunks import EPISODE_MARK, JustInTime, ReceivedFrames
 
-    def obs(t: int, must_go: bool = False) -> TimedObservation:
-        o = TimedObservation(timestamp=0.0, timestep=t, observation={})
+    def obs(t: int, must_go: bool = False, episode: int = 0) -> TimedObservation:
+        o = TimedObservation(timestamp=0.0, timestep=t, observation={EPISODE_MARK: float(episode)})
         o.must_go = must_go
         return o
 
@@ -290,9 +291,12 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     server._predicted_timesteps.add(8)
     assert not enqueue(server, obs(8)) and server.observation_queue.empty()  # planned from already
     assert enqueue(server, obs(13, must_go=True)) and filtered == [0, 13]  # a late chunk: the queue ran empty
+    assert not enqueue(server, obs(13, must_go=True))  # sent again, no action since: the chunk from 13 answers it
+    server.observation_queue.get()
+    assert enqueue(server, obs(13, must_go=True, episode=1)) and filtered == [0, 13, 13]  # a new episode's first
     server.observation_queue.get()
     other = types.SimpleNamespace(**{**vars(server), "policy_type": "diffusion"})
-    assert enqueue(other, obs(14)) and filtered == [0, 13, 14]  # another policy type: LeRobot's rule
+    assert enqueue(other, obs(14)) and filtered == [0, 13, 13, 14]  # another policy type: LeRobot's rule
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
