@@ -292,6 +292,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # chunk's own (the history select_action keeps); false: on the chunk's observation repeated (the engine passes
     # only that one), what PDP was not trained on (realtime_chunking.py; docs/performance.md).
     rtc_observation_history: bool = True
+    # Served by `python -m lerobot_pdp.policy_server` (LeRobot's async inference): plan each chunk just in time, from
+    # the observation sent when the client holds no more actions than a chunk takes to plan, so the robot does not
+    # wait for it (and executes the chunk's later actions); false: only when the client's queue is empty, the robot
+    # waiting for each chunk and executing it whole (paced_chunks.JustInTime; docs/deploy.md).
+    async_just_in_time: bool = True
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----

@@ -169,8 +169,8 @@ def with_paced_observations(original: Callable) -> Callable:
     """Wrap LeRobot's ``PolicyServer._enqueue_observation``: a served PDP keeps every observation the client sends
     (one whose predecessors were not sent is not planned from: :class:`lerobot_pdp.paced_chunks.ReceivedFrames`)
     and plans its next chunk just in time, whatever LeRobot's similarity filter says
-    (:class:`lerobot_pdp.paced_chunks.JustInTime`); a must-go observation goes as in LeRobot's, unless it repeats
-    the last one planned from."""
+    (:class:`lerobot_pdp.paced_chunks.JustInTime`; ``--policy.async_just_in_time=false``: only from an empty queue);
+    a must-go observation goes as in LeRobot's, unless it repeats the last one planned from."""
 
     @functools.wraps(original)
     def _enqueue_observation(self: Any, obs: Any) -> bool:
@@ -186,9 +186,9 @@ def with_paced_observations(original: Callable) -> Callable:
             return False
         if obs.must_go:
             queued = original(self, obs)
-        elif timing.due(obs):
+        elif self.policy.config.async_just_in_time and timing.due(obs):
             queued = _enqueue(self, obs)
-        else:
+        else:  # not yet due (or whole chunks: only from an empty queue)
             logger.debug("observation #%d: the client holds actions beyond the next chunk's lead", obs.get_timestep())
             return False
         if queued:

@@ -243,7 +243,8 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     while its queue is low, so a robot whose state passes the filter got a chunk every inference time, each mostly
     dropped. A served PDP plans once per chunk, when the client holds no more actions than the last chunks took
     to plan (their median, in control steps, plus one), whatever the filter says; a must-go one goes at once,
-    unless the client sent the observation planned from again."""
+    unless the client sent the observation planned from again. ``async_just_in_time=false``: whole chunks, planned
+    from an empty queue only."""
     import queue
 
     from lerobot.async_inference.helpers import TimedAction, TimedObservation
@@ -278,7 +279,8 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
         return True
 
     enqueue = policy_server.with_paced_observations(lerobots)
-    policy = types.SimpleNamespace(config=types.SimpleNamespace(n_action_steps=8), _paced_frames=ReceivedFrames(2))
+    policy = types.SimpleNamespace(config=types.SimpleNamespace(n_action_steps=8, async_just_in_time=True),
+                                   _paced_frames=ReceivedFrames(2))
     server = types.SimpleNamespace(policy=policy, policy_type="pdp", actions_per_chunk=10,
                                    config=types.SimpleNamespace(environment_dt=0.02), observation_queue=queue.Queue(1),
                                    _predicted_timesteps={0}, _predicted_timesteps_lock=threading.Lock())
@@ -295,8 +297,12 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     server.observation_queue.get()
     assert enqueue(server, obs(13, must_go=True, episode=1)) and filtered == [0, 13, 13]  # a new episode's first
     server.observation_queue.get()
+    policy.config.async_just_in_time = False  # whole chunks: planned only from an empty queue
+    assert [t for t in range(14, 22) if enqueue(server, obs(t, episode=1))] == [] and filtered == [0, 13, 13]
+    assert enqueue(server, obs(22, must_go=True, episode=1)) and filtered == [0, 13, 13, 22]
+    server.observation_queue.get()
     other = types.SimpleNamespace(**{**vars(server), "policy_type": "diffusion"})
-    assert enqueue(other, obs(14)) and filtered == [0, 13, 13, 14]  # another policy type: LeRobot's rule
+    assert enqueue(other, obs(23)) and filtered == [0, 13, 13, 22, 23]  # another policy type: LeRobot's rule
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
