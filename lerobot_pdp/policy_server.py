@@ -11,7 +11,8 @@ only (nothing of LeRobot is changed on disk):
   on which PDP starts a new episode (:mod:`lerobot_pdp.paced_chunks`);
 * a chunk is planned once per chunk, just in time: from the observation sent when the client holds no more
   actions than a chunk takes to plan, whatever LeRobot's similarity filter says (it planned back to back on
-  states that pass it, and only from an empty queue on states in metres: :class:`lerobot_pdp.paced_chunks.JustInTime`);
+  states that pass it, and only from an empty queue on states in metres: :class:`lerobot_pdp.paced_chunks.JustInTime`;
+  ``--policy.async_just_in_time=false``: only from an empty queue, whole chunks);
 * every observation the client sends is kept, and each chunk is planned on consecutive frames: the ones
   received just before the planned one join PDP's history first; one whose predecessor was not sent waits for
   the next, a control step later (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`);
