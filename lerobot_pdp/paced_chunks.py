@@ -9,15 +9,15 @@ that history. Planned from alone, those frames would be a chunk apart; ``python 
 keeps every observation the client sends and puts the ones just before the planned one in the history first
 (:class:`ReceivedFrames`), so its frames are consecutive, as in training, times each chunk from the step after
 the observation's (:func:`from_the_next_step`), and plans once per chunk, just before the client's queue runs out
-(:class:`JustInTime`). Per-phase latents advance on the gripper commands the robot
-executes: ``python -m lerobot_pdp.policy_server`` tells the policy the actions the robot executed
-(:class:`ExecutedActions`), so phases advance on them, as under ``lerobot-rollout``'s RTC engine
-(:mod:`.realtime_chunking`); any other paced caller has them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
+(:class:`JustInTime`). Per-phase latents advance on the gripper commands the robot executes: ``python -m
+lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
+advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
+them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
 ``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, not every
 ``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
 replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``, measured
-before chunks were planned just in time). Refusals
-come at the first chunk and in live requests (the robot keeps its latent).
+before chunks were planned just in time). Refusals come at the first chunk and in live requests (the robot keeps
+its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -48,6 +48,11 @@ EPISODE_KEY = "observation.pdp_sim_episode"
 PACED_REPLAYS_NOISES = False
 PACED_NOISES = ("its server plans a chunk when the client's queue runs low, so chunks start not where the "
                 "noises were fitted (measured on pick-place: docs/deploy.md)")
+
+
+def episode_of(obs: Any) -> Any:
+    """The env episode a ``TimedObservation`` of LeRobot's client is marked with (``pdp_sim``; None: no mark)."""
+    return obs.get_observation().get(EPISODE_MARK)
 
 
 def check_paced_steering(policy: Any) -> None:
@@ -110,16 +115,12 @@ class ReceivedFrames:
         self.frames: dict[int, Any] = {}  # timestep -> the latest TimedObservation sent for it
         self.lock = threading.Lock()  # observations arrive on the server's threads, chunks are planned on another
 
-    @staticmethod
-    def _episode(obs: Any) -> Any:
-        return obs.get_observation().get(EPISODE_MARK)
-
     def _run_before(self, obs: Any) -> list[Any]:
-        t, episode = obs.get_timestep(), self._episode(obs)
+        t, episode = obs.get_timestep(), episode_of(obs)
         run = []
         for k in range(1, self.n_obs_steps):
             frame = self.frames.get(t - k)
-            if frame is None or self._episode(frame) != episode:
+            if frame is None or episode_of(frame) != episode:
                 break
             run.append(frame)
         return run[::-1]
@@ -183,14 +184,14 @@ class JustInTime:
         it again, no action executed since (a must-go one, after its queue stayed empty: ``pdp_sim`` drops a chunk
         planned before its scene reset), and the chunk planned from the first answers it."""
         with self.lock:
-            return self.planned_from == (obs.get_timestep(), ReceivedFrames._episode(obs))
+            return self.planned_from == (obs.get_timestep(), episode_of(obs))
 
     def planning(self, obs: Any, actions: int) -> None:
         """A chunk of ``actions`` actions is planned from ``obs``: its actions follow the observation's timestep, so
         later observations wait for its end."""
         with self.lock:
             self.planned_until = obs.get_timestep() + actions
-            self.planned_from = (obs.get_timestep(), ReceivedFrames._episode(obs))
+            self.planned_from = (obs.get_timestep(), episode_of(obs))
 
     def planned(self, chunk: list[Any], seconds: float) -> None:
         """The chunk returned (``TimedAction``s, timed from the step after the observation's), ``seconds`` in the
