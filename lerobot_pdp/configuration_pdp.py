@@ -297,6 +297,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # wait for it (and executes the chunk's later actions); false: only when the client's queue is empty, the robot
     # waiting for each chunk and executing it whole (paced_chunks.JustInTime; docs/deploy.md).
     async_just_in_time: bool = True
+    # Served so: how many of a new chunk's first actions are held to the last chunk's the client still holds (weight
+    # 1 over those it executes while the new one is planned, then fading to 0), as lerobot-rollout's
+    # --inference.rtc.execution_horizon holds them (paced_chunks.HeldPrefix); 0: none, each chunk a fresh sample.
+    async_execution_horizon: int = 3
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----
@@ -332,7 +336,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"embed_rec_reduction must be 'mean' or 'sum', got {self.embed_rec_reduction!r}")
         if self.beta_schedule not in ("squaredcos_cap_v2", "linear"):
             errors.append(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
-        for name in ("beta_kl", "beta_geo", "fit_lambda"):
+        for name in ("beta_kl", "beta_geo", "fit_lambda", "async_execution_horizon"):
             if getattr(self, name) < 0:
                 errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("n_obs_steps", "horizon", "n_action_steps", "trace_length", "num_train_timesteps",

@@ -166,17 +166,22 @@ class PDPPolicy(PreTrainedPolicy):
         [B, n_obs_steps, *frame] or one frame joining the policy's own (paced_chunks.py; RTC: :func:`rtc_chunk`)."""
         if "inference_delay" in kwargs or "prev_chunk_left_over" in kwargs:
             return rtc_chunk(self, batch, noise=noise, **kwargs)
-        batch = paced_history(self, batch) if is_one_frame(batch, self.config.condition_features) else batch
+        one_frame = is_one_frame(batch, self.config.condition_features)
+        batch = paced_history(self, batch) if one_frame else batch
         if self._steer_file is not None:  # live steering: a changed file sets z before this chunk
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
         if noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
             noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
-        chunk = self.generate(obs_cond, z, noise=noise)
+        held = getattr(self, "_paced_prefix", None) if one_frame else None  # served: held to the last chunk
+        chunk = self.model.generate(obs_cond, z, noise, guide=held.guide(self, len(z)) if held is not None else None)
         check_finite_actions(chunk, z, obs_cond)  # a robot must never be sent NaN
         start = self.config.n_obs_steps - 1
-        return chunk[:, start : start + self.config.n_action_steps]
+        actions = chunk[:, start : start + self.config.n_action_steps]
+        if held is not None:
+            held.keep(self, actions)
+        return actions
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:

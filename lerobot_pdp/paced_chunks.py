@@ -32,11 +32,12 @@ import threading
 from typing import Any
 
 import torch
+from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.policies.utils import populate_queues
 from torch import Tensor
 
 from .observation_encoder import check_observation
-from .realtime_chunking import check_rtc_steering
+from .realtime_chunking import check_rtc_steering, prefix_guide
 
 PACED_ENGINE = "a caller that asks for chunks one observation at a time (LeRobot's async policy server)"
 PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-pdp adapt --noise none`), or"
@@ -165,12 +166,16 @@ class JustInTime:
         self.seconds: list[float] = []  # how long the last chunks took to plan
         self.lock = threading.Lock()  # observations arrive on the server's threads, chunks are planned on another
 
-    def lead(self) -> int:
-        """Control steps before the client's queue runs out at which the next chunk is planned."""
+    def delay(self) -> int:
+        """Control steps a chunk takes to plan: the lower median of the last :attr:`KEEP` (not the first's warm-up)."""
         with self.lock:
             seconds = sorted(self.seconds)
-        took = seconds[(len(seconds) - 1) // 2] if seconds else 0.0  # the lower median: not the first chunk's warm-up
-        return math.ceil(took / self.dt - 1e-9) + self.SLACK
+        took = seconds[(len(seconds) - 1) // 2] if seconds else 0.0
+        return math.ceil(took / self.dt - 1e-9)
+
+    def lead(self) -> int:
+        """Control steps before the client's queue runs out at which the next chunk is planned."""
+        return self.delay() + self.SLACK
 
     def due(self, obs: Any) -> bool:
         """Whether the next chunk is planned from ``obs`` (not a must-go one): the client holds at most
@@ -200,6 +205,51 @@ class JustInTime:
             if chunk:  # a must-go observation may have been planned from since (a later one)
                 self.planned_until = max(self.planned_until or -1, chunk[-1].get_timestep())
             self.seconds = [*self.seconds, seconds][-self.KEEP:]
+
+
+class HeldPrefix:
+    """The served PDP's last chunk (normalised) by timestep, to which its next chunk is held: over the actions the
+    client executes while the next one is planned (weight 1), fading to free at ``execution_horizon`` (a served
+    PDP with ``async_execution_horizon`` > 0), as lerobot-rollout's RTC engine holds PDP's chunks
+    (:func:`lerobot_pdp.realtime_chunking.prefix_guide`).
+
+    Planned just in time, a chunk is planned from the observation at timestep t while the client still holds the
+    last chunk's actions for t+1 onwards; it executes the first of them while the new one is planned, then the new
+    one's (``latest_only``). Each chunk is a fresh sample, and a multimodal policy's samples need not agree: without
+    the hold the robot splices a new one in every few steps, and its route can leave the demonstrated ones. Held,
+    the new chunk continues the motion the robot is in. The server tells it, before each chunk, the observation's
+    timestep and the actions expected to run meanwhile (:meth:`plan`); a chunk planned with nothing in flight (a
+    must-go one, an episode's first) is free."""
+
+    def __init__(self, execution_horizon: int) -> None:
+        self.rtc = RTCConfig(enabled=True, execution_horizon=execution_horizon)
+        self.at: tuple[int, int] | None = None  # (timestep planned from, actions executed meanwhile) of the next chunk
+        self.kept: tuple[int, int, Tensor] | None = None  # (policy resets, first action's timestep, actions [B, n, A])
+
+    def plan(self, timestep: int, delay: int) -> None:
+        """The next chunk is planned from the observation at ``timestep``; ``delay`` actions run while it is."""
+        self.at = (timestep, delay)
+
+    def guide(self, policy: Any, batch_size: int) -> Any:
+        """The x0 edit holding the chunk being planned to the last one's actions after its timestep (None: none)."""
+        if self.at is None or self.kept is None:
+            return None
+        (timestep, delay), (resets, first, actions) = self.at, self.kept
+        left_over = actions[:, timestep + 1 - first :] if timestep + 1 >= first else actions[:, :0]
+        if resets != policy.steering.resets or left_over.shape[1] == 0:  # a new episode, or nothing in flight
+            return None
+        return prefix_guide(policy, left_over, delay, batch_size, self.rtc)
+
+    def keep(self, policy: Any, actions: Tensor) -> None:
+        """The chunk planned (actions [B, n, A], normalised): its first is for the step after the observation's."""
+        self.kept = (policy.steering.resets, self.at[0] + 1, actions) if self.at is not None else None
+        self.at = None
+
+    def sent(self, actions: int) -> None:
+        """The server sends only the chunk's first ``actions``: the rest never reach the client."""
+        if self.kept is not None:
+            resets, first, kept = self.kept
+            self.kept = (resets, first, kept[:, :actions])
 
 
 def from_the_next_step(chunk: list[Any], dt: float) -> list[Any]:

@@ -130,6 +130,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 PACED_REPLAYS_NOISES,
                 PACED_WAY_OUT,
                 ExecutedActions,
+                HeldPrefix,
                 ReceivedFrames,
                 check_paced_steering,
             )
@@ -145,6 +146,8 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 policy._paced_executed = ExecutedActions(policy)
             if policy.config.n_obs_steps > 1:
                 policy._paced_frames = ReceivedFrames(policy.config.n_obs_steps)
+            if policy.config.async_execution_horizon > 0:
+                policy._paced_prefix = HeldPrefix(policy.config.async_execution_horizon)
             check_paced_steering(policy)
             return policy
 
@@ -233,12 +236,17 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
         executed = getattr(policy, "_paced_executed", None)
         if executed is not None:
             executed.executed_up_to(observation_t.get_timestep())
+        timing = paced_timing(self)
+        held = getattr(policy, "_paced_prefix", None)
+        if held is not None and timing is not None:
+            held.plan(observation_t.get_timestep(), timing.delay())
         chunk = original(self, observation_t)
         if self.policy_type == SERVED:
             chunk = from_the_next_step(chunk, self.config.environment_dt)
+        if held is not None:
+            held.sent(len(chunk))
         if executed is not None:
             executed.planned(chunk)
-        timing = paced_timing(self)
         if timing is not None:
             timing.planned(chunk, time.perf_counter() - started)
         return chunk

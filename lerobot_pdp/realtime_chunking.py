@@ -356,16 +356,17 @@ def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC
             "without noises (fit_noise=none)")
 
 
-def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int,
-                 batch_size: int) -> Callable[[Tensor], Tensor] | None:
+def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_size: int,
+                 rtc: RTCConfig | None = None) -> Callable[[Tensor], Tensor] | None:
     """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
 
     ``left_over`` [T, A] or [B, T, A], normalised, first row = the action for the chunk's observation step (with
     LeRobot's own queue: the next action to execute); the engine pads it with
     zero rows up to ``execution_horizon``, so trailing all-zero rows are dropped (an exact 0.0 in every action
-    dimension is the engine's padding, not a policy output)."""
+    dimension is the engine's padding, not a policy output). ``rtc``: the prefix's length and weights (None: the
+    rollout's, ``config.rtc_config``)."""
     cfg = policy.config
-    rtc = cfg.rtc_config
+    rtc = rtc if rtc is not None else cfg.rtc_config
     prefix = left_over if left_over.dim() == 3 else left_over[None]
     nonzero = (prefix != 0).any(dim=-1).any(dim=0).nonzero()
     length = int(nonzero[-1]) + 1 if len(nonzero) else 0

@@ -305,6 +305,54 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     assert enqueue(other, obs(23)) and filtered == [0, 13, 13, 22, 23]  # another policy type: LeRobot's rule
 
 
+def test_a_served_chunk_is_held_to_the_actions_the_client_runs_while_it_is_planned(synthetic_meta, server_module):
+    """Planned just in time, a chunk is planned from the observation at t while the client still holds the last
+    chunk's actions after t and runs the first of them meanwhile: the new chunk is held to those (weight 1 over
+    the delay, then fading), as lerobot-rollout's RTC engine holds PDP's chunks. Nothing in flight, a new episode
+    or a call the server did not announce: a free chunk."""
+    from lerobot_pdp.paced_chunks import EPISODE_KEY, HeldPrefix
+
+    p, frames, noise = _policy_frames_and_noise(synthetic_meta)
+    p.set_latent(p.mode_latents()[1])  # not a latent drawn per episode
+    n = p.config.n_action_steps
+    kept = p._paced_prefix = HeldPrefix(execution_horizon=3)
+
+    def chunk(i: int, plan: tuple[int, int] | None, episode: int = 0):  # as the server asks for one
+        if plan is not None:
+            kept.plan(*plan)
+        return p.predict_action_chunk({**frames[i], EPISODE_KEY: torch.tensor([float(episode)])}, noise=noise)
+
+    def free(a: int, b: int):  # the chunk on history (frame a, frame b), nothing held
+        return p.predict_action_chunk({k: torch.stack([frames[a][k], frames[b][k]], dim=1)
+                                       for k in p.config.condition_features}, noise=noise)
+
+    p.reset()
+    first = chunk(0, (10, 0))
+    assert kept.kept[1] == 11 and kept.kept[2].shape == (1, n, p.action_dim)  # timed from the step after 10
+    torch.testing.assert_close(first, free(0, 0))  # nothing before it
+    held = chunk(1, (13, 2))  # the client holds 14..18 of the first chunk and runs 14, 15 meanwhile
+    torch.testing.assert_close(held[:, :2], first[:, 3:5])  # exactly what the robot runs while it is planned
+    unheld = free(0, 1)
+    assert not torch.allclose(unheld[:, :2], first[:, 3:5], atol=1e-2)
+    assert (held[:, 2] - first[:, 5]).norm() < (unheld[:, 2] - first[:, 5]).norm()  # fading
+    assert kept.kept[1] == 14
+    kept.sent(5)  # the server sends only five: the rest never reach the client
+    assert kept.kept[2].shape[1] == 5
+    torch.testing.assert_close(chunk(2, (19, 2)), free(1, 2))  # the client holds nothing after 18: free
+    torch.testing.assert_close(chunk(2, (20, 2), episode=1), free(2, 2))  # in flight, but a new episode's: free
+    chunk(0, None, episode=1)
+    assert kept.kept is None  # not announced by the server: free, and nothing kept to hold the next one to
+
+    # the server announces each chunk (its observation's timestep, the delay JustInTime measures), a chunk of the
+    # actions it sends is kept; --policy.async_execution_horizon=0 holds nothing
+    policy_server.admit_pdp(server_module, [])
+    served = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    assert served._paced_prefix.rtc.execution_horizon == 3
+    policy_server.admit_pdp(server_module, ["--async_execution_horizon=0"])
+    assert getattr(server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained")),
+                   "_paced_prefix", None) is None
+
+
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
     """LeRobot's client sends the timestep of the last action it executed with each observation and executes each
     timestep's action from the latest chunk planning it: the policy's phases count those commands, in order. PDP's
