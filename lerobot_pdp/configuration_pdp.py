@@ -297,10 +297,14 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # wait for it (and executes the chunk's later actions); false: only when the client's queue is empty, the robot
     # waiting for each chunk and executing it whole (paced_chunks.JustInTime; docs/deploy.md).
     async_just_in_time: bool = True
+    # Served so: each chunk's sampler noise is the last chunk's, shifted by the steps between them (fresh only for
+    # the steps the last did not reach), so consecutive chunks keep one route; false: fresh noise per chunk
+    # (paced_chunks.LastChunk).
+    async_carry_noise: bool = True
     # Served so: how many of a new chunk's first actions are held to the last chunk's the client still holds (weight
     # 1 over those it executes while the new one is planned, then fading to 0), as lerobot-rollout's
-    # --inference.rtc.execution_horizon holds them (paced_chunks.HeldPrefix); 0: none, each chunk a fresh sample.
-    async_execution_horizon: int = 3
+    # --inference.rtc.execution_horizon holds them (paced_chunks.LastChunk); 0: none.
+    async_execution_horizon: int = 0
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----

@@ -174,13 +174,16 @@ class PDPPolicy(PreTrainedPolicy):
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
         if noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
             noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
-        held = getattr(self, "_paced_prefix", None) if one_frame else None  # served: held to the last chunk
-        chunk = self.model.generate(obs_cond, z, noise, guide=held.guide(self, len(z)) if held is not None else None)
+        last = getattr(self, "_paced_last", None) if one_frame else None  # served: continues the last chunk
+        guide = None
+        if last is not None:
+            noise, guide = last.noise(self, noise, len(z), obs_cond.device), last.guide(self, len(z))
+        chunk = self.model.generate(obs_cond, z, noise, guide=guide)
         check_finite_actions(chunk, z, obs_cond)  # a robot must never be sent NaN
         start = self.config.n_obs_steps - 1
         actions = chunk[:, start : start + self.config.n_action_steps]
-        if held is not None:
-            held.keep(self, actions)
+        if last is not None:
+            last.keep(self, actions, noise)
         return actions
 
     @torch.no_grad()

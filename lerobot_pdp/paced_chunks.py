@@ -207,49 +207,69 @@ class JustInTime:
             self.seconds = [*self.seconds, seconds][-self.KEEP:]
 
 
-class HeldPrefix:
-    """The served PDP's last chunk (normalised) by timestep, to which its next chunk is held: over the actions the
-    client executes while the next one is planned (weight 1), fading to free at ``execution_horizon`` (a served
-    PDP with ``async_execution_horizon`` > 0), as lerobot-rollout's RTC engine holds PDP's chunks
-    (:func:`lerobot_pdp.realtime_chunking.prefix_guide`).
+class LastChunk:
+    """The served PDP's last chunk by timestep (its actions, normalised, and its sampler noise), from which the next
+    chunk continues (a served PDP; :meth:`plan` tells it the timestep each chunk is planned from).
 
     Planned just in time, a chunk is planned from the observation at timestep t while the client still holds the
-    last chunk's actions for t+1 onwards; it executes the first of them while the new one is planned, then the new
-    one's (``latest_only``). Each chunk is a fresh sample, and a multimodal policy's samples need not agree: without
-    the hold the robot splices a new one in every few steps, and its route can leave the demonstrated ones. Held,
-    the new chunk continues the motion the robot is in. The server tells it, before each chunk, the observation's
-    timestep and the actions expected to run meanwhile (:meth:`plan`); a chunk planned with nothing in flight (a
-    must-go one, an episode's first) is free."""
+    last chunk's actions for t+1 onwards; it runs the first of them while the new one is planned, then the new
+    one's (``latest_only``). Each chunk is a sample of a multimodal policy, and two samples need not take the same
+    route: splicing a fresh one in every few steps, the robot's route can leave the demonstrated ones. So:
 
-    def __init__(self, execution_horizon: int) -> None:
-        self.rtc = RTCConfig(enabled=True, execution_horizon=execution_horizon)
-        self.at: tuple[int, int] | None = None  # (timestep planned from, actions executed meanwhile) of the next chunk
-        self.kept: tuple[int, int, Tensor] | None = None  # (policy resets, first action's timestep, actions [B, n, A])
+    * ``carry_noise``: the new chunk's sampler noise is the last one's shifted by the steps between their first
+      actions (fresh rows only for the steps the last one did not reach). DDIM is deterministic, so the same noise
+      under the next observation gives the same choice of route, continued;
+    * ``execution_horizon`` > 0: the new chunk is held to the last one's actions after t (weight 1 over the ``delay``
+      actions the client runs while it is planned, then fading to free at ``execution_horizon``), as lerobot-rollout's
+      RTC engine holds PDP's chunks (:func:`lerobot_pdp.realtime_chunking.prefix_guide`).
+
+    A chunk of another episode than the last one's, or one the server did not announce, starts afresh; noise given
+    by the caller or fitted (chunk noises) is not replaced."""
+
+    def __init__(self, carry_noise: bool, execution_horizon: int) -> None:
+        self.carry_noise = carry_noise
+        self.rtc = RTCConfig(enabled=True, execution_horizon=execution_horizon) if execution_horizon > 0 else None
+        self.at: tuple[int, int] | None = None  # (timestep planned from, actions run meanwhile) of the next chunk
+        # (policy resets, the first action's timestep, actions [B, n, A], sampler noise [B, horizon, A])
+        self.kept: tuple[int, int, Tensor, Tensor] | None = None
 
     def plan(self, timestep: int, delay: int) -> None:
         """The next chunk is planned from the observation at ``timestep``; ``delay`` actions run while it is."""
         self.at = (timestep, delay)
 
+    def _advanced(self, policy: Any) -> int | None:
+        """Steps from the last chunk's first action to the next one's (None: not of the same episode, or unknown)."""
+        if self.at is None or self.kept is None or self.kept[0] != policy.steering.resets:
+            return None
+        return self.at[0] + 1 - self.kept[1]
+
+    def noise(self, policy: Any, noise: Tensor | None, batch_size: int, device: Any) -> Tensor | None:
+        """The next chunk's sampler noise: ``noise`` (given or fitted), else the last one's carried, else fresh."""
+        if noise is None:
+            cfg = policy.config
+            noise = torch.randn(batch_size, cfg.horizon, policy.action_dim, device=device)
+            k = self._advanced(policy) if self.carry_noise else None
+            if k is not None and 0 <= k < cfg.horizon and len(self.kept[3]) == batch_size:
+                noise = torch.cat([self.kept[3][:, k:].to(noise), noise[:, cfg.horizon - k :]], dim=1)
+        return noise
+
     def guide(self, policy: Any, batch_size: int) -> Any:
         """The x0 edit holding the chunk being planned to the last one's actions after its timestep (None: none)."""
-        if self.at is None or self.kept is None:
+        k = self._advanced(policy) if self.rtc is not None else None
+        if k is None or k < 0 or k >= self.kept[2].shape[1]:  # a new episode, or nothing in flight
             return None
-        (timestep, delay), (resets, first, actions) = self.at, self.kept
-        left_over = actions[:, timestep + 1 - first :] if timestep + 1 >= first else actions[:, :0]
-        if resets != policy.steering.resets or left_over.shape[1] == 0:  # a new episode, or nothing in flight
-            return None
-        return prefix_guide(policy, left_over, delay, batch_size, self.rtc)
+        return prefix_guide(policy, self.kept[2][:, k:], self.at[1], batch_size, self.rtc)
 
-    def keep(self, policy: Any, actions: Tensor) -> None:
-        """The chunk planned (actions [B, n, A], normalised): its first is for the step after the observation's."""
-        self.kept = (policy.steering.resets, self.at[0] + 1, actions) if self.at is not None else None
+    def keep(self, policy: Any, actions: Tensor, noise: Tensor) -> None:
+        """The chunk planned (actions [B, n, A], normalised; its first for the step after the observation's)."""
+        self.kept = (policy.steering.resets, self.at[0] + 1, actions, noise) if self.at is not None else None
         self.at = None
 
     def sent(self, actions: int) -> None:
         """The server sends only the chunk's first ``actions``: the rest never reach the client."""
         if self.kept is not None:
-            resets, first, kept = self.kept
-            self.kept = (resets, first, kept[:, :actions])
+            resets, first, kept, noise = self.kept
+            self.kept = (resets, first, kept[:, :actions], noise)
 
 
 def from_the_next_step(chunk: list[Any], dt: float) -> list[Any]:

@@ -130,7 +130,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 PACED_REPLAYS_NOISES,
                 PACED_WAY_OUT,
                 ExecutedActions,
-                HeldPrefix,
+                LastChunk,
                 ReceivedFrames,
                 check_paced_steering,
             )
@@ -146,8 +146,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
                 policy._paced_executed = ExecutedActions(policy)
             if policy.config.n_obs_steps > 1:
                 policy._paced_frames = ReceivedFrames(policy.config.n_obs_steps)
-            if policy.config.async_execution_horizon > 0:
-                policy._paced_prefix = HeldPrefix(policy.config.async_execution_horizon)
+            policy._paced_last = LastChunk(policy.config.async_carry_noise, policy.config.async_execution_horizon)
             check_paced_steering(policy)
             return policy
 
@@ -237,14 +236,14 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
         if executed is not None:
             executed.executed_up_to(observation_t.get_timestep())
         timing = paced_timing(self)
-        held = getattr(policy, "_paced_prefix", None)
-        if held is not None and timing is not None:
-            held.plan(observation_t.get_timestep(), timing.delay())
+        last = getattr(policy, "_paced_last", None)
+        if last is not None and timing is not None:
+            last.plan(observation_t.get_timestep(), timing.delay())
         chunk = original(self, observation_t)
         if self.policy_type == SERVED:
             chunk = from_the_next_step(chunk, self.config.environment_dt)
-        if held is not None:
-            held.sent(len(chunk))
+        if last is not None:
+            last.sent(len(chunk))
         if executed is not None:
             executed.planned(chunk)
         if timing is not None:

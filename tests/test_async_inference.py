@@ -305,52 +305,75 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
     assert enqueue(other, obs(23)) and filtered == [0, 13, 13, 22, 23]  # another policy type: LeRobot's rule
 
 
-def test_a_served_chunk_is_held_to_the_actions_the_client_runs_while_it_is_planned(synthetic_meta, server_module):
+def test_a_served_chunk_continues_the_last_ones_noise_and_can_be_held_to_its_actions(synthetic_meta, server_module):
     """Planned just in time, a chunk is planned from the observation at t while the client still holds the last
-    chunk's actions after t and runs the first of them meanwhile: the new chunk is held to those (weight 1 over
-    the delay, then fading), as lerobot-rollout's RTC engine holds PDP's chunks. Nothing in flight, a new episode
-    or a call the server did not announce: a free chunk."""
-    from lerobot_pdp.paced_chunks import EPISODE_KEY, HeldPrefix
+    chunk's actions after t and runs the first of them meanwhile. Its sampler noise is the last chunk's, shifted by
+    the steps between them (fresh for the steps the last did not reach), so it takes the same route; with an
+    execution horizon it is also held to the last chunk's actions (weight 1 over the delay, then fading), as
+    lerobot-rollout's RTC engine holds PDP's chunks. A new episode, or a call the server did not announce: afresh."""
+    from lerobot_pdp.paced_chunks import EPISODE_KEY, LastChunk
 
     p, frames, noise = _policy_frames_and_noise(synthetic_meta)
     p.set_latent(p.mode_latents()[1])  # not a latent drawn per episode
-    n = p.config.n_action_steps
-    kept = p._paced_prefix = HeldPrefix(execution_horizon=3)
+    cfg, n = p.config, p.config.n_action_steps
 
-    def chunk(i: int, plan: tuple[int, int] | None, episode: int = 0):  # as the server asks for one
+    def chunk(last: LastChunk, i: int, plan: tuple[int, int] | None, episode: int = 0, given=None):
+        p._paced_last = last  # as the server asks for one: announced, then one frame
         if plan is not None:
-            kept.plan(*plan)
-        return p.predict_action_chunk({**frames[i], EPISODE_KEY: torch.tensor([float(episode)])}, noise=noise)
+            last.plan(*plan)
+        return p.predict_action_chunk({**frames[i], EPISODE_KEY: torch.tensor([float(episode)])}, noise=given)
 
-    def free(a: int, b: int):  # the chunk on history (frame a, frame b), nothing held
+    def free(a: int, b: int, given):  # the chunk on history (frame a, frame b) from noise ``given``, nothing held
         return p.predict_action_chunk({k: torch.stack([frames[a][k], frames[b][k]], dim=1)
-                                       for k in p.config.condition_features}, noise=noise)
+                                       for k in cfg.condition_features}, noise=given)
 
+    # the noise carried: the last chunk's, shifted by the steps between their first actions
+    carry = LastChunk(carry_noise=True, execution_horizon=0)
     p.reset()
-    first = chunk(0, (10, 0))
-    assert kept.kept[1] == 11 and kept.kept[2].shape == (1, n, p.action_dim)  # timed from the step after 10
-    torch.testing.assert_close(first, free(0, 0))  # nothing before it
-    held = chunk(1, (13, 2))  # the client holds 14..18 of the first chunk and runs 14, 15 meanwhile
-    torch.testing.assert_close(held[:, :2], first[:, 3:5])  # exactly what the robot runs while it is planned
-    unheld = free(0, 1)
-    assert not torch.allclose(unheld[:, :2], first[:, 3:5], atol=1e-2)
-    assert (held[:, 2] - first[:, 5]).norm() < (unheld[:, 2] - first[:, 5]).norm()  # fading
-    assert kept.kept[1] == 14
-    kept.sent(5)  # the server sends only five: the rest never reach the client
-    assert kept.kept[2].shape[1] == 5
-    torch.testing.assert_close(chunk(2, (19, 2)), free(1, 2))  # the client holds nothing after 18: free
-    torch.testing.assert_close(chunk(2, (20, 2), episode=1), free(2, 2))  # in flight, but a new episode's: free
-    chunk(0, None, episode=1)
-    assert kept.kept is None  # not announced by the server: free, and nothing kept to hold the next one to
+    torch.manual_seed(0)
+    first = chunk(carry, 0, (10, 0))
+    n1 = carry.kept[3]
+    assert carry.kept[1] == 11 and carry.kept[2].shape == (1, n, p.action_dim)  # timed from the step after 10
+    torch.testing.assert_close(first, free(0, 0, n1))
+    second = chunk(carry, 1, (13, 2))  # its first action is for 14: three steps on
+    n2 = carry.kept[3]
+    torch.testing.assert_close(n2[:, : cfg.horizon - 3], n1[:, 3:])
+    assert not torch.allclose(n2[:, cfg.horizon - 3 :], n1[:, -3:])  # fresh where the last one did not reach
+    torch.testing.assert_close(second, free(0, 1, n2))
+    chunk(carry, 2, (20, 2), episode=1)  # a new episode: fresh
+    assert not torch.allclose(carry.kept[3][:, : cfg.horizon - 7], n2[:, 7:])
+    chunk(carry, 2, (21, 2), episode=1, given=noise)  # noise given (or fitted) is kept
+    torch.testing.assert_close(carry.kept[3], noise)
+    chunk(carry, 0, None, episode=1)
+    assert carry.kept is None  # not announced by the server: nothing kept to continue
+    fresh = LastChunk(carry_noise=False, execution_horizon=0)
+    chunk(fresh, 0, (30, 0), episode=1)
+    m1 = fresh.kept[3]
+    chunk(fresh, 1, (33, 2), episode=1)
+    assert not torch.allclose(fresh.kept[3][:, : cfg.horizon - 3], m1[:, 3:])
 
-    # the server announces each chunk (its observation's timestep, the delay JustInTime measures), a chunk of the
-    # actions it sends is kept; --policy.async_execution_horizon=0 holds nothing
+    # held to the last chunk's actions (the same noise for both, to tell the hold alone)
+    held = LastChunk(carry_noise=False, execution_horizon=3)
+    p.reset()
+    first = chunk(held, 0, (10, 0), given=noise)
+    torch.testing.assert_close(first, free(0, 0, noise))  # nothing before it
+    second = chunk(held, 1, (13, 2), given=noise)  # the client holds 14..18 of the first, runs 14, 15 meanwhile
+    torch.testing.assert_close(second[:, :2], first[:, 3:5])  # exactly what the robot runs while it is planned
+    unheld = free(0, 1, noise)
+    assert not torch.allclose(unheld[:, :2], first[:, 3:5], atol=1e-2)
+    assert (second[:, 2] - first[:, 5]).norm() < (unheld[:, 2] - first[:, 5]).norm()  # fading
+    held.sent(5)  # the server sends only five: the rest never reach the client
+    assert held.kept[2].shape[1] == 5
+    torch.testing.assert_close(chunk(held, 2, (19, 2), given=noise), free(1, 2, noise))  # nothing after 18: free
+    torch.testing.assert_close(chunk(held, 2, (20, 2), episode=1, given=noise), free(2, 2, noise))  # a new episode
+
+    # the server makes one for the policy it loads and announces each chunk (the delay JustInTime measures)
     policy_server.admit_pdp(server_module, [])
-    served = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
-    assert served._paced_prefix.rtc.execution_horizon == 3
-    policy_server.admit_pdp(server_module, ["--async_execution_horizon=0"])
-    assert getattr(server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained")),
-                   "_paced_prefix", None) is None
+    last = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))._paced_last
+    assert last.carry_noise and last.rtc is None  # the defaults
+    policy_server.admit_pdp(server_module, ["--async_carry_noise=false", "--async_execution_horizon=5"])
+    last = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))._paced_last
+    assert not last.carry_noise and last.rtc.execution_horizon == 5
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
