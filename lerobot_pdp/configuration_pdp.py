@@ -297,14 +297,15 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # wait for it (and executes the chunk's later actions); false: only when the client's queue is empty, the robot
     # waiting for each chunk and executing it whole (paced_chunks.JustInTime; docs/deploy.md).
     async_just_in_time: bool = True
-    # Served so: each chunk's sampler noise is the last chunk's, shifted by the steps between them (fresh only for
-    # the steps the last did not reach), so consecutive chunks keep one route; false: fresh noise per chunk
-    # (paced_chunks.LastChunk).
-    async_carry_noise: bool = True
     # Served so: how many of a new chunk's first actions are held to the last chunk's the client still holds (weight
-    # 1 over those it executes while the new one is planned, then fading to 0), as lerobot-rollout's
-    # --inference.rtc.execution_horizon holds them (paced_chunks.LastChunk); 0: none.
-    async_execution_horizon: int = 0
+    # 1 over those it executes while the new one is planned, then fading to 0), so the robot keeps its route where
+    # chunks are spliced, as lerobot-rollout's --inference.rtc.execution_horizon holds them; 0: none, each chunk a
+    # fresh sample (paced_chunks.LastChunk; chosen on validation scenes: docs/performance.md).
+    async_execution_horizon: int = 5
+    # Served so: each chunk's sampler noise is the last chunk's, shifted by the steps between them (fresh only for
+    # the steps the last did not reach), another way to keep the route (measured beside the hold, not better);
+    # false: fresh noise per chunk.
+    async_carry_noise: bool = False
 
     # ---- Filled in at training time from the dataset, before the model is built (saved with the checkpoint;
     # behavior_bank.resolve_dataset_config) ----

@@ -8,11 +8,11 @@ the history ``select_action`` keeps, whenever the client's action queue runs low
 that history. Planned from alone, those frames would be a chunk apart; ``python -m lerobot_pdp.policy_server``
 keeps every observation the client sends and puts the ones just before the planned one in the history first
 (:class:`ReceivedFrames`), so its frames are consecutive, as in training, times each chunk from the step after
-the observation's (:func:`from_the_next_step`), and plans once per chunk, just before the client's queue runs out
-(:class:`JustInTime`). Per-phase latents advance on the gripper commands the robot executes: ``python -m
-lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
-advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
-them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
+the observation's (:func:`from_the_next_step`), plans once per chunk, just before the client's queue runs out
+(:class:`JustInTime`), and holds each chunk to the last one's actions the client runs meanwhile (:class:`LastChunk`).
+Per-phase latents advance on the gripper commands the robot executes: ``python -m lerobot_pdp.policy_server``
+tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases advance on them, as under
+``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
 ``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, not every
 ``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
 replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``, measured
@@ -214,14 +214,16 @@ class LastChunk:
     Planned just in time, a chunk is planned from the observation at timestep t while the client still holds the
     last chunk's actions for t+1 onwards; it runs the first of them while the new one is planned, then the new
     one's (``latest_only``). Each chunk is a sample of a multimodal policy, and two samples need not take the same
-    route: splicing a fresh one in every few steps, the robot's route can leave the demonstrated ones. So:
+    route: with a fresh one spliced in every few steps the robot's route left the demonstrated ones in 15-22 % of
+    pick-place's episodes (docs/performance.md). So:
 
-    * ``carry_noise``: the new chunk's sampler noise is the last one's shifted by the steps between their first
-      actions (fresh rows only for the steps the last one did not reach). DDIM is deterministic, so the same noise
-      under the next observation gives the same choice of route, continued;
-    * ``execution_horizon`` > 0: the new chunk is held to the last one's actions after t (weight 1 over the ``delay``
-      actions the client runs while it is planned, then fading to free at ``execution_horizon``), as lerobot-rollout's
-      RTC engine holds PDP's chunks (:func:`lerobot_pdp.realtime_chunking.prefix_guide`).
+    * ``execution_horizon`` > 0 (``async_execution_horizon``, 5): the new chunk is held to the last one's actions
+      after t, weight 1 over the ``delay`` actions the client runs while it is planned, then fading to free at
+      ``execution_horizon``, as lerobot-rollout's RTC engine holds PDP's chunks
+      (:func:`lerobot_pdp.realtime_chunking.prefix_guide`);
+    * ``carry_noise`` (``async_carry_noise``, off): the new chunk's sampler noise is the last one's shifted by the
+      steps between their first actions (fresh rows only for the steps the last one did not reach); DDIM is
+      deterministic, so the same noise under the next observation tends to the same route.
 
     A chunk of another episode than the last one's, or one the server did not announce, starts afresh; noise given
     by the caller or fitted (chunk noises) is not replaced."""
@@ -243,7 +245,7 @@ class LastChunk:
             return None
         return self.at[0] + 1 - self.kept[1]
 
-    def noise(self, policy: Any, noise: Tensor | None, batch_size: int, device: Any) -> Tensor | None:
+    def noise(self, policy: Any, noise: Tensor | None, batch_size: int, device: Any) -> Tensor:
         """The next chunk's sampler noise: ``noise`` (given or fitted), else the last one's carried, else fresh."""
         if noise is None:
             cfg = policy.config

@@ -13,6 +13,10 @@ only (nothing of LeRobot is changed on disk):
   actions than a chunk takes to plan, whatever LeRobot's similarity filter says (it planned back to back on
   states that pass it, and only from an empty queue on states in metres: :class:`lerobot_pdp.paced_chunks.JustInTime`;
   ``--policy.async_just_in_time=false``: only from an empty queue, whole chunks);
+* each chunk continues the last one: it is held to the actions of the last chunk the client runs while it is
+  planned, fading to free at ``--policy.async_execution_horizon`` (5; 0: a fresh sample each chunk), so the route
+  is kept where chunks are spliced (:class:`lerobot_pdp.paced_chunks.LastChunk`; ``--policy.async_carry_noise=true``
+  carries the last chunk's sampler noise, shifted, too);
 * every observation the client sends is kept, and each chunk is planned on consecutive frames: the ones
   received just before the planned one join PDP's history first; one whose predecessor was not sent waits for
   the next, a control step later (:class:`lerobot_pdp.paced_chunks.ReceivedFrames`);

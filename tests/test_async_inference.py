@@ -370,10 +370,10 @@ def test_a_served_chunk_continues_the_last_ones_noise_and_can_be_held_to_its_act
     # the server makes one for the policy it loads and announces each chunk (the delay JustInTime measures)
     policy_server.admit_pdp(server_module, [])
     last = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))._paced_last
-    assert last.carry_noise and last.rtc is None  # the defaults
-    policy_server.admit_pdp(server_module, ["--async_carry_noise=false", "--async_execution_horizon=5"])
+    assert not last.carry_noise and last.rtc.execution_horizon == 5  # the defaults
+    policy_server.admit_pdp(server_module, ["--async_carry_noise=true", "--async_execution_horizon=0"])
     last = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))._paced_last
-    assert not last.carry_noise and last.rtc.execution_horizon == 5
+    assert last.carry_noise and last.rtc is None
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
