@@ -9,10 +9,11 @@ that history. Planned from alone, those frames would be a chunk apart; ``python 
 keeps every observation the client sends and puts the ones just before the planned one in the history first
 (:class:`ReceivedFrames`), so its frames are consecutive, as in training, times each chunk from the step after
 the observation's (:func:`from_the_next_step`), plans once per chunk, just before the client's queue runs out
-(:class:`JustInTime`), and holds each chunk to the last one's actions the client runs meanwhile (:class:`LastChunk`).
-Per-phase latents advance on the gripper commands the robot executes: ``python -m lerobot_pdp.policy_server``
-tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases advance on them, as under
-``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
+(:class:`JustInTime`), and holds each chunk to the last one's actions the client runs meanwhile
+(:class:`LastChunk`). Per-phase latents advance on the gripper commands the robot executes: ``python -m
+lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
+advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
+them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
 ``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, not every
 ``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
 replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``, measured
