@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -156,9 +156,10 @@ class PDPPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def generate(self, obs_cond: Tensor, z: Tensor, noise: Tensor | None = None,
-                 generator: torch.Generator | None = None) -> Tensor:
-        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z]."""
-        return self.model.generate(obs_cond, z, noise, generator)
+                 generator: torch.Generator | None = None, guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
+        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z]
+        (``guide``: an edit of each step's predicted clean chunk, e.g. real-time chunking's prefix)."""
+        return self.model.generate(obs_cond, z, noise, generator, guide=guide)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
@@ -172,13 +173,13 @@ class PDPPolicy(PreTrainedPolicy):
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
-        if noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
-            noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
         last = getattr(self, "_paced_last", None) if one_frame else None  # served: continues the last chunk
         guide = None
-        if last is not None:
+        if last is not None:  # fitted noises by the episode's step
             noise, guide = last.noise(self, noise, len(z), obs_cond.device), last.guide(self, len(z))
-        chunk = self.model.generate(obs_cond, z, noise, guide=guide)
+        elif noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
+            noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
+        chunk = self.generate(obs_cond, z, noise=noise, guide=guide)
         check_finite_actions(chunk, z, obs_cond)  # a robot must never be sent NaN
         start = self.config.n_obs_steps - 1
         actions = chunk[:, start : start + self.config.n_action_steps]

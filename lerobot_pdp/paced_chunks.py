@@ -14,11 +14,10 @@ the observation's (:func:`from_the_next_step`), plans once per chunk, just befor
 lerobot_pdp.policy_server`` tells the policy the actions the robot executed (:class:`ExecutedActions`), so phases
 advance on them, as under ``lerobot-rollout``'s RTC engine (:mod:`.realtime_chunking`); any other paced caller has
 them refused. Fitted chunk noises belong to the demonstration's frames (noise j to the frames from
-``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, not every
-``n_action_steps`` actions, so chunks drift off the frames a noise was fitted to: refused (on pick-place's val3,
-replayed by the executed step, they took 8-12 of 20 episodes this way, 20 of 20 under ``select_action``, measured
-before chunks were planned just in time). Refusals come at the first chunk and in live requests (the robot keeps
-its latent).
+``j * n_action_steps``), and the server plans a chunk when the client's queue runs low, at any step: it tells the
+policy each chunk's step in the episode, and the noise is taken aligned to the frames it was fitted to
+(:meth:`LastChunk.fitted_noise`); any other paced caller has them refused. Refusals come at the first chunk and in
+live requests (the robot keeps its latent).
 
 LeRobot's async robot client has no episodes. ``pdp_sim`` driven by it marks each observation with its env episode
 (:data:`EPISODE_KEY`, ``robots/client_hooks.py``); when the mark changes PDP starts a new episode (``reset``: a fresh
@@ -46,10 +45,9 @@ PACED_WAY_OUT = "Serve an adapted checkpoint of one latent (a mode, or `lerobot-
 # "observation." prefix takes it through LeRobot's processors)
 EPISODE_MARK = "pdp_sim_episode"
 EPISODE_KEY = "observation.pdp_sim_episode"
-# chunk noises are not replayed for LeRobot's async client although its executed actions are reported; why
-PACED_REPLAYS_NOISES = False
-PACED_NOISES = ("its server plans a chunk when the client's queue runs low, so chunks start not where the "
-                "noises were fitted (measured on pick-place: docs/deploy.md)")
+# why a paced caller other than PDP's server cannot replay fitted chunk noises
+PACED_NOISES = ("nothing tells PDP the step of the episode each chunk starts at (`python -m lerobot_pdp.policy_server` "
+                "does)")
 
 
 def episode_of(obs: Any) -> Any:
@@ -58,12 +56,12 @@ def episode_of(obs: Any) -> Any:
 
 
 def check_paced_steering(policy: Any) -> None:
-    """Refuse steering a paced caller cannot follow (the module docstring): chunk noises, and per-phase latents
-    unless the policy is told the executed actions (``python -m lerobot_pdp.policy_server``)."""
+    """Refuse steering a paced caller cannot follow (the module docstring): chunk noises unless the policy is told
+    each chunk's step, per-phase latents unless it is told the executed actions (``python -m
+    lerobot_pdp.policy_server`` tells both)."""
     check_rtc_steering(policy, engine=PACED_ENGINE, way_out=PACED_WAY_OUT,
                        reports_executed=getattr(policy, "_paced_executed", None) is not None,
-                       replays_noises=PACED_REPLAYS_NOISES,
-                       noises_why=PACED_NOISES)
+                       replays_noises=getattr(policy, "_paced_last", None) is not None, noises_why=PACED_NOISES)
 
 
 class ExecutedActions:
@@ -235,6 +233,7 @@ class LastChunk:
         self.at: tuple[int, int] | None = None  # (timestep planned from, actions run meanwhile) of the next chunk
         # (policy resets, the first action's timestep, actions [B, n, A], sampler noise [B, horizon, A])
         self.kept: tuple[int, int, Tensor, Tensor] | None = None
+        self.episode: tuple[int, int] | None = None  # (policy resets, timestep its first chunk was planned from)
 
     def plan(self, timestep: int, delay: int) -> None:
         """The next chunk is planned from the observation at ``timestep``; ``delay`` actions run while it is."""
@@ -247,7 +246,12 @@ class LastChunk:
         return self.at[0] + 1 - self.kept[1]
 
     def noise(self, policy: Any, noise: Tensor | None, batch_size: int, device: Any) -> Tensor:
-        """The next chunk's sampler noise: ``noise`` (given or fitted), else the last one's carried, else fresh."""
+        """The next chunk's sampler noise: ``noise`` (the caller's), else the fitted chunk noises' at the episode's
+        step (:meth:`fitted_noise`), else the last one's carried, else fresh."""
+        if self.at is not None and (self.episode is None or self.episode[0] != policy.steering.resets):
+            self.episode = (policy.steering.resets, self.at[0])  # the episode's first chunk
+        if noise is None:
+            noise = self.fitted_noise(policy, batch_size, device)
         if noise is None:
             cfg = policy.config
             noise = torch.randn(batch_size, cfg.horizon, policy.action_dim, device=device)
@@ -255,6 +259,25 @@ class LastChunk:
             if k is not None and 0 <= k < cfg.horizon and len(self.kept[3]) == batch_size:
                 noise = torch.cat([self.kept[3][:, k:].to(noise), noise[:, cfg.horizon - k :]], dim=1)
         return noise
+
+    def fitted_noise(self, policy: Any, batch_size: int, device: Any) -> Tensor | None:
+        """The fitted chunk noises (None: none) for a chunk whose first action is the episode's step k: noise
+        ``j = k // n_action_steps`` (fitted to the demonstration's frames from ``j * n_action_steps``) shifted by
+        ``k - j * n_action_steps`` rows, so each row meets the frame it was fitted to, the rows past its end from
+        noise ``j + 1`` (fresh after the last); past the last noise, the last one (it repeats, as in
+        ``select_action``)."""
+        fitted = policy.steering.noises
+        if len(fitted) == 0 or self.at is None or self.episode is None:
+            return None
+        cfg, n = policy.config, policy.config.n_action_steps
+        k = self.at[0] - self.episode[1]
+        j, shift = divmod(k, n)
+        if j >= len(fitted):
+            return fitted.at(j, batch_size, device)
+        head = fitted.at(j, batch_size, device)[:, shift:]
+        tail = (fitted.at(j + 1, batch_size, device)[:, cfg.horizon - n : cfg.horizon - n + shift]
+                if j + 1 < len(fitted) else torch.randn(batch_size, shift, policy.action_dim, device=device))
+        return torch.cat([head, tail], dim=1)
 
     def guide(self, policy: Any, batch_size: int) -> Any:
         """The x0 edit holding the chunk being planned to the last one's actions after its timestep (None: none)."""

@@ -23,7 +23,9 @@ only (nothing of LeRobot is changed on disk):
 * a PDP chunk's first action is timed at the step after the observation's (LeRobot's times it at the
   observation's, the last action the client executed, so its client skips it and runs each action a step early);
 * the actions the client executed (the timestep of its last action comes with each observation) reach the
-  policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`);
+  policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`),
+  and so does each chunk's step in the episode, so fitted chunk noises are replayed aligned to the frames they
+  were fitted to (:meth:`lerobot_pdp.paced_chunks.LastChunk.fitted_noise`);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -114,9 +116,9 @@ def with_vector_features(original: Callable) -> Callable:
 
 
 def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
-    """Wrap LeRobot's ``get_policy_class``: PDP is loaded with ``overrides`` applied to its saved config, and
-    steering a paced caller cannot follow (per-phase latents, fitted chunk noises) is refused as the client
-    connects, not at its first chunk."""
+    """Wrap LeRobot's ``get_policy_class``: PDP is loaded with ``overrides`` applied to its saved config, told
+    what the server will tell it (the executed actions, each chunk's step: per-phase latents and fitted chunk
+    noises follow), and its steering checked as the client connects, not at its first chunk."""
 
     @functools.wraps(original)
     def get_policy_class(name: str):
@@ -131,7 +133,6 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
 
             from .paced_chunks import (
                 PACED_ENGINE,
-                PACED_REPLAYS_NOISES,
                 PACED_WAY_OUT,
                 ExecutedActions,
                 LastChunk,
@@ -143,8 +144,7 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
                 logger.info("PDP config of %s with %s", path, " ".join(overrides))
-            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True,  # phases follow; noises refused
-                              replays_noises=PACED_REPLAYS_NOISES):
+            with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases follow; noises by step
                 policy = cls.from_pretrained(path, **kwargs)
             if policy.config.segment_gripper_dim is not None:
                 policy._paced_executed = ExecutedActions(policy)

@@ -195,7 +195,7 @@ def test_the_server_admits_pdp_and_passes_the_environment_state(server_module):
         server.raw_observation_to_observation({k: v for k, v in raw.items() if k != "oz"}, features, {})
 
 
-def test_the_server_loads_pdp_with_its_policy_options_and_refuses_chunk_noises(server_module, tmp_path):
+def test_the_server_loads_pdp_with_its_policy_options_and_replays_chunk_noises(server_module, tmp_path):
     from lerobot_pdp.steering import write_steering
 
     server = server_module
@@ -208,34 +208,36 @@ def test_the_server_loads_pdp_with_its_policy_options_and_refuses_chunk_noises(s
     frame = {k: torch.zeros(1, *ft.shape) for k, ft in policy.config.condition_features.items()}
     policy.predict_action_chunk(frame)
     torch.testing.assert_close(policy.active_latent, modes[2].reshape(1, -1))
+    # adapted with --noise chunks: served, the episode's first chunk from its first noise (the server announces it)
     policy_server.admit_pdp(server, [])
-    with pytest.raises(ValueError, match=r"fitted chunk noises.*async policy server.*not where the noises were "
-                                         r"fitted.*fit_noise=none"):  # adapted with --noise chunks
-        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
+    policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted"))
+    assert len(policy.steering.noises) > 0
+    policy._paced_last.plan(7, 0)
+    policy.predict_action_chunk(frame)
+    torch.testing.assert_close(policy._paced_last.kept[3][0], policy.steering.noises.noise[0])
 
 
-def test_a_start_up_fit_of_phases_runs_on_the_server_and_one_of_chunk_noises_is_refused_before_it_runs(server_module, tmp_path, monkeypatch):
-    """The server tells the policy the actions the client executed, so a start-up fit of a latent per gripper phase
-    runs (under a paced caller that does not, it is refused); chunk noises, which the client's chunks cannot follow,
-    are refused before the fit's seconds to minutes, with the way out."""
+def test_a_start_up_fit_of_phases_and_chunk_noises_runs_on_the_server_and_is_refused_elsewhere(server_module, tmp_path, monkeypatch):
+    """The server tells the policy the actions the client executed and each chunk's step, so a start-up fit of a
+    latent per gripper phase, with chunk noises, runs; under a paced caller that does not, it is refused before the
+    fit's seconds to minutes, with the way out."""
     from lerobot_pdp.envs.recording import make_dataset
 
     server = server_module
     demo = make_dataset(env="pick-place", out=tmp_path / "pick", scene=0, episodes_per_mode=1, seed=0, modes=[0],
                         progress=False)
-    # the server tells the policy the executed actions: a latent per gripper phase is fitted
-    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=none",
-                                     "--fit_steps=2"])
+    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=chunks",
+                                     "--fit_steps=2", "--fit_noise_steps=1"])
     policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "adapted_pick_place"))
-    assert policy.steering.per_phase and policy._paced_executed is not None
+    assert policy.steering.per_phase and policy._paced_executed is not None and len(policy.steering.noises) > 0
     monkeypatch.setattr(PDPPolicy, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
     with paced_caller(PACED_ENGINE, PACED_WAY_OUT):  # a paced caller that does not report them
+        with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve "
+                                             r"an adapted checkpoint.* --policy.fit_noise=none"):
+            PDPPolicy.from_pretrained(str(CHECKPOINTS / "adapted_pick_place"), config=policy.config)
+        policy.config.fit_noise = "none"
         with pytest.raises(ValueError, match=r"episode 0 splits into [2-9] gripper phases, .*async policy server"):
             PDPPolicy.from_pretrained(str(CHECKPOINTS / "adapted_pick_place"), config=policy.config)
-    policy_server.admit_pdp(server, [f"--steer_dataset_root={demo}", "--steer_episode_index=0", "--fit_noise=chunks"])
-    with pytest.raises(ValueError, match=r"fit_noise=chunks fits one sampler noise .*async policy server.*Serve "
-                                         r"an adapted checkpoint.* --policy.fit_noise=none"):
-        server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
 
 
 def test_a_served_pdp_plans_each_chunk_just_in_time():
@@ -374,6 +376,43 @@ def test_a_served_chunk_continues_the_last_ones_noise_and_can_be_held_to_its_act
     policy_server.admit_pdp(server_module, ["--async_carry_noise=true", "--async_execution_horizon=0"])
     last = server_module.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))._paced_last
     assert last.carry_noise and last.rtc is None
+
+
+def test_fitted_chunk_noises_are_replayed_by_the_episodes_step_aligned_to_their_frames(synthetic_meta):
+    """Noise j was fitted to the chunk from the demonstration's step j * n_action_steps; the server plans chunks just
+    in time, at any step k: its noise is noise k // n shifted by k mod n rows (each row meets the frame it was fitted
+    to), the rows past its end from the next noise, fresh after the last; past the last noise, the last one. The
+    steps count from the episode's first chunk; a noise the caller gives is kept."""
+    from lerobot_pdp.paced_chunks import LastChunk
+
+    p = small_policy(synthetic_meta)
+    p.eval()
+    cfg, a = p.config, p.action_dim
+    n, h = cfg.n_action_steps, cfg.horizon
+    noises = torch.randn(3, h, a, generator=torch.Generator().manual_seed(0))
+    p.steering.activate(p.mode_latents()[1], noise=noises)
+    last = LastChunk(carry_noise=True, execution_horizon=0)  # fitted noises come before the carried one
+
+    def noise_at(t: int, given=None):  # as the server asks for the chunk planned from timestep t
+        last.plan(t, 0)
+        x = last.noise(p, given, 1, "cpu")
+        last.keep(p, torch.zeros(1, n, a), x)
+        return x[0]
+
+    p.reset()
+    torch.testing.assert_close(noise_at(40), noises[0])  # the episode's first chunk: step 0
+    x = noise_at(40 + n + 3)  # step n + 3: noise 1 three rows on, then noise 2's rows for those steps
+    torch.testing.assert_close(x[: h - 3], noises[1, 3:])
+    torch.testing.assert_close(x[h - 3 :], noises[2, h - n : h - n + 3])
+    x = noise_at(40 + 2 * n + 2)  # noise 2 two rows on, then fresh
+    torch.testing.assert_close(x[: h - 2], noises[2, 2:])
+    assert not torch.allclose(x[h - 2 :], noises[2, :2])
+    torch.testing.assert_close(noise_at(40 + 5 * n + 1), noises[2])  # past the last noise: the last one
+    given = torch.ones(1, h, a)
+    torch.testing.assert_close(noise_at(40 + 6 * n, given=given), given[0])
+    p.reset()  # a new episode: its steps count from its first chunk
+    torch.testing.assert_close(noise_at(100), noises[0])
+    torch.testing.assert_close(noise_at(100 + n), noises[1])
 
 
 def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_policys_phases(server_module):
