@@ -224,8 +224,9 @@ class LastChunk:
       steps between their first actions (fresh rows only for the steps the last one did not reach); DDIM is
       deterministic, so the same noise under the next observation tends to the same route.
 
-    A chunk of another episode than the last one's, or one the server did not announce, starts afresh; noise given
-    by the caller or fitted (chunk noises) is not replaced."""
+    A chunk of another episode than the last one's, or one the server did not announce, starts afresh. Fitted chunk
+    noises come before a carried noise, taken by the episode's step (:meth:`fitted_noise`); noise the caller gives
+    is kept."""
 
     def __init__(self, carry_noise: bool, execution_horizon: int) -> None:
         self.carry_noise = carry_noise

@@ -309,10 +309,11 @@ def test_a_served_pdp_plans_each_chunk_just_in_time():
 
 def test_a_served_chunk_continues_the_last_ones_noise_and_can_be_held_to_its_actions(synthetic_meta, server_module):
     """Planned just in time, a chunk is planned from the observation at t while the client still holds the last
-    chunk's actions after t and runs the first of them meanwhile. Its sampler noise is the last chunk's, shifted by
-    the steps between them (fresh for the steps the last did not reach), so it takes the same route; with an
-    execution horizon it is also held to the last chunk's actions (weight 1 over the delay, then fading), as
-    lerobot-rollout's RTC engine holds PDP's chunks. A new episode, or a call the server did not announce: afresh."""
+    chunk's actions after t and runs the first of them meanwhile. With an execution horizon (the server's default)
+    it is held to the last chunk's actions (weight 1 over the delay, then fading), as lerobot-rollout's RTC engine
+    holds PDP's chunks; with ``carry_noise`` its sampler noise is the last chunk's, shifted by the steps between
+    them (fresh for the steps the last did not reach). A new episode, or a call the server did not announce:
+    afresh."""
     from lerobot_pdp.paced_chunks import EPISODE_KEY, LastChunk
 
     p, frames, noise = _policy_frames_and_noise(synthetic_meta)
