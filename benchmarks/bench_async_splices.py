@@ -54,13 +54,9 @@ class JustInTimeLoop:
         """A chunk from the history up to this step: its first action is this step's (the server's t + 1)."""
         p, cfg = self.policy, self.policy.config
         obs_cond = p.model.obs_cond({k: torch.stack(list(p._queues[k]), dim=1) for k in cfg.condition_features})
-        z = p.current_latent(obs_cond.shape[0], obs_cond.device)
-        self.last.plan(self.step - 1, self.delay)
-        noise = self.last.noise(p, p.steering.next_noise(len(z), obs_cond.device), len(z), obs_cond.device)
-        chunk = p.model.generate(obs_cond, z, noise, guide=self.last.guide(p, len(z)))
-        actions = chunk[:, cfg.n_obs_steps - 1 : cfg.n_obs_steps - 1 + cfg.n_action_steps]
-        self.last.keep(p, actions, noise)
-        return actions
+        self.last.plan(self.step - 1, self.delay)  # as the server announces a chunk, then the served path's sampling
+        chunk = self.last.sample(p, obs_cond, p.current_latent(obs_cond.shape[0], obs_cond.device), None)
+        return chunk[:, cfg.n_obs_steps - 1 : cfg.n_obs_steps - 1 + cfg.n_action_steps]
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, torch.Tensor], **_: Any) -> torch.Tensor:

@@ -89,9 +89,8 @@ class PDPPolicy(PreTrainedPolicy):
         self.register_load_state_dict_pre_hook(nest_model_keys)
         self.steering = Steering(cfg.latent_dim, cfg)  # what the next chunk is conditioned on: steering_state.py
         self._steer_file = SteerFile(cfg.steer_file) if cfg.steer_file else None
-        self._queues: dict[str, deque] = {}
         self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)
-        self.reset()
+        self.reset()  # the observation/action queues (self._queues), the steering state
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path: str | Path, **kwargs) -> PDPPolicy:
@@ -148,8 +147,7 @@ class PDPPolicy(PreTrainedPolicy):
         """One joint training step, ``L = L_DP(theta; sg(mu_phi(tau))) + L_embed(phi, psi)``: the paper's Algorithm 1
         (why one summed loss is it: :meth:`lerobot_pdp.pdp_model.PDPModel.loss_terms`). Refuses non-finite terms."""
         loss, metrics = self.model.loss_terms(batch)
-        if self.training:
-            self._train_steps += 1  # named when a loss term goes non-finite
+        self._train_steps += int(self.training)  # named when a loss term goes non-finite
         return loss, read_loss_terms(metrics, self._train_steps if self.training else None)
 
     # ------------------------------------------------------------------ acting
@@ -157,8 +155,7 @@ class PDPPolicy(PreTrainedPolicy):
     @torch.no_grad()
     def generate(self, obs_cond: Tensor, z: Tensor, noise: Tensor | None = None,
                  generator: torch.Generator | None = None, guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
-        """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z]
-        (``guide``: an edit of each step's predicted clean chunk, e.g. real-time chunking's prefix)."""
+        """Denoise chunks [B, horizon, A] (normalised) for ``obs_cond`` [B, C], ``z`` [B, d_z]; ``guide``: an x0 edit."""
         return self.model.generate(obs_cond, z, noise, generator, guide=guide)
 
     @torch.no_grad()
@@ -173,19 +170,13 @@ class PDPPolicy(PreTrainedPolicy):
             self._steer_file.poll(self)
         obs_cond = self.model.obs_cond(batch)
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
-        last = getattr(self, "_paced_last", None) if one_frame else None  # served: continues the last chunk
-        guide = None
-        if last is not None:  # fitted noises by the episode's step
-            noise, guide = last.noise(self, noise, len(z), obs_cond.device), last.guide(self, len(z))
-        elif noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
+        last = getattr(self, "_paced_last", None) if one_frame else None  # served: paced_chunks.LastChunk
+        if last is None and noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
             noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
-        chunk = self.generate(obs_cond, z, noise=noise, guide=guide)
+        chunk = self.generate(obs_cond, z, noise=noise) if last is None else last.sample(self, obs_cond, z, noise)
         check_finite_actions(chunk, z, obs_cond)  # a robot must never be sent NaN
         start = self.config.n_obs_steps - 1
-        actions = chunk[:, start : start + self.config.n_action_steps]
-        if last is not None:
-            last.keep(self, actions, noise)
-        return actions
+        return chunk[:, start : start + self.config.n_action_steps]
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:

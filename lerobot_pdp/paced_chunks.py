@@ -287,6 +287,15 @@ class LastChunk:
             return None
         return prefix_guide(policy, self.kept[2][:, k:], self.at[1], batch_size, self.rtc)
 
+    def sample(self, policy: Any, obs_cond: Tensor, z: Tensor, noise: Tensor | None) -> Tensor:
+        """The chunk [B, horizon, A] (normalised) for ``obs_cond``, ``z``, continuing the last one (:meth:`noise`,
+        :meth:`guide`); its actions are kept for the next."""
+        noise = self.noise(policy, noise, len(z), obs_cond.device)
+        chunk = policy.generate(obs_cond, z, noise=noise, guide=self.guide(policy, len(z)))
+        start = policy.config.n_obs_steps - 1
+        self.keep(policy, chunk[:, start : start + policy.config.n_action_steps], noise)
+        return chunk
+
     def keep(self, policy: Any, actions: Tensor, noise: Tensor) -> None:
         """The chunk planned (actions [B, n, A], normalised; its first for the step after the observation's)."""
         self.kept = (policy.steering.resets, self.at[0] + 1, actions, noise) if self.at is not None else None

@@ -117,22 +117,20 @@ def apply_config_steering(policy: Any) -> None:
                     "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
 
-# (engine, way out, whether it reports the executed actions, whether it replays fitted chunk noises by step) of a
-# caller that replans at its own pace, set while it loads the policy: LeRobot's async policy server
-# (policy_server.py) sets it; lerobot-rollout's RTC engine is told from the command line
-_PACED: contextvars.ContextVar[tuple[str, str, bool, bool] | None] = contextvars.ContextVar("pdp_paced_caller",
-                                                                                           default=None)
+# (engine, way out, whether it reports the executed actions and each chunk's step) of a caller that replans at its
+# own pace, set while it loads the policy: LeRobot's async policy server (policy_server.py) sets it; lerobot-rollout's
+# RTC engine is told from the command line
+_PACED: contextvars.ContextVar[tuple[str, str, bool] | None] = contextvars.ContextVar("pdp_paced_caller", default=None)
 
 
 @contextlib.contextmanager
-def paced_caller(engine: str, way_out: str, reports_executed: bool = False,
-                 replays_noises: bool | None = None) -> Iterator[None]:
-    """Policies loaded in this block will be called by ``engine``, which replans at its own pace (and tells the
-    policy the actions the robot executed when ``reports_executed``; replays fitted chunk noises by step when
-    ``replays_noises``, None: as ``reports_executed``): a start-up fit whose result it cannot follow is refused
-    before it runs (:func:`refuse_paced_fit`), as ``realtime_chunking.check_rtc_steering`` refuses it at a chunk."""
-    replays = reports_executed if replays_noises is None else replays_noises
-    token = _PACED.set((engine, way_out, reports_executed, replays))
+def paced_caller(engine: str, way_out: str, reports_executed: bool = False) -> Iterator[None]:
+    """Policies loaded in this block will be called by ``engine``, which replans at its own pace (and, when
+    ``reports_executed``, tells the policy the actions the robot executed, so per-phase latents follow, and each
+    chunk's step, so fitted chunk noises are replayed by step): a start-up fit whose result it cannot follow is
+    refused before it runs (:func:`refuse_paced_fit`), as ``realtime_chunking.check_rtc_steering`` refuses it at a
+    chunk."""
+    token = _PACED.set((engine, way_out, reports_executed))
     try:
         yield
     finally:
@@ -141,17 +139,14 @@ def paced_caller(engine: str, way_out: str, reports_executed: bool = False,
 
 def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     """Under a caller that replans at its own pace, refuse a start-up fit whose result it could not follow, before
-    the fit runs: sampler noises per chunk, unless it replays them by step (lerobot-rollout's RTC engine with
-    ``rtc_consumed_delay``), or one latent per gripper phase, unless it reports the executed actions (that engine,
-    PDP's policy server); the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only
+    the fit runs: sampler noises per chunk or one latent per gripper phase, unless it reports the executed actions
+    and so each chunk's step (lerobot-rollout's RTC engine with ``rtc_consumed_delay``, PDP's policy server); the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only
     after it."""
-    reports = bool(policy.config.rtc_consumed_delay)  # PDP's RTC queue reports them and replays noises by step
-    rtc = (RTC_ENGINE, RTC_WAY_OUT, reports, reports)
-    engine, way_out, reports_executed, replays_noises = (_PACED.get() or
-                                                         (rtc if _rollout_with_rtc() else (None, None, False, False)))
+    rtc = (RTC_ENGINE, RTC_WAY_OUT, bool(policy.config.rtc_consumed_delay))  # PDP's RTC queue reports them
+    engine, way_out, reports_executed = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
     if engine is None:
         return
-    if policy.config.fit_noise == "chunks" and not replays_noises:
+    if policy.config.fit_noise == "chunks" and not reports_executed:  # noises are replayed by the reported step
         raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per {policy.config.n_action_steps} "
                          f"executed actions, which {engine} cannot replay in step (it replans at its own pace). "
                          f"{way_out} --policy.fit_noise=none")
