@@ -112,6 +112,9 @@ class BehaviorBank(nn.Module):
         # the demonstrations of the taught modes, by mode (a Demonstration each): rehearsed when teaching again,
         # saved beside the weights (taught_demos.py)
         self.taught_demos: dict[int, Any] = {}
+        # loaded to train on (lerobot-train) with its taught behaviours kept: their demonstrations are rehearsed
+        # in every batch (taught_rehearsal.py)
+        self.taught_in_training = False
 
     # ------------------------------------------------------------------ filling it
 

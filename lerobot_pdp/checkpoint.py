@@ -138,13 +138,16 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
     n_taught = loaded["taught"].shape[0]
     trained = {k: v[: len(v) - n_taught] for k, v in loaded.items() if k in ("episode", "start", "end", "global_start",
                                                                             "mode", "traces")}
-    if n_taught:  # lerobot-train samples the dataset alone: a taught mode would not be rehearsed, and drift unseen
+    if n_taught:  # lerobot-train samples the dataset alone: the taught modes' demonstrations join its batches
         taught = _taught_modes_text(loaded["mode"][-n_taught:], model_file)
         again = (f"teach them to the trained checkpoint again from the demonstrations {Path(model_file).parent} "
                  f"keeps: lerobot-pdp teach <trained checkpoint> --taught-from {Path(model_file).parent} --out <folder>")
+        if bank.same_behaviors(trained, read) and policy.config.taught_rehearsal_share > 0:
+            keep_taught_behaviors(policy, len(read["episode"]), model_file)
+            return
         if bank.same_behaviors(trained, read):
-            logger.warning("%s was taught %s, which lerobot-train cannot rehearse (it trains on the dataset's episodes "
-                           "alone): they are dropped, and the trained policy holds this dataset's behaviours; %s",
+            logger.warning("%s was taught %s; with taught_rehearsal_share=0 lerobot-train does not rehearse them: they "
+                           "are dropped, and the trained policy holds this dataset's behaviours; %s",
                            model_file, taught, again)
             bank.restore(read)
             return
@@ -157,6 +160,21 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
                    model_file, len(trained["episode"].unique()), len(trained["episode"]), len(read["episode"].unique()),
                    len(read["episode"]), taught)
     bank.restore(read)
+
+
+def keep_taught_behaviors(policy: Any, n_trained: int, model_file: str) -> None:
+    """Training goes on with the checkpoint's bank whole, its taught behaviours (the rows past ``n_trained``) kept
+    under the names its config.json gives them (the dataset named the others), and L_embed trains on the
+    dataset's behaviours alone; their demonstrations are rehearsed in every batch once read
+    (:func:`lerobot_pdp.taught_rehearsal.rehearse_taught_modes`)."""
+    bank, cfg = policy.model.bank, policy.config
+    saved = Path(model_file).with_name(CONFIG_NAME)
+    names = (read_config_json(saved).get("mode_names") or {}) if saved.is_file() else {}
+    taught = {str(m) for m in bank.taught_modes()}
+    cfg.mode_names = {**(cfg.mode_names or {}), **{m: n for m, n in names.items() if m in taught}}
+    if not len(bank.embed_pool):  # all behaviours: now the dataset's, not the taught ones
+        bank.embed_pool = torch.arange(n_trained, device=bank.episode.device)
+    bank.taught_in_training = True
 
 
 def _taught_modes_text(modes: Tensor, model_file: str) -> str:

@@ -194,6 +194,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     optimizer_grad_clip_norm: float = 10.0
     # Linear warm-up steps of the cosine learning-rate schedule.
     scheduler_warmup_steps: int = 100
+    # lerobot-train on a taught checkpoint (--policy.path or --resume, same dataset): the taught modes' share of each
+    # batch, windows of the demonstrations the checkpoint keeps appended at their taught latents, so the modes are
+    # rehearsed as teach rehearses them (the share: teach's --demo-share); 0: they are dropped (taught_rehearsal.py).
+    taught_rehearsal_share: float = 0.25
     # torch.compile the denoiser (as LeRobot's diffusion does; lerobot-rollout's --use_torch_compile sets
     # it): fuses the many small kernels of its blocks (GroupNorm, Mish, FiLM) for the training step and the
     # sampler. Off by default: the first step and the first chunk compile for tens of seconds, and it needs
@@ -344,6 +348,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
         for name in ("beta_kl", "beta_geo", "fit_lambda", "async_execution_horizon"):
             if getattr(self, name) < 0:
                 errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.taught_rehearsal_share < 1:
+            errors.append(f"taught_rehearsal_share must be in [0, 1), got {self.taught_rehearsal_share}")
         for name in ("n_obs_steps", "horizon", "n_action_steps", "trace_length", "num_train_timesteps",
                      "num_inference_steps", "embed_batch_size", "fit_batch_size", "fit_noise_samples",
                      "phase_switch_steps"):

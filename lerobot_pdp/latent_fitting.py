@@ -39,6 +39,16 @@ class DemoWindows:
     n_segments: int
 
 
+def window_indices(T: int, n_obs_steps: int, horizon: int) -> tuple[Tensor, Tensor, Tensor]:
+    """For the window at each frame t of a T-frame episode: its observation frames t-n_obs+1..t [T, n_obs], its
+    action frames t-n_obs+1..t-n_obs+horizon [T, horizon], both clamped into the episode (copy padding, as
+    LeRobotDataset pads), and which action frames ran past it [T, horizon]."""
+    t = torch.arange(T)
+    obs_idx = (t[:, None] + torch.arange(1 - n_obs_steps, 1)[None]).clamp(0, T - 1)
+    act_raw = t[:, None] + torch.arange(1 - n_obs_steps, 1 - n_obs_steps + horizon)[None]
+    return obs_idx, act_raw.clamp(0, T - 1), (act_raw < 0) | (act_raw > T - 1)
+
+
 def frame_windows(frame_cond: Tensor, actions: Tensor, n_obs_steps: int, horizon: int,
                   segments: list[tuple[int, int]]) -> DemoWindows:
     """Windows at every frame t of per-frame condition features ``frame_cond`` [T, F] and ``actions`` [T, A]:
@@ -48,12 +58,8 @@ def frame_windows(frame_cond: Tensor, actions: Tensor, n_obs_steps: int, horizon
     per-frame features (not raw observations) lets a camera frame be encoded once, not once per window.
     """
     T = frame_cond.shape[0]
-    t = torch.arange(T)
-    obs_idx = (t[:, None] + torch.arange(1 - n_obs_steps, 1)[None]).clamp(0, T - 1)
-    act_raw = t[:, None] + torch.arange(1 - n_obs_steps, 1 - n_obs_steps + horizon)[None]
-    act_idx = act_raw.clamp(0, T - 1)
+    obs_idx, act_idx, is_pad = window_indices(T, n_obs_steps, horizon)
     obs_cond = frame_cond[obs_idx.to(frame_cond.device)].flatten(1)
-    is_pad = (act_raw < 0) | (act_raw > T - 1)
     seg = torch.zeros(T, dtype=torch.long)
     for m, (a, b) in enumerate(segments):
         seg[a:b] = m

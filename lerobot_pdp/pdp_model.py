@@ -70,6 +70,9 @@ class PDPModel(nn.Module):
         self.register_buffer("train_loss_dp", torch.tensor(float("nan")))
         if behaviors is not None:
             self.bank.set(behaviors)
+        # lerobot-train on a taught checkpoint: the taught demonstrations' windows appended to each training batch
+        # (taught_rehearsal.TaughtRehearsal; set when such a checkpoint is loaded to train on)
+        self.rehearsal = None
 
         self.vae = TrajectoryVAE(cfg.trace_length, cfg.trace_dim, cfg.latent_dim, tuple(cfg.vae_hidden_dims))
         if len(self.bank.traces):
@@ -141,7 +144,8 @@ class PDPModel(nn.Module):
         actions = batch[ACTION]
         return (cfg.train_cuda_graphs and self._train_graphs is not None and actions.is_cuda and self.training
                 and torch.is_grad_enabled() and not cfg.compile_model and not torch.is_autocast_enabled("cuda")
-                and world()[1] == 1 and not (cfg.image_features and cfg.crop_shape and cfg.crop_is_random))
+                and world()[1] == 1 and not (cfg.image_features and cfg.crop_shape and cfg.crop_is_random)
+                and self.rehearsal is None)
 
     def _loss_inputs(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """The tensors ``_loss_terms`` reads (a LeRobot batch also holds strings, timestamps, ...)."""
@@ -153,7 +157,12 @@ class PDPModel(nn.Module):
 
     def _loss_terms(self, batch: dict[str, Tensor], check_episodes: bool = True) -> tuple[Tensor, dict[str, Tensor]]:
         """``loss_terms`` run eagerly (and what the training graphs capture)."""
-        z_bar, behavior = self.batch_latents(batch, check_episodes)
+        z_bar, _ = self.batch_latents(batch, check_episodes)
+        n_data = len(z_bar)
+        if self.rehearsal is not None and self.training:  # the taught modes, which the dataset does not hold
+            batch, rows = self.rehearsal.extend(batch)
+            with torch.no_grad():
+                z_bar = torch.cat([z_bar, self.behavior_latents(rows).to(z_bar)])
         obs_cond = self.obs_cond(batch)
         actions = batch[ACTION]
         eps = torch.randn_like(actions)
@@ -168,6 +177,9 @@ class PDPModel(nn.Module):
                 seen = self.train_loss_dp
                 self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, torch.lerp(seen, loss_dp, 0.01)))
         metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
+        if len(actions) > n_data:  # what the taught windows alone weigh, for the log
+            metrics["loss_dp_taught"] = diffusion_loss(pred[n_data:], eps[n_data:],
+                                                       None if is_pad is None else is_pad[n_data:]).detach()
         loss = loss_dp
         if self.config.latent_type == "continuous" and self.training:
             loss_embed, embed_info = self.embedding_loss(actions.device)

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from .demonstration import Demonstration
+from .taught_rehearsal import rehearse_taught_modes
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +74,13 @@ def write_taught_demos(bank: Any, image_keys: set[str], directory: Path) -> bool
 def read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
     """Give ``policy``'s behaviour bank the taught demonstrations its checkpoint ``pretrained`` keeps, if any
     (a local folder or a Hub repo); a mode the bank does not hold as taught, or a damaged file, is left out with
-    a warning."""
+    a warning. Loaded to train on (lerobot-train), they are then rehearsed in every batch."""
+    _read_taught_demos(policy, pretrained, **hub)
+    if policy.model.bank.taught_in_training:
+        rehearse_taught_modes(policy)
+
+
+def _read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 

@@ -124,6 +124,30 @@ def test_a_camera_policy_is_taught_and_taught_again_with_its_frames_kept(image_d
     obs = {k: ds[0][k][None] for k in taught.config.input_features}
     assert torch.isfinite(taught.select_action(obs)).all()
 
+    # trained further (lerobot-train --policy.path): the kept frames join each batch as the loader's windows would
+    cfg = PDPConfig.from_pretrained(tmp_path / "taught")
+    cfg.pretrained_path = tmp_path / "taught"
+    trained = make_policy(cfg, ds_meta=_meta(image_dataset))
+    rehearsal = trained.model.rehearsal
+    assert len(rehearsal) == len(ds) and bool((trained.model.bank.mode[rehearsal.rows] == first.mode).all())
+    batch = _batch(image_dataset, trained)
+    meta = _meta(image_dataset)
+    dt = {k: [i / meta.fps for i in cfg.observation_delta_indices] for k in cfg.input_features}
+    loader = LeRobotDataset("local/synthetic", root=image_dataset, episodes=[5], video_backend="pyav",
+                            delta_timestamps={**dt, ACTION: [i / meta.fps for i in cfg.action_delta_indices]})
+    pre, _ = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    for t in (0, len(ds) // 2, len(ds) - 1):
+        item = pre(torch.utils.data.default_collate([loader[t]]))
+        for key, f in rehearsal.frames.items():  # camera frames within the uint8 step the checkpoint keeps them at
+            torch.testing.assert_close(f[rehearsal.obs_idx[t]], item[key][0], atol=0.02, rtol=0)
+        torch.testing.assert_close(rehearsal.actions[rehearsal.act_idx[t]], item[ACTION][0], atol=1e-5, rtol=1e-5)
+        assert torch.equal(rehearsal.is_pad[t], item["action_is_pad"][0])
+    trained.train()
+    loss, out = trained.forward(batch)
+    loss.backward()
+    assert np.isfinite(out["loss_dp_taught"])
+    assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in trained.model.obs_encoder.parameters())
+
 
 def test_separate_encoder_per_camera(image_dataset):
     policy = make_policy(PDPConfig(use_separate_rgb_encoder_per_camera=True, **SMALL), ds_meta=_meta(image_dataset))

@@ -189,9 +189,10 @@ def test_a_rehearsal_read_once_teaches_as_the_dataset_folder_does(synthetic_meta
 
 def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_checkpoint(synthetic_meta, tmp_path,
                                                                                        caplog, capsys, monkeypatch):
-    """lerobot-train on a taught checkpoint trains the dataset's behaviours alone: the taught modes are dropped with
-    a warning that names them and the way back, ``teach <trained> --taught-from <taught>``, which teaches them
-    again from the demonstrations the taught checkpoint keeps, in order and under their names."""
+    """lerobot-train on a taught checkpoint with ``taught_rehearsal_share=0`` trains the dataset's behaviours alone:
+    the taught modes are dropped with a warning that names them and the way back, ``teach <trained> --taught-from
+    <taught>``, which teaches them again from the demonstrations the taught checkpoint keeps, in order and under
+    their names."""
     import logging
 
     from lerobot.policies.factory import make_policy
@@ -210,11 +211,11 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
                 str(tmp_path / "t2")]) == 0
 
     cfg = PDPConfig.from_pretrained(tmp_path / "t2")  # what lerobot-train --policy.path builds, on the same dataset
-    cfg.pretrained_path = tmp_path / "t2"
+    cfg.pretrained_path, cfg.taught_rehearsal_share = tmp_path / "t2", 0.0
     caplog.set_level(logging.WARNING, logger="lerobot_pdp.checkpoint")
     trained = make_policy(cfg, ds_meta=synthetic_meta)
-    assert ("was taught mode(s) 4 ('far right'), 5 ('farther right'), which lerobot-train cannot rehearse"
-            in caplog.text)
+    assert ("was taught mode(s) 4 ('far right'), 5 ('farther right'); with taught_rehearsal_share=0 lerobot-train "
+            "does not rehearse them: they are dropped" in caplog.text)
     assert f"lerobot-pdp teach <trained checkpoint> --taught-from {tmp_path / 't2'} --out <folder>" in caplog.text
     assert sorted(trained.mode_latents()) == [0, 1, 2, 3] and not trained.model.bank.taught_demos
     trained.save_pretrained(tmp_path / "trained")
@@ -253,6 +254,103 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
     assert cli(["teach", str(tmp_path / "trained"), "--taught-from", str(base), *data, "--out", str(tmp_path / "x")]) == 2
     assert f"{base} keeps no taught demonstrations ({TAUGHT_DEMOS})" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthetic_meta, tmp_path, caplog):
+    """Loaded to train on over its training dataset (what ``lerobot-train --policy.path`` / ``--resume`` builds), a
+    taught checkpoint keeps its taught modes, named as taught: each training batch gets windows of the taught
+    demonstrations, a quarter of the batch they make, at the taught latents; the windows are the teaching windows
+    (hence the training loader's); L_embed trains on the dataset's behaviours alone; the checkpoint it saves keeps
+    the modes and their demonstrations, and trains on again so."""
+    import logging
+
+    from lerobot.policies.factory import make_policy
+    from policies import training_batch
+
+    from lerobot_pdp import PDPConfig
+
+    base = tmp_path / "base"
+    small_policy(synthetic_meta).save_pretrained(base)
+    _write_demo(tmp_path / "demo", new_route())
+    assert cli(["teach", str(base), "--demo", str(tmp_path / "demo"), "--data", str(synthetic_meta.root), "--steps",
+                "1", "--name", "far right", "--out", str(tmp_path / "taught")]) == 0
+    taught = PDPPolicy.from_pretrained(tmp_path / "taught")
+    assert taught.model.rehearsal is None  # loaded to act: nothing to rehearse
+
+    def load_to_train(folder):
+        cfg = PDPConfig.from_pretrained(folder)
+        cfg.pretrained_path = folder
+        return make_policy(cfg, ds_meta=synthetic_meta)
+
+    caplog.set_level(logging.INFO, logger="lerobot_pdp")
+    trained = load_to_train(tmp_path / "taught")
+    n_demo = len(new_route()["action"])
+    assert f"training rehearses taught mode(s) [4]: {n_demo} windows of their demonstrations, 25 % of each batch" \
+        in caplog.text
+    assert "dropped" not in caplog.text
+    bank, rehearsal = trained.model.bank, trained.model.rehearsal
+    assert sorted(trained.mode_latents()) == [0, 1, 2, 3, 4] and trained.config.mode_names["4"] == "far right"
+    torch.testing.assert_close(trained.mode_latents()[4], taught.mode_latents()[4])
+    n_data = int((bank.mode != 4).sum())
+    assert sorted(bank.embed_pool.tolist()) == list(range(n_data))  # not the taught behaviour
+    w = trained.demo_windows((tmp_path / "demo", 0), segments=None)
+    assert len(rehearsal) == len(w.actions) == n_demo
+    with torch.no_grad():
+        frames = {k: f[rehearsal.obs_idx] for k, f in rehearsal.frames.items()}
+        torch.testing.assert_close(trained.model.obs_cond(frames), w.obs_cond)
+    torch.testing.assert_close(rehearsal.actions[rehearsal.act_idx], w.actions)
+    assert torch.equal(rehearsal.is_pad, w.is_pad) and bool((rehearsal.rows == n_data).all())
+
+    seen = []
+    trained.model.denoiser.register_forward_hook(lambda m, args, out: seen.append(args[3].detach().clone()))
+    trained.train()
+    batch = training_batch(synthetic_meta, trained, n=12)
+    loss, out = trained.forward(batch)
+    z = seen[-1]
+    assert z.shape[0] == 12 + 4  # 4 taught windows: a quarter of the 16
+    torch.testing.assert_close(z[12:], trained.mode_latents()[4].expand(4, -1))
+    assert np.isfinite(out["loss_dp_taught"]) and out["loss_dp_taught"] > 0
+    loss.backward()
+    trained.save_pretrained(tmp_path / "trained")
+    assert (tmp_path / "trained" / TAUGHT_DEMOS).is_file()
+    again = PDPPolicy.from_pretrained(tmp_path / "trained")
+    assert sorted(again.mode_latents()) == [0, 1, 2, 3, 4] and again.config.mode_names["4"] == "far right"
+    assert sorted(again.model.bank.taught_demos) == [4]
+    assert load_to_train(tmp_path / "trained").model.rehearsal is not None  # --resume: rehearsed on
+
+    (tmp_path / "bare").mkdir()  # a taught checkpoint without its demonstrations: kept, said not rehearsed
+    for f in (tmp_path / "taught").iterdir():
+        if f.name != TAUGHT_DEMOS:
+            (tmp_path / "bare" / f.name).write_bytes(f.read_bytes())
+    caplog.clear()
+    bare = load_to_train(tmp_path / "bare")
+    assert bare.model.rehearsal is None and sorted(bare.mode_latents()) == [0, 1, 2, 3, 4]
+    assert "taught mode(s) [4]: their checkpoint keeps no demonstration of them" in caplog.text
+
+
+def test_lerobot_train_from_a_taught_checkpoint_keeps_its_mode(synthetic_meta, tmp_path):
+    """A real ``lerobot-train --policy.path=TAUGHT`` on the training dataset says it rehearses the taught mode, and its
+    checkpoint keeps the mode (latent, name, demonstration): ``--policy.steer_mode`` still reaches it."""
+    from conftest import lerobot_cli, run_cli
+    from lerobot.policies.factory import make_pre_post_processors
+
+    base = tmp_path / "base"
+    policy = small_policy(synthetic_meta)
+    policy.save_pretrained(base)
+    for processor in make_pre_post_processors(policy.config, dataset_stats=synthetic_meta.stats):
+        processor.save_pretrained(base)  # as lerobot-train saves a checkpoint
+    _write_demo(tmp_path / "demo", new_route())
+    assert cli(["teach", str(base), "--demo", str(tmp_path / "demo"), "--data", str(synthetic_meta.root), "--steps",
+                "1", "--name", "far right", "--out", str(tmp_path / "taught")]) == 0
+    proc = run_cli([lerobot_cli("lerobot-train"), f"--policy.path={tmp_path / 'taught'}", "--dataset.repo_id=local/tiny",
+                    f"--dataset.root={synthetic_meta.root}", "--steps=2", "--batch_size=6", "--num_workers=0",
+                    "--save_freq=2", "--log_freq=1", "--wandb.enable=false", f"--output_dir={tmp_path / 'train'}"],
+                   timeout=600)
+    assert "training rehearses taught mode(s) [4]" in proc.stdout + proc.stderr
+    trained = PDPPolicy.from_pretrained(tmp_path / "train" / "checkpoints" / "last" / "pretrained_model")
+    assert sorted(trained.mode_latents()) == [0, 1, 2, 3, 4] and trained.config.mode_names["4"] == "far right"
+    assert sorted(trained.model.bank.taught_demos) == [4]
+    torch.testing.assert_close(trained.mode_latents()[4], PDPPolicy.from_pretrained(tmp_path / "taught").mode_latents()[4])
 
 
 def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
