@@ -127,10 +127,11 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
 
 def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: str) -> None:
     """A checkpoint loaded to train on (lerobot-train ``--policy.path`` or ``--resume``) over a dataset whose
-    behaviours differ from the ones the checkpoint's bank holds (another dataset, a grown one, other episodes):
-    training goes on with the dataset's, ``read`` when the policy was built, so that every training window is
-    conditioned on its own episode's latent; the checkpoint's bank would give each a stranger's, or fail at
-    the first episode it lacks. Said in a warning, with what changes (its mode latents, taught modes)."""
+    behaviours differ from the ones the checkpoint's bank holds (another dataset, a grown one, other episodes, or
+    taught modes): training goes on with the dataset's, ``read`` when the policy was built, so that every training
+    window is conditioned on its own episode's latent; the checkpoint's bank would give each a stranger's, or fail at
+    the first episode it lacks. Its taught modes are kept and rehearsed (:func:`keep_taught_behaviors`) where their
+    ids stay free. Said in a warning, with what changes (its mode latents, taught modes)."""
     bank = policy.model.bank
     loaded = bank.snapshot()
     if bank.same_behaviors(loaded, read):
@@ -138,38 +139,63 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
     n_taught = loaded["taught"].shape[0]
     trained = {k: v[: len(v) - n_taught] for k, v in loaded.items() if k in ("episode", "start", "end", "global_start",
                                                                             "mode", "traces")}
+    same = bank.same_behaviors(trained, read)
+    taught = ""
     if n_taught:  # lerobot-train samples the dataset alone: the taught modes' demonstrations join its batches
-        taught = _taught_modes_text(loaded["mode"][-n_taught:], model_file)
-        again = (f"teach them to the trained checkpoint again from the demonstrations {Path(model_file).parent} "
-                 f"keeps: lerobot-pdp teach <trained checkpoint> --taught-from {Path(model_file).parent} --out <folder>")
-        if bank.same_behaviors(trained, read) and policy.config.taught_rehearsal_share > 0:
-            keep_taught_behaviors(policy, len(read["episode"]), model_file)
-            return
-        if bank.same_behaviors(trained, read):
-            logger.warning("%s was taught %s; with taught_rehearsal_share=0 lerobot-train does not rehearse them: they "
-                           "are dropped, and the trained policy holds this dataset's behaviours; %s",
-                           model_file, taught, again)
+        names = _saved_mode_names(model_file)
+        text = _taught_modes_text(loaded["mode"][-n_taught:], names)
+        share = policy.config.taught_rehearsal_share
+        if share > 0 and (same or _carry_taught(bank, loaded, read, names)):
+            keep_taught_behaviors(policy, len(read["episode"]), names)
+            if same:
+                return
+            taught = f"; its taught {text} join them, rehearsed in every batch"
+        else:
+            again = (f"teach them to the trained checkpoint again from the demonstrations {Path(model_file).parent} "
+                     f"keeps: lerobot-pdp teach <trained checkpoint> --taught-from {Path(model_file).parent} --out "
+                     "<folder>")
+            why = ("with taught_rehearsal_share=0 lerobot-train does not rehearse them" if share == 0 else
+                   "this dataset has episodes without a mode label" if bool((read["mode"] < 0).any()) else
+                   f"this dataset's modes reach {int(read['mode'].max())}, so they would change their ids")
+            if same:
+                logger.warning("%s was taught %s; %s: they are dropped, and the trained policy holds this dataset's "
+                               "behaviours; %s", model_file, text, why, again)
+                bank.restore(read)
+                return
+            taught = f"; its taught {text} are dropped ({why}; {again})"
             bank.restore(read)
-            return
-        taught = f"; its taught {taught} are not in this dataset and are dropped ({again})"
     else:
-        taught = ""
+        bank.restore(read)
     logger.warning("%s holds the behaviours of other data (%d episode(s), %d behaviours) than the dataset this "
                    "policy trains on (%d episode(s), %d behaviours): training goes on with this dataset's behaviour "
                    "bank (its traces, modes and soft-DTW distances), so mode latents now describe this dataset%s",
                    model_file, len(trained["episode"].unique()), len(trained["episode"]), len(read["episode"].unique()),
                    len(read["episode"]), taught)
+
+
+def _carry_taught(bank: Any, loaded: dict[str, Tensor], read: dict[str, Tensor], names: dict[str, str]) -> bool:
+    """The dataset's behaviours (``read``), then the loaded bank's taught ones appended in order under their ids,
+    latents and names (their soft-DTW distances to this dataset's computed); False, the bank untouched, when the
+    dataset is unlabelled or its modes reach the first taught id (the taught modes would change their ids)."""
+    first = len(loaded["mode"]) - len(loaded["taught"])
+    taught_modes = loaded["mode"][first:]
+    if bool((read["mode"] < 0).any()) or int(read["mode"].max()) + 1 != int(taught_modes.min()):
+        return False
     bank.restore(read)
+    for mode in sorted(set(taught_modes.tolist())):
+        rows = torch.nonzero(loaded["mode"] == mode).flatten()  # one per phase, in order
+        segments = list(zip(loaded["start"][rows].tolist(), loaded["end"][rows].tolist(), strict=True))
+        bank.append(loaded["traces"][rows].cpu().numpy(), segments, names.get(str(mode), f"taught mode {mode}"),
+                    loaded["taught"][rows - first])
+    return True
 
 
-def keep_taught_behaviors(policy: Any, n_trained: int, model_file: str) -> None:
-    """Training goes on with the checkpoint's bank whole, its taught behaviours (the rows past ``n_trained``) kept
-    under the names its config.json gives them (the dataset named the others), and L_embed trains on the
+def keep_taught_behaviors(policy: Any, n_trained: int, names: dict[str, str]) -> None:
+    """Training goes on with the bank's taught behaviours (the rows past ``n_trained``) kept under the names the
+    checkpoint's config.json gives them (``names``: the dataset named the others), and L_embed trains on the
     dataset's behaviours alone; their demonstrations are rehearsed in every batch once read
     (:func:`lerobot_pdp.taught_rehearsal.rehearse_taught_modes`)."""
     bank, cfg = policy.model.bank, policy.config
-    saved = Path(model_file).with_name(CONFIG_NAME)
-    names = (read_config_json(saved).get("mode_names") or {}) if saved.is_file() else {}
     taught = {str(m) for m in bank.taught_modes()}
     cfg.mode_names = {**(cfg.mode_names or {}), **{m: n for m, n in names.items() if m in taught}}
     if not len(bank.embed_pool):  # all behaviours: now the dataset's, not the taught ones
@@ -177,13 +203,18 @@ def keep_taught_behaviors(policy: Any, n_trained: int, model_file: str) -> None:
     bank.taught_in_training = True
 
 
-def _taught_modes_text(modes: Tensor, model_file: str) -> str:
-    """"mode(s) 4 ('around the crate')": the taught modes, named as the checkpoint's config.json names them."""
+def _saved_mode_names(model_file: str) -> dict[str, str]:
+    """The ``mode_names`` of the config.json beside ``model_file`` (none when it is absent or damaged: a damaged
+    config.json was reported where it was read)."""
     saved = Path(model_file).with_name(CONFIG_NAME)
     try:
-        names = (read_config_json(saved).get("mode_names") or {}) if saved.is_file() else {}
-    except ValueError:  # a damaged config.json was reported where it was read; the ids alone here
-        names = {}
+        return (read_config_json(saved).get("mode_names") or {}) if saved.is_file() else {}
+    except ValueError:
+        return {}
+
+
+def _taught_modes_text(modes: Tensor, names: dict[str, str]) -> str:
+    """"mode(s) 4 ('around the crate')": the taught modes, named as the checkpoint's config.json names them."""
     ids = sorted({int(m) for m in modes.tolist()})
     return "mode(s) " + ", ".join(f"{m} ({names[str(m)]!r})" if str(m) in names else str(m) for m in ids)
 

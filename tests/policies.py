@@ -19,13 +19,14 @@ def small_policy(meta, device: str = "cpu", seed: int = 0, **kw):
         return make_policy(PDPConfig(device=device, push_to_hub=False, down_dims=(16, 32), **kw), ds_meta=meta)
 
 
-def training_batch(meta, policy, n: int = 8, seed: int = 0) -> dict:
-    """``n`` training windows as LeRobot's loader and preprocessor hand them over (on the policy's device)."""
+def training_batch(meta, policy, n: int = 8, seed: int = 0, episodes: list[int] | None = None) -> dict:
+    """``n`` training windows (of ``episodes``, default all) as LeRobot's loader and preprocessor hand them over (on
+    the policy's device)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     cfg = policy.config
     fps = meta.fps
-    ds = LeRobotDataset("local/synthetic", root=meta.root, video_backend="pyav", delta_timestamps={
+    ds = LeRobotDataset("local/synthetic", root=meta.root, episodes=episodes, video_backend="pyav", delta_timestamps={
         **{k: [i / fps for i in cfg.observation_delta_indices] for k in cfg.input_features},
         ACTION: [i / fps for i in cfg.action_delta_indices],
     })

@@ -270,7 +270,7 @@ def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthet
     from lerobot_pdp import PDPConfig
 
     base = tmp_path / "base"
-    small_policy(synthetic_meta).save_pretrained(base)
+    small_policy(synthetic_meta, dataset_episodes=list(range(20))).save_pretrained(base)  # half the episodes
     _write_demo(tmp_path / "demo", new_route())
     assert cli(["teach", str(base), "--demo", str(tmp_path / "demo"), "--data", str(synthetic_meta.root), "--steps",
                 "1", "--name", "far right", "--out", str(tmp_path / "taught")]) == 0
@@ -304,7 +304,7 @@ def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthet
     seen = []
     trained.model.denoiser.register_forward_hook(lambda m, args, out: seen.append(args[3].detach().clone()))
     trained.train()
-    batch = training_batch(synthetic_meta, trained, n=12)
+    batch = training_batch(synthetic_meta, trained, n=12, episodes=list(range(20)))
     loss, out = trained.forward(batch)
     z = seen[-1]
     assert z.shape[0] == 12 + 4  # 4 taught windows: a quarter of the 16
@@ -317,6 +317,18 @@ def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthet
     assert sorted(again.mode_latents()) == [0, 1, 2, 3, 4] and again.config.mode_names["4"] == "far right"
     assert sorted(again.model.bank.taught_demos) == [4]
     assert load_to_train(tmp_path / "trained").model.rehearsal is not None  # --resume: rehearsed on
+
+    # over a grown dataset (more episodes of the same modes): the taught mode joins its behaviours, same id and latent
+    caplog.clear()
+    cfg = PDPConfig.from_pretrained(tmp_path / "taught")
+    cfg.pretrained_path, cfg.dataset_episodes = tmp_path / "taught", None
+    grown = make_policy(cfg, ds_meta=synthetic_meta)
+    assert "its taught mode(s) 4 ('far right') join them, rehearsed in every batch" in caplog.text
+    gb = grown.model.bank
+    assert len(gb.episode) == int((gb.mode != 4).sum()) + 1 > len(bank.episode) and gb.distances.shape[0] == len(gb.episode)
+    torch.testing.assert_close(grown.mode_latents()[4], taught.mode_latents()[4])
+    assert grown.config.mode_names["4"] == "far right" and len(grown.model.rehearsal) == n_demo
+    assert int(grown.model.rehearsal.rows[0]) == len(gb.episode) - 1
 
     (tmp_path / "bare").mkdir()  # a taught checkpoint without its demonstrations: kept, said not rehearsed
     for f in (tmp_path / "taught").iterdir():
