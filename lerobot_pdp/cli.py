@@ -482,14 +482,15 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
         "from the demonstration and the rest rehearsing the training data. Writes a complete LeRobot checkpoint "
         "(config naming the new mode, weights, processors, teaching.json, model card); steer to the new mode with "
         "--policy.steer_mode=<id>. With --taught-from instead of --demo: teach the checkpoint every mode a taught "
-        "checkpoint was taught, from the demonstrations it keeps (lerobot-train drops taught modes).",
+        "checkpoint was taught, from the demonstrations it keeps (where lerobot-train dropped them: another dataset whose "
+        "modes take their ids, or --policy.taught_rehearsal_share=0).",
     )
     add_demonstration_arguments(p, "taught", demo_required=False,
                                 episode_help="its episode index (default 0); several: one new mode each, taught in "
                                 "order into one checkpoint, e.g. the routes one lerobot-record session recorded")
     p.add_argument("--taught-from", type=Path, default=None,
                    help="a taught checkpoint: teach every mode it was taught, in order and under its name, from the "
-                   "demonstrations it keeps (instead of --demo; e.g. onto a checkpoint lerobot-train trained further)")
+                   "demonstrations it keeps (instead of --demo; e.g. onto a checkpoint lerobot-train trained without them)")
     p.add_argument("--data", type=Path, default=None,
                    help="the dataset the checkpoint was trained on, rehearsed while teaching (default: the one its "
                    "train_config.json names)")

@@ -194,9 +194,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     optimizer_grad_clip_norm: float = 10.0
     # Linear warm-up steps of the cosine learning-rate schedule.
     scheduler_warmup_steps: int = 100
-    # lerobot-train on a taught checkpoint (--policy.path or --resume, same dataset): the taught modes' share of each
-    # batch, windows of the demonstrations the checkpoint keeps appended at their taught latents, so the modes are
-    # rehearsed as teach rehearses them (the share: teach's --demo-share); 0: they are dropped (taught_rehearsal.py).
+    # lerobot-train on a taught checkpoint (--policy.path or --resume): the taught modes' share of each batch, windows
+    # of the demonstrations the checkpoint keeps appended at their taught latents, so the modes are rehearsed as teach
+    # rehearses them (the share: teach's --demo-share); 0: they are dropped (taught_rehearsal.py).
     taught_rehearsal_share: float = 0.25
     # torch.compile the denoiser (as LeRobot's diffusion does; lerobot-rollout's --use_torch_compile sets
     # it): fuses the many small kernels of its blocks (GroupNorm, Mish, FiLM) for the training step and the

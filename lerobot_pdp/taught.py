@@ -9,7 +9,8 @@ then a mode like the others: ``--policy.steer_mode=<id>`` in ``lerobot-eval`` / 
 
 ``lerobot-pdp teach CKPT --taught-from TAUGHT --out NEW`` (:func:`teach_again_from`) teaches CKPT every mode TAUGHT
 was taught, from the demonstrations TAUGHT keeps: how taught modes are carried over to a checkpoint that
-``lerobot-train`` trained further (its loop trains the dataset's behaviours only; it warns that they are dropped).
+``lerobot-train`` trained without them (it keeps and rehearses them where it can: :mod:`.taught_rehearsal`; it warns
+when it drops them).
 """
 
 from __future__ import annotations
@@ -185,8 +186,8 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
                      device: str = "cpu") -> tuple[Path, list[tuple[int, TeachResult]]]:
     """Teach ``base`` every mode the taught checkpoint ``taught_from`` was taught, from the demonstrations it keeps,
     in their order and under their names, and write the result to ``out``: each teaching rehearses the ones
-    before, as teaching them one by one would. For a checkpoint trained further with ``lerobot-train`` (which
-    trains the dataset's behaviours only, so a taught checkpoint's taught modes do not survive it).
+    before, as teaching them one by one would. For a checkpoint ``lerobot-train`` trained without them (another
+    dataset whose modes take their ids, or ``--policy.taught_rehearsal_share=0``).
     Returns ``out`` and ``(mode id in taught_from, result)`` per mode."""
     taught_from = Path(taught_from)
     demos = taught_demonstrations(taught_from)
