@@ -330,6 +330,21 @@ def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthet
     assert grown.config.mode_names["4"] == "far right" and len(grown.model.rehearsal) == n_demo
     assert int(grown.model.rehearsal.rows[0]) == len(gb.episode) - 1
 
+    # over a dataset whose mode labels take the taught id: dropped, saying why and the way back
+    from lerobot_pdp.checkpoint import keep_training_behaviors
+
+    read = grown.model.bank.snapshot()
+    read = {k: v if v.dim() == 0 else v[:-1, :-1] if k == "distances" else v[:-1] for k, v in read.items()
+            if k != "taught"}  # the grown dataset's own behaviours
+    read["taught"], read["mode"][0] = torch.zeros(0, trained.config.latent_dim), 4
+    caplog.clear()
+    loaded = PDPPolicy.from_pretrained(tmp_path / "taught")
+    keep_training_behaviors(loaded, read, str(tmp_path / "taught" / "model.safetensors"))
+    assert ("its taught mode(s) 4 ('far right') are dropped (this dataset's modes reach 4, so they would change their "
+            f"ids; teach them to the trained checkpoint again from the demonstrations {tmp_path / 'taught'} keeps"
+            in caplog.text)
+    assert loaded.model.bank.taught_modes() == [] and not loaded.model.bank.taught_in_training
+
     (tmp_path / "bare").mkdir()  # a taught checkpoint without its demonstrations: kept, said not rehearsed
     for f in (tmp_path / "taught").iterdir():
         if f.name != TAUGHT_DEMOS:
