@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -41,7 +40,7 @@ from lerobot_pdp.benchmark.settings import (
     teach_scenes,
 )
 from lerobot_pdp.benchmark.teaching import TEACH_SHARE, scene0_kept
-from lerobot_pdp.benchmark.training import load_policy, train_args, train_method
+from lerobot_pdp.benchmark.training import _run_logged, load_policy, train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 from lerobot_pdp.taught import teach_again_from
 
@@ -57,10 +56,11 @@ def _train_further(taught: Path, out: Path, method, data: Path, seed: int, setti
             for a in train_args(method, data, seed, settings, steps)]
     args += [f"--output_dir={out}", *extra]
     if out.exists():  # a training cut short: lerobot-train refuses an existing output folder
-        os.rename(out, out.with_name(out.name + f".cut-{int(time.time())}"))
-    print("[train-further]", " ".join(args), flush=True)
+        shutil.rmtree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    subprocess.run(args, check=True)
+    # as the benchmark trains: its loader workers, trainer threads and column views, the log beside the run
+    _run_logged(args, out.with_name(out.name + ".log"), steps, f"train further ({out.name})")
     return ckpt, time.perf_counter() - t0
 
 
