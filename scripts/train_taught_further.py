@@ -8,7 +8,9 @@ benchmark's frozen setting (as ``scripts/teach_again.py`` does, and reusing its 
 the rehearsal (the default share) and with ``--policy.taught_rehearsal_share=0`` (the taught mode dropped, the
 earlier behaviour); the latter is also taught again with ``teach --taught-from`` (the earlier way back). For each
 checkpoint: the scene steered to the taught mode (to the latent it was taught at where the mode was dropped), and
-scene 0 steered to each training mode, with the benchmark's rollout seeds. Nothing is chosen from it.
+scene 0 steered to each training mode, with the benchmark's rollout seeds. ``--new-data N``: also trained further,
+rehearsed, on a new scene-0 recording of N episodes per mode (another seed): another dataset whose mode labels leave
+the taught id free, where the taught mode joins its behaviours. Nothing is chosen from it.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/train_taught_further.py --env avoiding --out runs/teach_again
 
@@ -92,6 +94,8 @@ def main() -> int:
     ap.add_argument("--scene", default="val4", help="zero-mode validation scene whose route is taught")
     ap.add_argument("--steps", type=int, default=2000, help="lerobot-train steps after teaching")
     ap.add_argument("--rollouts", type=int, default=40, help="rollouts in the taught scene per checkpoint")
+    ap.add_argument("--new-data", type=int, default=0, metavar="N",
+                    help="also train further on a new scene-0 recording of N episodes per mode (0: not)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     if args.seed < VALIDATION_SEED_MIN:
@@ -125,15 +129,25 @@ def main() -> int:
 
     taught_policy = load_policy(taught)[0]
     mode = taught_policy.model.bank.taught_modes()[0]
+    runs = [("taught", taught), ("trained further, rehearsed", rehearsed), ("trained further, not rehearsed", dropped),
+            ("trained further, not rehearsed, taught again", again)]
+    if args.new_data:
+        from lerobot_pdp.envs.recording import make_dataset
+
+        new = out / "data" / f"{suite.scene_key}_scene0_new{args.new_data}"
+        if not (new / "meta" / "info.json").is_file():
+            make_dataset(suite.name, new, scene=0, episodes_per_mode=args.new_data, seed=1, **suite.camera_kwargs)
+        tag = f"trained further on new data ({args.new_data}/mode), rehearsed"
+        ckpt, seconds[tag] = _train_further(taught, further / f"new_data_{args.new_data}_rehearsed", method, new,
+                                            args.seed, settings, args.steps)
+        runs.append((tag, ckpt))
     z_taught = taught_policy.mode_latents()[mode]
     n0 = -(-args.rollouts // suite.n_modes) * suite.n_modes
     evals = further / "evaluations"
     rows: dict[str, dict[str, Any]] = {}
-    for tag, ckpt in (("taught", taught), ("trained further, rehearsed", rehearsed),
-                      ("trained further, not rehearsed", dropped),
-                      ("trained further, not rehearsed, taught again", again)):
+    for tag, ckpt in runs:
         latents = load_policy(ckpt)[0].mode_latents()
-        key = tag.replace(", ", "_").replace(" ", "_")
+        key = tag.replace(", ", "_").replace(" ", "_").replace("(", "").replace(")", "").replace("/", "_per_")
         rows[tag] = {"steered": "mode" if mode in latents else "the latent it was taught at (mode dropped)",
                      args.scene: _evaluate(evals / f"{key}_{args.scene}.json", ckpt, suite, method, args.scene,
                                            latents[mode] if mode in latents else z_taught, args.rollouts, seed),
