@@ -224,5 +224,6 @@ def _card_section(info: dict) -> str:
             f"`{Path(str(demo.get('dataset', 'arrays'))).name}`) as mode {info['mode']} ({info['mode_name']}), latent "
             f"`{info['latent']}`: its denoiser was fine-tuned {info['settings']['steps']} steps with rehearsal of the "
             f"training data, the encoder kept as trained ({info['date']}). Steer to it with "
-            f"`--policy.steer_mode={info['mode']}`; the other modes keep their latents. `{TEACHING_INFO}` holds the "
-            "provenance.\n")
+            f"`--policy.steer_mode={info['mode']}`; the other modes keep their latents. `lerobot-train --policy.path` on "
+            f"this checkpoint keeps the mode, rehearsing the demonstration kept in `{TAUGHT_DEMOS}`. `{TEACHING_INFO}` "
+            "holds the provenance.\n")
