@@ -157,16 +157,18 @@ class BehaviorBank(nn.Module):
             self.taught = torch.zeros(shapes[TAUGHT_KEY])
         self._discovered = None
 
-    def append(self, traces: np.ndarray, segments: list[tuple[int, int]], name: str, latents: Tensor) -> int:
+    def append(self, traces: np.ndarray, segments: list[tuple[int, int]], name: str, latents: Tensor,
+               mode: int | None = None) -> int:
         """A taught demonstration's phases (``traces`` [M, L, d] with their frame ``segments``) join the bank as a
-        new episode of a new mode (one past the last of each), at ``TAUGHT_START``, acting under ``latents``
-        [M, d_z] (kept: :meth:`latents` returns them for these behaviours); delta^X gains their soft-DTW
-        distances (kappa stays), and the config's ``mode_names`` the new mode's ``name``. Returns the new mode id."""
+        new episode of a new mode (one past the last of each, or the id ``mode`` a taught mode had), at
+        ``TAUGHT_START``, acting under ``latents`` [M, d_z] (kept: :meth:`latents` returns them for these
+        behaviours); delta^X gains their soft-DTW distances (kappa stays), and the config's ``mode_names`` the new
+        mode's ``name``. Returns the new mode id."""
         cfg = self.config
         self.taught = torch.cat([self.taught, latents.to(self.taught)])
         traces = torch.as_tensor(traces, dtype=torch.float32, device=self.traces.device)
         n = len(traces)
-        mode = int(self.mode.max()) + 1
+        mode = int(self.mode.max()) + 1 if mode is None else mode
         episode = int(self.episode.max()) + 1
 
         def longs(values) -> Tensor:

@@ -156,7 +156,7 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
                      "<folder>")
             why = ("with taught_rehearsal_share=0 lerobot-train does not rehearse them" if share == 0 else
                    "this dataset has episodes without a mode label" if bool((read["mode"] < 0).any()) else
-                   f"this dataset's modes reach {int(read['mode'].max())}, so they would change their ids")
+                   f"this dataset's mode labels reach {int(read['mode'].max())}, which takes their ids")
             if same:
                 logger.warning("%s was taught %s; %s: they are dropped, and the trained policy holds this dataset's "
                                "behaviours; %s", model_file, text, why, again)
@@ -179,14 +179,14 @@ def _carry_taught(bank: Any, loaded: dict[str, Tensor], read: dict[str, Tensor],
     dataset is unlabelled or its modes reach the first taught id (the taught modes would change their ids)."""
     first = len(loaded["mode"]) - len(loaded["taught"])
     taught_modes = loaded["mode"][first:]
-    if bool((read["mode"] < 0).any()) or int(read["mode"].max()) + 1 != int(taught_modes.min()):
+    if bool((read["mode"] < 0).any()) or int(read["mode"].max()) >= int(taught_modes.min()):
         return False
     bank.restore(read)
     for mode in sorted(set(taught_modes.tolist())):
         rows = torch.nonzero(loaded["mode"] == mode).flatten()  # one per phase, in order
         segments = list(zip(loaded["start"][rows].tolist(), loaded["end"][rows].tolist(), strict=True))
         bank.append(loaded["traces"][rows].cpu().numpy(), segments, names.get(str(mode), f"taught mode {mode}"),
-                    loaded["taught"][rows - first])
+                    loaded["taught"][rows - first], mode)
     return True
 
 

@@ -330,18 +330,27 @@ def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthet
     assert grown.config.mode_names["4"] == "far right" and len(grown.model.rehearsal) == n_demo
     assert int(grown.model.rehearsal.rows[0]) == len(gb.episode) - 1
 
-    # over a dataset whose mode labels take the taught id: dropped, saying why and the way back
+    # over a dataset without the last training mode: the taught mode keeps its id all the same
     from lerobot_pdp.checkpoint import keep_training_behaviors
 
     read = grown.model.bank.snapshot()
     read = {k: v if v.dim() == 0 else v[:-1, :-1] if k == "distances" else v[:-1] for k, v in read.items()
             if k != "taught"}  # the grown dataset's own behaviours
-    read["taught"], read["mode"][0] = torch.zeros(0, trained.config.latent_dim), 4
+    read["taught"] = torch.zeros(0, trained.config.latent_dim)
+    keep = torch.nonzero(read["mode"] != 3).flatten()
+    fewer = {k: v if v.dim() == 0 or k == "taught" else v[keep][:, keep] if k == "distances" else v[keep]
+             for k, v in read.items()}
+    loaded = PDPPolicy.from_pretrained(tmp_path / "taught")
+    keep_training_behaviors(loaded, fewer, str(tmp_path / "taught" / "model.safetensors"))
+    assert loaded.model.bank.taught_modes() == [4] and sorted(loaded.mode_latents()) == [0, 1, 2, 4]
+
+    # over a dataset whose mode labels take the taught id: dropped, saying why and the way back
+    read["mode"][0] = 4
     caplog.clear()
     loaded = PDPPolicy.from_pretrained(tmp_path / "taught")
     keep_training_behaviors(loaded, read, str(tmp_path / "taught" / "model.safetensors"))
-    assert ("its taught mode(s) 4 ('far right') are dropped (this dataset's modes reach 4, so they would change their "
-            f"ids; teach them to the trained checkpoint again from the demonstrations {tmp_path / 'taught'} keeps"
+    assert ("its taught mode(s) 4 ('far right') are dropped (this dataset's mode labels reach 4, which takes their ids; "
+            f"teach them to the trained checkpoint again from the demonstrations {tmp_path / 'taught'} keeps"
             in caplog.text)
     assert loaded.model.bank.taught_modes() == [] and not loaded.model.bank.taught_in_training
 
