@@ -4,10 +4,10 @@ A taught checkpoint is loaded to train on as ``lerobot-train --policy.path`` loa
 metadata given, so its taught modes are kept and rehearsed: ``lerobot_pdp/taught_rehearsal.py``), and the training
 step (forward, backward, Adam, as LeRobot's loop runs it, on batches from LeRobot's dataset and preprocessor) is timed
 with the rehearsal on and off (``policy.model.rehearsal`` set aside), alternating in rounds so that a machine's drift
-falls on both alike. One JSON object on stdout: the median step of each and their ratio.
+falls on both alike. One JSON object, printed and written to ``--out``: the median step of each and their ratio.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_taught_rehearsal.py TAUGHT_CHECKPOINT --data DATASET \
-        [--batch-size 64] [--rounds 10] [--steps 10]
+        [--batch-size 64] [--rounds 10] [--steps 10] [--out bench.json]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ def main() -> int:
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--rounds", type=int, default=10, help="alternations of the two")
     ap.add_argument("--steps", type=int, default=10, help="timed steps per round and side")
+    ap.add_argument("--out", type=Path, default=None, help="also write the JSON object here")
     args = ap.parse_args()
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -73,12 +74,15 @@ def main() -> int:
             policy.model.rehearsal = rehearsal if side == "rehearsed" else None
             times[side] += [step(batches[k % len(batches)]) for k in range(args.steps)]
     med = {k: statistics.median(v) for k, v in times.items()}
-    print(json.dumps({
+    record = json.dumps({
         "checkpoint": str(args.checkpoint), "batch_size": args.batch_size,
         "taught_windows_per_batch": rehearsal.windows_for(args.batch_size), "share": rehearsal.share,
         "threads": torch.get_num_threads(), "steps_per_side": len(times["rehearsed"]),
         "median_step_s": {k: round(v, 4) for k, v in med.items()},
-        "ratio": round(med["rehearsed"] / med["not rehearsed"], 3)}))
+        "ratio": round(med["rehearsed"] / med["not rehearsed"], 3)})
+    print(record)
+    if args.out is not None:
+        args.out.write_text(record + "\n")
     return 0
 
 
