@@ -352,15 +352,27 @@ class BehaviorBank(nn.Module):
         if len(self.mode) == 0:
             raise ValueError("mode_latents() needs the training behaviors: build the policy with dataset_meta "
                              "(lerobot-train does) or load a checkpoint")
-        if not bool((self.mode >= 0).any()):
+        with torch.no_grad():
+            z = self.latents(vae)
+        if not self.labelled():
             found = self.discover_modes(vae)
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
                            "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
-                           "ids, see `lerobot-pdp latent-map`)", found.k)
-            return ModeLatents(found.means, discovered=True)
-        with torch.no_grad():
-            z = self.latents(vae)
+                           "ids, see `lerobot-pdp latent-map`)%s", found.k,
+                           ", and the taught modes" if len(self.taught) else "")
+            taught = labelled_mode_latents(z, torch.where(self.is_taught(), self.mode, UNLABELED), self.phase(),
+                                           self.config.mode_names)  # taught onto discovered clusters: their own ids
+            return ModeLatents({**found.means, **taught}, taught.names, discovered=True)
         return labelled_mode_latents(z, self.mode, self.phase(), self.config.mode_names)
+
+    def is_taught(self) -> Tensor:
+        """[N] bool: the behaviours taught to the policy (the bank's last rows), not read from its training data."""
+        return self.global_start == TAUGHT_START
+
+    def labelled(self) -> bool:
+        """Whether the training behaviours carry mode labels (else their modes are discovered clusters; taught
+        modes have ids either way)."""
+        return bool((self.mode[~self.is_taught()] >= 0).any())
 
     def discover_modes(self, vae: TrajectoryVAE, k: int | None = None, max_k: int | None = None, seed: int = 0,
                        space: str = "traces") -> DiscoveredModes:
@@ -376,6 +388,8 @@ class BehaviorBank(nn.Module):
                 similarity the latents are trained to reproduce, without the distortion of a low-dimensional
                 map); ``"latents"`` by their latents. See :mod:`lerobot_pdp.modes`.
 
+        Taught modes (:meth:`append`) are no cluster's: they keep their own ids, past the clusters'.
+
         Returns:
             :class:`~lerobot_pdp.modes.DiscoveredModes`: ``labels`` (training episode index -> cluster id),
             ``means`` (cluster id -> mean latent, per phase for segmented policies), ``k``, silhouette scores,
@@ -387,17 +401,18 @@ class BehaviorBank(nn.Module):
         if len(self.episode) == 0:
             raise ValueError("discover_modes() needs the training behaviors: build the policy with dataset_meta "
                              "or load a checkpoint")
+        n = int((~self.is_taught()).sum())  # the training behaviours (first): taught modes are no cluster's
         with torch.no_grad():
-            z = self.latents(vae).cpu().numpy()
+            z = self.latents(vae).cpu().numpy()[:n]
         key = (k, max_k, seed, space, hash(z.tobytes()))
         if self._discovered is None or self._discovered[0] != key:
             distances = None
             if space == "traces":  # delta^X, stored with the bank (one-hot latents store none: computed here)
-                distances = self.distances.detach().cpu().numpy().astype(np.float64)
+                distances = self.distances.detach().cpu().numpy().astype(np.float64)[:n, :n]
                 if self.config.latent_type == "onehot" or distances.shape != (len(z), len(z)):
                     cfg = self.config
-                    distances = trace_distances(self.traces.cpu().numpy(), cfg.sdtw_gamma, cfg.sdtw_normalize,
+                    distances = trace_distances(self.traces.cpu().numpy()[:n], cfg.sdtw_gamma, cfg.sdtw_normalize,
                                                 progress=False)
-            self._discovered = (key, discover(z, self.episode.cpu().numpy(), self.phase().cpu().numpy(), k, max_k,
-                                              seed, distances))
+            self._discovered = (key, discover(z, self.episode.cpu().numpy()[:n], self.phase().cpu().numpy()[:n], k,
+                                              max_k, seed, distances))
         return self._discovered[1]

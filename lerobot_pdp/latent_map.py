@@ -87,15 +87,22 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     z, episode, mode = table["z"], table["episode"], table["mode"]
     if len(z) == 0:
         raise ValueError("the policy has no training behaviors (a checkpoint trained with lerobot-train has them)")
-    if (mode >= 0).any() and k is None:
+    bank = policy.model.bank
+    taught = bank.is_taught().cpu().numpy()
+    mode_names = policy.config.mode_names or {}
+    if bank.labelled() and k is None:
         groups, what = mode, "mode label"
-        names = {int(m): (policy.config.mode_names or {}).get(str(int(m)), "") for m in np.unique(mode[mode >= 0])}
-        for m in set(policy.model.bank.taught_modes()) & set(names):  # learned from one demonstration, not the data
+        names = {int(m): mode_names.get(str(int(m)), "") for m in np.unique(mode[mode >= 0])}
+        for m in set(bank.taught_modes()) & set(names):  # learned from one demonstration, not the data
             names[m] = f"{names[m]}, taught" if names[m] else "taught"
-    else:
+    else:  # the training episodes' clusters, then each taught mode (no cluster's) as a group of its own
         found = policy.discover_modes(k=k)
-        groups, what = np.array([found.labels[int(e)] for e in episode]), f"discovered cluster (k = {found.k})"
-        names = {c: f"{int((groups == c).sum())} behaviors" for c in range(found.k)}
+        group_of = {m: found.k + i for i, m in enumerate(bank.taught_modes())}  # its id, unless a k given reaches it
+        groups = np.array([group_of[int(m)] if t else found.labels[int(e)]
+                           for e, m, t in zip(episode, mode, taught, strict=True)])
+        what = f"discovered cluster (k = {found.k})"
+        names = {c: f"{int((groups[~taught] == c).sum())} behaviors" for c in range(found.k)}
+        names.update({g: f"mode {m}, taught: {mode_names.get(str(m), '')}" for m, g in group_of.items()})
     projection = MapProjection.fit(z)
     xy, axes_label = projection.to_map(z), projection.axis_labels
     ids = sorted(int(g) for g in np.unique(groups) if g >= 0)

@@ -112,10 +112,10 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
         raise ValueError(f"teach: latent must be one of {TEACH_LATENTS}, got {latent!r}")
     if cfg.latent_type != "continuous":
         raise ValueError(f"teach needs a continuous latent; this policy's latent_type is {cfg.latent_type!r}")
-    if bool((model.bank.mode == UNLABELED).any()):
-        raise ValueError("teach needs mode-labelled training episodes (meta/mode_labels.json or task strings "
-                         "'mode <id>: <name>'): without labels the modes are discovered clusters, which a taught "
-                         "mode cannot join; label the training dataset (lerobot-pdp latent-map shows the clusters)")
+    if model.bank.labelled() and bool((model.bank.mode[~model.bank.is_taught()] == UNLABELED).any()):
+        raise ValueError("teach needs every training episode mode-labelled, or none (then the modes are discovered "
+                         "clusters and the new mode's id follows theirs): some episodes of the training dataset carry "
+                         "a label and some do not; label them all (lerobot-pdp label-modes) and train again")
     name = name or _demo_name(episode)
     same = sorted(int(k) for k, v in (cfg.mode_names or {}).items() if v == name)
     if same:  # steering by that name would reach the old mode
@@ -135,7 +135,7 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     else:
         rehearsal, z_old = prepared.windows, prepared.latents
     taught = taught_windows(policy, z_bank)  # the modes taught before, which the training data does not hold
-    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new)  # + delta^X
+    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new, new_mode_id(policy))
     model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)
     warn_if_known_route(model.bank, len(z_bank), mode)
     if latent == "geometry":
@@ -157,6 +157,16 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     return result
 
 
+def new_mode_id(policy: Any) -> int:
+    """The id of the next taught mode: one past the last mode id, where labelled training modes or the modes taught
+    before end; without labels, past the clusters ``mode_latents()`` finds too (and past any taught before)."""
+    bank = policy.model.bank
+    last = int(bank.mode.max()) if len(bank.mode) else -1
+    if not bank.labelled():
+        last = max(last, bank.discover_modes(policy.model.vae).k - 1)
+    return last + 1
+
+
 def warn_if_known_route(bank: Any, n_old: int, mode: int) -> None:
     """Warn (before the fine-tuning's minutes) when the demonstration's trace is as close to a behaviour the policy
     has as its training behaviours are to their nearest neighbour: a route it knows, which a fit reaches without a
@@ -170,10 +180,11 @@ def warn_if_known_route(bank: Any, n_old: int, mode: int) -> None:
     nearest = new.min(1)
     if bool((nearest.values <= typical).all()):
         j = int(nearest.indices[0])
-        logger.warning("teach: the demonstration's trace is as close to training episode %d (mode %d) as training "
+        label = f" (mode {int(bank.mode[j])})" if int(bank.mode[j]) >= 0 else ""
+        logger.warning("teach: the demonstration's trace is as close to training episode %d%s as training "
                        "behaviours are to their nearest neighbour (soft-DTW %.3g, typical %.3g): the policy may know "
                        "this route already; a fit (lerobot-pdp adapt) reaches a known route without teaching mode %d",
-                       int(bank.episode[j]), int(bank.mode[j]), float(nearest.values.max()), typical, mode)
+                       int(bank.episode[j]), label, float(nearest.values.max()), typical, mode)
 
 
 def geometric_latent(z0: Tensor, z_old: Tensor, delta: Tensor, kappa: float, steps: int = 500,

@@ -389,6 +389,40 @@ def test_lerobot_train_from_a_taught_checkpoint_keeps_its_mode(synthetic_meta, t
     torch.testing.assert_close(trained.mode_latents()[4], PDPPolicy.from_pretrained(tmp_path / "taught").mode_latents()[4])
 
 
+def test_a_policy_trained_without_mode_labels_is_taught_a_mode_past_its_clusters(tmp_path, caplog):
+    """Without labels the training modes are the clusters ``mode_latents()`` discovers; a taught mode gets the id past
+    them (and past the modes taught before), joins no cluster, and is steered, named, mapped and saved like the
+    others."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from lerobot_pdp.latent_map import latent_map_figure
+
+    unlabeled = write_dataset(tmp_path / "unlabeled", episodes_per_mode=3, task="go to the goal")
+    q = small_policy(LeRobotDatasetMetadata("local/synthetic", root=unlabeled))
+    before = q.discover_modes()
+    first = q.teach(new_route(), unlabeled, steps=2, name="far right")
+    second = q.teach(new_route(-1.7), unlabeled, steps=1, name="far left")
+    assert (first.mode, second.mode) == (before.k, before.k + 1)
+    found = q.discover_modes()
+    assert found.k == before.k and found.labels == before.labels  # the clusters are the training episodes' alone
+    modes = q.mode_latents()
+    assert modes.discovered and sorted(modes) == list(range(before.k + 2))
+    torch.testing.assert_close(modes[first.mode], first.z[0])
+    torch.testing.assert_close(modes["far left"], second.z[0])
+    fig = latent_map_figure(q).figure
+    legend = " ".join(t.get_text() for t in fig.axes[0].get_legend().get_texts())
+    assert f"mode {first.mode}, taught: far right" in legend and f"mode {second.mode}, taught: far left" in legend
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    q.save_pretrained(tmp_path / "taught")
+    again = PDPPolicy.from_pretrained(tmp_path / "taught")
+    assert sorted(again.mode_latents()) == sorted(modes) and sorted(again.model.bank.taught_demos) == sorted(
+        [first.mode, second.mode])
+    third = again.teach(new_route(1.9), unlabeled, steps=1, name="farthest right")
+    assert third.mode == before.k + 2 and third.rehearsal_windows > first.rehearsal_windows
+
+
 def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
     """A checkpoint pushed to the Hub acts as its folder does: loaded by repo id from the Hub cache (offline, as on
     a robot that downloaded it), it has its taught mode's name, the demonstration it keeps and its adaptation."""
@@ -495,12 +529,10 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
         p.teach(demo, synthetic_meta.root, steps=0, demo_share=1.5)
     assert len(p.mode_latents()) == 4  # nothing half-done
 
-    unlabeled = write_dataset(tmp_path / "unlabeled", episodes_per_mode=2, task="go to the goal")
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-
-    q = small_policy(LeRobotDatasetMetadata("local/synthetic", root=unlabeled))
-    with pytest.raises(ValueError, match="teach needs mode-labelled training episodes"):
-        q.teach(demo, unlabeled)
+    p.model.bank.mode[0] = -1  # some episodes labelled, some not
+    with pytest.raises(ValueError, match="teach needs every training episode mode-labelled, or none"):
+        p.teach(demo, synthetic_meta.root)
+    p.model.bank.mode[0] = 0
 
     base = tmp_path / "base"
     p.save_pretrained(base)
