@@ -64,11 +64,13 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
     try:
         with safe_open(str(weights), framework="numpy") as f:  # numpy: no torch import
             labels = f.get_tensor("behavior_mode").tolist() if "behavior_mode" in f.keys() else []
+            n_taught = f.get_slice("taught_latents").get_shape()[0] if "taught_latents" in f.keys() else 0
     except SafetensorError as e:
         raise ValueError(f"{weights} is not a readable safetensors file ({e})") from e
     names = {int(k): v for k, v in (cfg.get("mode_names") or {}).items()}
     labelled = sorted({int(m) for m in labels if m >= 0})
-    modes = {m: names.get(m, str(m)) for m in labelled} if labelled else None
+    trained = labels[: len(labels) - n_taught]  # taught modes (the last rows) have ids without labelled data too
+    modes = {m: names.get(m, str(m)) for m in labelled} if any(m >= 0 for m in trained) else None
     features = {**(cfg.get("input_features") or {}), **(cfg.get("output_features") or {})}
     recording = {k: tuple(ft["shape"]) for k, ft in features.items() if isinstance(ft, dict) and "shape" in ft}
     return SteerTarget(int(cfg.get("latent_dim", 2)), modes, f"checkpoint {folder}",

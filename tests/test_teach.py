@@ -421,6 +421,9 @@ def test_a_policy_trained_without_mode_labels_is_taught_a_mode_past_its_clusters
         [first.mode, second.mode])
     third = again.teach(new_route(1.9), unlabeled, steps=1, name="farthest right")
     assert third.mode == before.k + 2 and third.rehearsal_windows > first.rehearsal_windows
+    # the steer CLI takes a cluster's id and a taught mode's name (no labels: the policy's modes are not known to it)
+    steer = ["steer", str(tmp_path / "steer.json"), "--policy-path", str(tmp_path / "taught"), "--mode"]
+    assert cli([*steer, str(before.k - 1)]) == 0 and cli([*steer, "far left"]) == 0
 
 
 def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
