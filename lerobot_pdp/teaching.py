@@ -8,8 +8,8 @@ demonstration as a new mode instead:
   ``latent="geometry"`` where the encoder's geometry term puts it against the training latents: the encoder
   and decoder (phi, psi) do not move, so every training behaviour keeps its latent and each old mode is
   selected by the latent it had. The bank keeps the new latent (``taught_latents`` in the checkpoint).
-- **It joins the behaviour bank** as mode ``max + 1`` (without labels: past the discovered clusters) (its trace, frame ranges, soft-DTW distances and name;
-  ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
+- **It joins the behaviour bank** as mode ``max + 1``, without labels past the discovered clusters (its trace, frame
+  ranges, soft-DTW distances and name; ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
 - **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
   batch is the demonstration's windows at the new latent, the rest *rehearses* the training windows at their
   own latents, and the demonstrations of modes taught before at theirs (the policy keeps them:
