@@ -8,8 +8,9 @@ demonstration as a new mode instead:
   ``latent="geometry"`` where the encoder's geometry term puts it against the training latents: the encoder
   and decoder (phi, psi) do not move, so every training behaviour keeps its latent and each old mode is
   selected by the latent it had. The bank keeps the new latent (``taught_latents`` in the checkpoint).
-- **It joins the behaviour bank** as mode ``max + 1``, without labels past the discovered clusters (its trace, frame
-  ranges, soft-DTW distances and name; ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``, ``--policy.steer_mode`` and a steer file know it.
+- **It joins the behaviour bank** as mode ``max + 1``, without labels past the discovered clusters (its trace,
+  frame ranges, soft-DTW distances and name; ``BehaviorBank.append``), so ``mode_latents()``, ``latent-map``,
+  ``--policy.steer_mode`` and a steer file know it.
 - **The denoiser theta alone is fine-tuned** (the observation encoder too is frozen): a fixed share of each
   batch is the demonstration's windows at the new latent, the rest *rehearses* the training windows at their
   own latents, and the demonstrations of modes taught before at theirs (the policy keeps them:
@@ -113,9 +114,10 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     if cfg.latent_type != "continuous":
         raise ValueError(f"teach needs a continuous latent; this policy's latent_type is {cfg.latent_type!r}")
     if model.bank.labelled() and bool((model.bank.mode[~model.bank.is_taught()] == UNLABELED).any()):
-        raise ValueError("teach needs every training episode mode-labelled, or none (then the modes are discovered "
-                         "clusters and the new mode's id follows theirs): some episodes of the training dataset carry "
-                         "a label and some do not; label them all (lerobot-pdp label-modes) and train again")
+        raise ValueError("teach needs every training episode mode-labelled, or none (then the modes are "
+                         "discovered clusters and the new mode's id follows theirs): some episodes of the training "
+                         "dataset carry a label and some do not; label them all (lerobot-pdp label-modes) and train "
+                         "again")
     name = name or _demo_name(episode)
     same = sorted(int(k) for k, v in (cfg.mode_names or {}).items() if v == name)
     if same:  # steering by that name would reach the old mode
