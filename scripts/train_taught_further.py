@@ -42,7 +42,7 @@ from lerobot_pdp.benchmark.settings import (
     teach_scenes,
 )
 from lerobot_pdp.benchmark.teaching import TEACH_SHARE, scene0_kept
-from lerobot_pdp.benchmark.training import _run_logged, load_policy, train_args, train_method
+from lerobot_pdp.benchmark.training import load_policy, run_logged, train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 from lerobot_pdp.taught import teach_again_from
 
@@ -62,7 +62,7 @@ def _train_further(taught: Path, out: Path, method, data: Path, seed: int, setti
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     # as the benchmark trains: its loader workers, trainer threads and column views, the log beside the run
-    _run_logged(args, out.with_name(out.name + ".log"), steps, f"train further ({out.name})")
+    run_logged(args, out.with_name(out.name + ".log"), steps, f"train further ({out.name})")
     return ckpt, time.perf_counter() - t0
 
 

@@ -51,7 +51,7 @@ def logged_step(line: str, done: int, log_freq: int) -> int | None:
     return (done // log_freq + 1) * log_freq if log_freq > 0 else int(m.group(1)) * 1000
 
 
-def _run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: int = 0,
+def run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: int = 0,
                 on_checkpoint=None) -> None:
     """Run ``lerobot-train`` with its output in ``log`` (appended to when resuming from step ``start``); a
     progress bar follows its logged step counter; ``on_checkpoint(step)`` runs as each checkpoint starts."""
@@ -173,7 +173,7 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
                 shutil.rmtree(d, ignore_errors=True)
 
     try:
-        _run_logged(run_args, log, steps, f"train {method.name} seed {seed}", start, on_checkpoint)
+        run_logged(run_args, log, steps, f"train {method.name} seed {seed}", start, on_checkpoint)
         src = tmp_out / "checkpoints" / "last" / "pretrained_model"
         if not (src / "model.safetensors").is_file():
             raise RuntimeError(f"lerobot-train finished but wrote no checkpoint at {src}; see {log}")
