@@ -60,25 +60,25 @@ def _teach(parent: Path, out: Path, demo: Path, data: Path, setting: dict[str, A
     return out
 
 
-def _evaluate(cache: Path, ckpt: Path, suite, scene: int | str, mode_name: str | None, rollouts: int,
+def _evaluate(cache: Path, ckpt: Path, suite, scene: int | str, steer: Any, rollouts: int,
               seed: int) -> dict[str, Any]:
-    """Rollouts of ``ckpt`` in ``scene`` steered to the mode named ``mode_name``, or scene 0's training modes each
-    steered in turn (``mode_name`` None); cached in ``cache``."""
+    """Rollouts of ``ckpt`` in ``scene`` steered to ``steer`` (a mode's name, or a latent), or scene 0's training
+    modes each steered in turn (``steer`` None); cached in ``cache``."""
     if cache.is_file():
         return json.loads(cache.read_text())
     policy, pre, post = load_policy(ckpt)
-    if mode_name is None:
+    if steer is None:
         method = methods_for(suite)["pdp"]
         training = [m for m in sorted(policy.mode_latents()) if m not in policy.model.bank.taught_modes()]
         res = scene0_kept(suite, method, policy, pre, post, rollouts, seed, modes=training)
     else:
-        policy.set_latent(policy.mode_latents()[mode_name])
+        policy.set_latent(policy.mode_latents()[steer] if isinstance(steer, str) else steer)
         batch = run_rollouts(suite, scene, policy, pre, post, rollouts, seed + scene_seed_offset(scene),
                              label=f"scene {scene}")
         res = summarize_rollouts(batch, suite.n_modes, False)
     cache.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(cache, json.dumps(res, indent=1))
-    print(f"[teach-again] {ckpt.name} scene {scene}: {res['success']:.1%} success")
+    print(f"[evaluate] {cache.stem}: {res['success']:.1%} success", flush=True)
     return res
 
 

@@ -27,12 +27,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from teach_again import _teach
+from teach_again import _evaluate, _teach
 
 from lerobot_pdp.atomic import write_text_atomic
 from lerobot_pdp.benchmark.data import ensure_dataset, ensure_demo
-from lerobot_pdp.benchmark.evaluation import summarize_rollouts
-from lerobot_pdp.benchmark.rollouts import run_rollouts
 from lerobot_pdp.benchmark.settings import (
     SETTINGS,
     TEACH_FROZEN,
@@ -41,7 +39,7 @@ from lerobot_pdp.benchmark.settings import (
     scene_seed_offset,
     teach_scenes,
 )
-from lerobot_pdp.benchmark.teaching import TEACH_SHARE, scene0_kept
+from lerobot_pdp.benchmark.teaching import TEACH_SHARE
 from lerobot_pdp.benchmark.training import load_policy, run_logged, train_args, train_method
 from lerobot_pdp.envs import get_suite_env
 from lerobot_pdp.taught import teach_again_from
@@ -64,27 +62,6 @@ def _train_further(taught: Path, out: Path, method, data: Path, seed: int, setti
     # as the benchmark trains: its loader workers, trainer threads and column views, the log beside the run
     run_logged(args, out.with_name(out.name + ".log"), steps, f"train further ({out.name})")
     return ckpt, time.perf_counter() - t0
-
-
-def _evaluate(cache: Path, ckpt: Path, suite, method, scene: int | str, steer: Any, rollouts: int,
-              seed: int) -> dict[str, Any]:
-    """Rollouts of ``ckpt`` in ``scene`` steered to the latent ``steer``, or scene 0's training modes each steered in
-    turn (``scene`` 0); cached in ``cache``."""
-    if cache.is_file():
-        return json.loads(cache.read_text())
-    policy, pre, post = load_policy(ckpt)
-    if scene == 0:
-        training = [m for m in sorted(policy.mode_latents()) if m not in policy.model.bank.taught_modes()]
-        res = scene0_kept(suite, method, policy, pre, post, rollouts, seed, modes=training)
-    else:
-        policy.set_latent(steer)
-        batch = run_rollouts(suite, scene, policy, pre, post, rollouts, seed + scene_seed_offset(scene),
-                             label=f"scene {scene}")
-        res = summarize_rollouts(batch, suite.n_modes, False)
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(cache, json.dumps(res, indent=1))
-    print(f"[train-further] {cache.stem}: {res['success']:.1%} success", flush=True)
-    return res
 
 
 def main() -> int:
@@ -149,9 +126,9 @@ def main() -> int:
         latents = load_policy(ckpt)[0].mode_latents()
         key = tag.replace(", ", "_").replace(" ", "_").replace("(", "").replace(")", "").replace("/", "_per_")
         rows[tag] = {"steered": "mode" if mode in latents else "the latent it was taught at (mode dropped)",
-                     args.scene: _evaluate(evals / f"{key}_{args.scene}.json", ckpt, suite, method, args.scene,
+                     args.scene: _evaluate(evals / f"{key}_{args.scene}.json", ckpt, suite, args.scene,
                                            latents[mode] if mode in latents else z_taught, args.rollouts, seed),
-                     "scene 0": _evaluate(evals / f"{key}_0.json", ckpt, suite, method, 0, None, n0, seed)}
+                     "scene 0": _evaluate(evals / f"{key}_0.json", ckpt, suite, 0, None, n0, seed)}
     record = {"env": suite.name, "seed": args.seed, "scene": args.scene, "taught_mode": mode,
               "training_steps": settings.steps, "further_steps": args.steps, "teach": {**setting, "demo_share": TEACH_SHARE},
               "rollouts": args.rollouts, "rollouts_scene0": n0,
