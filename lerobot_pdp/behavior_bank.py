@@ -202,7 +202,12 @@ class BehaviorBank(nn.Module):
 
     def taught_modes(self) -> list[int]:
         """The ids of the modes taught to the policy (their behaviours sit at ``TAUGHT_START``)."""
-        return sorted({int(m) for m in self.mode[self.global_start == TAUGHT_START].tolist()})
+        return sorted({int(m) for m in self.mode[self.is_taught()].tolist()})
+
+    def unrehearsable_modes(self) -> list[int]:
+        """The taught modes whose demonstration the policy does not keep (taught by a release that kept none, or a
+        damaged file): nothing can rehearse them."""
+        return [m for m in self.taught_modes() if m not in self.taught_demos]
 
     @staticmethod
     def same_behaviors(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:

@@ -99,7 +99,7 @@ def rehearse_taught_modes(policy: Any) -> None:
     """Rehearse, in every training batch, the taught modes whose demonstrations ``policy`` keeps; a taught mode
     without one (taught by a release that kept none, or a damaged file) stays unrehearsed, with a warning."""
     bank = policy.model.bank
-    missing = [m for m in bank.taught_modes() if m not in bank.taught_demos]
+    missing = bank.unrehearsable_modes()
     if missing:
         logger.warning("taught mode(s) %s: their checkpoint keeps no demonstration of them, so training does not "
                        "rehearse them and the trained policy may act otherwise under their latents (teach the trained "

@@ -37,7 +37,6 @@ from torch import Tensor
 
 from .adaptation import demonstration_traces, encode_demonstration
 from .behavior import UNLABELED, read_episodes, read_training_behaviors, training_behavior_keys
-from .behavior_bank import TAUGHT_START
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
@@ -251,7 +250,7 @@ def check_training_data(policy: Any, root: str | Path) -> dict[int, dict]:
                              cfg.dataset_episodes)
     found = read_training_behaviors(cfg, root, features, episodes)
     bank = model.bank.traces.detach().cpu().numpy()
-    taught = model.bank.global_start.detach().cpu().numpy() == TAUGHT_START
+    taught = model.bank.is_taught().cpu().numpy()
     n_bank = int((~taught).sum())
     if len(found) != n_bank or not np.array_equal(found.episode_index, model.bank.episode.cpu().numpy()[~taught]):
         raise ValueError(f"{root} is not the policy's training dataset: it holds {len(found)} behaviours of episodes "
@@ -308,7 +307,7 @@ def taught_windows(policy: Any, z_bank: Tensor) -> tuple[DemoWindows, Tensor] | 
     None when the policy keeps none. A mode taught by a release that did not keep its demonstration cannot be
     rehearsed: said in a warning."""
     bank = policy.model.bank
-    missing = [m for m in bank.taught_modes() if m not in bank.taught_demos]
+    missing = bank.unrehearsable_modes()
     if missing:
         logger.warning("teach: taught mode(s) %s were taught by a release that did not keep their demonstrations: "
                        "they are not rehearsed, and this teaching may change how they act (teach the base checkpoint "
