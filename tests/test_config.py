@@ -48,6 +48,8 @@ def test_delta_indices():
         ({"down_dims": ()}, "down_dims must list at least one U-Net level"),
         ({"embed_rec_reduction": "max"}, "embed_rec_reduction must be 'mean' or 'sum', got 'max'"),
         ({"fit_optimizer": "sgd"}, "fit_optimizer must be 'adam' or 'gradient', got 'sgd'"),
+        ({"taught_rehearsal_share": 1.0}, "taught_rehearsal_share must be in [0, 1), got 1.0"),
+        ({"taught_rehearsal_share": -0.1}, "taught_rehearsal_share must be in [0, 1), got -0.1"),
     ],
 )
 def test_invalid_values_are_named(kwargs, message):
