@@ -144,8 +144,12 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
     if n_taught:  # lerobot-train samples the dataset alone: the taught modes' demonstrations join its batches
         names = _saved_mode_names(model_file)
         text = _taught_modes_text(loaded["mode"][-n_taught:], names)
-        share = policy.config.taught_rehearsal_share
-        if share > 0 and (same or _carry_taught(bank, loaded, read, names)):
+        why = ("with taught_rehearsal_share=0 lerobot-train does not rehearse them"
+               if policy.config.taught_rehearsal_share == 0 else
+               None if same else _taught_ids_taken(policy, read, int(loaded["mode"][-n_taught:].min())))
+        if why is None:
+            if not same:
+                _carry_taught(bank, loaded, read, names)
             keep_taught_behaviors(policy, len(read["episode"]), names)
             if same:
                 return
@@ -154,9 +158,6 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
             again = (f"teach them to the trained checkpoint again from the demonstrations {Path(model_file).parent} "
                      f"keeps: lerobot-pdp teach <trained checkpoint> --taught-from {Path(model_file).parent} --out "
                      "<folder>")
-            why = ("with taught_rehearsal_share=0 lerobot-train does not rehearse them" if share == 0 else
-                   "this dataset has episodes without a mode label" if bool((read["mode"] < 0).any()) else
-                   f"this dataset's mode labels reach {int(read['mode'].max())}, which takes their ids")
             if same:
                 logger.warning("%s was taught %s; %s: they are dropped, and the trained policy holds this dataset's "
                                "behaviours; %s", model_file, text, why, again)
@@ -173,21 +174,35 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
                    len(read["episode"]), taught)
 
 
-def _carry_taught(bank: Any, loaded: dict[str, Tensor], read: dict[str, Tensor], names: dict[str, str]) -> bool:
-    """The dataset's behaviours (``read``), then the loaded bank's taught ones appended in order under their ids,
-    latents and names (their soft-DTW distances to this dataset's computed); False, the bank untouched, when the
-    dataset is unlabelled or its modes reach the first taught id (the taught modes would change their ids)."""
-    first = len(loaded["mode"]) - len(loaded["taught"])
-    taught_modes = loaded["mode"][first:]
-    if bool((read["mode"] < 0).any()) or int(read["mode"].max()) >= int(taught_modes.min()):
-        return False
+def _taught_ids_taken(policy: Any, read: dict[str, Tensor], first_taught: int) -> str | None:
+    """Why the dataset's own modes (``read``) would take the taught modes' ids (the first is ``first_taught``), or
+    None when they stay below it: its mode labels, or without labels the clusters ``mode_latents()`` will discover
+    in it (clustered by soft-DTW divergences, which training does not change)."""
+    modes = read["mode"]
+    if bool((modes >= 0).all()):
+        top = int(modes.max())
+        return None if top < first_taught else f"this dataset's mode labels reach {top}, which takes their ids"
+    bank = policy.model.bank
     bank.restore(read)
-    for mode in sorted(set(taught_modes.tolist())):
+    try:
+        k = bank.discover_modes(policy.model.vae).k
+    except ValueError as e:
+        return f"this dataset has no mode labels, and its modes could not be discovered ({e})"
+    return None if k <= first_taught else (f"this dataset has no mode labels, and the {k} clusters discovered in it "
+                                           f"take ids up to {k - 1}, theirs among them")
+
+
+def _carry_taught(bank: Any, loaded: dict[str, Tensor], read: dict[str, Tensor], names: dict[str, str]) -> None:
+    """The dataset's behaviours (``read``), then the loaded bank's taught ones appended in order under their ids,
+    latents and names (their soft-DTW distances to this dataset's computed); the dataset's modes stay below their
+    ids (:func:`_taught_ids_taken`)."""
+    first = len(loaded["mode"]) - len(loaded["taught"])
+    bank.restore(read)
+    for mode in sorted(set(loaded["mode"][first:].tolist())):
         rows = torch.nonzero(loaded["mode"] == mode).flatten()  # one per phase, in order
         segments = list(zip(loaded["start"][rows].tolist(), loaded["end"][rows].tolist(), strict=True))
         bank.append(loaded["traces"][rows].cpu().numpy(), segments, names.get(str(mode), f"taught mode {mode}"),
                     loaded["taught"][rows - first], mode)
-    return True
 
 
 def keep_taught_behaviors(policy: Any, n_trained: int, names: dict[str, str]) -> None:

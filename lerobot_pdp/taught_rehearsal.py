@@ -3,8 +3,8 @@
 LeRobot's training loop samples the training dataset alone, and a taught mode's only data is the demonstration its
 checkpoint keeps (:mod:`.taught_demos`): trained further without it, the denoiser would forget the route. So when
 ``lerobot-train`` loads a taught checkpoint (``--policy.path`` or ``--resume``) over the dataset it was trained on, or
-over another whose mode labels leave the taught ids free (the same modes, more episodes), the behaviour bank keeps
-its taught behaviours (:func:`~lerobot_pdp.checkpoint.keep_training_behaviors`) and
+over another whose modes leave the taught ids free (the same modes, more episodes; labelled, or as clusters discovered
+in it), the behaviour bank keeps its taught behaviours (:func:`~lerobot_pdp.checkpoint.keep_training_behaviors`) and
 :class:`TaughtRehearsal` appends to each training batch windows of the taught demonstrations, drawn uniformly among
 all their windows, at their taught latents: ``config.taught_rehearsal_share`` of the batch it makes (0.25, as
 ``teach``'s demonstration share). The loss is the same L_DP over the whole batch. The encoder's geometry term trains

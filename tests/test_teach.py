@@ -426,6 +426,42 @@ def test_a_policy_trained_without_mode_labels_is_taught_a_mode_past_its_clusters
     assert cli([*steer, str(before.k - 1)]) == 0 and cli([*steer, "far left"]) == 0
 
 
+def test_training_further_on_unlabelled_data_keeps_taught_modes_past_its_clusters(tmp_path, caplog):
+    """Trained further (``lerobot-train --policy.path``) on another dataset without labels, a taught checkpoint keeps
+    its taught modes where the clusters discovered in that dataset leave their ids free (more episodes of the same
+    routes), and drops them saying why where the clusters take them (more routes)."""
+    import logging
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+
+    from lerobot_pdp import PDPConfig
+
+    two = write_dataset(tmp_path / "two", episodes_per_mode=3, modes=(0, 1), task="go to the goal")
+    q = small_policy(LeRobotDatasetMetadata("local/synthetic", root=two))
+    assert q.teach(new_route(), two, steps=1, name="far right").mode == q.discover_modes().k == 2
+    q.save_pretrained(tmp_path / "taught")
+
+    def train_on(root):
+        cfg = PDPConfig.from_pretrained(tmp_path / "taught")
+        cfg.pretrained_path = tmp_path / "taught"
+        return make_policy(cfg, ds_meta=LeRobotDatasetMetadata("local/synthetic", root=root))
+
+    caplog.set_level(logging.INFO, logger="lerobot_pdp")
+    more = train_on(write_dataset(tmp_path / "more", episodes_per_mode=5, modes=(0, 1), seed=1, task="go"))
+    assert "its taught mode(s) 2 ('far right') join them, rehearsed in every batch" in caplog.text
+    assert more.model.bank.taught_modes() == [2] and more.model.rehearsal is not None
+    modes = more.mode_latents()
+    assert modes.discovered and sorted(modes) == [0, 1, 2] and more.config.mode_names["2"] == "far right"
+    torch.testing.assert_close(modes["far right"], q.mode_latents()[2])
+
+    caplog.clear()
+    four = train_on(write_dataset(tmp_path / "four", episodes_per_mode=3, task="go"))
+    assert ("its taught mode(s) 2 ('far right') are dropped (this dataset has no mode labels, and the 4 clusters "
+            "discovered in it take ids up to 3, theirs among them; teach them" in caplog.text)
+    assert four.model.bank.taught_modes() == [] and four.model.rehearsal is None and four.discover_modes().k == 4
+
+
 def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
     """A checkpoint pushed to the Hub acts as its folder does: loaded by repo id from the Hub cache (offline, as on
     a robot that downloaded it), it has its taught mode's name, the demonstration it keeps and its adaptation."""
