@@ -431,12 +431,13 @@ def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None
 
 
 def warn_few_episodes(behaviors: BehaviorTraces, root: str | Path, beta_geo: float) -> None:
-    """Warn once when the training dataset holds one episode: the latent then has nothing to be steered
-    between, and with one behavior the geometry term L_geo (over pairs of behaviors) is 0."""
+    """Warn once when training reads one episode (the dataset holds one, or ``--dataset.episodes`` selects one):
+    the latent then has nothing to be steered between, and with one behavior the geometry term L_geo (over pairs
+    of behaviors) is 0."""
     if len(np.unique(behaviors.episode_index)) > 1:
         return
     why = ("its geometry term L_geo compares pairs of behaviors and is 0 with one" if len(behaviors) < 2 and beta_geo > 0
            else "there is one demonstrated behavior")
-    logger.warning("training dataset %s holds one episode: PDP trains, but its latent learns no behavior geometry "
+    logger.warning("PDP trains on one episode of %s: it trains, but its latent learns no behavior geometry "
                    "(%s), so steering has nothing to choose between; record several demonstrations of each "
                    "behavior", root, why)

@@ -7,6 +7,7 @@ to train on a CPU in minutes. The learning rates (1e-3 where the paper has 1e-4)
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -23,6 +24,8 @@ LATENT_TYPES = ("continuous", "onehot")
 INFERENCE_LATENTS = ("episode", "prior", "zero")
 TRACE_NORMALIZE = ("none", "start", "endpoints")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")  # torch.compile
+
+logger = logging.getLogger(__name__)
 
 # Fields whose default changed, with the value a checkpoint saved before the field existed was made with:
 # such a checkpoint (its config.json lacks the key) keeps sampling as it did (see apply_legacy_defaults).
@@ -267,8 +270,9 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # ---- Inference-time steering (also settable from lerobot-eval: --policy.steer_latent=[..]) ----
     # A fixed latent for every rollout.
     steer_latent: list[float] | None = None
-    # Condition on the mean latent of this training mode (mode ids come from the episodes' task strings).
-    steer_mode: int | None = None
+    # Condition on the mean latent of this training mode: its id (from the episodes' task strings, or a
+    # discovered cluster's) or its name (--policy.steer_mode='around the crate', as mode_names holds it).
+    steer_mode: int | str | None = None
     # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration): when the
     # checkpoint is loaded (PDPPolicy.from_pretrained), before LeRobot's control loop starts.
     steer_dataset_root: str | None = None
@@ -434,7 +438,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             raise ValueError(
                 f"PDP reads its behavior trace from trace_key '{self.trace_key}', which is not an input feature; "
                 f"the input features are {have}. Set --policy.trace_key to a state-like vector among them "
-                "(e.g. joint or end-effector positions)"
+                "(e.g. joint or end-effector positions); the denoiser is conditioned on 'observation.state' whatever "
+                "the trace_key, so store the robot's state under that key"
             )
         if len(trace_ft.shape) != 1:
             raise ValueError(f"trace_key '{self.trace_key}' must be a flat vector, got shape {tuple(trace_ft.shape)}")
@@ -443,6 +448,15 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                 "PDP needs something to condition on: observation.state (with condition_on_state=true), "
                 f"observation.environment_state or a camera observation.images.*; got {have}"
             )
+        other_states = [k for k, ft in self.input_features.items() if ft.type is FeatureType.STATE and k != OBS_STATE]
+        if self.condition_on_state and OBS_STATE not in self.input_features and other_states:
+            logger.warning(
+                "the state input(s) %s condition nothing: PDP, as LeRobot's policies, conditions its denoiser on "
+                "'%s' (with %s and cameras), and this data has none, so the policy does not see the robot's "
+                "state%s. Store the robot's state as '%s' (as lerobot-record does) to condition on it",
+                other_states, OBS_STATE, OBS_ENV_STATE,
+                f" (it reads only its behavior trace from trace_key '{self.trace_key}')" if self.trace_key in
+                other_states else "", OBS_STATE)
         flat = [(ACTION, self.action_feature)] + [(k, ft) for k, ft in self.condition_features.items()
                                                   if ft.type is not FeatureType.VISUAL]
         for key, ft in flat:

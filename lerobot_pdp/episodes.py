@@ -250,7 +250,10 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     for key, shape in required.items():
         ft = features.get(key)
         if ft is None:
-            problems.append(f"lacks '{key}'")
+            camera = key.startswith("observation.images.")  # name what the recording has in its place
+            alike = [k for k in features if k.startswith("observation.") and k.startswith("observation.images.") == camera]
+            problems.append(f"lacks '{key}' (it has {'cameras' if camera else 'observations'} "
+                            f"{', '.join(map(repr, alike)) or 'none'})")
             continue
         got = tuple(ft.get("shape") or ())
         if ft.get("dtype") in ("image", "video") and len(got) == 3:

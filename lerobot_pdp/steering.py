@@ -97,13 +97,18 @@ def apply_config_steering(policy: Any) -> None:
         logger.info("steered by steer_latent: latent %s", cfg.steer_latent)
     elif cfg.steer_mode is not None:
         means = policy.mode_latents()
-        if cfg.steer_mode not in means:
+        mode = cfg.steer_mode
+        if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():  # an id written as text (a config.json)
+            mode = int(mode)
+        mode = mode if mode in means else next(
+            (m for m, n in means.names.items() if n == cfg.steer_mode and m in means), None)  # a name
+        if mode is None:
             known = ", ".join(f"{m} ({means.names[m]})" if means.names.get(m) else str(m) for m in sorted(means))
-            raise KeyError(f"steer_mode {cfg.steer_mode} is not a mode of this checkpoint; its modes are {known}")
-        policy.steering.activate(means[cfg.steer_mode], provenance={"source": "mode", "mode": cfg.steer_mode})
-        name = means.names.get(cfg.steer_mode)
-        logger.info("steered to mode %s%s: latent %s", cfg.steer_mode, f" ({name})" if name else "",
-                    means[cfg.steer_mode].tolist())
+            raise KeyError(f"steer_mode {cfg.steer_mode!r} is not a mode of this checkpoint (an id or a name); its "
+                           f"modes are {known}")
+        policy.steering.activate(means[mode], provenance={"source": "mode", "mode": mode})
+        name = means.names.get(mode)
+        logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", means[mode].tolist())
     elif cfg.steer_dataset_root is not None:
         episode = (cfg.steer_dataset_root, int(cfg.steer_episode_index))
         refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)

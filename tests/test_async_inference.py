@@ -459,7 +459,7 @@ def test_the_server_counts_the_gripper_commands_the_client_executed_in_the_polic
 
 @pytest.mark.parametrize("option, said", [
     ("--policy.steer_mod=2", r"unrecognized arguments: --steer_mod=2\) in --policy.steer_mod=2"),
-    ("--policy.steer_mode=x", r"`steer_mode`: Could not decode"),
+    ("--policy.steer_latent=x", r"`steer_latent`: Could not decode"),
     ("--policy.horizon=0", r"Invalid PDPConfig: horizon must be >= 1"),
 ])
 def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):

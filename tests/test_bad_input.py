@@ -340,8 +340,8 @@ def test_a_one_episode_dataset_warns_naming_it(tmp_path, caplog):
     root = write_dataset(tmp_path / "one", episodes_per_mode=1, modes=(0,))
     with caplog.at_level(logging.WARNING):
         small_policy(LeRobotDatasetMetadata("local/synthetic", root=root))
-    (msg,) = _warnings(caplog, "holds one episode")
-    assert f"training dataset {root} holds one episode" in msg and "L_geo" in msg and "is 0" in msg
+    (msg,) = _warnings(caplog, "trains on one episode")
+    assert f"PDP trains on one episode of {root}" in msg and "L_geo" in msg and "is 0" in msg
 
 
 def test_an_unknown_steer_mode_names_the_checkpoints_modes():
@@ -350,6 +350,9 @@ def test_an_unknown_steer_mode_names_the_checkpoints_modes():
 
     taught = PDPPolicy.from_pretrained(Path(__file__).parent / "data" / "pdp_checkpoints_v2" / "taught")
     taught.config.steer_mode = 12
-    with pytest.raises(KeyError, match=r"steer_mode 12 is not a mode of this checkpoint; its modes are 0 \(over-tight\)"
-                                       r".* 8 \(taught: episode 0 of ra_s3\)"):
+    with pytest.raises(KeyError, match=r"steer_mode 12 is not a mode of this checkpoint \(an id or a name\); its modes "
+                                       r"are 0 \(over-tight\).* 8 \(taught: episode 0 of ra_s3\)"):
         taught.apply_config_steering()
+    taught.config.steer_mode = "taught: episode 0 of ra_s3"  # a name, as --policy.steer_mode takes it too
+    taught.apply_config_steering()
+    torch.testing.assert_close(taught.current_latent()[0], taught.mode_latents()[8])

@@ -67,3 +67,29 @@ def test_presets():
 def test_affine_film_is_a_valid_choice():
     # () = no hidden layer: z -> (gamma, beta) is one linear map (pick-place's benchmark setting)
     assert tuple(PDPConfig(film_hidden_dims=()).film_hidden_dims) == ()
+
+
+def test_a_robot_state_under_another_key_is_said_to_condition_nothing(caplog):
+    """LeRobot's policies condition on ``observation.state``; a dataset whose robot state sits under another key
+    (read as the behavior trace) trains, but the denoiser would not see the state: said in a warning, naming it."""
+    import logging
+
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    def features(state_key):
+        return {state_key: PolicyFeature(FeatureType.STATE, (3,)),
+                "observation.environment_state": PolicyFeature(FeatureType.ENV, (2,))}
+
+    cfg = PDPConfig(trace_key="observation.joint_pos")
+    cfg.input_features = features("observation.joint_pos")
+    cfg.output_features = {"action": PolicyFeature(FeatureType.ACTION, (3,))}
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp"):
+        cfg.validate_features()
+    assert "['observation.joint_pos'] condition nothing" in caplog.text
+    assert "it reads only its behavior trace from trace_key 'observation.joint_pos'" in caplog.text
+    assert list(cfg.condition_features) == ["observation.environment_state"]
+    caplog.clear()
+    cfg.trace_key, cfg.input_features = "observation.state", features("observation.state")
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp"):
+        cfg.validate_features()
+    assert caplog.text == "" and list(cfg.condition_features) == ["observation.state", "observation.environment_state"]

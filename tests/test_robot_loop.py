@@ -327,6 +327,12 @@ def test_policy_input_check_names_a_missing_trace_key(tmp_path):
             check_policy_inputs(cfg, feats, robot)
         cfg.trace_key = "observation.state"
         check_policy_inputs(cfg, feats, robot)
+        cfg.input_features["observation.images.oblique"] = PolicyFeature(FeatureType.VISUAL, (3, 64, 64))
+        feats["observation.images.oblique"] = {"dtype": "video", "shape": (32, 32, 3)}  # stored (H, W, C)
+        with pytest.raises(ValueError, match=r"'observation.images.oblique' of shape \(3, 32, 32\), the policy was "
+                                             r"trained on \(3, 64, 64\).*'observation.images.oblique': \(3, 32, 32\)\}"
+                                             r".*--robot.camera_size"):
+            check_policy_inputs(cfg, feats, robot)
     finally:
         robot.env.close()
 
@@ -526,7 +532,7 @@ def test_a_bad_recording_gets_a_clear_error(case, synthetic_meta, tmp_path):
         message = r"does not match the checkpoint: 'observation.state' has shape \(3,\) \(names \['v0', 'v1', 'v2'\]\)"
     elif case == "no_trace_key":
         _write_recording(root, {"observation.environment_state": env, "action": act}, 1)
-        message = r"does not match the checkpoint: lacks 'observation.state'"
+        message = r"does not match the checkpoint: lacks 'observation.state' \(it has observations 'observation.environment_state'\)"
     else:
         shutil.copytree(synthetic_meta.root, root)
         episode = 99
@@ -712,8 +718,8 @@ def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(
 @pytest.mark.slow
 def test_a_taught_checkpoint_steers_to_its_new_mode_in_lerobot_eval(untrained_reach_around, tmp_path):
     """``lerobot-pdp teach`` (a demonstration of a validation scene's new route, recorded with its way-points) ->
-    ``lerobot-eval --policy.path=TAUGHT --policy.steer_mode=<new mode>``: real processes; the taught checkpoint
-    knows the new mode by id and name, and the old modes keep theirs."""
+    ``lerobot-eval --policy.path=TAUGHT --policy.steer_mode=<new mode's name>``: real processes; the taught
+    checkpoint knows the new mode by id and name, and the old modes keep theirs."""
     from conftest import lerobot_cli, run_cli
 
     from lerobot_pdp.envs.recording import make_dataset
@@ -728,7 +734,7 @@ def test_a_taught_checkpoint_steers_to_its_new_mode_in_lerobot_eval(untrained_re
     info = json.loads((taught / "teaching.json").read_text())
     assert info["mode"] == 8 and info["mode_name"] == "val3 route" and (taught / "policy_preprocessor.json").is_file()
     out = tmp_path / "eval"
-    proc = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={taught}", "--policy.steer_mode=8",
+    proc = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={taught}", "--policy.steer_mode=val3 route",
                     "--env.type=pdp_reach_around", "--env.scene=val3", "--policy.device=cpu", "--eval.n_episodes=1",
                     "--eval.batch_size=1", f"--output_dir={out}"], timeout=600)
     assert json.loads(next(out.rglob("eval_info.json")).read_text())["overall"]["n_episodes"] == 1

@@ -111,17 +111,21 @@ def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], r
         if have is None:
             problems.append(f"no '{key}'")
             continue
-        got = tuple(have.get("shape") or ())
-        if have.get("dtype") in ("image", "video") and len(got) == 3:
-            got = (got[2], got[0], got[1])  # stored (H, W, C), the policy's (C, H, W)
+        got = _policy_shape(have)
         if got != want:
             problems.append(f"'{key}' of shape {got}, the policy was trained on {want}")
     trace_key = getattr(policy_config, "trace_key", None)
     if trace_key is not None and trace_key not in inputs and trace_key not in dataset_features:
         problems.append(f"no trace key '{trace_key}' (PDP's behavior trace)")
     if problems:
-        gives = {k: tuple(v.get("shape") or ()) for k, v in dataset_features.items() if k.startswith("observation.")}
+        gives = {k: _policy_shape(v) for k, v in dataset_features.items() if k.startswith("observation.")}
         raise ValueError(
             f"pdp_sim ({robot.suite.name}, scene {robot.config.scene}) does not give what the policy needs: "
-            + "; ".join(dict.fromkeys(problems)) + f". The robot gives {gives}: was the policy trained on "
-            f"another env? (cameras: --robot.camera_names)")
+            + "; ".join(dict.fromkeys(problems)) + f". The robot gives {gives} (cameras as (C, H, W)): was the "
+            "policy trained on another env? (cameras: --robot.camera_names, their (H, W): --robot.camera_size)")
+
+
+def _policy_shape(feature: dict) -> tuple[int, ...]:
+    """A dataset feature's shape as the policy sees it: cameras stored (H, W, C) are (C, H, W)."""
+    shape = tuple(feature.get("shape") or ())
+    return (shape[2], shape[0], shape[1]) if feature.get("dtype") in ("image", "video") and len(shape) == 3 else shape
