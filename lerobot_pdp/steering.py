@@ -62,6 +62,9 @@ def _cancel_running_fits() -> None:
     for fit in list(_RUNNING):
         fit.cancel()
         fit.wait(10)
+        logger.warning("steering: the fit to %s episode %d was still running after %.1f s when the process ended: "
+                       "abandoned, its latent never acted on (a fit at start-up, --policy.steer_dataset_root, runs "
+                       "before the first action)", fit.root, fit.episode, fit.seconds or 0.0)
 
 
 def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None = None) -> Any:

@@ -454,10 +454,11 @@ def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_super
 
 def test_a_process_ending_while_a_steering_fit_runs_exits_cleanly(synthetic_meta, tmp_path):
     """A live-steering fit still running when the program ends (lerobot-rollout's --duration) is cancelled at
-    its next step: the interpreter exits normally instead of aborting on a thread left inside torch."""
+    its next step, with a warning: the interpreter exits normally instead of aborting on a thread left inside torch."""
     script = tmp_path / "run.py"
     script.write_text(f"""
-import sys, time
+import logging, sys, time
+logging.basicConfig()  # as LeRobot's CLIs set it up
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 from policies import small_policy
@@ -473,6 +474,7 @@ print("ending", flush=True)
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "ending" in proc.stdout and "terminate called" not in proc.stderr
+    assert f"the fit to {synthetic_meta.root} episode 1 was still running after" in proc.stderr  # said, not silent
 
 
 def test_a_superseded_steering_fit_is_cancelled(synthetic_meta, tmp_path):
