@@ -428,6 +428,14 @@ def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None
                        "PDP tells the demonstrations apart by where they are only; a state-like vector that moves "
                        "(end-effector positions) works best", root, where)
     warn_few_episodes(behaviors, root, config.beta_geo)
+    length = {int(e): int(behaviors.end[behaviors.episode_index == e].max()) for e in np.unique(behaviors.episode_index)}
+    short = [e for e, n in length.items() if n < config.horizon]
+    if short:  # trains (the chunk's padding is masked), but fit_latent / teach refuse such a demonstration
+        logger.warning("%s: %d episode(s) are shorter than one action chunk (horizon %d frames): %s. PDP trains on "
+                       "them (each chunk padded past the episode's end), but a demonstration that short cannot be "
+                       "fitted or taught; record longer episodes or train with a shorter --policy.horizon", root,
+                       len(short), config.horizon, ", ".join(f"{e} ({length[e]} frames)" for e in short[:10])
+                       + (", ..." if len(short) > 10 else ""))
 
 
 def warn_few_episodes(behaviors: BehaviorTraces, root: str | Path, beta_geo: float) -> None:

@@ -344,6 +344,19 @@ def test_a_one_episode_dataset_warns_naming_it(tmp_path, caplog):
     assert f"PDP trains on one episode of {root}" in msg and "L_geo" in msg and "is 0" in msg
 
 
+def test_episodes_shorter_than_a_chunk_are_named(synthetic_meta, caplog):
+    """Training takes episodes shorter than one action chunk (their chunks padded) but a fit refuses such a
+    demonstration: said when training starts, naming the episodes and their lengths."""
+    with caplog.at_level(logging.WARNING):
+        small_policy(synthetic_meta, dataset_episodes=[0, 1])
+    assert not _warnings(caplog, "shorter than one action chunk")
+    with caplog.at_level(logging.WARNING):
+        policy = small_policy(synthetic_meta, dataset_episodes=[0, 1], horizon=64, drop_n_last_frames=55)
+    (msg,) = _warnings(caplog, "shorter than one action chunk")
+    lengths = policy.model.bank.end.tolist()
+    assert f"2 episode(s) are shorter than one action chunk (horizon 64 frames): 0 ({lengths[0]} frames), 1 " in msg
+
+
 def test_an_unknown_steer_mode_names_the_checkpoints_modes():
     """``--policy.steer_mode`` of a mode the checkpoint lacks (lerobot-eval, lerobot-rollout): its modes by id and name."""
     from pathlib import Path
