@@ -25,8 +25,9 @@ What differs from ``select_action``:
   it hands out and its chunks; under RTC PDP's queue (:class:`ConsumedDelayQueue`, below) tells PDP each action the
   loop takes from it, so the next chunk the engine generates after a phase ends is conditioned on the next phase's
   latent (``select_action`` replans at once), and a chunk planned at the episode's step k starts from noise
-  ``k // n_action_steps`` (``Steering.by_step``; it matches the noises' frames when the engine replans every
-  ``n_action_steps`` actions, as ``--inference.queue_threshold=7`` does). With LeRobot's own queue
+  ``k // n_action_steps`` (``Steering.by_step``); while noises are replayed the queue lets the engine start chunks
+  only from the observations of steps ``j * n_action_steps`` (:attr:`ConsumedDelayQueue.noise_cadence`), so each
+  noise meets its own frames. With LeRobot's own queue
   (``rtc_consumed_delay=false``) nothing reports the executed actions: both are refused with a message
   (``--inference.type=sync`` runs them), at start-up and as live requests (the robot keeps its latent);
 - a chunk whose generation overlapped a ``reset()`` (a new episode), or whose observation was published
@@ -93,11 +94,33 @@ class ConsumedDelayQueue(ActionQueue):
         self._last_original: Tensor | None = None  # the last executed action, normalised
         # told each executed action [A], normalised, outside the lock (PDP's steps and phases; set by _announcing)
         self.on_executed: Callable[[Tensor], None] | None = None
+        # (PDP's episode step at the latest observation, the chunk cadence fitted noises need or None); set by
+        # _announcing. Fitted chunk noise j belongs to the demonstration's frames from j * n_action_steps, so
+        # while noises are replayed a chunk starts only from the observation of such a step, as sync replans:
+        # the queue threshold alone replans every n_action_steps - 1 actions once a chunk's generation
+        # overlaps one executed action, and a noise one step off its frames sends the robot elsewhere
+        self.noise_cadence: Callable[[], tuple[int, int | None]] | None = None
+        self._step_at_observation: int | None = None
 
     def observed(self) -> None:
         """The loop published an observation (before executing that step's action)."""
+        step = self.noise_cadence()[0] if self.noise_cadence is not None else None
         with self.lock:
             self.executed_at_observation = self.executed
+            self._step_at_observation = step
+
+    def qsize(self) -> int:
+        """LeRobot's count of the actions left; the engine starts a chunk when it falls to its threshold. While
+        fitted noises are replayed (:attr:`noise_cadence`), 0 exactly at the observations of their steps (once
+        each) and a count above any threshold otherwise, unless the queue ran dry."""
+        size = super().qsize()
+        every = self.noise_cadence()[1] if self.noise_cadence is not None else None
+        if every is None or size == 0:
+            return size
+        with self.lock:
+            step, seen = self._step_at_observation, self.executed_at_observation
+            fresh = step is not None and step % every == 0 and self._chunk_from != seen
+        return 0 if fresh else size + (1 << 30)
 
     def get(self) -> Tensor | None:
         with self.lock:  # LeRobot's get, counting what it hands out
@@ -304,6 +327,12 @@ def _executed(policy: Any, action: Tensor) -> None:
     policy._advance_phase(action[None], replan=False)
 
 
+def _noise_cadence(policy: Any) -> tuple[int, int | None]:
+    """(The episode's step, ``n_action_steps`` while fitted chunk noises are replayed by step, else None)."""
+    st = policy.steering
+    return st.executed_steps, policy.config.n_action_steps if st.by_step and len(st.noises) else None
+
+
 def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
     """The engine's ``notify_observation``, first telling PDP's queue and observation history that an observation
     was published."""
@@ -311,9 +340,10 @@ def _announcing(notify: Callable[..., None]) -> Callable[..., None]:
     def notify_observation(engine: Any, obs: dict) -> None:
         queue, policy = getattr(engine, "_action_queue", None), getattr(engine, "_policy", None)
         if isinstance(queue, ConsumedDelayQueue):
-            queue.observed()
             if queue.on_executed is None and getattr(policy, "_rtc_reports_executed", False):
                 queue.on_executed = functools.partial(_executed, policy)
+                queue.noise_cadence = functools.partial(_noise_cadence, policy)
+            queue.observed()
         published = getattr(policy, "_rtc_observations", None)
         if published is not None:
             published.published(engine, obs)

@@ -3,6 +3,7 @@ engine checks, the prefix imposed on a new chunk, the engine's zero padding, wha
 
 import threading
 
+import numpy as np
 import pytest
 import torch
 from lerobot.policies.rtc.configuration_rtc import RTCConfig
@@ -169,6 +170,48 @@ def test_a_new_chunk_continues_from_its_observations_step(read_before_the_steps_
     assert [_loop_step(q), _loop_step(q)] == [2.0, 3.0]  # executed while the chunk was generated
     q.merge(new, new, 2, index)
     assert float(q.get()[0]) == 103.0  # step 4
+
+
+def test_with_fitted_noises_the_engine_replans_at_their_steps_only():
+    """Fitted chunk noise j belongs to the demonstration's frames from j * n_action_steps: while noises are replayed,
+    the queue lets the engine start a chunk only at the observations of steps 0, 8, 16, ..., once each, whatever
+    its threshold (LeRobot's default 30 replans back to back without noises). A queue run dry lets it replan at
+    once."""
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    threshold, noises, step = 30, [True], [0]
+    q = ConsumedDelayQueue(RTCConfig())
+    q.noise_cadence = lambda: (step[0], 8 if noises[0] else None)
+    q.on_executed = lambda action: step.__setitem__(0, step[0] + 1)  # the episode's executed steps, as PDP counts
+    chunk = torch.arange(15.0)[:, None]  # what PDP returns: horizon - n_obs_steps + 1 actions
+
+    def run(steps: int) -> list[int]:
+        """lerobot-rollout's loop with the engine's thread: each step publishes its observation, the engine may
+        start a chunk from it, the step's action is executed, and the chunk lands two actions later (a chunk's
+        generation spans about two steps at 50 fps)."""
+        planned, pending = [], None
+        for _ in range(steps):
+            q.observed()
+            if pending is None and q.qsize() <= threshold:
+                pending = q.get_action_index()
+                planned.append(step[0])
+            q.get()
+            if pending is not None and step[0] - planned[-1] == 2:
+                q.merge(chunk, chunk, 2, pending)
+                pending = None
+        return planned
+
+    q.observed()
+    assert q.qsize() == 0  # the episode's first chunk: an empty queue
+    q.merge(chunk, chunk, 0, q.get_action_index())
+    assert run(41) == [8, 16, 24, 32, 40]
+    noises[0] = False  # LeRobot's threshold alone: a new chunk as soon as the last one landed
+    assert np.diff(run(12)).tolist() == [2] * 5
+    noises[0] = True
+    q.clear()  # a new episode: the queue is empty, a chunk is started whatever the step
+    step[0] = 3
+    q.observed()
+    assert q.qsize() == 0
 
 
 def test_the_prefix_reaches_into_the_chunk_before_when_a_new_chunk_landed_after_the_observation():
