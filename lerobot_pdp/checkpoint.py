@@ -242,6 +242,11 @@ def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[in
     if not wrong:
         return
     cfg, where = policy.config, Path(model_file).with_name(CONFIG_NAME)
+    other = _other_features(cfg, where)
+    if other:  # lerobot-eval builds the features from --env.type, lerobot-rollout from the robot
+        raise ValueError(f"{model_file} was trained on other inputs or outputs than this run gives it: {other}. Is "
+                         "this the env (--env.type, --env.*) or robot the policy was trained on? Its features are "
+                         f"in {where}")
     encoder = sorted((int(k.split(".")[2]), v) for k, v in shapes.items()
                      if k.startswith("vae.encoder.") and k.endswith(".weight"))
     fields = []
@@ -255,6 +260,29 @@ def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[in
     raise ValueError(f"{model_file} does not match its config: {'; '.join(fields) or tensors}"
                      f"{f' ({tensors})' if fields else ''}. Was {CONFIG_NAME} edited? Use the config.json saved "
                      "with these weights")
+
+
+def _other_features(cfg: Any, saved_config: Path) -> str:
+    """How the features the policy is built with differ from those its config.json was saved with ('' when they
+    do not, or the file cannot tell)."""
+    try:
+        saved = read_config_json(saved_config) if saved_config.is_file() else {}
+    except ValueError:
+        return ""
+    differ = []
+    for field in ("input_features", "output_features"):
+        was = {k: tuple(v.get("shape") or ()) for k, v in (saved.get(field) or {}).items()}
+        now = {k: tuple(ft.shape) for k, ft in (getattr(cfg, field) or {}).items()}
+        if not was:
+            continue
+        for key in sorted(was.keys() | now.keys()):
+            if key not in now:
+                differ.append(f"'{key}' {was[key]} is missing")
+            elif key not in was:
+                differ.append(f"'{key}' {now[key]} is new")
+            elif was[key] != now[key]:
+                differ.append(f"'{key}' is {now[key]}, trained on {was[key]}")
+    return "; ".join(differ)
 
 
 def check_finite_weights(policy: nn.Module, model_file: str) -> None:

@@ -39,16 +39,22 @@ class Demonstration:
 
 
 def read_demonstration(episode: Episode, config: PDPConfig, action_dim: int, segments="auto",
-                       need_action: bool = True) -> Demonstration:
+                       need_action: bool = True, acting: bool = False) -> Demonstration:
     """Validate a demonstration and split it into the segments that get one latent each.
 
     ``episode``: a dict of unnormalised arrays/tensors as stored in a LeRobotDataset (``observation.*``,
     ``action``; shapes [T, ...]) or a ``(LeRobotDataset | root path, episode_index)`` pair. ``segments``: None
     (one z), a list of frame ranges, or ``"gripper"`` (split on gripper events of ``config.segment_gripper_dim``):
     one z per phase, used in order during the rollout. ``"auto"`` (default): as the policy was trained, i.e.
-    ``"gripper"`` when ``config.segment_gripper_dim`` is set, else None.
+    ``"gripper"`` when ``config.segment_gripper_dim`` is set, else None. ``acting``: the latents will be acted
+    under, so several segments on a policy without phases are refused now, not after a fit.
     """
     segments = segments_as_trained(config, segments)
+    if acting and config.segment_gripper_dim is None and not isinstance(segments, str) and segments is not None \
+            and len(segments) > 1:
+        raise ValueError(f"segments {list(segments)} ask for one latent per phase, but this policy has no phases "
+                         "(trained without segment_gripper_dim): only the first would ever act. Fit one latent "
+                         "(segments=None), or fit with activate=False to compare the segments' latents")
     arrays = _episode_arrays(episode, config, action_dim, need_action=need_action or segments == "gripper")
     return Demonstration(arrays, _resolve_segments(config, arrays, segments), per_phase=segments is not None)
 

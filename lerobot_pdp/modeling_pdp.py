@@ -275,7 +275,7 @@ class PDPPolicy(PreTrainedPolicy):
         ``activate``: act under the result. ``episode``, ``segments``: :func:`lerobot_pdp.demonstration.read_demonstration`;
         the other arguments: :func:`lerobot_pdp.adaptation.fit_to_demonstration`."""
         with torch.inference_mode(False), torch.enable_grad():  # z's gradients, also in LeRobot's inference_mode loop
-            demo = self._demonstration(episode, segments, need_action=True)  # prepare: read, validate, split
+            demo = self._demonstration(episode, segments, need_action=True, acting=activate)  # read, validate, split
             result = fit_to_demonstration(self.model, self.config, demo, self._demo_windows(demo), init=init,  # fit
                                           steps=steps, lr=lr, lam=lam, seed=seed, progress=progress,
                                           objective=objective, noise=noise, optimizer=optimizer)
@@ -309,5 +309,5 @@ class PDPPolicy(PreTrainedPolicy):
     def _demo_windows(self, demo: Demonstration) -> DemoWindows:
         return demonstration_windows(demo, self.config, self.stats, self.model.obs_encoder, self.model.device)
 
-    def _demonstration(self, episode: Episode, segments, need_action: bool) -> Demonstration:
-        return read_demonstration(episode, self.config, self.action_dim, segments, need_action)
+    def _demonstration(self, episode: Episode, segments, need_action: bool, acting: bool = False) -> Demonstration:
+        return read_demonstration(episode, self.config, self.action_dim, segments, need_action, acting)

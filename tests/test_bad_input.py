@@ -277,6 +277,18 @@ def test_an_edited_latent_dim_names_the_field(checkpoint, tmp_path):
         PDPPolicy.from_pretrained(ckpt)
 
 
+def test_a_checkpoint_built_for_another_env_names_the_features(checkpoint):
+    """lerobot-eval builds the policy's features from --env.type: an env the policy was not trained on is named as
+    such (the features that differ), not as an edited config.json."""
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    cfg = PDPConfig.from_pretrained(checkpoint)
+    cfg.output_features = {"action": PolicyFeature(FeatureType.ACTION, (3,))}  # what another env would give
+    with pytest.raises(ValueError, match=r"was trained on other inputs or outputs than this run gives it: 'action' "
+                                         r"is \(3,\), trained on \(2,\)\. Is this the env \(--env.type"):
+        PDPPolicy.from_pretrained(checkpoint, config=cfg)
+
+
 def test_a_missing_checkpoint_folder_is_named(tmp_path):
     for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model"):
         with pytest.raises(FileNotFoundError, match=rf"no such checkpoint folder: {missing}"):

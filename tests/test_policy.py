@@ -167,6 +167,9 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
         with pytest.raises(ValueError, match=r"this policy has no phases .* Give one latent \[2\]"):
             p.set_latent(several)
     assert torch.equal(p.active_latent[0], res.z)  # refused: the latent before it stays
+    with pytest.raises(ValueError, match=r"segments \[\(0, 20\), \(20, 40\)\] ask for one latent per phase, but "
+                                         r"this policy has no phases"):
+        p.fit_latent((root, 2), steps=10**6, segments=[(0, 20), (20, 40)])  # refused before the fit, not after it
     r0 = p.fit_latent((root, 2), steps=0, init="random")
     assert torch.equal(r0.z, r0.z_init) and not torch.allclose(r0.z_init, p.encode((root, 2)), atol=1e-3)
     start = torch.tensor([0.25, -0.5])  # a given start (a mode's latent, an earlier fit): the fit begins there
