@@ -1,5 +1,8 @@
 """Steer a trained PDP checkpoint in the reach-around env: per-mode latents, then one-demo adaptation.
 
+Only LeRobot's public API around PDP's steering calls: the checkpoint's own processors, LeRobot's env factory
+(``--env.type=pdp_reach_around``) and its evaluation loop, as ``lerobot-eval`` runs them.
+
     # 1. data + training (LeRobot's own loop)
     lerobot-pdp make-dataset --env reach-around --scene 0 --episodes-per-mode 10 --out data/ra
     lerobot-train --policy.type=pdp --policy.trace_dims='[0,1,2]' --policy.push_to_hub=false \
@@ -15,23 +18,40 @@ from __future__ import annotations
 
 import sys
 
-from lerobot_pdp.benchmark.rollouts import run_rollouts
-from lerobot_pdp.benchmark.training import load_policy
-from lerobot_pdp.envs import get_suite_env
+from lerobot.envs.factory import make_env, make_env_config, make_env_pre_post_processors
+from lerobot.policies.factory import make_pre_post_processors
+from lerobot.scripts.lerobot_eval import eval_policy
+from lerobot.utils.import_utils import register_third_party_plugins
+
+from lerobot_pdp import PDPPolicy
+
+register_third_party_plugins()  # what LeRobot's CLIs do first: the lab's envs (pdp_*) are a plugin beside PDP
+
+
+def success(policy: PDPPolicy, processors: tuple, scene: int, episodes: int, seed: int) -> float:
+    """Success % of ``episodes`` rollouts in ``scene`` under the policy's active latent, as lerobot-eval counts it."""
+    env_cfg = make_env_config("pdp_reach_around", scene=scene)
+    envs = make_env(env_cfg, n_envs=episodes)
+    env = next(iter(next(iter(envs.values())).values()))  # one suite, one task: one vector env
+    env_pre, env_post = make_env_pre_post_processors(env_cfg, policy.config)
+    try:
+        info = eval_policy(env, policy, env_pre, env_post, *processors, n_episodes=episodes, start_seed=seed)
+    finally:
+        env.close()
+    return info["aggregated"]["pc_success"]
 
 
 def main(ckpt: str, demo_root: str) -> None:
-    suite = get_suite_env("reach-around")
-    policy, pre, post = load_policy(ckpt)  # policy + its saved LeRobot processors
-    for mode, z in policy.mode_latents().items():
+    policy = PDPPolicy.from_pretrained(ckpt)
+    # the checkpoint's own processors: observations normalised in, actions back in the env's units out
+    processors = make_pre_post_processors(policy.config, pretrained_path=ckpt)
+    modes = policy.mode_latents()
+    for mode, z in modes.items():
         policy.set_latent(z)
-        r = run_rollouts(suite, 0, policy, pre, post, n=5, seed=mode)
-        print(f"scene 0, mode {mode} ({suite.mode_names[mode]}): success {r.success_rate:.0%}, "
-              f"landed in modes {[x.mode for x in r.results]}")
-    res = policy.fit_latent((demo_root, 0))  # weights frozen; only z moves
+        print(f"scene 0, mode {mode} ({modes.names.get(mode, '')}): success {success(policy, processors, 0, 5, mode):.0f}%")
+    res = policy.fit_latent((demo_root, 0))  # weights frozen; only z moves, and the policy now acts under it
     print(f"fitted z = {res.z.tolist()} from warm start {res.z_init.tolist()} (L_fit {res.losses[-1]:.4f})")
-    r = run_rollouts(suite, 3, policy, pre, post, n=10, seed=0)
-    print(f"scene 3 after fitting: success {r.success_rate:.0%}")
+    print(f"scene 3 after fitting: success {success(policy, processors, 3, 10, 0):.0f}%")
 
 
 if __name__ == "__main__":
