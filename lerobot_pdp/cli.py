@@ -896,10 +896,12 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="PDP benchmark suite tools")
+    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="PDP benchmark suite tools", allow_abbrev=False)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
         add(sub)
+    for command in sub.choices.values():  # a mistyped flag (--step for --steps) is an error, not taken as a prefix
+        command.allow_abbrev = False
     return parser
 
 

@@ -89,6 +89,18 @@ class FitResult:
     # with fit_noise="chunks": one initial sampler noise per executed chunk, [C, horizon, A], played in order
     noise: Tensor | None = None
 
+    def __repr__(self) -> str:  # a summary: the dataclass's would print every step's loss and every noise
+        def fmt(x: float | None) -> str:
+            return "None" if x is None else f"{x:.4g}"
+
+        loss = f"{fmt(self.losses[0])} -> {fmt(self.losses[-1])}" if self.losses else "none"
+        noise = "None" if self.noise is None else f"<{len(self.noise)} chunk noises {tuple(self.noise.shape)}>"
+        def short(t: Tensor) -> str:
+            return str(np.round(t.detach().cpu().double().numpy(), 4).tolist())
+
+        return (f"FitResult(z={short(self.z)}, z_init={short(self.z_init)}, steps={self.steps}, L_fit={loss}, "
+                f"fit_error={fmt(self.fit_error)}, error_ratio={fmt(self.error_ratio)}, noise={noise})")
+
 
 class FitCancelled(RuntimeError):
     """A fit stopped between two steps because its thread was told to (:func:`cancellable`)."""

@@ -156,6 +156,7 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
     before = {k: v.clone() for k, v in p.state_dict().items()}
     res = p.fit_latent({k: torch.as_tensor(v) for k, v in ep.items() if k != "task"}, steps=5)
     assert len(res.losses) == 5 and res.z.shape == (2,)
+    assert repr(res).startswith("FitResult(z=[") and "steps=5" in repr(res) and len(repr(res)) < 300  # a summary
     torch.testing.assert_close(res.z_init, z)
     for k, v in p.state_dict().items():  # (an untrained policy's train_loss_dp is NaN)
         torch.testing.assert_close(v, before[k], rtol=0, atol=0, equal_nan=True, msg=f"fit_latent changed {k}")
