@@ -29,9 +29,9 @@ from .checkpoint import (
     read_adaptation,
     write_adaptation,
 )
-from .checkpoint_files import read_config_json
+from .checkpoint_files import not_a_checkpoint, read_config_json
 from .configuration_pdp import PDPConfig
-from .demonstration import Episode
+from .demonstration import Episode, check_recording_exists
 from .latent_search import SearchResult
 from .model_card import checkpoint_card
 from .outcome_scores import Score
@@ -50,6 +50,7 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
     elsewhere may name no base at hand). Returns ``out``."""
     base, out = Path(base), Path(out)
     _check_folders(base, out)
+    check_recording_exists(episode)
     if (base / ADAPTATION_INFO).is_file():  # its weights are what is fitted; the new adaptation replaces its own
         logger.warning("%s carries an adaptation (%s): fitting its weights without it; %s gets the new adaptation "
                        "in its place", base, ADAPTATION_INFO, out)
@@ -148,7 +149,7 @@ def _acting_adapted(config: Path) -> None:
 
 def _check_folders(base: Path, out: str | Path | None) -> None:
     if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
-        raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
+        raise FileNotFoundError(not_a_checkpoint(base))
     if out is not None and Path(out).exists():
         raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
 

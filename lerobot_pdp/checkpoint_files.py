@@ -20,6 +20,18 @@ PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 DEPLOY_PROGRAMS = ("lerobot-eval", "lerobot-rollout")
 
 
+def not_a_checkpoint(folder: Path) -> str:
+    """The error for a folder that is not a PDP checkpoint folder."""
+    return f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors){layout_hint(folder)}"
+
+
+def layout_hint(folder: Path) -> str:
+    """Where the checkpoint is in LeRobot's training layout below ``folder`` (``checkpoints/last`` holds
+    ``pretrained_model``, which is the checkpoint): "; did you mean ...?", or ""."""
+    return next((f"; did you mean {folder / sub}?" for sub in ("pretrained_model", "checkpoints/last/pretrained_model")
+                 if (folder / sub / CONFIG_NAME).is_file()), "")
+
+
 def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, need_weights: bool = True) -> None:
     """Fail early, naming the file, on a local checkpoint folder PDP cannot load: one that does not exist
     (huggingface_hub would call its path an invalid repo id), lacks or holds a damaged config.json, or lacks
@@ -42,7 +54,8 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
     config = folder / CONFIG_NAME
     if need_config:
         if not config.is_file():
-            raise FileNotFoundError(f"{folder} holds no {CONFIG_NAME}: give a PDP pretrained_model folder")
+            raise FileNotFoundError(f"{folder} holds no {CONFIG_NAME}: give a PDP pretrained_model folder"
+                                    f"{layout_hint(folder)}")
         read_config_json(config)
     if not need_weights:
         return

@@ -58,6 +58,13 @@ def read_demonstration(episode: Episode, config: PDPConfig, action_dim: int, seg
     arrays = _episode_arrays(episode, config, action_dim, need_action=need_action or segments == "gripper")
     return Demonstration(arrays, _resolve_segments(config, arrays, segments), per_phase=segments is not None)
 
+def check_recording_exists(episode: Episode) -> None:
+    """A ``(folder, index)`` demonstration whose folder holds no recording is named at once, before the seconds a
+    checkpoint takes to load (the full check, against the policy's features, comes with the read)."""
+    if isinstance(episode, (tuple, list)) and len(episode) == 2 and isinstance(episode[0], (str, Path)):
+        recording_info(episode[0])
+
+
 def segments_as_trained(config: PDPConfig, segments):
     """``"auto"``: split demonstrations the way the training behaviors were split."""
     if isinstance(segments, str) and segments == "auto":

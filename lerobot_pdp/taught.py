@@ -23,9 +23,9 @@ from pathlib import Path
 
 from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
-from .checkpoint_files import read_config_json
+from .checkpoint_files import not_a_checkpoint, read_config_json
 from .configuration_pdp import PDPConfig
-from .demonstration import Demonstration, Episode, check_demonstration
+from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
 from .taught_demos import TAUGHT_DEMOS, tensors_to_demos
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult, read_rehearsal
@@ -115,9 +115,11 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
     from .adapted import LOAD_ONLY_FIELDS, load_base_policy
 
     if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
-        raise FileNotFoundError(f"{base} is not a PDP checkpoint folder (config.json + model.safetensors)")
+        raise FileNotFoundError(not_a_checkpoint(base))
     if out.exists():
         raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
+    for episode, _, _ in lessons:
+        check_recording_exists(episode)
     if (base / ADAPTATION_INFO).is_file():  # the weights are taught; the taught checkpoint acts unadapted
         logger.warning("%s carries an adaptation (%s): teaching its weights without it; %s carries none (steer it "
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)

@@ -172,6 +172,14 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     assert f"{out} exists" in capsys.readouterr().err
     assert cli(["adapt", str(tmp_path), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
     assert "is not a PDP checkpoint folder" in capsys.readouterr().err
+    last = tmp_path / "train" / "checkpoints" / "last"  # LeRobot's layout: the checkpoint is its pretrained_model
+    shutil.copytree(base, last / "pretrained_model")
+    assert cli(["adapt", str(last), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
+    assert f"; did you mean {last / 'pretrained_model'}?" in capsys.readouterr().err
+    with monkeypatch.context() as m:  # a missing recording is named before the checkpoint is loaded
+        m.setattr("lerobot_pdp.adapted.load_base_policy", None)
+        assert cli(["adapt", str(base), "--demo", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")]) == 2
+    assert f"recording {tmp_path / 'nowhere'} does not exist" in capsys.readouterr().err
     # an adapted checkpoint adapted again: its weights are fitted, the new adaptation replaces the old (one card
     # section, one adaptation), whether or not the base it names is at hand
     assert cli(["adapt", str(out), "--demo", str(synthetic_meta.root), "--episode", "1", "--steps", "1",
