@@ -84,7 +84,8 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
         mode = _mode_id(policy, request["mode"])
         means = policy.mode_latents()
         if mode not in means:
-            raise KeyError(f"steering: mode {request['mode']!r} is not a training mode; modes are {sorted(means)}")
+            raise KeyError(f"steering: mode {request['mode']!r} is not a mode of this checkpoint; its modes are "
+                           f"{_known_modes(means)}")
         policy.set_latent(means[mode])
         return means[mode]
     raise AssertionError("unreachable: check_request admits one of REQUEST_KEYS")
@@ -106,9 +107,8 @@ def apply_config_steering(policy: Any) -> None:
         mode = mode if mode in means else next(
             (m for m, n in means.names.items() if n == cfg.steer_mode and m in means), None)  # a name
         if mode is None:
-            known = ", ".join(f"{m} ({means.names[m]})" if means.names.get(m) else str(m) for m in sorted(means))
             raise KeyError(f"steer_mode {cfg.steer_mode!r} is not a mode of this checkpoint (an id or a name); its "
-                           f"modes are {known}")
+                           f"modes are {_known_modes(means)}")
         policy.steering.activate(means[mode], provenance={"source": "mode", "mode": mode})
         name = means.names.get(mode)
         logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", means[mode].tolist())
@@ -175,6 +175,11 @@ def _rollout_with_rtc() -> bool:
     return (bool(sys.argv) and Path(sys.argv[0]).stem.replace("_", "-") == "lerobot-rollout"
             and ("--inference.type=rtc" in args or any(a == "--inference.type" and b == "rtc"
                                                         for a, b in zip(args, args[1:], strict=False))))
+
+
+def _known_modes(means: Any) -> str:
+    """'0 (left), 1 (right), 2': a checkpoint's modes (``mode_latents()``) by id and name, for an error."""
+    return ", ".join(f"{m} ({means.names[m]})" if means.names.get(m) else str(m) for m in sorted(means))
 
 
 def _mode_id(policy: Any, mode: Any) -> int:

@@ -395,7 +395,7 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     next_chunk()
     assert torch.allclose(p.active_latent[0], means[1])
     # bad requests: logged, the latent stays
-    for text, message in [('{"mode": 9}', "mode 9 is not a training mode"),
+    for text, message in [('{"mode": 9}', f"mode 9 is not a mode of this checkpoint; its modes are 0 ({p.config.mode_names['0']}), "),
                           ('{"latent": [1, 2, 3]}', "latent must have shape"),
                           ('{"mode": 1', "Expecting"),
                           ('{"dataset": "nowhere"}', "nowhere does not exist"),
