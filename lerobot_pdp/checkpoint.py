@@ -358,6 +358,9 @@ def apply_adaptation(policy: Any, pretrained: str | Path, **hub: Any) -> None:
     ``config.use_adaptation`` is false): the active latent(s), chunk noises and provenance. Not when it is loaded
     to train (``hub`` holds lerobot-train's ``dataset_meta``): the adaptation was fitted to the weights it trains."""
     adaptation = read_adaptation(pretrained, **hub) if policy.config.use_adaptation else None
+    if not policy.config.use_adaptation and (Path(pretrained) / ADAPTATION_TENSORS).is_file():  # (a local folder)
+        logger.info("adapted checkpoint %s loaded without its adaptation (use_adaptation=false): acting as its base",
+                    pretrained)
     if adaptation is not None and hub.get("dataset_meta") is not None:  # lerobot-train's fine-tune or resume
         logger.warning("%s is an adapted checkpoint (latent %s, %d chunk noise(s)), loaded to train: training moves "
                        "the weights that adaptation was fitted to, so this policy trains and is saved without it; adapt "

@@ -63,7 +63,9 @@ def test_fit_then_save_pretrained_keeps_the_adaptation(synthetic_meta, tmp_path,
     assert len(q.active_latent) == 0 and len(q.active_noise) == 0
     cfg = PDPPolicy.from_pretrained(tmp_path / "adapted").config
     cfg.use_adaptation = False  # what --policy.use_adaptation=false does
-    assert len(PDPPolicy.from_pretrained(tmp_path / "adapted", config=cfg).active_latent) == 0
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.checkpoint"):
+        assert len(PDPPolicy.from_pretrained(tmp_path / "adapted", config=cfg).active_latent) == 0
+    assert "loaded without its adaptation (use_adaptation=false): acting as its base" in caplog.text  # said
     # loaded to train (lerobot-train --policy.path=ADAPTED passes the dataset): trained and saved without it
     from lerobot.policies.factory import make_policy
 
