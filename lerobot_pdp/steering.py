@@ -120,7 +120,8 @@ def apply_config_steering(policy: Any) -> None:
         t0 = time.perf_counter()
         res = policy.fit_latent(episode)
         noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
-        logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s; from %g at risk)", noises,
+        logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s: its error on the demonstration "
+                    "over the training demonstrations' at their own latents; steering is at risk from %g)", noises,
                     cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
                     "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 

@@ -321,7 +321,7 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
         z = p.current_latent(2)
     assert z.shape == (2, 2) and len(p.active_latent) == 1
     message = next(r.getMessage() for r in caplog.records if "fitted latent" in r.getMessage())
-    assert re.search(r"episode 1 in \d+\.\d s: .*error ratio n/a; from 2 at risk", message), message
+    assert re.search(r"episode 1 in \d+\.\d s: .*error ratio n/a: .*; steering is at risk from 2\)", message), message
 
 
 def _gripper_actions(p):
