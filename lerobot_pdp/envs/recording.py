@@ -90,7 +90,8 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
     try:
         arr = np.asarray(waypoints, dtype=float)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"way-points must be a list of points, got {waypoints!r}") from e
+        raise ValueError(f"way-points must be a list of points of the same size ([x, y] or [x, y, z], one "
+                         f"coordinate per trace dim of the env), got {waypoints!r}") from e
     if arr.ndim != 2 or len(arr) == 0 or not np.all(np.isfinite(arr)):
         raise ValueError(f"way-points must be a non-empty list of finite points, got {waypoints!r}")
     return arr
