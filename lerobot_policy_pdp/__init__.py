@@ -5,14 +5,18 @@ Importing it registers ``--policy.type=pdp``; the code lives in ``lerobot_pdp``.
 column at a time on LeRobot <= 0.6.1 (``lerobot_pdp.column_views``). On a machine without FFmpeg, LeRobot's
 "torchcodec cannot be loaded" warning (a hundred lines of tracebacks) is reported in one line
 (``lerobot_pdp.console``); every ``lerobot-*`` command imports this module first, before it builds any config.
+An error PDP raises on purpose ends those commands with its message, not under a traceback
+(``lerobot_pdp.cli_errors``).
 """
 
 from lerobot_pdp import *  # noqa: F401,F403
 from lerobot_pdp import __all__  # noqa: F401
+from lerobot_pdp import cli_errors as _cli_errors
 from lerobot_pdp import column_views as _column_views
 from lerobot_pdp import console as _console
 
 _console.install()
+_cli_errors.install()
 
 if _column_views.requested():
     _column_views.install()

@@ -1,0 +1,61 @@
+"""PDP's own error messages end LeRobot's commands as one line, not under a 200-line traceback.
+
+``lerobot-train``, ``lerobot-eval``, ``lerobot-rollout`` and ``lerobot-record`` let an exception run out of
+``main``, so a message PDP wrote for the user (``steer_mode 42 is not a mode of this checkpoint; its modes are
+0 (left), ...``, a recording that lacks a camera, trace_dims past the state's size) comes last, after the
+traceback through LeRobot's, draccus' and PDP's frames. ``install()`` (run by the plugin module those commands
+import first) puts a ``sys.excepthook`` in front of Python's: an exception *raised on purpose by PDP* (the
+innermost frame is a ``raise`` statement in PDP's code, and it is one of the error types PDP raises for bad
+input) prints ``lerobot-eval: error: <message>`` and a line on how to see the traceback, with exit status 1 as
+before. Everything else, PDP's bugs included (an error raised inside a library or by an expression in PDP's
+code), keeps Python's traceback, and ``LEROBOT_PDP_TRACEBACK=1`` keeps it for every error.
+"""
+
+from __future__ import annotations
+
+import linecache
+import os
+import sys
+from pathlib import Path
+from types import TracebackType
+
+TRACEBACK_ENV = "LEROBOT_PDP_TRACEBACK"
+# the errors PDP raises for bad input (files, keys, shapes, values, types): never a bug's own type
+USER_ERRORS = (ValueError, KeyError, TypeError, FileNotFoundError, FileExistsError, NotADirectoryError,
+               IsADirectoryError)
+_PACKAGE = Path(__file__).resolve().parent  # lerobot_pdp: the envs, robots and teleoperators live below it
+
+
+def raised_by_pdp(error: BaseException, tb: TracebackType | None) -> bool:
+    """Whether ``error`` is a message PDP raised on purpose: a user-error type whose innermost frame is a ``raise``
+    statement in PDP's code (an error a library or an expression raised has another innermost frame or line)."""
+    if not isinstance(error, USER_ERRORS) or tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    path = Path(tb.tb_frame.f_code.co_filename).resolve()
+    return path.is_relative_to(_PACKAGE) and linecache.getline(str(path), tb.tb_lineno).lstrip().startswith("raise ")
+
+
+def _hook(previous):
+    def excepthook(kind: type[BaseException], error: BaseException, tb: TracebackType | None) -> None:
+        if os.environ.get(TRACEBACK_ENV) == "1" or not raised_by_pdp(error, tb):
+            previous(kind, error, tb)
+            return
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+        print(f"{prog}: error: {message}\n({kind.__name__} from lerobot_pdp; {TRACEBACK_ENV}=1 shows the traceback)",
+              file=sys.stderr, flush=True)
+
+    excepthook.pdp_errors = True
+    return excepthook
+
+
+def install() -> None:
+    """Put the hook in front of ``sys.excepthook`` in a LeRobot command (``lerobot-*`` but ``lerobot-pdp``, which
+    prints its own errors so), once; a Python session or a user's script keeps Python's own."""
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
+    if not prog.startswith(("lerobot-", "lerobot_")) or prog == "lerobot-pdp":
+        return
+    if not getattr(sys.excepthook, "pdp_errors", False):
+        sys.excepthook = _hook(sys.excepthook)
