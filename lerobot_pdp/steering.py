@@ -118,7 +118,7 @@ def apply_config_steering(policy: Any) -> None:
         noises = " and one sampler noise per chunk" if cfg.fit_noise == "chunks" else ""
         logger.info("fitting the latent%s to %s episode %d before the control loop starts", noises, *episode)
         t0 = time.perf_counter()
-        res = policy.fit_latent(episode)
+        res = policy.fit_latent(episode, progress=True)  # a bar: with chunk noises, a minute on a CPU
         noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
         logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s: its error on the demonstration "
                     "over the training demonstrations' at their own latents; steering is at risk from %g)", noises,
