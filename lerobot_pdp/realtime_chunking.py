@@ -97,8 +97,8 @@ class ConsumedDelayQueue(ActionQueue):
         # (PDP's episode step at the latest observation, the chunk cadence fitted noises need or None); set by
         # _announcing. Fitted chunk noise j belongs to the demonstration's frames from j * n_action_steps, so
         # while noises are replayed a chunk starts only from the observation of such a step, as sync replans:
-        # the queue threshold alone replans every n_action_steps - 1 actions once a chunk's generation
-        # overlaps one executed action, and a noise one step off its frames sends the robot elsewhere
+        # the queue threshold alone replanned every 7 actions at threshold 7 in a rollout (a chunk's generation
+        # spanning about two steps), and a noise used off its frames takes the chunk away from the fitted one
         self.noise_cadence: Callable[[], tuple[int, int | None]] | None = None
         self._step_at_observation: int | None = None
 
