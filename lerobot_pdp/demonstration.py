@@ -58,6 +58,7 @@ def read_demonstration(episode: Episode, config: PDPConfig, action_dim: int, seg
     arrays = _episode_arrays(episode, config, action_dim, need_action=need_action or segments == "gripper")
     return Demonstration(arrays, _resolve_segments(config, arrays, segments), per_phase=segments is not None)
 
+
 def check_recording_exists(episode: Episode) -> None:
     """A ``(folder, index)`` demonstration whose folder holds no recording is named at once, before the seconds a
     checkpoint takes to load (the full check, against the policy's features, comes with the read)."""

@@ -101,12 +101,11 @@ def apply_config_steering(policy: Any) -> None:
         logger.info("steered by steer_latent: latent %s", cfg.steer_latent)
     elif cfg.steer_mode is not None:
         means = policy.mode_latents()
-        mode = cfg.steer_mode
-        if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():  # an id written as text (a config.json)
-            mode = int(mode)
-        mode = mode if mode in means else next(
-            (m for m, n in means.names.items() if n == cfg.steer_mode and m in means), None)  # a name
-        if mode is None:
+        try:
+            mode = _mode_id(policy, cfg.steer_mode)  # an id, or a name of the checkpoint's mode_names
+        except KeyError:
+            mode = None
+        if mode not in means:
             raise KeyError(f"steer_mode {cfg.steer_mode!r} is not a mode of this checkpoint (an id or a name); its "
                            f"modes are {_known_modes(means)}")
         policy.steering.activate(means[mode], provenance={"source": "mode", "mode": mode})
