@@ -60,7 +60,8 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
     if not need_weights:
         return
     if not (folder / SAFETENSORS_SINGLE_FILE).is_file():
-        raise FileNotFoundError(f"{folder} holds no {SAFETENSORS_SINGLE_FILE}: give a PDP pretrained_model folder")
+        raise FileNotFoundError(f"{folder} holds no {SAFETENSORS_SINGLE_FILE}: give a PDP pretrained_model folder"
+                                f"{layout_hint(folder)}")
     missing = [name for name in PROCESSOR_FILES if not (folder / name).is_file()]
     if missing:
         program = Path(sys.argv[0]).stem.replace("_", "-") if sys.argv and sys.argv[0] else ""

@@ -436,7 +436,7 @@ def cmd_search(args: argparse.Namespace) -> int:
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
     if len(res.history) > 1 and len({c.score for c in res.history}) == 1:  # no signal: "best" is the first tried
-        print(f"warning: every candidate scored {res.score:.3g}, so the search had nothing to follow and the written "
+        print(f"warning: every candidate scored {res.score:.3g}, so the search had nothing to follow and the best "
               "latent is just the first one tried; score by way-points (--waypoints) to reward partial progress, or "
               "give a larger --budget", file=sys.stderr)
     if not res.interrupted and all(c.generation == 0 for c in res.history):
@@ -564,19 +564,34 @@ def add_explore_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"suite env to roll out in, one of {', '.join(_env_names())} (default: none, no rollouts)")
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, ...) or a scene file (JSON/YAML); default 0")
-    p.add_argument("--rollouts", type=int, default=8, help="rollouts per selected latent (default 8)")
-    p.add_argument("--max-steps", type=int, default=None, help="steps per rollout (default: the env's time limit)")
+    p.add_argument("--rollouts", type=_int_in(1), default=8, help="rollouts per selected latent (default 8)")
+    p.add_argument("--max-steps", type=_int_in(1), default=None,
+                   help="steps per rollout (default: the env's time limit)")
     p.add_argument("--dataset", type=Path, default=None,
                    help="a LeRobotDataset for demonstrations and the decoder's view (default: the training dataset "
                    "train_config.json names, when it is on this machine)")
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="where success landscapes are cached (default $LEROBOT_PDP_CACHE/explorer, else "
                    "~/.cache/lerobot_pdp/explorer)")
-    p.add_argument("--port", type=int, default=7860, help="local port (default 7860)")
+    p.add_argument("--port", type=_int_in(1, 65535), default=7860, help="local port (default 7860)")
     p.add_argument("--share", choices=("true", "false"), default="false",
                    help="also a public Gradio share link (default false)")
     p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
     p.set_defaults(func=cmd_explore)
+
+
+def _int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an int in [low, high], else argparse's error naming the flag and the range (before
+    seconds of loading)."""
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {low}..{high}, got {value}" if high is not None
+                                             else f"must be >= {low}, got {value}")
+        return value
+
+    parse.__name__ = "integer"  # argparse's "invalid integer value: 'x'" for text that is no int
+    return parse
 
 
 def cmd_explore(args: argparse.Namespace) -> int:

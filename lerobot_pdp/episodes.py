@@ -151,6 +151,9 @@ def read_mode_labels_file(path: str | Path) -> tuple[dict[int, int], dict[int, s
     """A label file in the format of :func:`read_mode_labels`, checked; errors name the file and entry."""
     import json
 
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"label file {path} does not exist (--labels: a JSON file "
+                                '{"episodes": {"<episode index>": <mode id>, ...}, "names": {...}})')
     try:
         data = json.loads(Path(path).read_text())
     except json.JSONDecodeError as e:

@@ -236,7 +236,7 @@ def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
     assert ex.decoder_view(ex.mode_latent(0), frames=1, samples=1).ndim == 3
 
 
-def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys):
+def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys, tmp_path):
     import socket
 
     from lerobot_pdp.cli import main
@@ -249,6 +249,19 @@ def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys):
         assert main(["explore", str(ckpt), "--port", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"port {port} is not free" in err and "--port" in err and "Traceback" not in err
+    # numbers out of range, refused by argparse before anything loads; LeRobot's layout points to its checkpoint
+    for flag, value, said in (("--port", "99999", "must be 1..65535, got 99999"), ("--rollouts", "0", "must be >= 1"),
+                              ("--max-steps", "0", "must be >= 1")):
+        with pytest.raises(SystemExit):
+            main(["explore", str(ckpt), flag, value])
+        assert f"argument {flag}: {said}" in capsys.readouterr().err
+    last = tmp_path / "train" / "checkpoints" / "last"
+    (last / "pretrained_model").mkdir(parents=True)
+    for f in ckpt.iterdir():
+        if f.is_file():
+            (last / "pretrained_model" / f.name).write_bytes(f.read_bytes())
+    assert main(["explore", str(last)]) == 2
+    assert f"did you mean {last / 'pretrained_model'}?" in capsys.readouterr().err
 
 
 def test_bad_input_is_named(made, tmp_path):

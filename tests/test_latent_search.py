@@ -387,7 +387,7 @@ def test_cli_search_says_when_no_candidate_scored_apart(checkpoint, tmp_path, ca
                 str(hist)]) == 0
     err = capsys.readouterr().err
     scores = {c["score"] for c in json.loads(hist.read_text())["history"]}
-    assert ("the written latent is just the first one tried" in err) == (len(scores) == 1), (scores, err)
+    assert ("the best latent is just the first one tried" in err) == (len(scores) == 1), (scores, err)
 
 
 def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):

@@ -218,6 +218,8 @@ def test_bad_label_files_are_named_errors(instruction_dataset, tmp_path, capsys,
     assert main(["label-modes", str(instruction_dataset), "--labels", str(bad)]) == 2
     assert re.search(message, capsys.readouterr().err)
     assert not (instruction_dataset / "meta" / "mode_labels.json").exists()
+    assert main(["label-modes", str(instruction_dataset), "--labels", str(tmp_path / "none.json")]) == 2
+    assert f"label file {tmp_path / 'none.json'} does not exist (--labels: a JSON file" in capsys.readouterr().err
 
 
 def test_labels_from_task_strings_and_their_absence(synthetic_dataset, instruction_dataset, tmp_path, capsys):

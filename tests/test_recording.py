@@ -104,7 +104,8 @@ def test_waypoints_from_file_and_argument_errors(tmp_path):
         with pytest.raises(ValueError, match=rf"way-point file {tmp_path / name} is not valid (JSON|YAML) \("):
             make_dataset("reach-around", tmp_path / "x", scene=3, waypoints=tmp_path / name, progress=False)
     (tmp_path / "mixed.json").write_text("[[0.1, 0.2, 0.3], [0.4, 0.5]]")  # points of different sizes
-    with pytest.raises(ValueError, match=r"way-points must be a list of points of the same size \(\[x, y\] or "):
+    with pytest.raises(ValueError, match=rf"way-point file {tmp_path / 'mixed.json'}: way-points must be a list of "
+                                         r"points of the same size \(\[x, y\] or "):
         make_dataset("reach-around", tmp_path / "x", scene=3, waypoints=tmp_path / "mixed.json", progress=False)
     assert not (tmp_path / "x").exists()
 

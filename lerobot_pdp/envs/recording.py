@@ -56,6 +56,7 @@ def _resolve_modes(suite: SuiteEnv, modes: Sequence[int | str] | None) -> list[i
 
 def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray:
     """Way-points from ``"scene"`` (the scene's own), a JSON/YAML file (a list, or a scene file), or a list."""
+    where = ""  # a file's way-points are named with the file
     if isinstance(waypoints, str) and waypoints == "scene":
         sc = load_scene(scene, suite.scene_key)
         if sc.waypoints is None:
@@ -86,14 +87,14 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
             if sc.waypoints is None:
                 raise SceneError(f"{path}: a mapping must be a scene file with 'waypoints'")
             return np.asarray(sc.waypoints, dtype=float)
-        waypoints = data
+        waypoints, where = data, f"way-point file {path}: "
     try:
         arr = np.asarray(waypoints, dtype=float)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"way-points must be a list of points of the same size ([x, y] or [x, y, z], one "
+        raise ValueError(f"{where}way-points must be a list of points of the same size ([x, y] or [x, y, z], one "
                          f"coordinate per trace dim of the env), got {waypoints!r}") from e
     if arr.ndim != 2 or len(arr) == 0 or not np.all(np.isfinite(arr)):
-        raise ValueError(f"way-points must be a non-empty list of finite points, got {waypoints!r}")
+        raise ValueError(f"{where}way-points must be a non-empty list of finite points, got {waypoints!r}")
     return arr
 
 

@@ -243,11 +243,18 @@ def shipped_scene_path(env_name: str, index: int | str) -> Path:
 
 def validation_scene_names(env_name: str) -> list[str]:
     """Names of the validation scenes ``env_name`` ships (``["val1", "val2", ...]``, numeric order)."""
+    return sorted((n for n in _shipped_names(env_name) if VALIDATION_SCENE.match(n)), key=lambda n: int(n[3:]))
+
+
+def scene_indices(env_name: str) -> list[int]:
+    """The numbered scenes ``env_name`` ships (0 = training, then the test scenes), in order."""
+    return sorted(int(n[5:]) for n in _shipped_names(env_name) if n.startswith("scene") and n[5:].isdigit())
+
+
+def _shipped_names(env_name: str) -> list[str]:
     folder = resources.files("lerobot_pdp.envs") / "scenes"
     prefix = f"{env_name}_"
-    names = [f.name[len(prefix):-5] for f in folder.iterdir()
-             if f.name.startswith(prefix) and f.name.endswith(".json")]
-    return sorted((n for n in names if VALIDATION_SCENE.match(n)), key=lambda n: int(n[3:]))
+    return [f.name[len(prefix):-5] for f in folder.iterdir() if f.name.startswith(prefix) and f.name.endswith(".json")]
 
 
 def load_scene(scene: int | str | Path | Scene | dict | None, env_name: str) -> Scene:
@@ -264,7 +271,8 @@ def load_scene(scene: int | str | Path | Scene | dict | None, env_name: str) -> 
     if isinstance(scene, (int, np.integer)) and not isinstance(scene, bool):
         path = shipped_scene_path(env_name, int(scene))
         if not path.is_file():
-            raise SceneError(f"env {env_name!r} ships no scene {int(scene)} (looked for {path})")
+            raise SceneError(f"env {env_name!r} ships no scene {int(scene)} (looked for {path}); it ships scenes "
+                             f"{scene_indices(env_name)} and {validation_scene_names(env_name)}")
         return read_scene_file(path)
     if isinstance(scene, str) and VALIDATION_SCENE.match(scene.strip()):
         path = shipped_scene_path(env_name, scene.strip())
