@@ -218,7 +218,7 @@ class PDPPolicy(PreTrainedPolicy):
         """Make ``z`` ([d_z], or [M, d_z] = one latent per phase) the active latent; None = back to default.
         Noises fitted under another latent no longer apply. A latent far outside the training latents is
         accepted with one warning (see :meth:`latent_outlier`): the policy never saw it condition an action."""
-        self.steering.activate(z)
+        self.steering.activate(self.model.checked_latent(z))
         if z is not None:
             self.model.bank.warn_if_far(self.model.vae, self.steering.latent)
 

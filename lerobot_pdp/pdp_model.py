@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from lerobot.utils.constants import ACTION
@@ -24,6 +25,7 @@ from .diffusion import NoiseSchedule, diffusion_loss
 from .distributed import world
 from .fast_inference import FastDenoiser
 from .observation_encoder import ObservationEncoder
+from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -214,6 +216,29 @@ class PDPModel(nn.Module):
                                  f"[B, {', '.join(map(str, shape))}]")
         if "episode_index" not in batch:
             raise KeyError("batch has no 'episode_index': PDP conditions each window on its episode's latent")
+
+    @torch.no_grad()
+    def checked_latent(self, z: Any) -> Any:
+        """``z`` as ``set_latent`` takes it, refused (before it acts) when the denoiser overflows under it (e.g.
+        [1e30, 1e30]: its FiLM scales blow the activations past float32): every action would be non-finite, and a
+        robot loop would stop at its first chunk. One denoiser pass on a neutral input (zero chunk and observation
+        condition) at the first and the last diffusion step, a few ms on a CPU: the latent's FiLM terms set the
+        scale, not the observation."""
+        if z is None or self.config.latent_conditioning == "none":
+            return z
+        t = as_latent_tensor(z)
+        t = t[None] if t.dim() == 1 else t
+        if t.dim() != 2 or t.shape[-1] != self.config.latent_dim or not bool(torch.isfinite(t).all()):
+            return z  # the steering state names a wrong shape or a non-finite value
+        m, dev = 2 * len(t), self.device
+        k = torch.tensor([0, self.config.num_train_timesteps - 1], device=dev).repeat_interleave(len(t))
+        eps = self.denoiser(torch.zeros(m, self.config.horizon, self.action_dim, device=dev), k,
+                            torch.zeros(m, self.denoiser.obs_cond_dim, device=dev), t.to(dev).repeat(2, 1))
+        if not bool(torch.isfinite(eps).all()):
+            raise ValueError(f"latent {t.tolist()} makes the denoiser overflow (non-finite output): every action "
+                             "under it would be non-finite. Steer within the training latents (mode_latents(), "
+                             "latent-map)")
+        return z
 
     def behavior_latents(self, ids: Tensor | None = None) -> Tensor:
         """z_bar = mu_phi(X(tau)) of training behaviors (all, or ``ids``); one-hot mode codes for that ablation."""

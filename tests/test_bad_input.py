@@ -95,6 +95,32 @@ def test_a_latent_far_outside_the_training_latents_warns_once(policy, caplog):
     policy.set_latent(None)
 
 
+def test_a_latent_the_denoiser_overflows_under_is_refused_before_it_acts(synthetic_meta, tmp_path, caplog):
+    """A finite latent so large that the denoiser's activations pass float32 (its FiLM scales) would make every action
+    non-finite: set_latent refuses it and the latent before it stays; so does a live steering request (logged, the
+    robot keeps acting), where it once stopped the robot loop at the next chunk."""
+    from lerobot_pdp.steering import SteerFile
+
+    p = small_policy(synthetic_meta)
+    for block in p.model.denoiser.blocks():  # as trained: FiLM's last layer is zero only at initialisation
+        torch.nn.init.normal_(block.latent_film.mlp[-1].weight, std=0.5)
+    good = p.mode_latents()[0]
+    p.set_latent(good)
+    p.set_latent([1e15, 1e15])  # far, but the network stays finite: acted on (with the far-latent warning)
+    for huge in ([1e30, 1e30], torch.tensor([[1e30, -1e30]])):
+        p.set_latent(good)
+        with pytest.raises(ValueError, match=r"makes the denoiser overflow \(non-finite output\): every action under "
+                                             r"it would be non-finite"):
+            p.set_latent(huge)
+        torch.testing.assert_close(p.active_latent[0], good)
+    steer = tmp_path / "steer.json"
+    steer.write_text('{"latent": [1e30, 1e30]}')
+    with caplog.at_level(logging.ERROR):
+        assert not SteerFile(steer).poll(p)
+    assert "makes the denoiser overflow" in caplog.text and "keeping the current latent" in caplog.text
+    torch.testing.assert_close(p.active_latent[0], good)
+
+
 def test_a_string_latent_names_the_accepted_types(policy):
     with pytest.raises(TypeError, match=r"latent must be a tensor, a numpy array or a sequence of floats, shape "
                                         r"\[d_z\] or \[M, d_z\].*got str '0.4 -1.2'"):
