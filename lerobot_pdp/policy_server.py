@@ -115,6 +115,42 @@ def with_vector_features(original: Callable) -> Callable:
     return raw_observation_to_observation
 
 
+def with_input_check(original: Callable) -> Callable:
+    """Wrap LeRobot's ``PolicyServer.SendPolicyInstructions``: once PDP is loaded, the features the robot client
+    sends must be the ones it was trained on, else an error naming them, which ends the client at connect (a robot
+    of another env would otherwise get no action, the server failing at every chunk, and wait for good)."""
+
+    @functools.wraps(original)
+    def SendPolicyInstructions(self: Any, request: Any, context: Any):  # noqa: N802 - LeRobot's gRPC method
+        out = original(self, request, context)
+        policy, features = getattr(self, "policy", None), getattr(self, "lerobot_features", None) or {}
+        if getattr(getattr(policy, "config", None), "type", None) == SERVED:
+            check_client_features(policy.config, features)
+        return out
+
+    return SendPolicyInstructions
+
+
+def check_client_features(config: Any, features: dict[str, dict]) -> None:
+    """Every input the policy was trained on, with its shape, among the robot client's features (dataset format:
+    cameras (H, W, C)); else a ValueError naming each difference."""
+    problems = []
+    for key, ft in config.input_features.items():
+        have = features.get(key)
+        if have is None:
+            problems.append(f"no '{key}'")
+            continue
+        shape = tuple(have.get("shape") or ())
+        if have.get("dtype") in ("image", "video") and len(shape) == 3:
+            shape = (shape[2], shape[0], shape[1])  # stored (H, W, C), the policy's (C, H, W)
+        if shape != tuple(ft.shape):
+            problems.append(f"'{key}' of shape {shape}, the policy was trained on {tuple(ft.shape)}")
+    if problems:
+        raise ValueError("the robot client does not give what the PDP policy needs: " + "; ".join(problems)
+                         + f". The client gives {sorted(k for k in features if k.startswith('observation.'))}: is "
+                         "its robot (--robot.type, --robot.env, its cameras) the one the policy was trained on?")
+
+
 def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
     """Wrap LeRobot's ``get_policy_class``: PDP is loaded with ``overrides`` applied to its saved config, told
     what the server will tell it (the executed actions, each chunk's step: per-phase latents and fitted chunk
@@ -262,7 +298,8 @@ def admit_pdp(server: Any, overrides: list[str]) -> None:
     if SERVED not in server.SUPPORTED_POLICIES:
         server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
     for name, wrap in (("_predict_action_chunk", functools.partial(with_paced_policy, server=server)),
-                       ("_enqueue_observation", with_paced_observations)):
+                       ("_enqueue_observation", with_paced_observations),
+                       ("SendPolicyInstructions", with_input_check)):
         method = getattr(server.PolicyServer, name)
         if not hasattr(method, _ORIGINAL):
             wrapper = wrap(method)

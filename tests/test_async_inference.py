@@ -469,6 +469,26 @@ def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):
         policy_server.check_policy_options(overrides)
 
 
+def test_a_client_of_another_robot_is_refused_at_connect(synthetic_meta):
+    """The features a robot client sends must be the policy's (a camera in (H, W, C) as datasets store it): another
+    env's client is refused when it sends its policy instructions, naming each difference, where it used to get no
+    action and wait for good (the server failing at every chunk). SendPolicyInstructions is wrapped to check."""
+    cfg = small_policy(synthetic_meta).config
+    same = {"observation.state": {"dtype": "float32", "shape": (2,)},
+            "observation.environment_state": {"dtype": "float32", "shape": (2,)}}
+    policy_server.check_client_features(cfg, same)
+    other = {**same, "observation.state": {"dtype": "float32", "shape": (4,)}}
+    del other["observation.environment_state"]
+    with pytest.raises(ValueError, match=r"does not give what the PDP policy needs: 'observation.state' of shape "
+                                         r"\(4,\), the policy was trained on \(2,\); no 'observation.environment_state'"
+                                         r".*--robot.env"):
+        policy_server.check_client_features(cfg, other)
+    from lerobot.async_inference import policy_server as server
+
+    policy_server.admit_pdp(server, [])
+    assert getattr(server.PolicyServer.SendPolicyInstructions, "_lerobot_original", None) is not None
+
+
 # ------------------------------------------------------------------------------ server and client, in process
 
 
