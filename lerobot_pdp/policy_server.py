@@ -125,7 +125,10 @@ def with_input_check(original: Callable) -> Callable:
         out = original(self, request, context)
         policy, features = getattr(self, "policy", None), getattr(self, "lerobot_features", None) or {}
         if getattr(getattr(policy, "config", None), "type", None) == SERVED:
-            check_client_features(policy.config, features)
+            import pickle
+
+            rename = getattr(pickle.loads(request.data), "rename_map", None) or {}  # nosec - LeRobot's own message
+            check_client_features(policy.config, {rename.get(k, k): v for k, v in features.items()})
         return out
 
     return SendPolicyInstructions
