@@ -205,6 +205,33 @@ def write_mode_labels(root: str | Path, labels: dict[int, int], names: dict[int,
     return path
 
 
+def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, dict]) -> list[str]:
+    """How dataset-format ``features`` (a recording's ``meta/info.json``, a robot's or a robot client's; cameras stored
+    (H, W, C)) differ from what a policy was trained on (``required``: key -> shape, cameras (C, H, W)): each key
+    lacking (with what is there in its place) or of another shape; [] when they fit."""
+    problems = []
+    for key, shape in required.items():
+        ft = features.get(key)
+        if ft is None:
+            camera = key.startswith("observation.images.")  # name what is there in its place
+            alike = [k for k in features if k.startswith("observation.") and k.startswith("observation.images.") == camera]
+            problems.append(f"lacks '{key}' (it has {'cameras' if camera else 'observations'} "
+                            f"{', '.join(map(repr, alike)) or 'none'})")
+            continue
+        got = policy_shape(ft)
+        if got != tuple(shape):
+            names = ft.get("names") if ft.get("dtype") not in ("image", "video") else None  # cameras: (C, H, W) both
+            problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
+                            f"the policy was trained on {tuple(shape)}")
+    return problems
+
+
+def policy_shape(feature: dict) -> tuple[int, ...]:
+    """A dataset feature's shape as the policy sees it: cameras stored (H, W, C) are (C, H, W)."""
+    shape = tuple(feature.get("shape") or ())
+    return (shape[2], shape[0], shape[1]) if feature.get("dtype") in ("image", "video") and len(shape) == 3 else shape
+
+
 def recording_info(root: str | Path) -> dict:
     """A recording's ``meta/info.json``; a missing folder, a folder that is no LeRobotDataset or a damaged file
     is an error naming it (the light check; :func:`check_recording` reads the data files too)."""
@@ -248,23 +275,7 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
                              "probably interrupted while writing: record it again") from e
     if not 0 <= int(episode) < total:
         raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
-    features = info.get("features", {})
-    problems = []
-    for key, shape in required.items():
-        ft = features.get(key)
-        if ft is None:
-            camera = key.startswith("observation.images.")  # name what the recording has in its place
-            alike = [k for k in features if k.startswith("observation.") and k.startswith("observation.images.") == camera]
-            problems.append(f"lacks '{key}' (it has {'cameras' if camera else 'observations'} "
-                            f"{', '.join(map(repr, alike)) or 'none'})")
-            continue
-        got = tuple(ft.get("shape") or ())
-        if ft.get("dtype") in ("image", "video") and len(got) == 3:
-            got = (got[2], got[0], got[1])  # stored (H, W, C)
-        if got != tuple(shape):
-            names = ft.get("names") if ft.get("dtype") not in ("image", "video") else None  # cameras: (C, H, W) both
-            problems.append(f"'{key}' has shape {got}{f' (names {names})' if isinstance(names, list) else ''}, "
-                            f"the policy was trained on {tuple(shape)}")
+    problems = feature_problems(required, info.get("features", {}))
     if problems:
         raise ValueError(f"{what} {root} does not match the checkpoint: " + "; ".join(problems) + f". {advice}")
     if min_frames is not None:

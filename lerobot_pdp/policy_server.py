@@ -137,17 +137,9 @@ def with_input_check(original: Callable) -> Callable:
 def check_client_features(config: Any, features: dict[str, dict]) -> None:
     """Every input the policy was trained on, with its shape, among the robot client's features (dataset format:
     cameras (H, W, C)); else a ValueError naming each difference."""
-    problems = []
-    for key, ft in config.input_features.items():
-        have = features.get(key)
-        if have is None:
-            problems.append(f"no '{key}'")
-            continue
-        shape = tuple(have.get("shape") or ())
-        if have.get("dtype") in ("image", "video") and len(shape) == 3:
-            shape = (shape[2], shape[0], shape[1])  # stored (H, W, C), the policy's (C, H, W)
-        if shape != tuple(ft.shape):
-            problems.append(f"'{key}' of shape {shape}, the policy was trained on {tuple(ft.shape)}")
+    from .episodes import feature_problems
+
+    problems = feature_problems({k: tuple(ft.shape) for k, ft in config.input_features.items()}, features)
     if problems:
         raise ValueError("the robot client does not give what the PDP policy needs: " + "; ".join(problems)
                          + f". The client gives {sorted(k for k in features if k.startswith('observation.'))}: is "

@@ -479,8 +479,9 @@ def test_a_client_of_another_robot_is_refused_at_connect(synthetic_meta):
     policy_server.check_client_features(cfg, same)
     other = {**same, "observation.state": {"dtype": "float32", "shape": (4,)}}
     del other["observation.environment_state"]
-    with pytest.raises(ValueError, match=r"does not give what the PDP policy needs: 'observation.state' of shape "
-                                         r"\(4,\), the policy was trained on \(2,\); no 'observation.environment_state'"
+    with pytest.raises(ValueError, match=r"does not give what the PDP policy needs: 'observation.state' has shape "
+                                         r"\(4,\), the policy was trained on \(2,\); lacks 'observation.environment_state' "
+                                         r"\(it has observations 'observation.state'\)"
                                          r".*--robot.env"):
         policy_server.check_client_features(cfg, other)
     from lerobot.async_inference import policy_server as server

@@ -305,7 +305,7 @@ def test_episodic_rollout_records_one_dataset_episode_per_env_episode(untrained_
 def test_a_policy_for_another_env_fails_before_the_robot_moves(untrained_reach_around, tmp_path):
     ckpt, _ = untrained_reach_around
     with pytest.raises(ValueError, match=r"pdp_sim \(avoiding, scene 0\) does not give what the policy needs: "
-                                         r"'observation.state' of shape \(4,\), the policy was trained on \(6,\)"):
+                                         r"'observation.state' has shape \(4,\) \(names .*\), the policy was trained on \(6,\)"):
         run_rollout(ckpt, PDPSimConfig(env="avoiding", calibration_dir=tmp_path, id="other_env"))
 
 
@@ -319,7 +319,7 @@ def test_policy_input_check_names_a_missing_trace_key(tmp_path):
                               "observation.environment_state": PolicyFeature(FeatureType.ENV, (6,))}
         cfg.trace_key = "observation.ee_pos"
         feats = {"observation.state": _vec(6), "observation.environment_state": _vec(6)}
-        with pytest.raises(ValueError, match=r"no 'observation.ee_pos'.*The robot gives"):
+        with pytest.raises(ValueError, match=r"lacks 'observation.ee_pos' \(it has observations .*The robot gives"):
             check_policy_inputs(cfg, feats, robot)
         cfg.input_features = {"observation.state": PolicyFeature(FeatureType.STATE, (6,))}
         cfg.trace_key = "observation.ee_pos"  # not an input (a config edited by hand): named as the trace key
@@ -329,7 +329,7 @@ def test_policy_input_check_names_a_missing_trace_key(tmp_path):
         check_policy_inputs(cfg, feats, robot)
         cfg.input_features["observation.images.oblique"] = PolicyFeature(FeatureType.VISUAL, (3, 64, 64))
         feats["observation.images.oblique"] = {"dtype": "video", "shape": (32, 32, 3)}  # stored (H, W, C)
-        with pytest.raises(ValueError, match=r"'observation.images.oblique' of shape \(3, 32, 32\), the policy was "
+        with pytest.raises(ValueError, match=r"'observation.images.oblique' has shape \(3, 32, 32\), the policy was "
                                              r"trained on \(3, 64, 64\).*'observation.images.oblique': \(3, 32, 32\)\}"
                                              r".*--robot.camera_size"):
             check_policy_inputs(cfg, feats, robot)

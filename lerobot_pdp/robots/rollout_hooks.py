@@ -25,6 +25,7 @@ import functools
 import sys
 from typing import Any
 
+from ..episodes import feature_problems, policy_shape
 from .hooks import split_environment_state, splitting_features, wrap_all, wrap_once
 from .live import LIVE
 
@@ -104,28 +105,14 @@ def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], r
     LeRobot would fail later, deep in the preprocessor, or not at all for a same-sized vector of another env.
     """
     inputs = getattr(policy_config, "input_features", None) or {}
-    problems = []
-    for key, ft in inputs.items():
-        have = dataset_features.get(key)
-        want = tuple(ft.shape)
-        if have is None:
-            problems.append(f"no '{key}'")
-            continue
-        got = _policy_shape(have)
-        if got != want:
-            problems.append(f"'{key}' of shape {got}, the policy was trained on {want}")
+    problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features)
     trace_key = getattr(policy_config, "trace_key", None)
     if trace_key is not None and trace_key not in inputs and trace_key not in dataset_features:
         problems.append(f"no trace key '{trace_key}' (PDP's behavior trace)")
     if problems:
-        gives = {k: _policy_shape(v) for k, v in dataset_features.items() if k.startswith("observation.")}
+        gives = {k: policy_shape(v) for k, v in dataset_features.items() if k.startswith("observation.")}
         raise ValueError(
             f"pdp_sim ({robot.suite.name}, scene {robot.config.scene}) does not give what the policy needs: "
             + "; ".join(dict.fromkeys(problems)) + f". The robot gives {gives} (cameras as (C, H, W)): was the "
             "policy trained on another env? (cameras: --robot.camera_names, their (H, W): --robot.camera_size)")
 
-
-def _policy_shape(feature: dict) -> tuple[int, ...]:
-    """A dataset feature's shape as the policy sees it: cameras stored (H, W, C) are (C, H, W)."""
-    shape = tuple(feature.get("shape") or ())
-    return (shape[2], shape[0], shape[1]) if feature.get("dtype") in ("image", "video") and len(shape) == 3 else shape
