@@ -706,7 +706,8 @@ def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(
     base = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={adapted}", "--policy.use_adaptation=false",
                     "--env.type=pdp_reach_around", "--env.scene=0", "--policy.device=cpu", "--eval.n_episodes=1",
                     "--eval.batch_size=1", f"--output_dir={tmp_path / 'eval_base'}"], timeout=600)
-    assert "adapted checkpoint" not in base.stdout + base.stderr
+    base_log = base.stdout + base.stderr
+    assert f"adapted checkpoint {adapted}: latent" not in base_log and "without its adaptation" in base_log
     outcomes = tmp_path / "rollout.jsonl"
     rollout = run_cli([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={adapted}",
                        "--policy.device=cpu", "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=0",
