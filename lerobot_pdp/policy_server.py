@@ -26,6 +26,10 @@ only (nothing of LeRobot is changed on disk):
   policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`),
   and so does each chunk's step in the episode, so fitted chunk noises are replayed aligned to the frames they
   were fitted to (:meth:`lerobot_pdp.paced_chunks.LastChunk.fitted_noise`);
+* a chunk the served PDP cannot plan (an error: a non-finite action, an observation it cannot read) ends the
+  client's run: its action request fails with the error (gRPC ``ABORTED``, :data:`PLANNING_FAILED`) and the
+  server serves nothing more until a client connects again; LeRobot's logs the error and answers nothing, for
+  good, so the robot would wait for actions that never come (``pdp_sim``'s hooks end the client with status 1);
 * ``--policy.<field>=<value>`` sets a field of the PDP checkpoint's config when the server loads it, as on
   ``lerobot-eval`` / ``lerobot-rollout``'s command lines: steering (``--policy.steer_file``,
   ``--policy.steer_mode``, ``--policy.steer_latent``, ``--policy.steer_dataset_root`` ...) and sampling fields.
@@ -52,6 +56,8 @@ logger = logging.getLogger(__name__)
 SERVED = "pdp"
 STATE = "observation.state"
 _ORIGINAL = "_lerobot_original"
+# how the failed action request of a client whose chunk PDP could not plan begins (its gRPC details)
+PLANNING_FAILED = "the PDP policy server could not plan a chunk"
 
 
 def split_policy_options(argv: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -258,6 +264,18 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
 
     @functools.wraps(original)
     def _predict_action_chunk(self: Any, observation_t: Any):
+        if self.policy_type != SERVED:
+            return original(self, observation_t)
+        try:
+            return paced_chunk(self, observation_t)
+        except Exception as e:  # the client is told by with_failed_planning, and served nothing more
+            self._pdp_failure = (f"{PLANNING_FAILED} from observation #{observation_t.get_timestep()} "
+                                 f"({type(e).__name__}: {e}); it serves this client nothing more: mend the cause "
+                                 "(the server's log) and start the client again")
+            self.shutdown_event.set()
+            raise
+
+    def paced_chunk(self: Any, observation_t: Any):
         from .paced_chunks import from_the_next_step, precede_history
 
         started = time.perf_counter()
@@ -274,9 +292,7 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
         last = getattr(policy, "_paced_last", None)
         if last is not None and timing is not None:
             last.plan(observation_t.get_timestep(), timing.delay())
-        chunk = original(self, observation_t)
-        if self.policy_type == SERVED:
-            chunk = from_the_next_step(chunk, self.config.environment_dt)
+        chunk = from_the_next_step(original(self, observation_t), self.config.environment_dt)
         if last is not None:
             last.sent(len(chunk))
         if executed is not None:
@@ -288,13 +304,31 @@ def with_paced_policy(original: Callable, server: Any) -> Callable:
     return _predict_action_chunk
 
 
+def with_failed_planning(original: Callable) -> Callable:
+    """Wrap LeRobot's ``PolicyServer.GetActions``: the request during which PDP could not plan a chunk fails with
+    the error (gRPC ``ABORTED``, details beginning with :data:`PLANNING_FAILED`); LeRobot's answers it with
+    nothing, as when no observation came, and the client waits on."""
+
+    @functools.wraps(original)
+    def GetActions(self: Any, request: Any, context: Any):  # noqa: N802 - LeRobot's gRPC method
+        self._pdp_failure = None
+        out = original(self, request, context)
+        if self._pdp_failure is not None:
+            import grpc
+
+            context.abort(grpc.StatusCode.ABORTED, self._pdp_failure)
+        return out
+
+    return GetActions
+
+
 def admit_pdp(server: Any, overrides: list[str]) -> None:
     """Make LeRobot's policy-server module (``server``) serve PDP, in this process (the module docstring)."""
     if SERVED not in server.SUPPORTED_POLICIES:
         server.SUPPORTED_POLICIES = [*server.SUPPORTED_POLICIES, SERVED]
     for name, wrap in (("_predict_action_chunk", functools.partial(with_paced_policy, server=server)),
                        ("_enqueue_observation", with_paced_observations),
-                       ("SendPolicyInstructions", with_input_check)):
+                       ("SendPolicyInstructions", with_input_check), ("GetActions", with_failed_planning)):
         method = getattr(server.PolicyServer, name)
         if not hasattr(method, _ORIGINAL):
             wrapper = wrap(method)

@@ -57,7 +57,7 @@ def server_module(monkeypatch, tmp_path):
 
     for name in ("SUPPORTED_POLICIES", "raw_observation_to_observation", "get_policy_class"):
         monkeypatch.setattr(server, name, getattr(server, name))
-    for name in ("_predict_action_chunk", "_enqueue_observation"):
+    for name in ("_predict_action_chunk", "_enqueue_observation", "SendPolicyInstructions", "GetActions"):
         monkeypatch.setattr(server.PolicyServer, name, getattr(server.PolicyServer, name))
     return server
 
@@ -715,6 +715,39 @@ def test_a_server_lost_mid_run_ends_the_run_with_status_1(server_module, client_
         main.join(60)
     assert not main.is_alive(), "the run did not end after its server was lost"
     assert ended and "lost the policy server at 127.0.0.1:" in str(ended[0]), ended
+
+
+def test_a_chunk_the_server_cannot_plan_ends_the_run_with_status_1(server_module, client_module, tmp_path):
+    """LeRobot's server logs a chunk it could not plan and answers nothing, and its client asks again for good (a
+    robot waiting for actions that never come). Served PDP's action request fails with the error instead, the
+    server serves nothing more, and the client ends its run and exits 1 naming it. The fault: a weight of the
+    served denoiser turned NaN mid-run, which PDP's guard refuses to act on."""
+    with _serving(server_module) as (service, port, seen, _):
+        config = _client_config(port, tmp_path, episodes=50)
+        ended: list = []
+
+        def run():
+            try:
+                client_module.async_client(config)
+            except SystemExit as e:
+                ended.append(e.code)
+
+        main = threading.Thread(target=run, daemon=True)
+        main.start()
+        deadline = time.monotonic() + 120
+        while len(seen) < 3 and time.monotonic() < deadline and main.is_alive():
+            time.sleep(0.05)
+        assert len(seen) >= 3, "the run never reached the server"
+        weight = dict(service.policy.model.named_parameters())["denoiser.final.1.weight"]
+        with torch.no_grad():
+            weight.fill_(float("nan"))
+        main.join(60)
+        assert not main.is_alive(), "the run did not end after the server failed to plan"
+        assert not service.running  # nothing more is served until a client connects again
+    assert ended and str(ended[0]).startswith("robot client: the PDP policy server could not plan a chunk from "
+                                              "observation #"), ended
+    assert "FloatingPointError: PDP generated non-finite actions" in str(ended[0]), ended
+    assert len(_outcomes(tmp_path / "outcomes.jsonl")) < 50
 
 
 # ------------------------------------------------------------------------------------------------ real processes

@@ -13,8 +13,11 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   event, as Ctrl-C would, set in place of the next observation) and ends cleanly (the receiving thread leaves
   its request before the channel closes); a failed start (no server listening, the policy refused) ends the
   process, and so does a server lost mid-run (observations undeliverable for :data:`SERVER_LOST_S`);
-* ``async_client`` (the command's entry point) is wrapped so that a run that could not start or lost its server
-  exits with status 1 and says why (LeRobot's exits 0 and only logs it);
+* a client serving PDP (any robot) whose server could not plan a chunk (``python -m lerobot_pdp.policy_server``
+  fails that action request with the error and serves nothing more) ends its run, where LeRobot's logs the
+  failed request and asks again, for good;
+* ``async_client`` (the command's entry point) is wrapped so that a run that could not start, lost its server
+  or was stopped by it exits with status 1 and says why (LeRobot's exits 0 and only logs it);
 * LeRobot's control loop clears its "must go" flag after sending a must-go observation; when the chunk answering
   it arrives before that clear (a fast server), the receiver's set is undone and the next observations, sent
   without it, can all be filtered by the server as too similar (a robot standing still: a stalled run). For
@@ -92,7 +95,7 @@ def _wrap_main(original):
         FAILURES.clear()
         result = original(*args, **kwargs)
         if FAILURES:
-            raise SystemExit(f"pdp_sim: {FAILURES[0]}")  # exit status 1, the reason on stderr
+            raise SystemExit(f"robot client: {FAILURES[0]}")  # exit status 1, the reason on stderr
         return result
 
     return async_client
@@ -143,6 +146,7 @@ def _wrap_client(original):
                     logger.warning(BLENDED, aggregation)
                 if self.config.chunk_size_threshold <= 0:
                     logger.warning(EMPTY_ONLY, self.config.chunk_size_threshold)
+                self.stub.GetActions = _ending_on_failed_planning(self.stub.GetActions, self)
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
@@ -215,3 +219,25 @@ def _wrap_client(original):
 
     RobotClient.__doc__ = original.__doc__
     return RobotClient
+
+
+def _ending_on_failed_planning(get_actions: Any, client: Any) -> Any:
+    """The client stub's ``GetActions``, ending the run (as Ctrl-C would) when the server says PDP could not plan a
+    chunk: LeRobot's receiver logs the failed request and, its client stopped, asks no more."""
+    import grpc
+
+    from ..policy_server import PLANNING_FAILED
+
+    @functools.wraps(get_actions)
+    def GetActions(*args: Any, **kwargs: Any):  # noqa: N802 - the gRPC method's name
+        try:
+            return get_actions(*args, **kwargs)
+        except grpc.RpcError as e:
+            details = e.details() if callable(getattr(e, "details", None)) else ""
+            if e.code() == grpc.StatusCode.ABORTED and (details or "").startswith(PLANNING_FAILED):
+                FAILURES.append(details)
+                logger.error("%s; ending the run", details)
+                client.shutdown_event.set()
+            raise
+
+    return GetActions
