@@ -237,7 +237,7 @@ def add_steer_parser(sub: argparse._SubParsersAction) -> None:
     # argparse reads "-1.5e-05" as an option (its negative-number rule knows no exponents): latents printed by
     # Python look like that
     p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|nan)$", re.IGNORECASE)
-    g = p.add_mutually_exclusive_group(required=True)
+    g = p.add_mutually_exclusive_group()  # one is needed: cmd_steer says which go together
     g.add_argument("--mode", help="a training mode, by id or name")
     g.add_argument("--latent", type=float, nargs="+", help="a latent z (latent_dim values)")
     g.add_argument("--dataset", help="a recording (LeRobotDataset folder) to fit z to")
@@ -260,7 +260,11 @@ def cmd_steer(args: argparse.Namespace) -> int:
         if args.steps is not None:
             request["steps"] = args.steps
     elif args.episode is not None or args.steps is not None:
-        raise ValueError("--episode and --steps go with --dataset (a recording to fit z to)")
+        raise ValueError("--episode and --steps go with --dataset (a recording to fit z to): "
+                         f"lerobot-pdp steer {args.file} --dataset DIR --episode N")
+    elif args.mode is None and args.latent is None and not args.default:
+        raise ValueError("lerobot-pdp steer needs one request: --mode ID|NAME, --latent Z..., --dataset DIR "
+                         "(with --episode, --steps) or --default")
     elif args.mode is not None:
         request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}
     else:
