@@ -263,7 +263,7 @@ def cmd_steer(args: argparse.Namespace) -> int:
         raise ValueError("--episode and --steps go with --dataset (a recording to fit z to): "
                          f"lerobot-pdp steer {args.file} --dataset DIR --episode N")
     elif args.mode is None and args.latent is None and not args.default:
-        raise ValueError("lerobot-pdp steer needs one request: --mode ID|NAME, --latent Z..., --dataset DIR "
+        raise ValueError("one request is needed: --mode ID|NAME, --latent Z..., --dataset DIR "
                          "(with --episode, --steps) or --default")
     elif args.mode is not None:
         request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}

@@ -195,7 +195,7 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert f"go with --dataset (a recording to fit z to): lerobot-pdp steer {f} --dataset DIR" \
         in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f)]) == 2
-    assert "needs one request: --mode ID|NAME, --latent Z..., --dataset DIR" in capsys.readouterr().err
+    assert "one request is needed: --mode ID|NAME, --latent Z..., --dataset DIR" in capsys.readouterr().err
     assert json.loads(f.read_text()) == {"latent": [0.4, -1.5e-05]}  # none of them written
     # with --policy-path, a recording the policy's fit would refuse: other features, an episode shorter than a chunk
     other = Path(shutil.copytree(synthetic_meta.root, tmp_path / "other"))
