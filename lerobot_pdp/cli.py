@@ -134,6 +134,10 @@ def add_plot_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="output PNG")
     p.add_argument("--scene", default=None, help="scene to draw (default: the one the dataset was made in)")
     p.add_argument("--env", default=None, help="env name, for datasets not made by make-dataset")
+    p.add_argument("--waypoints", default=None,
+                   help="way-points to draw in order: a JSON/YAML file (a list of points or a scene file with "
+                   "'waypoints', as search --waypoints takes) or 'scene' for the drawn scene's own (default: the "
+                   "ones the dataset was recorded along, if any)")
     p.set_defaults(func=cmd_plot_dataset)
 
 
@@ -144,7 +148,7 @@ def cmd_plot_dataset(args: argparse.Namespace) -> int:
     if args.env is not None:
         get_suite_env(args.env)  # an unknown name is said as such, before the dataset is compared with it
 
-    out = plot_dataset(args.dataset, args.out, scene=args.scene, env=args.env)
+    out = plot_dataset(args.dataset, args.out, scene=args.scene, env=args.env, waypoints=args.waypoints)
     print(f"wrote {out}")
     return 0
 

@@ -305,13 +305,18 @@ class Explorer:
 
     def draw_rollouts(self, ax: Any, outcomes: list[Outcome], modes: list[int | str], plane: str) -> list:
         """``outcomes`` over the scene on ``plane``: one trace per rollout coloured by the route it took (``modes``),
-        its end marked green (success) or grey, a red x for a collision. Returns the legend handles."""
-        from lerobot_pdp.envs.plotting import draw_scene, plot_trajectories
+        its end marked green (success) or grey, a red x for a collision; the scene's way-points (a route it
+        admits), when it has some. Returns the legend handles."""
+        from lerobot_pdp.envs.plotting import draw_scene, draw_waypoints, plot_trajectories
 
         suite = self.suite
         draw_scene(ax, suite.name, self.scene, plane)
         handles = plot_trajectories(ax, [o.states for o in outcomes], modes, suite.mode_names, plane,
                                     suite.trace_dims, alpha=0.85, lw=1.4)
+        route = draw_waypoints(ax, self.scene.waypoints, plane) if self.scene.waypoints else None
+        if route is not None:
+            route.set_label("the scene's way-points")
+            handles = [*handles, route]
         i, j = ("xyz".index(plane[0]), "xyz".index(plane[1]))
         for o in outcomes:
             end = o.states[-1, [suite.trace_dims[i], suite.trace_dims[j]]]

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from matplotlib.figure import Figure
 from policies import saved_steerable_checkpoint
 
 from lerobot_pdp import PDPPolicy
@@ -84,6 +85,9 @@ def test_rollouts_from_a_latent_report_success_and_collisions(explorer):
     assert run.image.ndim == 3 and run.image.shape[1] > run.image.shape[0]  # three views side by side
     again = explorer.rollout(explorer.mode_latent(0))  # same seeds: the same rollouts
     assert np.array_equal(again.outcomes[0].states, run.outcomes[0].states)
+    fig = Figure()
+    handles = explorer.draw_rollouts(fig.subplots(), run.outcomes, run.modes, "xy")
+    assert handles[-1].get_label() == "the scene's way-points"  # scene 3 admits a route: it is drawn
 
 
 def test_interpolation_runs_from_one_mode_to_the_other(explorer):

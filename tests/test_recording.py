@@ -147,6 +147,34 @@ def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):
     plt.close(fig)
 
 
+def test_way_points_are_drawn_in_order_on_plots(reach_dataset, tmp_path):
+    """Way-points (a scene's, a file's as search --waypoints takes them, or those a dataset was recorded along)
+    are drawn numbered, joined in order, with their pass radius when given; a file that does not fit the env is
+    named."""
+    import matplotlib.pyplot as plt
+
+    from lerobot_pdp.envs.plotting import draw_waypoints, plot_dataset
+
+    fig, ax = plt.subplots()
+    route = draw_waypoints(ax, [[0.1, 0.2, 0.3], [0.2, 0.3, 0.3], [0.4, 0.3, 0.2]], "xz", radius=0.05)
+    assert route.get_label() == "way-points (pass within 0.05 m)"
+    assert [t.get_text() for t in ax.texts] == ["1", "2", "3"] and len(ax.patches) == 3
+    assert np.allclose(ax.lines[0].get_xydata(), [[0.1, 0.3], [0.2, 0.3], [0.4, 0.2]])  # x, z in order
+    assert draw_waypoints(ax, [[0.1, 0.2]], "xz") is None  # 2-D points have no z
+    plt.close(fig)
+    assert cli_main(["plot-dataset", str(reach_dataset), "--scene", "3", "--waypoints", "scene", "--out",
+                     str(tmp_path / "wp.png")]) == 0
+    bad = tmp_path / "wp.json"
+    bad.write_text("[[0.1, 0.2]]")
+    with pytest.raises(ValueError, match=f"{bad}: reach-around way-points are points of 3 coordinates"):
+        plot_dataset(reach_dataset, tmp_path / "bad.png", waypoints=str(bad))
+    assert not (tmp_path / "bad.png").exists()
+    recorded = make_dataset("reach-around", tmp_path / "along", scene=3, episodes_per_mode=1, waypoints="scene",
+                            progress=False)
+    assert read_dataset_meta(recorded)["waypoints"]
+    assert plot_dataset(recorded, tmp_path / "along.png").is_file()
+
+
 def test_cli_make_and_plot(tmp_path, capsys):
     out = tmp_path / "cli_ds"
     rc = cli_main(["make-dataset", "--env", "reach-around", "--scene", "2", "--modes", "left-wide",

@@ -1,8 +1,8 @@
 """Matplotlib figures of demonstrations and rollouts over a scene (Agg backend, no display needed).
 
 Reusable pieces: :func:`draw_scene` draws an env's obstacles and a scene's barriers projected onto a plane,
-:func:`plot_trajectories` draws traces coloured by mode, :func:`plot_dataset` combines both for a dataset
-written by :func:`lerobot_pdp.envs.recording.make_dataset`. Figure code for rollouts per method should
+:func:`draw_waypoints` a route's way-points in order, :func:`plot_trajectories` draws traces coloured by mode,
+:func:`plot_dataset` combines them for a dataset written by :func:`lerobot_pdp.envs.recording.make_dataset`. Figure code for rollouts per method should
 call the first two so every figure of the suite looks the same.
 """
 
@@ -29,6 +29,7 @@ from .suite import NOVEL, SuiteEnv, get_suite_env, parse_task_mode  # noqa: E402
 AXES = {"x": 0, "y": 1, "z": 2}
 OBSTACLE_COLOR = "#5a5a66"
 BARRIER_COLOR = "#d9772b"
+WAYPOINT_COLOR = "#7b2cbf"
 VIEW_TITLES = {"xy": "top view (x-y)", "yz": "side view (y-z)", "xz": "front view (x-z)"}
 
 
@@ -87,6 +88,25 @@ def draw_scene(ax: Axes, env_name: str, scene: Any = 0, plane: str = "xy") -> No
     ax.set_xlabel(f"{plane[0]} [m]")
     ax.set_ylabel(f"{plane[1]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
+
+
+def draw_waypoints(ax: Axes, waypoints: Any, plane: str = "xy", radius: float | None = None) -> Line2D | None:
+    """Draw way-points ([K, D]: one coordinate per trace dim, x y (z), as ``make-dataset --waypoints`` and
+    ``lerobot-pdp search --waypoints`` take them) on ``plane``: numbered in order and joined by a dashed line, each
+    with its pass ``radius`` when given. Returns the legend handle, or None when the points lack the plane's dims."""
+    i, j = _plane_axes(plane)
+    w = np.asarray(waypoints, dtype=float)
+    if w.ndim != 2 or w.shape[1] <= max(i, j):
+        return None
+    ax.plot(w[:, i], w[:, j], ls="--", lw=1.0, color=WAYPOINT_COLOR, alpha=0.8, zorder=6)
+    ax.plot(w[:, i], w[:, j], marker="D", ms=5, ls="none", color=WAYPOINT_COLOR, zorder=7)
+    for k, p in enumerate(w):
+        ax.annotate(str(k + 1), (p[i], p[j]), textcoords="offset points", xytext=(4, 4), fontsize=7,
+                    color=WAYPOINT_COLOR, zorder=7)
+        if radius is not None:
+            ax.add_patch(Circle((p[i], p[j]), radius, fill=False, ls=":", lw=0.8, color=WAYPOINT_COLOR, zorder=6))
+    label = "way-points" + (f" (pass within {radius:g} m)" if radius is not None else "")
+    return Line2D([], [], color=WAYPOINT_COLOR, marker="D", ms=5, ls="--", lw=1.0, label=label)
 
 
 def plot_trajectories(
@@ -153,14 +173,16 @@ def scene_views(suite: SuiteEnv) -> tuple[str, ...]:
 
 
 def plot_dataset(
-    dataset_dir: str | Path, out_png: str | Path, scene: Any = None, env: str | None = None
+    dataset_dir: str | Path, out_png: str | Path, scene: Any = None, env: str | None = None, waypoints: Any = None
 ) -> Path:
     """Plot a dataset's demonstrations coloured by mode over its scene; writes ``out_png``.
 
     ``env`` and ``scene`` default to the generation record (``meta/pdp_suite.json``) written by
-    ``make_dataset``; pass them for datasets made otherwise.
+    ``make_dataset``; pass them for datasets made otherwise. ``waypoints`` (a JSON/YAML file, ``"scene"`` for the
+    drawn scene's own, or a list of points) are drawn in order; by default the ones the dataset was recorded
+    along, if any.
     """
-    from .recording import read_dataset_meta
+    from .recording import check_waypoints, read_dataset_meta, resolve_waypoints
 
     if not (Path(dataset_dir) / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"{dataset_dir} is not a LeRobotDataset folder (no meta/info.json)")
@@ -175,6 +197,12 @@ def plot_dataset(
     suite = get_suite_env(env)
     if scene is None:
         scene = meta.get("scene", 0)
+    if waypoints is not None:
+        source = waypoints if isinstance(waypoints, (str, Path)) else "waypoints"
+        waypoints = resolve_waypoints(waypoints, scene, suite)
+        check_waypoints(suite, waypoints, source)
+    else:
+        waypoints = meta.get("waypoints")  # recorded along them (make-dataset --waypoints)
     trajs, modes = load_episodes(dataset_dir)
     views = scene_views(suite)
     fig, axes = plt.subplots(1, len(views), figsize=(5.0 * len(views), 5.0), squeeze=False)
@@ -182,6 +210,8 @@ def plot_dataset(
     for ax, plane in zip(axes[0], views, strict=True):
         draw_scene(ax, suite.name, scene, plane)
         handles = plot_trajectories(ax, trajs, modes, suite.mode_names, plane, suite.trace_dims)
+        route = draw_waypoints(ax, waypoints, plane) if waypoints is not None else None
+        handles += [route] if route is not None else []
         ax.set_title(VIEW_TITLES.get(plane, plane))
     sc_name = load_scene(scene, suite.scene_key).name
     fig.suptitle(f"{suite.name}: {len(trajs)} demonstrations, {sc_name}")
