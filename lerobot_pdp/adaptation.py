@@ -31,6 +31,7 @@ from .latent_fitting import (
     select_code,
 )
 from .pdp_model import PDPModel
+from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +64,10 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
                    seed: int | None) -> Tensor:
     """The warm start z0, [M, d_z] (one per segment)."""
     n, d = len(demo.segments), config.latent_dim
+    if isinstance(init, str) and init.strip().lstrip("-").isdigit():  # a mode id: its latent is meant
+        init = int(init)
+    if not isinstance(init, (str, Tensor)):  # a list or an array (a mode id or name: named as such)
+        init = as_latent_tensor(init)
     if isinstance(init, Tensor):
         if init.numel() != n * d:
             shape = f"[{d}] or [1, {d}]" if n == 1 else f"[{n}, {d}]"
@@ -75,7 +80,8 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
         return torch.randn(n, d, generator=torch.Generator().manual_seed(seed if seed is not None else 0))
     if init == "zero":
         return torch.zeros(n, d)
-    raise ValueError(f"init must be 'encoder', 'random', 'zero' or a tensor, got {init!r}")
+    raise ValueError(f"init must be 'encoder', 'random', 'zero' or a latent (a tensor, array or list), got {init!r}"
+                     + (f"; a mode's latent: init=policy.mode_latents()[{init!r}]" if isinstance(init, str) else ""))
 
 
 def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,

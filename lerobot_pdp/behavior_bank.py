@@ -72,11 +72,27 @@ def onehot_modes(behaviors: BehaviorTraces) -> int:
     return n_modes
 
 
+def bank_summary(behaviors: BehaviorTraces) -> str:
+    """What the training run reads from its dataset, in one line: episodes, behaviours, modes (labelled or not)."""
+    episodes = len(np.unique(behaviors.episode_index))
+    labelled = sorted({int(m) for m in behaviors.mode if m >= 0})
+    if not labelled:
+        modes = "no mode labels (mode_latents() discovers the modes by clustering; lerobot-pdp latent-map draws them)"
+    else:
+        names = ", ".join(f"{m} ({behaviors.mode_names[m]})" if behaviors.mode_names.get(m) else str(m)
+                          for m in labelled[:12]) + (", ..." if len(labelled) > 12 else "")
+        unlabelled = int(len(np.unique(behaviors.episode_index[behaviors.mode < 0])))
+        modes = f"{len(labelled)} labelled mode(s): {names}" + (f"; {unlabelled} episode(s) without a label"
+                                                               if unlabelled else "")
+    return f"{episodes} episode(s), {len(behaviors)} behavior(s); {modes}"
+
+
 def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces) -> None:
     """Set the config fields the training dataset decides, before the model is built from the config:
     ``mode_names`` (the episodes' mode labels) and, for the one-hot ablation, ``latent_dim`` (the number of
     modes). They are config fields because config.json is where a checkpoint keeps them, and LeRobot builds
     the networks of every later load (and a resumed training) from ``config.latent_dim``."""
+    logger.info("PDP behavior bank: %s", bank_summary(behaviors))
     if behaviors.mode_names:
         config.mode_names = {str(k): v for k, v in sorted(behaviors.mode_names.items())}
     if config.latent_type == "onehot":

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -31,7 +32,14 @@ from torch import Tensor, nn
 
 from .atomic import staging_dir, write_text_atomic
 from .behavior_bank import CHECKPOINT_KEYS, TAUGHT_KEY
-from .checkpoint_files import damaged_weights, optional_checkpoint_file, read_config_json, read_weight_shapes
+from .checkpoint_files import (
+    PROCESSOR_FILES,
+    PROCESSOR_PREFIXES,
+    damaged_weights,
+    optional_checkpoint_file,
+    read_config_json,
+    read_weight_shapes,
+)
 from .configuration_pdp import apply_legacy_defaults
 from .taught_demos import TAUGHT_DEMOS, write_taught_demos
 
@@ -61,6 +69,7 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
             adapted = write_adaptation(policy.steering, tmp)
             taught = write_taught_demos(policy.model.bank, set(policy.config.image_features), tmp)
+            write_processors(policy, tmp, save_directory)
             if fresh:
                 os.replace(tmp, save_directory)  # onto an empty folder: one rename
                 return
@@ -76,6 +85,26 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     finally:
         if not any(save_directory.iterdir()):
             save_directory.rmdir()
+
+
+def write_processors(policy: Any, tmp: Path, save_directory: Path) -> None:
+    """LeRobot's processor files beside the weights, so that a folder saved from Python (an adapted or taught
+    policy) is a checkpoint ``lerobot-eval`` / ``lerobot-rollout`` load: the ones of the checkpoint the policy was
+    loaded from, else built from the policy's statistics (as ``lerobot-train`` builds them). A folder holding some
+    keeps its own, and ``lerobot-train`` writes its own after the weights."""
+    if any((save_directory / name).is_file() for name in PROCESSOR_FILES):
+        return
+    source = getattr(policy, "_loaded_from", None)
+    if source is not None and all((source / name).is_file() for name in PROCESSOR_FILES):
+        for f in source.iterdir():
+            if f.is_file() and f.name.startswith(PROCESSOR_PREFIXES):
+                shutil.copy2(f, tmp / f.name)
+    elif bool(policy.stats.loaded):
+        from .processor_pdp import make_pdp_pre_post_processors
+
+        stats = {k: {s: v.cpu() for s, v in d.items()} for k, d in policy.stats.as_dict().items()}
+        for pipeline in make_pdp_pre_post_processors(policy.config, stats):
+            pipeline.save_pretrained(tmp)
 
 
 def refresh_card(folder: Path, steering: Any) -> None:
@@ -119,6 +148,7 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
     except SafetensorError as e:
         raise damaged_weights(model_file, e) from e
     check_finite_weights(policy, model_file)
+    policy._loaded_from = Path(model_file).parent  # its processors go with a folder it is saved to
     apply_saved_config(policy, model_file)
     if read is not None:
         keep_training_behaviors(policy, read, model_file)

@@ -15,6 +15,7 @@ from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 logger = logging.getLogger(__name__)
 
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+PROCESSOR_PREFIXES = ("policy_preprocessor", "policy_postprocessor")  # the pipelines and their steps' statistics
 # LeRobot programs that load a checkpoint's processor files right after the policy (a checkpoint without them
 # is refused there, before LeRobot's misleading message); in-process loading only logs it.
 DEPLOY_PROGRAMS = ("lerobot-eval", "lerobot-rollout")
@@ -43,12 +44,19 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
 
     folder = Path(pretrained)
     if not folder.exists():
+        missing = FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
+                                    "holding config.json and model.safetensors, or a Hub repo id)")
+        if isinstance(pretrained, Path):  # a path, never a repo id
+            raise missing
         try:
             validate_repo_id(str(pretrained))
-            return  # a Hub repo id: huggingface_hub names what is missing there
         except HFValidationError:
-            raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
-                                    "holding config.json and model.safetensors, or a Hub repo id)") from None
+            raise missing from None
+        if _offline_and_not_cached(str(pretrained)):  # huggingface_hub would only say "check your connection"
+            raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (from {Path.cwd()}), and the Hub "
+                                    "cannot be asked for a repo of that name (HF_HUB_OFFLINE is set) nor has it "
+                                    "cached: give a pretrained_model folder holding config.json and model.safetensors")
+        return  # a Hub repo id: huggingface_hub names what is missing there
     if not folder.is_dir():
         raise NotADirectoryError(f"{pretrained} is a file; give its checkpoint folder (config.json + model.safetensors)")
     config = folder / CONFIG_NAME
@@ -72,6 +80,12 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
             raise FileNotFoundError(f"{program}: {text}")
         logger.info("%s; PDP itself loads without them", text)
     check_processor_statistics(folder)
+
+
+def _offline_and_not_cached(repo_id: str) -> bool:
+    from huggingface_hub import constants, try_to_load_from_cache
+
+    return bool(constants.HF_HUB_OFFLINE) and not isinstance(try_to_load_from_cache(repo_id, CONFIG_NAME), str)
 
 
 def check_processor_statistics(folder: Path) -> None:

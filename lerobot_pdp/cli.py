@@ -218,8 +218,6 @@ def cmd_latent_map(args: argparse.Namespace) -> int:
     from lerobot_pdp import PDPPolicy
     from lerobot_pdp.latent_map import draw_latent_map
 
-    if not (args.checkpoint / "model.safetensors").is_file():
-        raise FileNotFoundError(f"{args.checkpoint} holds no model.safetensors: give a PDP pretrained_model folder")
     if args.out.is_dir():
         raise IsADirectoryError(f"--out {args.out} is a folder: give the PNG file to write (e.g. {args.out / 'map.png'})")
     _check_parent(args.out, "--out")
@@ -443,10 +441,6 @@ def cmd_search(args: argparse.Namespace) -> int:
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
-    if len(res.history) > 1 and len({c.score for c in res.history}) == 1:  # no signal: "best" is the first tried
-        print(f"warning: every candidate scored {res.score:.3g}, so the search had nothing to follow and the best "
-              "latent is just the first one tried; score by way-points (--waypoints) to reward partial progress, or "
-              "give a larger --budget", file=sys.stderr)
     if not res.interrupted and all(c.generation == 0 for c in res.history):
         print(f"the budget ended with the starting latents ({len(res.history)} of them): no {res.method} step was "
               "taken; a larger --budget lets it search beyond them")
@@ -455,9 +449,15 @@ def cmd_search(args: argparse.Namespace) -> int:
 
 
 def _check_checkpoint_folder(checkpoint: Path) -> None:
+    """A local checkpoint folder with its two files (torch-free), else an error naming what is wrong and, for a
+    folder in LeRobot's training layout, where the checkpoint is below it."""
+    from lerobot_pdp.checkpoint_files import not_a_checkpoint
+
     if not checkpoint.is_dir():
         raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
                                 "config.json and model.safetensors)")
+    if not (checkpoint / "config.json").is_file() or not (checkpoint / "model.safetensors").is_file():
+        raise FileNotFoundError(not_a_checkpoint(checkpoint))
 
 
 def _checkpoint_config(checkpoint: Path):
@@ -517,6 +517,25 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_teach)
 
 
+def _check_teach_args(args: argparse.Namespace) -> None:
+    """What ``teach`` would refuse after seconds of loading, refused at once (torch-free)."""
+    from lerobot_pdp.checkpoint_files import not_a_checkpoint
+    from lerobot_pdp.episodes import recording_info
+    from lerobot_pdp.teach_defaults import check_mode_name, check_teach_settings
+
+    check_teach_settings(args.steps, args.lr, args.demo_share)
+    for name in args.name or []:
+        check_mode_name(name)
+    if not (args.checkpoint / "config.json").is_file() or not (args.checkpoint / "model.safetensors").is_file():
+        raise FileNotFoundError(not_a_checkpoint(args.checkpoint))
+    if args.out.exists():
+        raise FileExistsError(f"{args.out} exists: give a new folder for the taught checkpoint")
+    if args.demo is not None:
+        recording_info(args.demo)  # a missing or unfinished recording, named
+    if args.taught_from is not None and not (args.taught_from / "config.json").is_file():
+        raise FileNotFoundError(not_a_checkpoint(args.taught_from))
+
+
 def cmd_teach(args: argparse.Namespace) -> int:
     if (args.demo is None) == (args.taught_from is None):
         raise ValueError("give the demonstration with --demo, or a taught checkpoint whose modes to teach again with "
@@ -528,6 +547,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
                          "episode, or none")
     if len(set(args.episode)) != len(args.episode):
         raise ValueError(f"--episode {' '.join(map(str, args.episode))} repeats an episode")
+    _check_teach_args(args)
     # torch and LeRobot are imported after the argument checks
     from lerobot_pdp.taught import teach_again_from, teach_checkpoint_modes
 
@@ -538,7 +558,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
         for old, res in done:
             print(f"mode {old} of {args.taught_from} -> mode {res.mode}, latent {res.z.tolist()}, {res.steps} steps in "
                   f"{res.seconds:.0f} s")
-        print(f"wrote {out}: {len(done)} taught mode(s); steer with --policy.steer_mode=<id>")
+        ids = ", ".join(str(res.mode) for _, res in done)
+        print(f"wrote {out}: {len(done)} taught mode(s), {ids}; steer with --policy.steer_mode=<one of them>")
         return 0
     out, done = teach_checkpoint_modes(args.checkpoint, [(args.demo, ep) for ep in args.episode], args.out,
                                        training_data=args.data, steps=args.steps, lr=args.lr,
@@ -936,7 +957,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, KeyError, OSError, RuntimeError) as e:
         # Expected user errors (bad scene, existing output, infeasible mode) and the file system's (a read-only
         # or missing place, a file where a folder goes: OSError names the path): one clear line, no traceback.
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        msg = str(e.args[0] if isinstance(e, KeyError) and e.args else e).removeprefix(f"{args.command}: ")
         print(f"lerobot-pdp {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: a line, not torch's traceback (outputs go through atomic.py's staging)

@@ -7,7 +7,9 @@ traceback through LeRobot's, draccus' and PDP's frames. ``install()`` (run by th
 import first) puts a ``sys.excepthook`` in front of Python's: an exception *raised on purpose by PDP* (the
 innermost frame is a ``raise`` statement in PDP's code, and it is one of the error types PDP raises for bad
 input) prints ``lerobot-eval: error: <message>`` and a line on how to see the traceback, with exit status 1 as
-before. Everything else, PDP's bugs included (an error raised inside a library or by an expression in PDP's
+before. LeRobot's own "config.json not found in DIR" for a folder in its training layout (``checkpoints/last``)
+says where the checkpoint is below it. So does such an error LeRobot caught and raised again in its own (``Error creating robot with config
+PDPSimConfig(<every field>): <PDP's message>``): PDP's message alone. Everything else, PDP's bugs included (an error raised inside a library or by an expression in PDP's
 code), keeps Python's traceback, and ``LEROBOT_PDP_TRACEBACK=1`` keeps it for every error.
 """
 
@@ -23,6 +25,8 @@ TRACEBACK_ENV = "LEROBOT_PDP_TRACEBACK"
 # the errors PDP raises for bad input (files, keys, shapes, values, types): never a bug's own type
 USER_ERRORS = (ValueError, KeyError, TypeError, FileNotFoundError, FileExistsError, NotADirectoryError,
                IsADirectoryError)
+# how LeRobot's PreTrainedConfig.from_pretrained refuses a local folder without config.json (LeRobot 0.6.1)
+LEROBOT_NO_CONFIG = "config.json not found in "
 _PACKAGE = Path(__file__).resolve().parent  # lerobot_pdp: the envs, robots and teleoperators live below it
 
 
@@ -37,15 +41,44 @@ def raised_by_pdp(error: BaseException, tb: TracebackType | None) -> bool:
     return path.is_relative_to(_PACKAGE) and linecache.getline(str(path), tb.tb_lineno).lstrip().startswith("raise ")
 
 
+def pdp_message(error: BaseException, tb: TracebackType | None) -> BaseException | None:
+    """The error PDP raised on purpose that ``error`` is, or that LeRobot wrapped into ``error`` (``raise ... from``
+    it, a user-error type itself); None otherwise."""
+    if raised_by_pdp(error, tb):
+        return error
+    cause = error.__cause__
+    if isinstance(error, USER_ERRORS) and cause is not None and raised_by_pdp(cause, cause.__traceback__):
+        return cause
+    return None
+
+
+def layout_message(error: BaseException) -> str | None:
+    """LeRobot's own "config.json not found in FOLDER" for a folder in its training layout (``--policy.path=
+    .../checkpoints/last``, whose ``pretrained_model`` holds the checkpoint): the message with where it is."""
+    from .checkpoint_files import layout_hint
+
+    said = str(error)
+    if not isinstance(error, FileNotFoundError) or not said.startswith(LEROBOT_NO_CONFIG):
+        return None
+    hint = layout_hint(Path(said.removeprefix(LEROBOT_NO_CONFIG)))
+    return said + hint if hint else None
+
+
 def _hook(previous):
     def excepthook(kind: type[BaseException], error: BaseException, tb: TracebackType | None) -> None:
-        if os.environ.get(TRACEBACK_ENV) == "1" or not raised_by_pdp(error, tb):
+        if os.environ.get(TRACEBACK_ENV) != "1" and (laid_out := layout_message(error)) is not None:
+            prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+            print(f"{prog}: error: {laid_out}", file=sys.stderr, flush=True)
+            return
+        ours = None if os.environ.get(TRACEBACK_ENV) == "1" else pdp_message(error, tb)
+        if ours is None:
             previous(kind, error, tb)
             return
-        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        message = str(ours.args[0] if isinstance(ours, KeyError) and ours.args else ours)
         prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
-        print(f"{prog}: error: {message}\n({kind.__name__} from lerobot_pdp; {TRACEBACK_ENV}=1 shows the traceback)",
-              file=sys.stderr, flush=True)
+        message = message.removeprefix(f"{prog}: ")  # a message that names the command already
+        print(f"{prog}: error: {message}\n({type(ours).__name__} from lerobot_pdp; {TRACEBACK_ENV}=1 shows the "
+              "traceback)", file=sys.stderr, flush=True)
 
     excepthook.pdp_errors = True
     return excepthook

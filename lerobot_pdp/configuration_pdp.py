@@ -56,6 +56,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # latent fitting. LeRobot's diffusion policy trains on the copies (False there); PDP masks them by
     # default, which kept pick-place's final release precise (docs/experiments.md).
     do_mask_loss_for_padding: bool = True
+    # How each feature type is normalised (LeRobot's NormalizationMode): min-max to [-1, 1] for states, env
+    # states and actions (the sampler clips to that range), mean-std for cameras.
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
             "VISUAL": NormalizationMode.MEAN_STD,
@@ -78,6 +80,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     resize_shape: tuple[int, int] | None = None
     # (H, W) crop taken after resizing: random while training, centred at inference; None = no crop.
     crop_shape: tuple[int, int] | None = None
+    # Random crops while training (centred at inference), as LeRobot's diffusion policy.
     crop_is_random: bool = True
     # Replace the backbone's BatchNorm by GroupNorm (needs random initialisation; small batches train better).
     use_group_norm: bool = True
@@ -171,6 +174,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Clip the predicted clean action chunk to [-clip_sample_range, clip_sample_range] at every DDIM step
     # (actions are min-max normalised to [-1, 1]).
     clip_sample: bool = True
+    # The clip's bound (actions are normalised to [-1, 1]).
     clip_sample_range: float = 1.0
     # Grid of the DDIM steps: diffusers' DDIMScheduler spacings "leading" (LeRobot diffusion's) / "trailing"
     # (steps of K // n), or "even" (evenly spaced from K-1 to 0, each step to the next grid point: PDP's first
@@ -178,22 +182,26 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     timestep_spacing: str = "leading"
     # After clipping the clean chunk, re-derive the predicted noise from it (diffusers'
     # use_clipped_model_output). LeRobot's diffusion does not, and neither does the default: with it, kitchen's
-    # validation success fell from 73.1 to 68.1 % at 20 steps (reach-around: equal). "leading" + False is
+    # validation success fell from 73.1 to 68.1 percent at 20 steps (reach-around: equal). "leading" + False is
     # LeRobot diffusion's DDIM sampler exactly.
     use_clipped_model_output: bool = False
 
     # ---- Optimisation (one optimizer, two parameter groups) ----
-    # Adam learning rates, chosen on reach-around's validation scenes at 6000 steps (seed 100): 1e-3 steered
-    # better than the paper's 1e-4 (val scenes 100 / 100 / 2.5 / 92.5 against 100 / 95 / 12.5 / 40 %,
-    # docs/results.md "Validation"); every benchmark run trains at 1e-3. For runs far longer than a few
-    # thousand steps the paper's 1e-4 is the alternative (not measured here).
-    optimizer_lr: float = 1e-3  # denoiser theta
-    embedding_lr: float = 1e-3  # encoder phi and decoder psi
+    # Adam learning rate of the denoiser (theta). Both learning rates were chosen on reach-around's validation
+    # scenes at 6000 steps (seed 100): 1e-3 steered better than the paper's 1e-4 (val scenes 100 / 100 / 2.5 /
+    # 92.5 against 100 / 95 / 12.5 / 40 percent, docs/results.md "Validation"); every benchmark run trains at
+    # 1e-3. For runs far longer than a few thousand steps the paper's 1e-4 is the alternative (not measured).
+    optimizer_lr: float = 1e-3
+    # Adam learning rate of the behavior encoder and decoder (phi, psi), chosen with optimizer_lr (above).
+    embedding_lr: float = 1e-3
     # Adam's other settings (weight_decay is Adam's L2 term: LeRobot's AdamConfig, torch.optim.Adam) and the
     # gradient clip, as LeRobot's diffusion policy.
     optimizer_betas: tuple[float, float] = (0.95, 0.999)
+    # Adam's epsilon.
     optimizer_eps: float = 1e-8
+    # Adam's L2 weight decay.
     optimizer_weight_decay: float = 1e-6
+    # Gradients are clipped to this total norm before each step.
     optimizer_grad_clip_norm: float = 10.0
     # Linear warm-up steps of the cosine learning-rate schedule.
     scheduler_warmup_steps: int = 100
@@ -227,7 +235,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_steps: int = 100
     # Step size on z (of fit_optimizer).
     fit_lr: float = 0.05
-    # How z takes its steps: "adam", returning the mean of the last 20 % of iterates (L_fit is a Monte-Carlo
+    # How z takes its steps: "adam", returning the mean of the last 20 percent of iterates (L_fit is a Monte-Carlo
     # estimate, so they jitter around the optimum), or the paper's plain "gradient" steps z <- z - fit_lr *
     # grad, returning the last (its step size is on another scale: compared on validation in
     # docs/experiments.md).
@@ -246,6 +254,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_noise: str = "none"
     # Adam steps and step size of that noise fit (DP's noise adaptation defaults).
     fit_noise_steps: int = 100
+    # Adam step size of the noise fit.
     fit_noise_lr: float = 0.05
     # Demonstration chunks per fitting step (sampled from all chunks of the demonstration). Fitting is
     # compute-bound (a U-Net forward + input-backward per chunk), so this sets its cost; 16 fitted as
@@ -255,15 +264,15 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     fit_noise_samples: int = 1
     # How the fitting gradient in z is computed: "autograd" (backward pass), "finite_difference" (d_z + 1
     # forward evaluations on the same noise, no backward) or "auto" (finite differences for d_z <= 3,
-    # ~30 % faster per step on CPU at d_z = 2; same success, docs/performance.md).
+    # ~30 percent faster per step on CPU at d_z = 2; same success, docs/performance.md).
     fit_gradient: str = "auto"
     # After a fit, L_fit at the fitted latent is compared with the training demonstrations' own denoising
     # error (tracked while training); fit_latent warns when the ratio reaches this. On the validation scenes
-    # of the four envs a ratio below 2 went with 50-100 % success and above 2 with 0-35 % (docs/experiments.md).
+    # of the four envs a ratio below 2 went with 50-100 percent success and above 2 with 0-35 percent (docs/experiments.md).
     fit_warn_ratio: float = 2.0
     # Demonstration chunks that score the fitted latent for that report, at least one per window (one no-grad
-    # batch, steps stratified: ~33 ms on the 2-core CPU, ~3.5 % of the default 100-step fit, relative spread
-    # ~4 % on the validation scenes; docs/performance.md). 0 skips the report (FitResult.fit_error /
+    # batch, steps stratified: ~33 ms on the 2-core CPU, ~3.5 percent of the default 100-step fit, relative spread
+    # ~4 percent on the validation scenes; docs/performance.md). 0 skips the report (FitResult.fit_error /
     # error_ratio stay None) and its warning, e.g. for the fastest short fits.
     fit_report_chunks: int = 256
 
@@ -276,6 +285,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration): when the
     # checkpoint is loaded (PDPPolicy.from_pretrained), before LeRobot's control loop starts.
     steer_dataset_root: str | None = None
+    # The episode of steer_dataset_root to fit z to (given with it).
     steer_episode_index: int | None = None
     # Live steering: a JSON file polled at every new action chunk; when it changes, its request
     # ({"mode": 3}, {"latent": [..]}, {"dataset": DIR, "episode": 0}) sets the active latent without

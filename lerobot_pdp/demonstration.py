@@ -145,7 +145,11 @@ def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_a
             raise KeyError(f"{root} has no episode {index}")
         episode = {**eps[index], **read_episode_frames(root, index, cameras)}
     if not isinstance(episode, dict):
-        raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) pair, got {type(episode)}")
+        source = episode[0] if isinstance(episode, list) and len(episode) == 2 else episode
+        shown = repr(str(source)) if isinstance(source, (str, Path)) else "dataset" if hasattr(source, "root") else None
+        hint = f": one episode of a recording is the tuple ({shown}, <episode index>)" if shown else ""
+        raise TypeError(f"episode must be a dict of arrays or a (dataset, episode_index) tuple, got "
+                        f"{type(episode).__name__}{hint}")
     out: dict[str, np.ndarray] = {}
     for key, shape in required.items():
         if key not in episode:

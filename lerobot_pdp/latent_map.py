@@ -117,7 +117,11 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
         color[UNLABELLED] = UNLABELLED_COLOR
         names[UNLABELLED] = "unlabelled"
     drawn = ids + [UNLABELLED] * bool(unlabelled)
-    shown = drawn[:MAX_PANELS]
+    taught_groups = {int(g) for g in np.unique(groups[taught])}
+    # past MAX_PANELS the taught modes' panels come first: they are what a taught checkpoint's map is looked at for
+    shown = sorted([g for g in drawn if g in taught_groups]
+                   + [g for g in drawn if g not in taught_groups][:max(0, MAX_PANELS - len(taught_groups))],
+                   key=drawn.index) if len(drawn) > MAX_PANELS else drawn
     cols = min(4, max(1, len(shown)))
     rows = -(-len(shown) // cols)
     fig = plt.figure(figsize=(6 + 2.4 * cols, max(5.0, 2.2 * rows)))
@@ -125,7 +129,7 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     ax = fig.add_subplot(grid[:, :2])
     phase = policy.behavior_phase().cpu().numpy()
     for g in drawn:
-        tag = "" if g == UNLABELLED else f"{g}"
+        tag = "" if g == UNLABELLED else f"{g}" + (f" ({names[g]})" if g in taught_groups and len(drawn) > 12 else "")
         label = " ".join(x for x in (tag, names[g] if names[g] and len(drawn) <= 12 else "") if x)
         for ph in np.unique(phase):
             sel = (groups == g) & (phase == ph)
@@ -156,7 +160,8 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
             tax.plot(t[:, d0], t[:, j], color=color[g], lw=0.8, alpha=0.7)
         tax.set_title(names[g] if g == UNLABELLED else f"{g}" + (f": {names[g]}" if names[g] else ""), fontsize=8)
         tax.tick_params(labelsize=6)
-    more = f"; traces of the first {MAX_PANELS} of {len(drawn)} shown" if len(drawn) > MAX_PANELS else ""
+    more = (f"; traces of {len(shown)} of {len(drawn)} shown" + (", taught modes first" if taught_groups else "")
+            if len(drawn) > MAX_PANELS else "")
     taught = " and taught modes" if len(policy.model.bank.taught) else ""
     fig.suptitle(title or f"behaviors of the training data{taught} (traces: trace dims {d0} and {j}, the two they "
                  f"spread most along{more})", fontsize=11)

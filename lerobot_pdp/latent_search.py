@@ -135,6 +135,10 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         confirm_rollouts: a candidate that beats the best so far is rolled out again up to this many rollouts in
             all, and replaces it only if still better (0: no confirmation, the best of ``rollouts_per_candidate``).
     """
+    if not callable(env_factory):  # an env, or a gym id: the search makes up to max_envs envs of its own
+        raise TypeError(f"env_factory must make one new env per call, e.g. functools.partial(gym.make, "
+                        f"'lerobot_pdp/ReachAround-v0', scene=3, max_episode_steps=300); got {type(env_factory).__name__}"
+                        f" {env_factory!r}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     for name, value, low in (("budget", budget, 1), ("rollouts_per_candidate", rollouts_per_candidate, 1),
@@ -201,6 +205,10 @@ def search_latent(policy: Any, env_factory: EnvFactory, score: str | Score = "su
         bar.close()
         run.close()
     result.seconds = time.perf_counter() - t0
+    if len(result.history) > 1 and len({c.score for c in result.history}) == 1:  # its "best" is the first tried
+        logger.warning("latent search: every candidate scored %.3g, so the search had nothing to follow and the best "
+                       "latent is just the first one tried; score by way-points (WaypointScore, or --waypoints) to "
+                       "reward partial progress, or give a larger budget", result.score)
     return result
 
 

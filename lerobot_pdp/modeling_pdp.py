@@ -168,7 +168,7 @@ class PDPPolicy(PreTrainedPolicy):
         batch = paced_history(self, batch) if one_frame else batch
         if self._steer_file is not None:  # live steering: a changed file sets z before this chunk
             self._steer_file.poll(self)
-        obs_cond = self.model.obs_cond(batch)
+        obs_cond = self.model.acting_cond(batch)  # a history of another length or a NaN reading: named
         z = self.current_latent(obs_cond.shape[0], obs_cond.device)
         last = getattr(self, "_paced_last", None) if one_frame else None  # served: paced_chunks.LastChunk
         if last is None and noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)

@@ -16,13 +16,14 @@ from torch import Tensor, nn
 from .configuration_pdp import PDPConfig
 
 
-def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[str, ...]) -> None:
-    """Refuse an input the policy was not trained on, naming the key and the expected shape: a missing key or
-    a frame of another size would otherwise fail deep inside the network, or (a camera's size) act silently
-    on features the policy never saw. ``leading``: the names of the batch dims before each frame."""
+def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[str | int, ...]) -> None:
+    """Refuse an input the policy was not trained on, naming the key and the expected shape: a missing key, a
+    value that is not a tensor, a frame of another size or a history of another length would otherwise fail deep
+    inside the network, or (a camera's size) act silently on features the policy never saw. ``leading``: the batch
+    dims before each frame, by name (any size) or by size (the history's ``n_obs_steps``)."""
     for key, ft in features.items():
         x = batch.get(key)
-        expected = f"[{', '.join((*leading, *map(str, ft.shape)))}]"
+        expected = f"[{', '.join(map(str, (*leading, *ft.shape)))}]"
         if x is None:
             hint = ""
             if key.startswith("observation.images.") and len(ft.shape) == 3:  # a camera checkpoint, an env without it
@@ -31,9 +32,16 @@ def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[s
                         f"--env.image_size={h if h == w else f'{h}x{w}'})")
             raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has "
                            f"{sorted(batch)}{hint}")
-        if x.dim() != len(leading) + len(ft.shape) or tuple(x.shape[len(leading):]) != tuple(ft.shape):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"observation {key!r} is a {type(x).__module__}.{type(x).__name__}; PDP takes torch "
+                            f"tensors {expected}, as LeRobot's preprocessor gives them (make_pre_post_processors("
+                            "policy.config, pretrained_path=<checkpoint>): normalised, batched, on the policy's device)")
+        sized = [(i, n) for i, n in enumerate(leading) if isinstance(n, int)]
+        if x.dim() != len(leading) + len(ft.shape) or tuple(x.shape[len(leading):]) != tuple(ft.shape) \
+                or any(x.shape[i] != n for i, n in sized):
             raise ValueError(f"observation {key!r} has shape {list(x.shape)}; this policy expects {expected} "
-                             "(its training dataset's feature)")
+                             "(its training dataset's feature" + (f", a history of n_obs_steps = {sized[0][1]} frames"
+                                                                  if sized else "") + ")")
 
 
 class ObservationEncoder(nn.Module):
@@ -45,6 +53,7 @@ class ObservationEncoder(nn.Module):
     def __init__(self, config: PDPConfig):
         super().__init__()
         self.features = dict(config.condition_features)
+        self.n_obs_steps = config.n_obs_steps  # the history every condition holds
         self.keys = list(self.features)
         self.vector_keys = [k for k in self.keys if config.condition_features[k].type is not FeatureType.VISUAL]
         self.image_keys = [k for k in self.keys if config.condition_features[k].type is FeatureType.VISUAL]
@@ -64,7 +73,7 @@ class ObservationEncoder(nn.Module):
 
     def forward(self, batch: dict[str, Tensor]) -> Tensor:
         """Features [B, S, frame_dim] of observation histories ``batch[key]``: [B, S, dim] or [B, S, 3, H, W]."""
-        check_observation(batch, self.features, ("B", "n_obs_steps"))
+        check_observation(batch, self.features, ("B", self.n_obs_steps))
         b, s = batch[self.keys[0]].shape[:2]
         return self._features({k: batch[k].flatten(0, 1) for k in self.keys}).view(b, s, -1)
 

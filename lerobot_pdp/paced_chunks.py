@@ -334,8 +334,8 @@ def precede_history(policy: Any, frames: list[dict[str, Tensor]]) -> None:
 def is_one_frame(batch: dict[str, Tensor], features: dict) -> bool:
     """``batch`` holds one observation [B, *frame] per key, not a history [B, n_obs_steps, *frame] (told by the
     first conditioning key it has)."""
-    key = next((k for k in features if k in batch), None)
-    return key is not None and batch[key].dim() == 1 + len(features[key].shape)
+    key = next((k for k in features if k in batch), None)  # not a tensor: refused as one frame would be
+    return key is not None and (not isinstance(batch[key], Tensor) or batch[key].dim() == 1 + len(features[key].shape))
 
 
 # Left out of torch.compile's graph (``lerobot-rollout --use_torch_compile`` compiles ``predict_action_chunk``, this

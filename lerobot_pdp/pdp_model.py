@@ -53,6 +53,18 @@ def check_finite_actions(chunk: Tensor, z: Tensor, obs_cond: Tensor) -> None:
             "returned")
 
 
+def check_finite_condition(batch: dict[str, Tensor], obs_cond: Tensor) -> None:
+    """Before a chunk is sampled: an observation holding NaN or inf (a sensor glitch, an integer state the
+    normaliser turned into NaN) is named, rather than sampled from and caught as non-finite actions."""
+    if not bool(torch.isfinite(obs_cond).all()):
+        bad = [k for k, v in batch.items() if isinstance(v, Tensor) and v.is_floating_point()
+               and not bool(torch.isfinite(v).all())]
+        raise FloatingPointError(
+            f"observation {', '.join(map(repr, bad)) or '(its camera features)'} holds non-finite values (NaN or inf) "
+            "after the preprocessor: no action is generated. Check the robot's readings (and their dtype: LeRobot's "
+            "normaliser takes floats) and the checkpoint's processor statistics")
+
+
 class PDPModel(nn.Module):
     """Networks, training behaviors and loss of a PDP; built from the config and the feature sizes.
 
@@ -256,6 +268,12 @@ class PDPModel(nn.Module):
     def obs_cond(self, batch: dict[str, Tensor]) -> Tensor:
         """The denoiser's observation condition [B, n_obs_steps * frame_dim] of observation histories."""
         return self.obs_encoder(batch).flatten(1)
+
+    def acting_cond(self, batch: dict[str, Tensor]) -> Tensor:
+        """:meth:`obs_cond` to act on: one holding a non-finite value is refused, naming the observation."""
+        cond = self.obs_cond(batch)
+        check_finite_condition(batch, cond)
+        return cond
 
     # ------------------------------------------------------------------ sampling
 

@@ -434,7 +434,7 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
         return torch.zeros(1, 0, policy.action_dim, device=policy.model.device)
     if history is None:
         history = {k: _history(batch, k, len(ft.shape), cfg.n_obs_steps) for k, ft in cfg.condition_features.items()}
-    obs_cond = policy.model.obs_cond(history)
+    obs_cond = policy.model.acting_cond(history)
     b = obs_cond.shape[0]
     z = policy.current_latent(b, obs_cond.device)
     rtc = cfg.rtc_config

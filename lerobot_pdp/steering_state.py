@@ -68,7 +68,10 @@ def as_latent_tensor(z: object) -> Tensor:
     TypeError naming the accepted types, not numpy's "could not convert string to float"."""
     if isinstance(z, Tensor):
         return z.float()
-    if isinstance(z, (str, bytes, dict)):
+    if isinstance(z, (int, np.integer, str)) and not isinstance(z, bool):  # a mode's id or name, meant as its latent
+        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r}. A mode's latent: "
+                        f"policy.mode_latents()[{z!r}]")
+    if isinstance(z, (bytes, dict)):
         raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r}")
     try:
         return torch.as_tensor(np.asarray(z, dtype=np.float32))
@@ -116,12 +119,12 @@ class Steering(nn.Module):
             self.latent = self.latent[:0]
             provenance = None
         else:
-            z = as_latent_tensor(z)
+            z = given = as_latent_tensor(z)
             if z.dim() == 1:
                 z = z[None]
             if z.dim() != 2 or z.shape[1] != self.latent_dim:
                 raise ValueError(f"latent must have shape [{self.latent_dim}] or [M, {self.latent_dim}], "
-                                 f"got {tuple(z.shape)}")
+                                 f"got {tuple(given.shape)}")
             if len(z) > 1 and self._config is not None and self._config.segment_gripper_dim is None:
                 raise ValueError(f"got {len(z)} latents {tuple(z.shape)}, one per phase, but this policy has no "
                                  f"phases (trained without segment_gripper_dim): only the first would ever act. "

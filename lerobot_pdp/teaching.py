@@ -49,6 +49,8 @@ from .teach_defaults import (  # noqa: F401  (re-exported)
     TEACH_LATENTS,
     TEACH_LR,
     TEACH_STEPS,
+    check_mode_name,
+    check_teach_settings,
 )
 
 logger = logging.getLogger(__name__)
@@ -68,6 +70,12 @@ class TeachResult:
     nearest_spreads: float = float("nan")
     seconds: float = 0.0
     settings: dict[str, Any] = field(default_factory=dict)
+
+    def __repr__(self) -> str:  # a summary: the dataclass's would print every step's loss
+        loss = f"{self.losses[0]:.4g} -> {self.losses[-1]:.4g}" if self.losses else "none"
+        return (f"TeachResult(mode={self.mode}, z={[[round(x, 4) for x in r] for r in self.z.tolist()]}, "
+                f"steps={self.steps}, loss {loss}, windows {self.demo_windows} demo + {self.rehearsal_windows} "
+                f"rehearsal, nearest_spreads={self.nearest_spreads:.3g}, seconds={self.seconds:.1f})")
 
 
 @dataclass
@@ -107,7 +115,8 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
             against the fixed training latents (:func:`geometric_latent`).
     """
     model, cfg = policy.model, policy.config
-    _check_settings(steps, lr, demo_share, batch_size)
+    check_teach_settings(steps, lr, demo_share, batch_size)
+    check_mode_name(name)
     if latent not in TEACH_LATENTS:
         raise ValueError(f"teach: latent must be one of {TEACH_LATENTS}, got {latent!r}")
     if cfg.latent_type != "continuous":
@@ -206,20 +215,6 @@ def geometric_latent(z0: Tensor, z_old: Tensor, delta: Tensor, kappa: float, ste
             loss.backward()
             opt.step()
     return z.detach()
-
-
-def _check_settings(steps: int, lr: float, demo_share: float, batch_size: int) -> None:
-    errors = []
-    if not isinstance(steps, int) or steps < 1:
-        errors.append(f"steps must be a positive integer, got {steps!r}")
-    if not lr > 0:
-        errors.append(f"lr must be > 0, got {lr!r}")
-    if not 0 < demo_share <= 1:
-        errors.append(f"demo_share must be in (0, 1], got {demo_share!r}")
-    if not isinstance(batch_size, int) or batch_size < 2:
-        errors.append(f"batch_size must be an integer >= 2, got {batch_size!r}")
-    if errors:
-        raise ValueError("teach: " + "; ".join(errors))
 
 
 def _mean(xs: list[float]) -> float:

@@ -92,6 +92,16 @@ def test_set_latent_and_steering_fields_travel_with_the_checkpoint(synthetic_met
     cfg = q.config
     cfg.steer_latent = [1.0, 1.0]  # a steering field overrides the stored adaptation
     assert PDPPolicy.from_pretrained(tmp_path / "a", config=cfg).active_latent.tolist() == [[1.0, 1.0]]
+    # saved from Python, a folder lerobot-eval loads: the processors built from the policy's statistics ("a"), or
+    # those of the checkpoint it was loaded from, as they are (its rename map, its device step)
+    pre = json.loads((tmp_path / "a" / "policy_preprocessor.json").read_text())
+    pre["steps"][0]["config"]["rename_map"] = {"observation.robot_state": "observation.state"}
+    (tmp_path / "a" / "policy_preprocessor.json").write_text(json.dumps(pre))
+    q = PDPPolicy.from_pretrained(tmp_path / "a")
+    q.set_latent([0.5, 0.5])
+    q.save_pretrained(tmp_path / "b")
+    for f in (tmp_path / "a").glob("policy_*processor*"):
+        assert (tmp_path / "b" / f.name).read_bytes() == f.read_bytes(), f.name
 
 
 def test_an_adaptation_of_phase_latents_saved_on_a_policy_without_phases_still_loads(synthetic_meta, tmp_path,

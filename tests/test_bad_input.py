@@ -63,8 +63,21 @@ def test_select_action_names_a_missing_key_or_a_frame_of_another_size(policy):
         policy.select_action({"observation.state": ok["observation.state"]})
     with pytest.raises(ValueError, match=r"'observation.state' has shape \[1, 4\]; this policy expects \[B, 2\]"):
         policy.select_action({**ok, "observation.state": torch.zeros(1, 4)})
-    with pytest.raises(ValueError, match=r"expects \[B, n_obs_steps, 2\]"):  # a history passed whole
+    with pytest.raises(ValueError, match=r"expects \[B, 2, 2\] \(its training dataset's feature, a history of "
+                                         r"n_obs_steps = 2 frames\)"):  # a history passed whole
         policy.predict_action_chunk({**ok, "observation.state": torch.zeros(1, 2, 3)})
+    history = {k: torch.zeros(1, 3, 2) for k in ok}  # one frame too many
+    with pytest.raises(ValueError, match=r"has shape \[1, 3, 2\]; this policy expects \[B, 2, 2\]"):
+        policy.predict_action_chunk(history)
+    for act in (policy.select_action, policy.predict_action_chunk):  # numpy, as an env gives it: not a tensor
+        with pytest.raises(TypeError, match=r"observation 'observation.state' is a numpy.ndarray; PDP takes torch "
+                                            r"tensors \[B, 2\], as LeRobot's preprocessor gives them"):
+            act({k: v.numpy() for k, v in ok.items()})
+    policy.reset()
+    glitch = {**ok, "observation.environment_state": torch.tensor([[0.1, float("nan")]])}
+    with pytest.raises(FloatingPointError, match=r"observation 'observation.environment_state' holds non-finite "
+                                                 r"values \(NaN or inf\) after the preprocessor: no action"):
+        policy.select_action(glitch)  # named before a chunk is sampled
     policy.reset()
 
 
@@ -127,6 +140,11 @@ def test_a_string_latent_names_the_accepted_types(policy):
         policy.set_latent("0.4 -1.2")
     with pytest.raises(TypeError, match=r"latent must be .*got list \['a', 'b'\]"):
         policy.set_latent(["a", "b"])
+    for mode in (3, "left-wide"):  # a mode, meant as its latent: where its latent is
+        with pytest.raises(TypeError, match=re.escape(f"A mode's latent: policy.mode_latents()[{mode!r}]")):
+            policy.set_latent(mode)
+    with pytest.raises(ValueError, match=r"latent must have shape \[2\] or \[M, 2\], got \(3,\)"):  # as given
+        policy.set_latent(torch.zeros(3))
 
 
 def test_an_unknown_mode_lists_the_modes(policy):
@@ -150,6 +168,18 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
                                         r"got float 0.9"):
         policy.fit_latent((synthetic_dataset, 0.9), steps=0)
     assert policy.fit_latent((synthetic_dataset, np.int64(1)), steps=0, activate=False).steps == 0
+    # init as set_latent takes latents (a list, an array); a mode is named as such
+    res = policy.fit_latent((synthetic_dataset, 0), steps=0, init=np.array([0.1, 0.2]), activate=False)
+    assert torch.allclose(res.z.reshape(-1), torch.tensor([0.1, 0.2]))
+    assert policy.fit_latent((synthetic_dataset, 0), steps=0, init=[0.1, 0.2], activate=False).steps == 0
+    with pytest.raises(TypeError, match=re.escape("A mode's latent: policy.mode_latents()[3]")):
+        policy.fit_latent((synthetic_dataset, 0), steps=0, init="3")
+    with pytest.raises(ValueError, match=re.escape("a mode's latent: init=policy.mode_latents()['left-wide']")):
+        policy.fit_latent((synthetic_dataset, 0), steps=0, init="left-wide")
+    for episode in (synthetic_dataset, [str(synthetic_dataset), 0]):  # a folder alone, a list: the tuple it takes
+        with pytest.raises(TypeError, match=re.escape(f"one episode of a recording is the tuple "
+                                                      f"({str(synthetic_dataset)!r}, <episode index>)")):
+            policy.fit_latent(episode, steps=0)
 
 
 # ---- live steering: the file and lerobot-pdp steer
@@ -321,9 +351,13 @@ def test_a_checkpoint_built_for_another_env_names_the_features(checkpoint):
 
 
 def test_a_missing_checkpoint_folder_is_named(tmp_path):
-    for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model"):
-        with pytest.raises(FileNotFoundError, match=rf"no such checkpoint folder: {missing}"):
+    for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model", Path("runs/nowhere")):
+        with pytest.raises(FileNotFoundError, match=rf"no such checkpoint folder: {missing} \(give"):
             PDPPolicy.from_pretrained(missing)
+    # a string that could be a Hub repo id, offline and not cached: named, not huggingface_hub's "check your connection"
+    with pytest.raises(FileNotFoundError, match=r"no such checkpoint folder: runs/nowhere \(from .*\), and the Hub "
+                                                r"cannot be asked for a repo of that name \(HF_HUB_OFFLINE is set\)"):
+        PDPPolicy.from_pretrained("runs/nowhere")
 
 
 def test_missing_processor_files_are_named(checkpoint, tmp_path, caplog, monkeypatch):

@@ -8,7 +8,7 @@ import sys
 import pytest
 from conftest import lerobot_cli
 
-from lerobot_pdp.cli_errors import raised_by_pdp
+from lerobot_pdp.cli_errors import _hook, layout_message, pdp_message, raised_by_pdp
 
 
 def _error_of(call):
@@ -27,6 +27,58 @@ def test_only_errors_pdp_raises_on_purpose_are_told_apart():
     assert not raised_by_pdp(*_error_of(lambda: read_config_json("/nonexistent/config.json")))  # pathlib's
     assert not raised_by_pdp(*_error_of(lambda: episode_index.__wrapped__))  # an AttributeError: never a message
     assert not raised_by_pdp(*_error_of(lambda: int("x")))  # raised outside PDP's code
+
+
+def test_pdps_message_wrapped_by_lerobot_is_told_alone_and_named_once(capsys, monkeypatch, tmp_path):
+    """LeRobot's robot factory catches PDP's error and raises its own ("Error creating robot with config
+    PDPSimConfig(<every field>): ..."): PDP's message is printed alone. A message that names the command already
+    is not prefixed with it twice."""
+    from lerobot.robots.utils import make_robot_from_config
+
+    from lerobot_pdp.robots.config_pdp_sim import PDPSimConfig
+
+    error, tb = _error_of(lambda: make_robot_from_config(PDPSimConfig(env="avoiding", camera_names=["oblique"],
+                                                                      calibration_dir=tmp_path)))
+    assert not raised_by_pdp(error, tb) and "Error creating robot with config PDPSimConfig(" in str(error)
+    assert str(pdp_message(error, tb)) == "avoiding: unknown camera 'oblique'; valid cameras: top"
+    assert pdp_message(*_error_of(lambda: int("x"))) is None
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-record"])
+    shown = []
+    _hook(lambda *a: shown.append(a))(type(error), error, tb)
+    assert not shown and capsys.readouterr().err.startswith(
+        "lerobot-record: error: avoiding: unknown camera 'oblique'; valid cameras: top\n(ValueError from lerobot_pdp")
+    from lerobot_pdp.checkpoint_files import check_checkpoint_source
+
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "model.safetensors").write_bytes(b"")
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-eval"])
+    named = _error_of(lambda: check_checkpoint_source(tmp_path))  # names the command: lerobot-eval would fail next
+    assert str(named[0]).startswith("lerobot-eval: ")
+    _hook(lambda *a: shown.append(a))(FileNotFoundError, *named)
+    assert not shown and capsys.readouterr().err.startswith(f"lerobot-eval: error: {tmp_path} lacks LeRobot's "
+                                                            "processor files")
+
+
+def test_a_folder_in_lerobots_training_layout_is_pointed_to_its_checkpoint(tmp_path, capsys, monkeypatch):
+    """``--policy.path=.../checkpoints/last``: LeRobot's config loader says "config.json not found in" it (with a
+    traceback); the hook says it once, with the pretrained_model folder below it that holds the checkpoint."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    last = tmp_path / "checkpoints" / "last"
+    (last / "pretrained_model").mkdir(parents=True)
+    (last / "pretrained_model" / "config.json").write_text("{}")
+    error, tb = _error_of(lambda: PreTrainedConfig.from_pretrained(str(last)))
+    assert layout_message(error) == f"config.json not found in {last}; did you mean {last / 'pretrained_model'}?"
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-eval"])
+    shown = []
+    _hook(lambda *a: shown.append(a))(type(error), error, tb)
+    assert not shown and capsys.readouterr().err == (f"lerobot-eval: error: config.json not found in {last}; did you "
+                                                      f"mean {last / 'pretrained_model'}?\n")
+    run = _error_of(lambda: PreTrainedConfig.from_pretrained(str(tmp_path)))[0]  # the run's folder: pointed too
+    assert str(layout_message(run)).endswith(f"did you mean {last / 'pretrained_model'}?")
+    (tmp_path / "empty").mkdir()
+    other = _error_of(lambda: PreTrainedConfig.from_pretrained(str(tmp_path / "empty")))[0]  # nothing below
+    assert layout_message(other) is None
 
 
 def test_lerobot_train_ends_with_pdps_message(synthetic_meta, tmp_path):

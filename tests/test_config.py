@@ -93,3 +93,28 @@ def test_a_robot_state_under_another_key_is_said_to_condition_nothing(caplog):
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp"):
         cfg.validate_features()
     assert caplog.text == "" and list(cfg.condition_features) == ["observation.state", "observation.environment_state"]
+
+
+@pytest.mark.parametrize("config", ["PDPConfig", "PDPReachAroundEnvConfig", "PDPSimConfig", "PDPWaypointsConfig"])
+def test_help_of_every_config_pdp_registers_prints(config, capsys):
+    """``lerobot-train --policy.type=pdp --help`` (and the env's, robot's, teleoperator's) is built by draccus from the
+    fields' comments, which argparse formats with %: a bare % in a comment made --help a TypeError. Every PDP field
+    has its help."""
+    import dataclasses
+
+    import draccus
+    from draccus.wrappers import docstring
+
+    from lerobot_pdp.envs.configs import PDPReachAroundEnvConfig
+    from lerobot_pdp.robots.config_pdp_sim import PDPSimConfig
+    from lerobot_pdp.teleoperators import PDPWaypointsConfig
+
+    cls = {"PDPConfig": PDPConfig, "PDPReachAroundEnvConfig": PDPReachAroundEnvConfig, "PDPSimConfig": PDPSimConfig,
+           "PDPWaypointsConfig": PDPWaypointsConfig}[config]
+    with pytest.raises(SystemExit) as done:
+        draccus.parse(cls, args=["--help"])
+    assert done.value.code == 0 and "usage:" in capsys.readouterr().out
+    if cls is PDPConfig:  # LeRobot's own fields (device, push_to_hub, ...) are LeRobot's to document
+        own = [f.name for f in dataclasses.fields(cls) if f.init and f.name in vars(cls)["__annotations__"]]
+        silent = [n for n in own if not docstring.get_preferred_help_text(docstring.get_attribute_docstring(cls, n))]
+        assert not silent, f"PDP fields without help: {silent}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -258,3 +259,24 @@ def test_rendering_without_an_opengl_context_says_how_to_get_one():
     out = proc.stdout.strip().splitlines()[-1]
     # a machine with a GL context (a desktop) renders; a headless one gets the advice
     assert out == "rendered" or ("set MUJOCO_GL=egl (or osmesa)" in out and out.startswith("refused: pick-place")), out
+
+
+def test_a_machine_without_a_display_renders_with_egl_unless_told_otherwise():
+    """MuJoCo's default backend (GLFW) needs a display: without one, importing the envs chooses EGL where it is
+    installed (pick-place's videos in lerobot-eval, its cameras), before MuJoCo is imported; a MUJOCO_GL the user
+    set is kept."""
+    import ctypes.util
+    import subprocess
+    import sys
+
+    code = ("import os, lerobot_pdp.envs, gymnasium as gym; print(os.environ.get('MUJOCO_GL')); "
+            "e = gym.make('lerobot_pdp/PickPlace-v0', render_mode='rgb_array'); e.reset(seed=0); "
+            "print(e.render().shape); e.close()")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
+    if not ctypes.util.find_library("EGL"):
+        pytest.skip("no EGL library on this machine: MuJoCo's default is left alone")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0 and out.stdout.split() == ["egl", "(240,", "320,", "3)"], out.stderr[-2000:]
+    out = subprocess.run([sys.executable, "-c", "import os, lerobot_pdp.envs; print(os.environ['MUJOCO_GL'])"],
+                         capture_output=True, text=True, timeout=120, env={**env, "MUJOCO_GL": "osmesa"})
+    assert out.stdout.strip() == "osmesa", out.stderr[-2000:]

@@ -294,6 +294,9 @@ def test_bad_search_arguments_are_named(policy):
     with pytest.raises(ValueError, match=r"'observation.state' has shape \(4,\) but the checkpoint was trained on "
                        r"\(6,\)"):
         search_latent(policy, short_env(name="avoiding"), budget=2, progress=False)
+    for not_a_factory in (short_env()(), "lerobot_pdp/ReachAround-v0"):  # an env, a gym id: a factory is named
+        with pytest.raises(TypeError, match=r"env_factory must make one new env per call, e.g. functools.partial"):
+            search_latent(policy, not_a_factory, budget=2, progress=False)
     # way-points the agent can never pass, from Python as on the command line: before any rollout
     for points, match in (([[0.0, 0.0, 5.0]], r"way-point 0 \[0.0, 0.0, 5.0\] lies outside the env's workspace"),
                           ([[0.0, 0.3]], "way-points have 2 coordinates; this env's path has 3")):
@@ -378,16 +381,18 @@ def test_cli_search_with_finish_scores_the_tasks_success_after_the_way_points(ch
     assert "--finish adds the task's success to the way-point score: give --waypoints too" in capsys.readouterr().err
 
 
-def test_cli_search_says_when_no_candidate_scored_apart(checkpoint, tmp_path, capsys):
+def test_cli_search_says_when_no_candidate_scored_apart(checkpoint, tmp_path, caplog):
     """A search whose candidates all scored the same had nothing to follow: its "best" is the first latent tried,
-    and the command says so (with what gives a search a signal) instead of presenting it as found."""
+    and the search says so (with what gives it a signal) instead of presenting it as found, from the command line
+    as from Python (search_latent warns)."""
     hist = tmp_path / "history.json"
-    assert cli(["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--budget", "3",
-                "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--no-progress", "--history",
-                str(hist)]) == 0
-    err = capsys.readouterr().err
+    with caplog.at_level("WARNING", logger="lerobot_pdp.latent_search"):
+        assert cli(["search", str(checkpoint), "--env", "reach-around", "--scene", "3", "--budget", "3",
+                    "--rollouts-per-candidate", "1", "--confirm-rollouts", "0", "--no-progress", "--history",
+                    str(hist)]) == 0
     scores = {c["score"] for c in json.loads(hist.read_text())["history"]}
-    assert ("the best latent is just the first one tried" in err) == (len(scores) == 1), (scores, err)
+    said = "the best latent is just the first one tried; score by way-points (WaypointScore, or --waypoints)"
+    assert (said in caplog.text) == (len(scores) == 1), (scores, caplog.text)
 
 
 def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):

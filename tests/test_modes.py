@@ -150,7 +150,13 @@ def test_latent_map_cli_draws_any_checkpoint_labels_or_clusters(embedded, tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt", "clusters.png", "map.png"]  # no temp files
     capsys.readouterr()
     assert main(["latent-map", str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
-    assert "holds no model.safetensors" in capsys.readouterr().err
+    assert f"{tmp_path} is not a PDP checkpoint folder (config.json + model.safetensors)" in capsys.readouterr().err
+    layout = tmp_path / "run" / "checkpoints" / "last"
+    layout.mkdir(parents=True)
+    ckpt.rename(layout / "pretrained_model")  # LeRobot's training layout: pointed to the checkpoint below
+    assert main(["latent-map", str(layout), "--out", str(tmp_path / "x.png")]) == 2
+    assert f"did you mean {layout / 'pretrained_model'}?" in capsys.readouterr().err
+    layout.joinpath("pretrained_model").rename(ckpt)
     assert main(["latent-map", str(tmp_path / "nope"), "--out", str(tmp_path / "x.png")]) == 2
     assert f"no such checkpoint folder: {tmp_path / 'nope'}" in capsys.readouterr().err
     assert main(["latent-map", str(ckpt), "--out", str(tmp_path / "x.png"), "--k", "0"]) == 2
@@ -348,3 +354,27 @@ def test_loose_clusters_are_said_to_be_loose(caplog):
         assert found.k == 3 and "loose" not in caplog.text
         found = discover(ring, np.arange(12), np.zeros(12, int))  # by latents: k by silhouette, all weak
     assert found.silhouette[found.k] < 0.5 and "clusters found are loose" in caplog.text
+
+
+def test_training_says_what_its_behavior_bank_holds(synthetic_meta, caplog):
+    """lerobot-train builds the policy from its dataset: one line says the episodes, behaviours and modes read
+    (labelled, or none: discovered later), which a run's log otherwise never shows."""
+    import dataclasses
+    import logging
+
+    from policies import small_policy
+
+    from lerobot_pdp.behavior_bank import bank_summary
+
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.behavior_bank"):
+        p = small_policy(synthetic_meta)
+    n = len(p.model.bank.episode)
+    assert (f"PDP behavior bank: {synthetic_meta.total_episodes} episode(s), {n} behavior(s); 4 labelled mode(s): "
+            "0 (left-tight), 1 (left-wide), 2 (right-tight), 3 (right-wide)") in caplog.text
+    from lerobot_pdp.behavior import BehaviorTraces
+
+    t = BehaviorTraces(np.zeros((3, 4, 2)), np.arange(3), np.zeros(3), np.zeros(3), np.full(3, 4),
+                       np.full(3, -1), {})
+    assert bank_summary(t) == ("3 episode(s), 3 behavior(s); no mode labels (mode_latents() discovers the modes by "
+                               "clustering; lerobot-pdp latent-map draws them)")
+    assert "1 episode(s) without a label" in bank_summary(dataclasses.replace(t, mode=np.array([0, 1, -1])))

@@ -203,8 +203,17 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
     p = small_policy(synthetic_meta)
     p.eval()
     p.save_pretrained(tmp_path / "ckpt")
-    assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
+    assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == [  # a checkpoint lerobot-eval loads
+        "config.json", "model.safetensors", "policy_postprocessor.json",
+        "policy_postprocessor_step_0_unnormalizer_processor.safetensors", "policy_preprocessor.json",
+        "policy_preprocessor_step_3_normalizer_processor.safetensors"]
+    from lerobot.policies.factory import make_pre_post_processors
     from safetensors import safe_open
+
+    pre, _ = make_pre_post_processors(p.config, pretrained_path=str(tmp_path / "ckpt"))
+    frame = {"observation.state": torch.tensor([0.3, -0.1]), "observation.environment_state": torch.tensor([0.2, 0.5])}
+    expected = p.stats.normalize_episode({k: v[None] for k, v in frame.items()})  # the policy's own statistics
+    torch.testing.assert_close(pre(frame)["observation.state"], expected["observation.state"])
 
     with safe_open(str(tmp_path / "ckpt" / "model.safetensors"), framework="pt") as f:  # first release's keys
         keys = set(f.keys())

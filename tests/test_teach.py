@@ -17,7 +17,7 @@ from lerobot_pdp.latent_fitting import demonstration_error
 from lerobot_pdp.taught import TEACHING_INFO
 from lerobot_pdp.taught_demos import TAUGHT_DEMOS
 
-from synthetic import GOAL, MAX_STEP, START, write_dataset
+from synthetic import GOAL, MAX_STEP, MODES, START, write_dataset
 
 
 def new_route(x_via: float = 1.6, hold: int = 4) -> dict[str, np.ndarray]:
@@ -61,6 +61,16 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
     fig = latent_map_figure(p).figure  # the taught mode is drawn as one, and said to be taught
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert "4 far right, taught" in labels and "taught modes" in fig.get_suptitle()
+    __import__("matplotlib.pyplot").pyplot.close(fig)
+    import lerobot_pdp.latent_map as latent_map
+
+    panels, latent_map.MAX_PANELS = latent_map.MAX_PANELS, 3  # more modes than panels: the taught one's comes first
+    try:
+        fig = latent_map_figure(p).figure
+    finally:
+        latent_map.MAX_PANELS = panels
+    assert [a.get_title() for a in fig.axes[1:]] == ["0: " + MODES[0][0], "1: " + MODES[1][0], "4: far right, taught"]
+    assert "traces of 3 of 5 shown, taught modes first" in fig.get_suptitle()
     __import__("matplotlib.pyplot").pyplot.close(fig)
     d = p.model.bank.distances
     torch.testing.assert_close(d, d.T)
@@ -579,6 +589,15 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     args = ["teach", str(base), "--demo", str(synthetic_meta.root), "--data", str(synthetic_meta.root)]
     assert cli([*args, "--out", str(tmp_path / "taken")]) == 2
     assert "taken exists" in capsys.readouterr().err
+    # refused before the checkpoint loads, each named once ("lerobot-pdp teach: error: ...", no "teach: " again)
+    for extra, said in ((["--name", "3"], "error: mode name '3' reads as a mode id (--policy.steer_mode=3 steers to "
+                                          "the mode of that id)"),
+                        (["--demo-share", "1.5"], "error: demo_share must be in (0, 1], got 1.5"),
+                        (["--demo", str(tmp_path / "nowhere")], f"error: recording {tmp_path / 'nowhere'} does not exist")):
+        assert cli([*args, *extra, "--out", str(tmp_path / "t")]) == 2
+        assert f"lerobot-pdp teach: {said}" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="mode name '7' reads as a mode id"):
+        p.teach(demo, synthetic_meta.root, steps=1, name="7")
     assert cli(["teach", str(base), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "t")]) == 2
     assert "has no train_config.json naming its training dataset" in capsys.readouterr().err
     (base / "train_config.json").write_text(json.dumps({"dataset": {"root": str(tmp_path / "moved")}}))
