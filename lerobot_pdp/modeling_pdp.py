@@ -182,8 +182,7 @@ class PDPPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs) -> Tensor:
         """One normalised action [B, A] per call; a new chunk is generated when the queue runs empty."""
         batch = {k: v for k, v in batch.items() if k != ACTION}
-        check_observation(batch, self.config.condition_features, ("B",))  # a key or size it was not trained on
-        self._queues = populate_queues(self._queues, batch)
+        self._queues = queue_observation(self._queues, batch, self.config.condition_features)  # checked first
         if len(self._queues[ACTION]) == 0:
             history = {k: torch.stack(list(self._queues[k]), dim=1) for k in self.config.condition_features}
             actions = self.predict_action_chunk(history, noise=noise)
@@ -311,3 +310,14 @@ class PDPPolicy(PreTrainedPolicy):
 
     def _demonstration(self, episode: Episode, segments, need_action: bool, acting: bool = False) -> Demonstration:
         return read_demonstration(episode, self.config, self.action_dim, segments, need_action, acting)
+
+
+def queue_observation(queues: dict[str, deque], batch: dict[str, Tensor], features: dict) -> dict[str, deque]:
+    """``select_action``'s queues with ``batch``'s observation: a key, size or type the policy was not trained on is
+    named first, and so is a batch of another size than the actions still queued (they would be returned for it)."""
+    check_observation(batch, features, ("B",))
+    queued, first = queues[ACTION], next(iter(features))
+    if queued and len(queued[0]) != len(batch[first]):
+        raise ValueError(f"a batch of {len(batch[first])} observation(s) while actions for a batch of {len(queued[0])} "
+                         "are still queued: call policy.reset() when the number of envs changes (as at a new episode)")
+    return populate_queues(queues, batch)

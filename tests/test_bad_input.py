@@ -74,6 +74,13 @@ def test_select_action_names_a_missing_key_or_a_frame_of_another_size(policy):
                                             r"tensors \[B, 2\], as LeRobot's preprocessor gives them"):
             act({k: v.numpy() for k, v in ok.items()})
     policy.reset()
+    policy.select_action(ok)  # actions for one env queued; four envs without reset() would get them
+    with pytest.raises(ValueError, match=r"a batch of 4 observation\(s\) while actions for a batch of 1 are still "
+                                         r"queued: call policy.reset\(\)"):
+        policy.select_action({k: v.expand(4, -1) for k, v in ok.items()})
+    policy.reset()
+    assert policy.select_action({k: v.expand(4, -1) for k, v in ok.items()}).shape == (4, 2)
+    policy.reset()
     glitch = {**ok, "observation.environment_state": torch.tensor([[0.1, float("nan")]])}
     with pytest.raises(FloatingPointError, match=r"observation 'observation.environment_state' holds non-finite "
                                                  r"values \(NaN or inf\) after the preprocessor: no action"):
@@ -132,6 +139,16 @@ def test_a_latent_the_denoiser_overflows_under_is_refused_before_it_acts(synthet
         assert not SteerFile(steer).poll(p)
     assert "makes the denoiser overflow" in caplog.text and "keeping the current latent" in caplog.text
     torch.testing.assert_close(p.active_latent[0], good)
+
+
+def test_processors_without_statistics_say_they_do_not_normalise(policy, caplog):
+    from lerobot_pdp.processor_pdp import make_pdp_pre_post_processors
+
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.processor_pdp"):
+        make_pdp_pre_post_processors(policy.config, policy.stats.as_dict())
+        assert not caplog.records
+        make_pdp_pre_post_processors(policy.config)
+    assert "PDP processors built without dataset_stats do not normalise" in caplog.text
 
 
 def test_a_string_latent_names_the_accepted_types(policy):
