@@ -44,14 +44,11 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
 
     folder = Path(pretrained)
     if not folder.exists():
-        missing = FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
-                                    "holding config.json and model.safetensors, or a Hub repo id)")
-        if isinstance(pretrained, Path):  # a path, never a repo id
-            raise missing
-        try:
+        try:  # LeRobot's commands pass a Hub repo id as a Path too (--policy.path=user/repo)
             validate_repo_id(str(pretrained))
         except HFValidationError:
-            raise missing from None
+            raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (give a pretrained_model folder "
+                                    "holding config.json and model.safetensors, or a Hub repo id)") from None
         if _offline_and_not_cached(str(pretrained)):  # huggingface_hub would only say "check your connection"
             raise FileNotFoundError(f"no such checkpoint folder: {pretrained} (from {Path.cwd()}), and the Hub "
                                     "cannot be asked for a repo of that name (HF_HUB_OFFLINE is set) nor has it "

@@ -368,13 +368,15 @@ def test_a_checkpoint_built_for_another_env_names_the_features(checkpoint):
 
 
 def test_a_missing_checkpoint_folder_is_named(tmp_path):
-    for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model", Path("runs/nowhere")):
+    for missing in (tmp_path / "nowhere", "outputs/train/nowhere/pretrained_model"):
         with pytest.raises(FileNotFoundError, match=rf"no such checkpoint folder: {missing} \(give"):
             PDPPolicy.from_pretrained(missing)
-    # a string that could be a Hub repo id, offline and not cached: named, not huggingface_hub's "check your connection"
-    with pytest.raises(FileNotFoundError, match=r"no such checkpoint folder: runs/nowhere \(from .*\), and the Hub "
-                                                r"cannot be asked for a repo of that name \(HF_HUB_OFFLINE is set\)"):
-        PDPPolicy.from_pretrained("runs/nowhere")
+    # what could be a Hub repo id (LeRobot's commands pass one as a Path), offline and not cached: named, not
+    # huggingface_hub's "check your connection"
+    for missing in ("runs/nowhere", Path("runs/nowhere")):
+        with pytest.raises(FileNotFoundError, match=r"no such checkpoint folder: runs/nowhere \(from .*\), and the "
+                                                    r"Hub cannot be asked for a repo of that name \(HF_HUB_OFFLINE"):
+            PDPPolicy.from_pretrained(missing)
 
 
 def test_missing_processor_files_are_named(checkpoint, tmp_path, caplog, monkeypatch):
