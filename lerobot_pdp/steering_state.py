@@ -68,9 +68,16 @@ def as_latent_tensor(z: object) -> Tensor:
     TypeError naming the accepted types, not numpy's "could not convert string to float"."""
     if isinstance(z, Tensor):
         return z.float()
-    if isinstance(z, (int, np.integer, str)) and not isinstance(z, bool):  # a mode's id or name, meant as its latent
-        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r}. A mode's latent: "
-                        f"policy.mode_latents()[{z!r}]")
+    if isinstance(z, str):  # numbers typed as text, or a mode's name meant as its latent
+        try:
+            numbers = [float(x) for x in z.replace(",", " ").split()]
+        except ValueError:
+            numbers = None
+        hint = f"as numbers: {numbers}" if numbers else f"a mode's latent: policy.mode_latents()[{z!r}]"
+        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got str {z!r} ({hint})")
+    if isinstance(z, (int, np.integer)) and not isinstance(z, bool):  # a mode's id, meant as its latent
+        raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got int {z!r} (a mode's latent: "
+                        f"policy.mode_latents()[{z!r}])")
     if isinstance(z, (bytes, dict)):
         raise TypeError(f"latent must be {LATENT_TYPES_HELP}; got {type(z).__name__} {z!r}")
     try:

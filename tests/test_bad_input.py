@@ -158,8 +158,10 @@ def test_a_string_latent_names_the_accepted_types(policy):
     with pytest.raises(TypeError, match=r"latent must be .*got list \['a', 'b'\]"):
         policy.set_latent(["a", "b"])
     for mode in (3, "left-wide"):  # a mode, meant as its latent: where its latent is
-        with pytest.raises(TypeError, match=re.escape(f"A mode's latent: policy.mode_latents()[{mode!r}]")):
+        with pytest.raises(TypeError, match=re.escape(f"(a mode's latent: policy.mode_latents()[{mode!r}])")):
             policy.set_latent(mode)
+    with pytest.raises(TypeError, match=re.escape("got str '0.4 -1.2' (as numbers: [0.4, -1.2])")):
+        policy.set_latent("0.4 -1.2")
     with pytest.raises(ValueError, match=r"latent must have shape \[2\] or \[M, 2\], got \(3,\)"):  # as given
         policy.set_latent(torch.zeros(3))
 
@@ -189,7 +191,7 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
     res = policy.fit_latent((synthetic_dataset, 0), steps=0, init=np.array([0.1, 0.2]), activate=False)
     assert torch.allclose(res.z.reshape(-1), torch.tensor([0.1, 0.2]))
     assert policy.fit_latent((synthetic_dataset, 0), steps=0, init=[0.1, 0.2], activate=False).steps == 0
-    with pytest.raises(TypeError, match=re.escape("A mode's latent: policy.mode_latents()[3]")):
+    with pytest.raises(TypeError, match=re.escape("(a mode's latent: policy.mode_latents()[3])")):
         policy.fit_latent((synthetic_dataset, 0), steps=0, init="3")
     with pytest.raises(ValueError, match=re.escape("a mode's latent: init=policy.mode_latents()['left-wide']")):
         policy.fit_latent((synthetic_dataset, 0), steps=0, init="left-wide")
