@@ -569,6 +569,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
         print(f"{'episode ' + str(ep) + ': ' if len(done) > 1 else ''}mode {res.mode}, latent {res.z.tolist()} "
               f"({res.nearest_spreads:.1f} spreads from the nearest training latent), {res.steps} steps in "
               f"{res.seconds:.0f} s")
+    print("(a spread: the training latents' RMS standard deviation per dim; a new route sharing most of its path "
+          "with a training one lands near that one's latent)")
     steer = str(done[0].mode) if len(done) == 1 else "<id>"
     print(f"wrote {out}: taught mode(s) {', '.join(str(res.mode) for res in done)}; steer with "
           f"--policy.steer_mode={steer}")
