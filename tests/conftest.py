@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 # Forced, not defaulted: tests never download (whatever the caller's environment says) and never read a
@@ -95,9 +96,11 @@ def run_cli(args: list[str], timeout: float = 900, env: dict | None = None) -> s
             out, err = "", ""
             tree = [popen.pid, *_descendants(popen.pid)]  # before a signal: orphans are reparented
             for sig, wait in ((signal.SIGABRT, 10), (signal.SIGKILL, 60)):
-                for pid in tree:
+                for pid in reversed(tree) if sig == signal.SIGABRT else tree:
                     with contextlib.suppress(ProcessLookupError):
                         os.kill(pid, sig)
+                    if sig == signal.SIGABRT:  # one stack at a time: dumped together they interleave in the pipe
+                        time.sleep(0.3)
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     out, err = popen.communicate(timeout=wait)
                     break
