@@ -41,6 +41,8 @@ def test_mean_and_std_over_seeds_in_json_and_table():
             1: {"encoder@0": 0.7, "random@0": 0.1,
                 "per_scene": {"encoder@0": {"1": 1.0, "3": 0.4}, "random@0": {"1": 0.0, "3": 0.2}}}}
     res = aggregate("reach-around", cfg, per_run, init, TrainSettings(steps=10), 10)
+    assert res["train"]["steps"] == 10 and res["train"]["warmup_steps"] == 1  # as lerobot-train got it (capped)
+    assert aggregate("reach-around", cfg, per_run, init, TrainSettings(steps=10), 6000)["train"]["warmup_steps"] == 100
     s1 = res["methods"]["pdp"]["scene1"]
     assert s1["success"] == [0.9, 0.7] and s1["mean"] == pytest.approx(0.8) and s1["std"] == pytest.approx(0.1)
     assert res["methods"]["pdp"]["shifted_avg"] == pytest.approx((0.8 + 1.0 + 0.9) / 3)

@@ -48,6 +48,12 @@ def frozen_record(env: str, cfg: BenchmarkConfig) -> dict[str, Any]:
             "validation": validation_summary(record)}
 
 
+def applied_train(settings: TrainSettings, steps: int) -> dict[str, Any]:
+    """The shared training budget as the runs' ``lerobot-train`` got it: ``steps``, and the warm-up
+    :func:`lerobot_pdp.benchmark.training.train_args` caps at a tenth of them."""
+    return {**asdict(settings), "steps": steps, "warmup_steps": min(settings.warmup_steps, steps // 10)}
+
+
 def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]], init_abl: dict[int, dict],
               settings: TrainSettings, steps: int, frozen: dict[str, Any] | None = None) -> dict[str, Any]:
     """``results.json`` layout: methods -> scene<k> (``scene_val<k>`` for validation scenes) -> success [per seed],
@@ -55,7 +61,7 @@ def aggregate(env: str, cfg: BenchmarkConfig, per_run: dict[str, dict[int, dict]
     run's :func:`frozen_record` as taken at its start (default: taken now)."""
     out: dict[str, Any] = {"env": env, "split": cfg.split, "scenes": list(cfg.scenes), "seeds": cfg.seeds,
                            "rollouts": cfg.rollouts, "quick": cfg.quick,
-                           "train": {**asdict(settings), "steps": steps}, "film": film_form(env, cfg.film),
+                           "train": applied_train(settings, steps), "film": film_form(env, cfg.film),
                            "rec_reduction": cfg.rec_reduction,
                            "device": cfg.device, "cpu": cpu_model(),
                            "frozen": frozen if frozen is not None else frozen_record(env, cfg),
