@@ -494,3 +494,16 @@ def test_merge_results_refuses_a_benchmark_folder_as_out_and_scene_lists_that_di
     err = capsys.readouterr().err
     assert f"{tmp_path / 'c.json'}: dp has scenes ['scene0', 'scene1', 'scene2']" in err and "pdp has" in err, err
     assert not (tmp_path / "ac").exists()
+
+
+def test_a_benchmark_into_another_envs_run_folder_is_refused_before_writing(tmp_path):
+    """--out of a reach-around run given to an avoiding benchmark: refused at once, naming the run's env, before
+    the avoiding dataset is generated into that run's data folder."""
+    from lerobot_pdp.benchmark.protocol import run_benchmark
+
+    (tmp_path / "results.json").write_text(json.dumps({"env": "reach-around"}))
+    cfg = BenchmarkConfig(env="avoiding", out=tmp_path, seeds=[100], split="validation", scenes=[0, "val1"])
+    with pytest.raises(ValueError, match=f"{tmp_path} is a benchmark run of reach-around, not avoiding: give --env "
+                                         "reach-around"):
+        run_benchmark(cfg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]

@@ -98,3 +98,25 @@ def demo_episode(root: Path) -> dict[str, np.ndarray]:
     cameras = [k for k, ft in features.items() if ft.get("dtype") in ("video", "image")]
     out.update({k: v.astype(np.float32) / 255.0 for k, v in read_episode_frames(root, 0, cameras).items()})
     return out
+
+
+def check_run_env(folder: Path, suite) -> None:
+    """Refuse a benchmark folder of another env (its results.json, else its training dataset's name) before a
+    demonstration is made or a checkpoint fails on the first observation."""
+    import json
+
+    from ..envs.suite import get_suite_env
+
+    env = None
+    if (folder / "results.json").is_file():
+        try:
+            env = json.loads((folder / "results.json").read_text()).get("env")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            env = None
+    if env is None:  # a run still going: its scene-0 dataset is data/<scene_key>_scene0*
+        data = sorted(p.name for p in (folder / "data").glob("*_scene0*")) if (folder / "data").is_dir() else []
+        if data and not any(n.startswith(f"{suite.scene_key}_scene0") for n in data):
+            env = data[0].split("_scene0")[0]
+    if env is not None and get_suite_env(env).name != suite.name:
+        raise ValueError(f"{folder} is a benchmark run of {get_suite_env(env).name}, not {suite.name}: "
+                         f"give --env {get_suite_env(env).name}")

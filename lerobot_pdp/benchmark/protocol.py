@@ -19,7 +19,7 @@ from typing import Any
 from ..atomic import write_text_atomic
 from ..envs.suite import SuiteEnv, get_suite_env
 from ..folder_lock import hold_folder
-from .data import ensure_dataset, ensure_demo
+from .data import check_run_env, ensure_dataset, ensure_demo
 from .evaluation import evaluate_init_ablation, evaluate_method, evaluate_sweep
 from .results import aggregate, frozen_record, results_markdown
 from .settings import (
@@ -41,6 +41,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict[str, Any]:
     import lerobot_pdp.envs  # noqa: F401
 
     suite = get_suite_env(cfg.env)
+    check_run_env(Path(cfg.out), suite)  # another env's run folder: refused before its data folder is written to
     full, quick = SETTINGS[suite.name]
     check_split(cfg.split, tuple(cfg.scenes), list(cfg.seeds))
     check_request(cfg, suite)

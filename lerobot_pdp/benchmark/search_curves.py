@@ -55,6 +55,7 @@ from ..latent_search import (
     search_latent,
 )
 from ..outcome_scores import Outcome, Score, WaypointScore, resolve_score, waypoint_progress
+from .data import check_run_env
 from .machine import cpu_model
 from .rollouts import RolloutBatch, run_rollouts
 from .settings import Method, check_split, frozen_for, scene_seed_offset
@@ -237,28 +238,6 @@ def is_quick_run(out: Path) -> bool:
 # ----------------------------------------------------------------------------- the measurement
 
 
-def _check_run_env(folder: Path, suite) -> None:
-    """Refuse a benchmark folder of another env (its results.json, else its training dataset's name) before a
-    demonstration is made or a checkpoint fails on the first observation."""
-    import json
-
-    from ..envs.suite import get_suite_env
-
-    env = None
-    if (folder / "results.json").is_file():
-        try:
-            env = json.loads((folder / "results.json").read_text()).get("env")
-        except (OSError, json.JSONDecodeError, AttributeError):
-            env = None
-    if env is None:  # a run still going: its scene-0 dataset is data/<scene_key>_scene0*
-        data = sorted(p.name for p in (folder / "data").glob("*_scene0*")) if (folder / "data").is_dir() else []
-        if data and not any(n.startswith(f"{suite.scene_key}_scene0") for n in data):
-            env = data[0].split("_scene0")[0]
-    if env is not None and get_suite_env(env).name != suite.name:
-        raise ValueError(f"{folder} is a benchmark run of {get_suite_env(env).name}, not {suite.name}: "
-                         f"give --env {get_suite_env(env).name}")
-
-
 def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Path,
                       budgets: Sequence[int] = DEFAULT_BUDGETS, rollouts: int = 40, score: str = "success",
                       methods: Sequence[str] | None = None, radius: float = 0.05, rollouts_per_candidate: int = 2,
@@ -285,7 +264,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
     if max_episode_steps is not None:
         suite = dataclasses.replace(suite, max_episode_steps=int(max_episode_steps))
     for folder in dict.fromkeys((Path(out), Path(dp_out or out))):
-        _check_run_env(folder, suite)
+        check_run_env(folder, suite)
     sc = load_scene(scene, suite.scene_key)
     waypoints = None
     if score != "success":
