@@ -8,7 +8,7 @@ import sys
 import pytest
 from conftest import lerobot_cli
 
-from lerobot_pdp.cli_errors import _hook, layout_message, pdp_message, raised_by_pdp
+from lerobot_pdp.cli_errors import _hook, dataset_message, layout_message, pdp_message, raised_by_pdp
 
 
 def _error_of(call):
@@ -79,6 +79,24 @@ def test_a_folder_in_lerobots_training_layout_is_pointed_to_its_checkpoint(tmp_p
     (tmp_path / "empty").mkdir()
     other = _error_of(lambda: PreTrainedConfig.from_pretrained(str(tmp_path / "empty")))[0]  # nothing below
     assert layout_message(other) is None
+
+
+def test_a_run_on_a_dataset_root_that_holds_no_dataset_says_so(synthetic_meta, tmp_path):
+    """``--dataset.root`` where no dataset is: LeRobot asks the Hub and ends on a network error; said in one line
+    (a real lerobot-train, offline), and nothing is said when the dataset is there."""
+    assert dataset_message(["lerobot-train", f"--dataset.root={synthetic_meta.root}"]) is None
+    assert dataset_message(["lerobot-train"]) is None
+    args = [lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false",
+            "--dataset.repo_id=local/nowhere", f"--dataset.root={tmp_path / 'nowhere'}", "--steps=1",
+            "--wandb.enable=false", f"--output_dir={tmp_path / 'run'}"]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert proc.stderr.rstrip().splitlines()[-1] == (
+        f"lerobot-train: error: no LeRobotDataset at --dataset.root={tmp_path / 'nowhere'} (no meta/info.json there), "
+        "so LeRobot looked for the --dataset.repo_id on the Hub instead; make the dataset first (lerobot-pdp "
+        "make-dataset --out DIR, or lerobot-record) or fix the path"), proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
 
 
 def test_lerobot_train_ends_with_pdps_message(synthetic_meta, tmp_path):
