@@ -199,7 +199,8 @@ def test_bad_input_is_named(results, tmp_path, capsys):
         (["--scene", "val1", "--rollouts", "0"], "rollouts must be an integer in 1..4000.*got 0"),
         (["--scene", "0"], "scene 0 has no adaptation"),
         (["--scene", "val9"], "ships no validation scene 'val9'"),
-        (["--scene", "1"], r"--split test got validation scene\(s\) \[\] / seed\(s\) \[100\]"),
+        (["--scene", "1"], r"test scene 1 got validation seed\(s\) 100: validation scenes \(val1, val2, \.\.\.\) go "
+                           r"with seeds >= 100, test scenes \(1, 2, \.\.\.\) with seeds below"),
     ]
     for extra, match in cases:
         assert cli([*base, *extra]) == 2, extra

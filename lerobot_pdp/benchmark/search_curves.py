@@ -259,7 +259,7 @@ def run_search_curves(out: Path, env: str, scene: int | str, seed: int, dest: Pa
 
     methods, budgets = check_request(methods, budgets, rollouts, score, rollouts_per_candidate, scene, confirm_rollouts)
     scene = int(scene) if isinstance(scene, str) and scene.isdigit() else scene
-    check_split("validation" if isinstance(scene, str) else "test", (scene,), [seed])
+    check_split("validation" if isinstance(scene, str) else "test", (scene,), [seed], flag=False)
     suite = get_suite_env(env)
     if max_episode_steps is not None:
         suite = dataclasses.replace(suite, max_episode_steps=int(max_episode_steps))

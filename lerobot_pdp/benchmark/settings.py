@@ -100,21 +100,26 @@ def split_seeds(split: str = "test", quick: bool = False) -> list[int]:
     return seeds[:1] if quick else seeds
 
 
-def check_split(split: str, scenes: tuple[int | str, ...], seeds: list[int]) -> None:
+def check_split(split: str, scenes: tuple[int | str, ...], seeds: list[int], flag: bool = True) -> None:
     """Refuse a run that mixes the splits: test scenes or test seeds in a validation run, validation scenes
-    or seeds in a test run (numbers from either would then no longer mean what their split says)."""
+    or seeds in a test run (numbers from either would then no longer mean what their split says). ``flag``: the
+    command has ``--split`` (else the scene decides the split, and the message says so)."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
     val_scenes = [s for s in scenes if isinstance(s, str)]
     test_scenes = [s for s in scenes if not isinstance(s, str) and s != 0]
     val_seeds = [s for s in seeds if s >= VALIDATION_SEED_MIN]
     test_seeds = [s for s in seeds if s < VALIDATION_SEED_MIN]
-    if split == "validation" and (test_scenes or test_seeds):
-        raise ValueError(f"--split validation evaluates validation scenes on seeds >= {VALIDATION_SEED_MIN}; "
-                         f"got test scene(s) {test_scenes} / test seed(s) {test_seeds}")
-    if split == "test" and (val_scenes or val_seeds):
-        raise ValueError(f"--split test got validation scene(s) {val_scenes} / seed(s) {val_seeds}; "
-                         "use --split validation for them")
+    mixed = {"validation": (test_scenes, test_seeds), "test": (val_scenes, val_seeds)}[split]
+    if not any(mixed):
+        return
+    other = "test" if split == "validation" else "validation"
+    got = "; ".join(f"{other} {what} {', '.join(map(str, xs))}" for what, xs in zip(("scene(s)", "seed(s)"), mixed,
+                                                                                  strict=True) if xs)
+    rule = (f"validation scenes (val1, val2, ...) go with seeds >= {VALIDATION_SEED_MIN}, test scenes (1, 2, ...) "
+            f"with seeds below")
+    raise ValueError(f"--split {split} got {got}: {rule}" if flag else
+                     f"{split} scene {', '.join(map(str, scenes))} got {got}: {rule}")
 
 
 def scene_label(scene: int | str) -> str:
