@@ -873,6 +873,10 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     if (args.out / "runs").is_dir() or (target.is_file() and "merged_from" not in _json_or_empty(target)):
         raise ValueError(f"--out {args.out} holds a benchmark run (its own results.json and runs/), not an earlier "
                          "merge: merging into it would replace its records; choose a new folder")
+    run = next((p for p in args.out.resolve().parents if (p / "runs").is_dir() and (p / "results.json").is_file()),
+               None)
+    if run is not None:
+        raise ValueError(f"--out {args.out} lies inside the benchmark run {run}: a merge goes in a folder of its own")
     loaded = []
     for f in files:
         try:

@@ -161,6 +161,10 @@ def test_merging_refuses_a_seed_twice_and_other_settings_naming_the_files():
     other = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}}, rollouts=20)
     with pytest.raises(ValueError, match="b: rollouts is 20 but a has 40"):
         merge_results([("a", a), ("b", other)])
+    longer = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
+    longer["train"] = {**longer["train"], "steps": longer["train"]["steps"] + 1}
+    with pytest.raises(ValueError, match=r"b: train is \{'steps': \d+\} but a has \{'steps': \d+\}"):  # the field
+        merge_results([("a", a), ("b", longer)])
     with pytest.raises(ValueError, match="at least two"):
         merge_results([("a", a)])
     refrozen = _results([1], {"pdp": {1: [1.0, 1.0, 1.0, 1.0]}})
@@ -481,6 +485,9 @@ def test_merge_results_refuses_a_benchmark_folder_as_out_and_scene_lists_that_di
     assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(run)]) == 2
     assert "holds a benchmark run" in capsys.readouterr().err
     assert json.loads((run / "results.json").read_text()) == a and (run / "teach.json").is_file()
+    assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(run / "figures")]) == 2
+    assert f"lies inside the benchmark run {run.resolve()}" in capsys.readouterr().err
+    assert not (run / "figures").exists()
     assert main(["merge-results", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "m")]) == 0
     merged = json.loads((tmp_path / "m" / "results.json").read_text())
     assert merged["methods"]["pdp"]["adapt"] == {"noise": "chunks"}

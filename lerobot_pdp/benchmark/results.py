@@ -167,8 +167,12 @@ def merge_results(results: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             raise ValueError(f"{name}: split is {res.get('split', 'test')!r} but {first_name} has "
                              f"{first.get('split', 'test')!r}; validation and test runs are never merged")
         for key in ("env", "rollouts", "quick", "train", "observation"):
-            if res.get(key) != first.get(key):
-                raise ValueError(f"{name}: {key} is {res.get(key)!r} but {first_name} has {first.get(key)!r}; "
+            mine, theirs = res.get(key), first.get(key)
+            if mine != theirs:
+                if isinstance(mine, dict) and isinstance(theirs, dict):  # name the fields that differ, not both dicts
+                    differ = sorted(k for k in {*mine, *theirs} if mine.get(k) != theirs.get(k))
+                    mine, theirs = ({k: d.get(k) for k in differ} for d in (mine, theirs))
+                raise ValueError(f"{name}: {key} is {mine!r} but {first_name} has {theirs!r}; "
                                  "only runs of the same protocol can be merged")
         if None not in (res.get("film"), first.get("film")) and res["film"] != first["film"]:  # older: unrecorded
             raise ValueError(f"{name}: PDP's FiLM form is {res['film']!r} but {first_name} has {first['film']!r}; "
