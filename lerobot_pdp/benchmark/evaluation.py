@@ -136,6 +136,7 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
     sampler = sampler_of(ckpt, cfg)
     cached = cached_evaluation(cache, sampler, ckpt, adapt_kwargs)
     if cached and cached.get("rollouts") == cfg.rollouts and set(map(str, cfg.scenes)) <= set(cached["scenes"]):
+        print(f"[benchmark] {method.name} seed {seed}: evaluated already ({cache}), reused")
         return cached
     policy, pre, post = load_policy(ckpt, cfg.inference_steps, cfg.device, cfg.timestep_spacing)
     result: dict[str, Any] = {"method": method.name, "seed": seed, "rollouts": cfg.rollouts, **sampler,
@@ -156,6 +157,8 @@ def evaluate_method(suite: SuiteEnv, method: Method, ckpt: Path, demos: dict[int
             batch = evaluate_scene0(suite, method, policy, pre, post, cfg.rollouts, seed * 10_000)
             summary = summarize_rollouts(batch, suite.n_modes, with_modes=True)
         else:
+            print(f"[benchmark] {method.name} seed {seed} scene {scene}: adapting to its demonstration "
+                  f"({method.adapt})", flush=True)  # a fit takes tens of seconds before the rollouts' bar
             demo = demo_episode(demos[scene])
             actor, info = adapt(method, copy.deepcopy(policy) if method.adapt == "finetune" else policy, pre, demo, seed,
                                 **adapt_kwargs)

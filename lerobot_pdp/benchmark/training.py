@@ -135,6 +135,7 @@ def train_method(method: Method, dataset: Path, run_dir: Path, seed: int, settin
     args = train_args(method, dataset, seed, settings, steps, device)
     if (ckpt / "model.safetensors").is_file():
         _check_reusable(run_dir, args)
+        print(f"[benchmark] {method.name} seed {seed}: trained already ({ckpt}), reused")
         return ckpt
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in ("eval.json", "traces.json", "init_ablation.json", "sweep.json", "train_info.json"):  # earlier model
