@@ -281,3 +281,18 @@ def test_cli_finish_is_the_same_score_as_lerobot_pdp_search_finish(results, tmp_
     assert cli([*base, "--score", "waypoints", "--finish"]) == 0
     (rec,) = json.loads((dest / sc.RECORD).read_text())["records"].values()
     assert "--score waypoints_finish" in rec["command"] and rec["settings"]["objective"]["finish"] is True
+
+
+def test_a_budget_short_of_one_confirmed_candidate_is_warned(caplog):
+    """With confirmation on, one candidate and its confirmation cost rollouts_per_candidate + confirm_rollouts: a
+    budget point below that is the first candidate only, said before the search runs."""
+    import logging
+
+    from lerobot_pdp.benchmark.search_curves import check_request
+
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.benchmark.search_curves"):
+        check_request(None, [16, 4], 40, "success", 2, "val3", confirm_rollouts=6)
+        assert "budget(s) [4] pay for less than one candidate and its confirmation (2 + 6 rollouts)" in caplog.text
+        caplog.clear()
+        check_request(None, [4], 40, "success", 2, "val3", confirm_rollouts=0)
+    assert not caplog.records

@@ -32,6 +32,7 @@ import contextlib
 import functools
 import hashlib
 import json
+import logging
 import math
 import time
 from collections.abc import Iterator, Sequence
@@ -59,6 +60,8 @@ from .data import check_run_env
 from .machine import cpu_model
 from .rollouts import RolloutBatch, run_rollouts
 from .settings import Method, check_split, frozen_for, scene_seed_offset
+
+logger = logging.getLogger(__name__)
 
 METHODS = ("z_fit", "z_modes", "fit", "dp_noise")
 NEEDS_DEMO = ("z_fit", "fit")  # the gradient fit needs a demonstration; way-points are not one
@@ -106,6 +109,10 @@ def check_request(methods: Sequence[str] | None, budgets: Sequence[int], rollout
         if isinstance(b, bool) or not isinstance(b, int) or b < k:
             raise ValueError(f"budget {b!r} must be an integer >= rollouts_per_candidate ({k}), the price of one "
                              "candidate")
+    small = [b for b in budgets if c and b < k + c]
+    if small:  # one candidate and its confirmation cost k + c: such a point is its first candidate, unsearched
+        logger.warning("search-curves: budget(s) %s pay for less than one candidate and its confirmation (%d + %d "
+                       "rollouts): those points are the first candidate only", small, k, c)
     if isinstance(rollouts, bool) or not isinstance(rollouts, int) or not 1 <= rollouts <= MAX_EVAL_ROLLOUTS:
         raise ValueError(f"rollouts must be an integer in 1..{MAX_EVAL_ROLLOUTS} (evaluation seeds stay apart from "
                          f"the search's), got {rollouts!r}")
