@@ -112,7 +112,10 @@ def train_args(method: Method, dataset: Path, seed: int, settings: TrainSettings
         args.append(f"--policy.num_inference_steps={settings.inference_steps}")
     if method.policy_type == "pdp":  # DP's LeRobot config has no such fields: load_policy sets its scheduler
         args += pdp_sampler_args(settings.timestep_spacing)
-    return args
+    # a flag given twice (a method's default, then the shared budget) once, with the value lerobot-train would take
+    # (its last): the command recorded in train_info.json reads as it acts
+    last = {a.partition("=")[0]: i for i, a in enumerate(args) if a.startswith("--")}
+    return [a for i, a in enumerate(args) if not a.startswith("--") or last[a.partition("=")[0]] == i]
 
 
 def pdp_sampler_args(spacing: str) -> list[str]:
