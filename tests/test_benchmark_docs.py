@@ -42,3 +42,19 @@ def test_the_documented_training_command_is_the_benchmarks(env):
     wanted = {a for a in pdp if a.startswith(("--policy.", "--steps=", "--batch_size=", "--num_workers="))} - defaults
     assert wanted <= set(documented), sorted(wanted - set(documented))
     assert {a for a in documented if a.startswith("--policy.")} <= {a for a in pdp if a.startswith("--policy.")}
+
+
+def test_the_documented_ddim_steps_are_the_frozen_samplers():
+    """The settings table's "DDIM steps (PDP, DP)" of each env's full budget: the sampler its validation froze
+    (settings.FROZEN), else the budget's default."""
+    from lerobot_pdp.benchmark.settings import frozen_for
+
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[1:-1]]
+            for line in DOC.read_text().splitlines() if line.startswith("| ") and line.split("|")[1].strip() in SETTINGS}
+    for env, row in rows.items():
+        default = SETTINGS[env][0].inference_steps
+        shown = []
+        for method in ("pdp", "dp"):
+            sampler = frozen_for(env, False, method, "state").get("sampler")
+            shown.append(f"{sampler[0]} ({sampler[1]})" if sampler else str(default))
+        assert row[4] == ", ".join(shown), (env, row[4], shown)
