@@ -7,11 +7,12 @@ traceback through LeRobot's, draccus' and PDP's frames. ``install()`` (run by th
 import first) puts a ``sys.excepthook`` in front of Python's: an exception *raised on purpose by PDP* (the
 innermost frame is a ``raise`` statement in PDP's code, and it is one of the error types PDP raises for bad
 input) prints ``lerobot-eval: error: <message>`` and a line on how to see the traceback, with exit status 1 as
-before. LeRobot's own "config.json not found in DIR" for a folder in its training layout (``checkpoints/last``)
-says where the checkpoint is below it, and a run failing with ``--dataset.root`` pointing where no dataset is
-says that (LeRobot's last words are a network error). So does such an error LeRobot caught and raised again in its own (``Error creating robot with config
-PDPSimConfig(<every field>): <PDP's message>``): PDP's message alone. Everything else, PDP's bugs included (an error raised inside a library or by an expression in PDP's
-code), keeps Python's traceback, and ``LEROBOT_PDP_TRACEBACK=1`` keeps it for every error.
+before; such an error LeRobot caught and raised again in its own (``Error creating robot with config
+PDPSimConfig(<every field>): <PDP's message>``) prints PDP's message alone. Two of LeRobot's own end so too:
+"config.json not found in DIR" for a folder in its training layout (``checkpoints/last``) says where the checkpoint
+is below it, and a ``lerobot-train`` failing with ``--dataset.root`` where no dataset is says that (LeRobot's last
+words are a network error). Everything else, PDP's bugs included (an error raised inside a library or by an
+expression in PDP's code), keeps Python's traceback, and ``LEROBOT_PDP_TRACEBACK=1`` keeps it for every error.
 """
 
 from __future__ import annotations
@@ -66,11 +67,12 @@ def layout_message(error: BaseException) -> str | None:
 
 
 def dataset_message(argv: list[str]) -> str | None:
-    """A command given ``--dataset.root=DIR`` where no LeRobotDataset is: LeRobot then asks the Hub for the repo id
+    """``lerobot-train --dataset.root=DIR`` where no LeRobotDataset is: LeRobot then asks the Hub for the repo id
     and fails with a network error (offline: "Cannot reach https://huggingface.co/api/datasets/local/...") two
-    tracebacks below the missing file. Says what is missing and how a dataset is made."""
+    tracebacks below the missing file. Says what is missing and how a dataset is made. (Not lerobot-record's: its
+    root is where it writes.)"""
     roots = [a.split("=", 1)[1] for a in argv if a.startswith("--dataset.root=")]
-    if not roots or Path(roots[-1], "meta", "info.json").is_file():
+    if not argv or Path(argv[0]).name != "lerobot-train" or not roots or Path(roots[-1], "meta", "info.json").is_file():
         return None
     return (f"no LeRobotDataset at --dataset.root={roots[-1]} (no meta/info.json there), so LeRobot looked for the "
             "--dataset.repo_id on the Hub instead; make the dataset first (lerobot-pdp make-dataset --out DIR, or "
@@ -80,12 +82,12 @@ def dataset_message(argv: list[str]) -> str | None:
 def _hook(previous):
     def excepthook(kind: type[BaseException], error: BaseException, tb: TracebackType | None) -> None:
         quiet = os.environ.get(TRACEBACK_ENV) != "1"
-        said = (layout_message(error) or dataset_message(sys.argv)) if quiet else None
+        ours = pdp_message(error, tb) if quiet else None
+        said = (layout_message(error) or dataset_message(sys.argv)) if quiet and ours is None else None
         if said is not None:
             prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
             print(f"{prog}: error: {said}", file=sys.stderr, flush=True)
             return
-        ours = None if os.environ.get(TRACEBACK_ENV) == "1" else pdp_message(error, tb)
         if ours is None:
             previous(kind, error, tb)
             return

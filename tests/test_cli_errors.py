@@ -86,6 +86,7 @@ def test_a_run_on_a_dataset_root_that_holds_no_dataset_says_so(synthetic_meta, t
     (a real lerobot-train, offline), and nothing is said when the dataset is there."""
     assert dataset_message(["lerobot-train", f"--dataset.root={synthetic_meta.root}"]) is None
     assert dataset_message(["lerobot-train"]) is None
+    assert dataset_message(["lerobot-record", f"--dataset.root={tmp_path / 'new'}"]) is None  # where it writes
     args = [lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false",
             "--dataset.repo_id=local/nowhere", f"--dataset.root={tmp_path / 'nowhere'}", "--steps=1",
             "--wandb.enable=false", f"--output_dir={tmp_path / 'run'}"]
