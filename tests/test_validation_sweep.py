@@ -264,7 +264,8 @@ def test_teach_tiny(tmp_path, monkeypatch):
             assert run["mode"] == 24 and "steer_accuracy" in run["scene0"]
     assert "| pdp | 100 | val4 | 3 | 0.0001 |" in (tmp_path / "teach" / "teach.md").read_text()
     with pytest.raises(ValueError, match="no zero-mode scene in the validation split"):
-        run_benchmark(replace(cfg, env="reach-around", scenes=split_scenes("reach-around", "validation")))
+        run_benchmark(replace(cfg, env="reach-around", scenes=split_scenes("reach-around", "validation"),
+                              out=tmp_path / "teach_ra"))  # its own folder: the avoiding run's is refused first
     with pytest.raises(ValueError, match=r"evaluate at least one of them too \(--scenes\)"):
         run_benchmark(replace(cfg, scenes=(0, "val1")))
 
