@@ -78,7 +78,7 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
         "episode task strings carry the mode label: state-only, or with --camera also camera images stored as "
         "video (observation.images.<camera>).",
     )
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
@@ -341,7 +341,7 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
         "search). Deterministic under --seed; Ctrl-C stops the search and keeps the best so far.",
     )
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--waypoints", default=None,
@@ -664,7 +664,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
         "env's validation scenes instead), write results.json, results.md and figures/. Finished (method, seed) "
         "runs are reused.",
     )
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
     p.add_argument("--out", required=True, type=Path, help="output folder (reused to resume)")
     # None = not given: the defaults depend on --quick (resolved in cmd_benchmark)
     p.add_argument("--seeds", type=int, nargs="+", default=None,
@@ -783,7 +783,7 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
         "finished (method, scene, seed) records are reused.",
     )
     p.add_argument("results", type=Path, help="a benchmark output folder (runs/<method>/seed<k>/pretrained_model)")
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())}")
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
     p.add_argument("--scene", required=True, help="a shifted scene: 1-3 (test) or val1, val2, ... (validation)")
     p.add_argument("--seed", type=int, required=True, help="the training seed of the runs (e.g. 100)")
     p.add_argument("--budgets", type=int, nargs="+", default=[16, 32, 64, 128, 256, 512],
