@@ -691,26 +691,32 @@ def test_a_client_that_cannot_reach_a_server_exits_with_status_1(client_module, 
     assert not _outcomes(tmp_path / "outcomes.jsonl")
 
 
+def _client_running(client_module, config, seen: list) -> tuple[threading.Thread, list]:
+    """LeRobot's ``async_client`` entry point in a thread, once the server has passed three of its observations to
+    the policy: (the thread, the exit codes it raised, filled when it ends)."""
+    ended: list = []
+
+    def run():
+        try:
+            client_module.async_client(config)
+        except SystemExit as e:
+            ended.append(e.code)
+
+    main = threading.Thread(target=run, daemon=True)
+    main.start()
+    deadline = time.monotonic() + 120
+    while len(seen) < 3 and time.monotonic() < deadline and main.is_alive():
+        time.sleep(0.05)
+    assert len(seen) >= 3, "the run never reached the server"
+    return main, ended
+
+
 def test_a_server_lost_mid_run_ends_the_run_with_status_1(server_module, client_module, tmp_path, monkeypatch):
     """LeRobot's client keeps sending to a server that is gone, for ever; a pdp_sim run ends once no
     observation has reached it for ``SERVER_LOST_S``, and the entry point exits 1 naming it."""
     monkeypatch.setattr(client_hooks, "SERVER_LOST_S", 1.0)
     with _serving(server_module) as (_, port, seen, grpc_server):
-        config = _client_config(port, tmp_path, episodes=50)
-        ended: list = []
-
-        def run():
-            try:
-                client_module.async_client(config)
-            except SystemExit as e:
-                ended.append(e.code)
-
-        main = threading.Thread(target=run, daemon=True)
-        main.start()
-        deadline = time.monotonic() + 120
-        while len(seen) < 3 and time.monotonic() < deadline and main.is_alive():
-            time.sleep(0.05)
-        assert len(seen) >= 3, "the run never reached the server"
+        main, ended = _client_running(client_module, _client_config(port, tmp_path, episodes=50), seen)
         grpc_server.stop(0)
         main.join(60)
     assert not main.is_alive(), "the run did not end after its server was lost"
@@ -723,21 +729,7 @@ def test_a_chunk_the_server_cannot_plan_ends_the_run_with_status_1(server_module
     server serves nothing more, and the client ends its run and exits 1 naming it. The fault: a weight of the
     served denoiser turned NaN mid-run, which PDP's guard refuses to act on."""
     with _serving(server_module) as (service, port, seen, _):
-        config = _client_config(port, tmp_path, episodes=50)
-        ended: list = []
-
-        def run():
-            try:
-                client_module.async_client(config)
-            except SystemExit as e:
-                ended.append(e.code)
-
-        main = threading.Thread(target=run, daemon=True)
-        main.start()
-        deadline = time.monotonic() + 120
-        while len(seen) < 3 and time.monotonic() < deadline and main.is_alive():
-            time.sleep(0.05)
-        assert len(seen) >= 3, "the run never reached the server"
+        main, ended = _client_running(client_module, _client_config(port, tmp_path, episodes=50), seen)
         weight = dict(service.policy.model.named_parameters())["denoiser.final.1.weight"]
         with torch.no_grad():
             weight.fill_(float("nan"))
