@@ -29,7 +29,7 @@ from .checkpoint import (
     read_adaptation,
     write_adaptation,
 )
-from .checkpoint_files import not_a_checkpoint, read_config_json
+from .checkpoint_files import read_config_json, require_checkpoint_files
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode, check_recording_exists
 from .latent_search import SearchResult
@@ -148,8 +148,7 @@ def _acting_adapted(config: Path) -> None:
 
 
 def _check_folders(base: Path, out: str | Path | None) -> None:
-    if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
-        raise FileNotFoundError(not_a_checkpoint(base))
+    require_checkpoint_files(base)
     if out is not None and Path(out).exists():
         raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
 

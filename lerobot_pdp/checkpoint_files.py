@@ -26,6 +26,15 @@ def not_a_checkpoint(folder: Path) -> str:
     return f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors){layout_hint(folder)}"
 
 
+def require_checkpoint_files(folder: str | Path) -> Path:
+    """``folder`` as a Path when it holds a checkpoint's two files (config.json, model.safetensors), else the
+    FileNotFoundError of :func:`not_a_checkpoint` (with where a checkpoint is below a training run's folder)."""
+    folder = Path(folder)
+    if not (folder / CONFIG_NAME).is_file() or not (folder / SAFETENSORS_SINGLE_FILE).is_file():
+        raise FileNotFoundError(not_a_checkpoint(folder))
+    return folder
+
+
 def layout_hint(folder: Path) -> str:
     """Where the checkpoint is in LeRobot's training layout below ``folder`` (``checkpoints/last`` holds
     ``pretrained_model``, which is the checkpoint): "; did you mean ...?", or ""."""

@@ -451,13 +451,12 @@ def cmd_search(args: argparse.Namespace) -> int:
 def _check_checkpoint_folder(checkpoint: Path) -> None:
     """A local checkpoint folder with its two files (torch-free), else an error naming what is wrong and, for a
     folder in LeRobot's training layout, where the checkpoint is below it."""
-    from lerobot_pdp.checkpoint_files import not_a_checkpoint
+    from lerobot_pdp.checkpoint_files import require_checkpoint_files
 
     if not checkpoint.is_dir():
         raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
                                 "config.json and model.safetensors)")
-    if not (checkpoint / "config.json").is_file() or not (checkpoint / "model.safetensors").is_file():
-        raise FileNotFoundError(not_a_checkpoint(checkpoint))
+    require_checkpoint_files(checkpoint)
 
 
 def _checkpoint_config(checkpoint: Path):
@@ -519,21 +518,20 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
 
 def _check_teach_args(args: argparse.Namespace) -> None:
     """What ``teach`` would refuse after seconds of loading, refused at once (torch-free)."""
-    from lerobot_pdp.checkpoint_files import not_a_checkpoint
+    from lerobot_pdp.checkpoint_files import require_checkpoint_files
     from lerobot_pdp.episodes import recording_info
     from lerobot_pdp.teach_defaults import check_mode_name, check_teach_settings
 
     check_teach_settings(args.steps, args.lr, args.demo_share)
     for name in args.name or []:
         check_mode_name(name)
-    if not (args.checkpoint / "config.json").is_file() or not (args.checkpoint / "model.safetensors").is_file():
-        raise FileNotFoundError(not_a_checkpoint(args.checkpoint))
+    require_checkpoint_files(args.checkpoint)
     if args.out.exists():
         raise FileExistsError(f"{args.out} exists: give a new folder for the taught checkpoint")
     if args.demo is not None:
         recording_info(args.demo)  # a missing or unfinished recording, named
-    if args.taught_from is not None and not (args.taught_from / "config.json").is_file():
-        raise FileNotFoundError(not_a_checkpoint(args.taught_from))
+    if args.taught_from is not None:
+        require_checkpoint_files(args.taught_from)
 
 
 def cmd_teach(args: argparse.Namespace) -> int:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import write_text_atomic
-from .checkpoint_files import not_a_checkpoint, read_config_json
+from .checkpoint_files import read_config_json, require_checkpoint_files
 from .episodes import check_recording, recording_info
 
 REQUEST_KEYS = ("mode", "latent", "dataset")
@@ -56,10 +56,8 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
     in model.safetensors (no policy is built)."""
     from safetensors import SafetensorError, safe_open
 
-    folder = Path(checkpoint)
+    folder = require_checkpoint_files(checkpoint)
     config, weights = folder / "config.json", folder / "model.safetensors"
-    if not config.is_file() or not weights.is_file():
-        raise FileNotFoundError(not_a_checkpoint(folder))
     cfg = read_config_json(config)  # a damaged file: an error naming it
     try:
         with safe_open(str(weights), framework="numpy") as f:  # numpy: no torch import

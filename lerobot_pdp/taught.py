@@ -23,7 +23,7 @@ from pathlib import Path
 
 from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
-from .checkpoint_files import not_a_checkpoint, read_config_json
+from .checkpoint_files import read_config_json, require_checkpoint_files
 from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
@@ -114,8 +114,7 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
     every teaching (the last one's record, the others as ``earlier_teachings``)."""
     from .adapted import LOAD_ONLY_FIELDS, load_base_policy
 
-    if not (base / "model.safetensors").is_file() or not (base / "config.json").is_file():
-        raise FileNotFoundError(not_a_checkpoint(base))
+    require_checkpoint_files(base)
     if out.exists():
         raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
     for episode, _, _ in lessons:
