@@ -174,7 +174,7 @@ class PDPPolicy(PreTrainedPolicy):
         if last is None and noise is None:  # fitted noises: the next one, the last one repeating (None: drawn)
             noise = self.steering.next_noise(obs_cond.shape[0], obs_cond.device)
         chunk = self.generate(obs_cond, z, noise=noise) if last is None else last.sample(self, obs_cond, z, noise)
-        check_finite_actions(chunk, z, obs_cond)  # a robot must never be sent NaN
+        check_finite_actions(chunk, z)  # a robot must never be sent NaN
         start = self.config.n_obs_steps - 1
         return chunk[:, start : start + self.config.n_action_steps]
 

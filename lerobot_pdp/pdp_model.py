@@ -44,13 +44,13 @@ def read_loss_terms(metrics: dict[str, Tensor], train_step: int | None = None) -
     return values
 
 
-def check_finite_actions(chunk: Tensor, z: Tensor, obs_cond: Tensor) -> None:
-    """One check per action chunk: a robot must never be sent NaN."""
+def check_finite_actions(chunk: Tensor, z: Tensor) -> None:
+    """One check per action chunk: a robot must never be sent NaN. The observations were finite
+    (:func:`check_finite_condition` ran first), so the weights or the latent made it."""
     if not bool(torch.isfinite(chunk).all()):
         raise FloatingPointError(
-            f"PDP generated non-finite actions (latent {z[0].tolist()}, observation condition finite: "
-            f"{bool(torch.isfinite(obs_cond).all())}): check the observation and the checkpoint; no action is "
-            "returned")
+            f"PDP generated non-finite actions from finite observations (latent {z[0].tolist()}): check the "
+            "checkpoint's weights and the latent it is steered to; no action is returned")
 
 
 def check_finite_condition(batch: dict[str, Tensor], obs_cond: Tensor) -> None:

@@ -444,7 +444,7 @@ def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None
     if noise is None:  # fitted noises: the one of the episode's step (Steering.by_step); None: drawn
         noise = policy.steering.next_noise(b, obs_cond.device)
     chunk = policy.model.generate(obs_cond, z, noise, guide=guide)
-    check_finite_actions(chunk, z, obs_cond)
+    check_finite_actions(chunk, z)
     future = chunk[:, cfg.n_obs_steps - 1 :]
     if policy.steering.resets != resets:  # an episode ended while this chunk was generated
         return future[:, :0]

@@ -746,7 +746,7 @@ def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_met
     with torch.no_grad():
         next(p.model.denoiser.parameters()).fill_(float("nan"))
     obs = {k: v[:1] for k, v in training_batch(synthetic_meta, p).items() if k.startswith("observation.")}
-    with pytest.raises(FloatingPointError, match="non-finite actions"):
+    with pytest.raises(FloatingPointError, match="non-finite actions from finite observations"):
         p.predict_action_chunk(obs)
 
 
