@@ -128,6 +128,8 @@ class BehaviorBank(nn.Module):
         # the demonstrations of the taught modes, by mode (a Demonstration each): rehearsed when teaching again,
         # saved beside the weights (taught_demos.py)
         self.taught_demos: dict[int, Any] = {}
+        # what each teaching was (teaching.json's records), by mode: saved beside the weights too
+        self.teachings: dict[int, dict[str, Any]] = {}
         # loaded to train on (lerobot-train) with its taught behaviours kept: their demonstrations are rehearsed
         # in every batch (taught_rehearsal.py)
         self.taught_in_training = False
@@ -210,11 +212,14 @@ class BehaviorBank(nn.Module):
         return {name: getattr(self, name).detach().clone() for name in (*CHECKPOINT_KEYS, "taught")}
 
     def restore(self, saved: dict[str, Tensor]) -> None:
-        """Put back the buffers of a :meth:`snapshot` (taught demonstrations of modes it lacks are dropped)."""
+        """Put back the buffers of a :meth:`snapshot` (taught demonstrations and records of modes it lacks are
+        dropped)."""
         for name, t in saved.items():
             setattr(self, name, t)
         self._discovered = None
-        self.taught_demos = {m: d for m, d in self.taught_demos.items() if m in self.taught_modes()}
+        taught = self.taught_modes()
+        self.taught_demos = {m: d for m, d in self.taught_demos.items() if m in taught}
+        self.teachings = {m: r for m, r in self.teachings.items() if m in taught}
 
     def taught_modes(self) -> list[int]:
         """The ids of the modes taught to the policy (their behaviours sit at ``TAUGHT_START``)."""

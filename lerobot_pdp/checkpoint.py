@@ -41,7 +41,7 @@ from .checkpoint_files import (
     read_weight_shapes,
 )
 from .configuration_pdp import apply_legacy_defaults
-from .taught_demos import TAUGHT_DEMOS, write_taught_demos
+from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, write_taught_demos, write_teachings
 
 logger = logging.getLogger(__name__)
 
@@ -51,12 +51,12 @@ CARD_HEADING = "## Adaptation"  # the model card's section on the adaptation, re
 
 
 def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[str, Tensor] | None = None) -> None:
-    """Write ``policy``'s config + weights (+ its active adaptation and its taught demonstrations, if any) into a
-    temporary folder next to ``save_directory``, then move them in. A new (or empty) folder is the staging folder
-    renamed: a crash leaves no checkpoint or a whole one. Into an existing checkpoint the files move one by one,
-    weights last: each file is whole, but a crash between two moves leaves new files beside old ones. A folder
-    reused for a policy without an adaptation (or taught demonstrations) loses its stale files, and its model
-    card's adaptation section is rewritten for the adaptation saved (:func:`refresh_card`)."""
+    """Write ``policy``'s config + weights (+ its active adaptation, its taught demonstrations and their teaching
+    records, if any) into a temporary folder next to ``save_directory``, then move them in. A new (or empty) folder
+    is the staging folder renamed: a crash leaves no checkpoint or a whole one. Into an existing checkpoint the
+    files move one by one, weights last: each file is whole, but a crash between two moves leaves new files beside
+    old ones. A folder reused for a policy without an adaptation (or taught modes) loses its stale files, and its
+    model card's adaptation section is rewritten for the adaptation saved (:func:`refresh_card`)."""
     save_directory = Path(save_directory)
     save_directory.mkdir(parents=True, exist_ok=True)
     fresh = not any(save_directory.iterdir())
@@ -69,6 +69,7 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
                 save_torch_state_dict(state_dict, str(tmp), max_shard_size=10**12)
             adapted = write_adaptation(policy.steering, tmp)
             taught = write_taught_demos(policy.model.bank, set(policy.config.image_features), tmp)
+            recorded = write_teachings(policy.model.bank, tmp)
             write_processors(policy, tmp, save_directory)
             if fresh:
                 os.replace(tmp, save_directory)  # onto an empty folder: one rename
@@ -81,6 +82,8 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
                     (save_directory / name).unlink(missing_ok=True)
             if not taught:
                 (save_directory / TAUGHT_DEMOS).unlink(missing_ok=True)
+            if not recorded:
+                (save_directory / TEACHING_INFO).unlink(missing_ok=True)
             refresh_card(save_directory, policy.steering if adapted else None)
     finally:
         if not any(save_directory.iterdir()):

@@ -15,8 +15,6 @@ when it drops them).
 
 from __future__ import annotations
 
-import datetime
-import json
 import logging
 import shutil
 from pathlib import Path
@@ -27,12 +25,11 @@ from .checkpoint_files import read_config_json, require_checkpoint_files
 from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
-from .taught_demos import TAUGHT_DEMOS, tensors_to_demos
+from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, tensors_to_demos
 from .teaching import TEACH_DEMO_SHARE, TEACH_LATENT, TEACH_LR, TEACH_STEPS, TeachResult, read_rehearsal
 
 logger = logging.getLogger(__name__)
 
-TEACHING_INFO = "teaching.json"
 # written anew for the taught policy; every other file of the base is copied
 _REWRITTEN = ("config.json", "model.safetensors", "README.md", ADAPTATION_TENSORS, ADAPTATION_INFO, TEACHING_INFO,
               TAUGHT_DEMOS)
@@ -124,10 +121,6 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
                        "to the new mode, or adapt it again)", base, ADAPTATION_INFO, out)
     data = _training_data(base, training_data)
     policy = load_base_policy(base, device)
-    records = []
-    if (base / TEACHING_INFO).is_file():  # a taught checkpoint taught again: its own records go along
-        before = read_config_json(base / TEACHING_INFO)
-        records = [*before.pop("earlier_teachings", []), before]
     results = []
     if len(lessons) > 1:  # a recording that cannot be taught is named before the first teaching's minutes
         for episode, _, _ in lessons:
@@ -139,19 +132,18 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
             logger.info("teaching %s (%d of %d)", name, i + 1, len(lessons))
         result = policy.teach(episode, rehearsal, name=name, progress=True, **settings)
         results.append(result)
-        records.append(teaching_info(base, episode, data, result, policy.config.mode_names.get(str(result.mode), ""),
-                                     demo_record))
+        if demo_record is not None:  # a demonstration a taught checkpoint kept: teaching.json names that one
+            policy.model.bank.teachings[result.mode]["demonstration"] = demo_record
     policy.eval()
     saved = PDPConfig.from_pretrained(base)  # written as the base's: use_adaptation=False would hide a later adaptation
     for field in LOAD_ONLY_FIELDS:
         setattr(policy.config, field, getattr(saved, field))
-    info = {**records[-1], "earlier_teachings": records[:-1]} if len(records) > 1 else records[-1]
     with staging_dir(out, prefix=".pdp-teach-") as tmp:
         for f in base.iterdir():
             if f.name not in _REWRITTEN:
                 (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
-        policy.save_pretrained(tmp)
-        (tmp / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
+        policy.save_pretrained(tmp)  # with teaching.json: this teaching, and the base's as earlier_teachings
+        info = read_config_json(tmp / TEACHING_INFO)
         card = checkpoint_card(base, policy.config).split(f"\n{CARD_HEADING}\n")[0]  # no adaptation section
         (tmp / "README.md").write_text(card.rstrip() + "\n\n" + _card_section(info))
         move_into_place(tmp, out)
@@ -197,26 +189,6 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
     settings = {"steps": steps, "lr": lr, "demo_share": demo_share, "seed": seed, "latent": latent}
     results = _teach_and_write(Path(base), lessons, Path(out), training_data, device, settings)
     return Path(out), [(mode, res) for (mode, _, _), res in zip(demos, results, strict=True)]
-
-
-def teaching_info(base: Path, episode: Episode, data: Path, result: TeachResult, name: str,
-                  demo_record: dict | None = None) -> dict:
-    """What ``teaching.json`` records: the base, the demonstration, the rehearsal data, the new mode, settings, the
-    mean loss over the first and the last ``loss_window`` steps (50, or half a shorter run), the time, the date;
-    a taught checkpoint taught again adds its base's records as ``earlier_teachings``."""
-    demo: dict = demo_record or {"arrays": "given in memory"}
-    if isinstance(episode, tuple):
-        demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
-    n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice
-    head, tail = result.losses[:n], result.losses[-n:]
-    return {"source": "teach", "base_checkpoint": str(base.resolve()), "demonstration": demo,
-            "training_data": str(data.resolve()), "mode": result.mode, "mode_name": name, "latent": result.z.tolist(),
-            "nearest_training_latent_spreads": result.nearest_spreads, "settings": result.settings,
-            "loss_first_50": sum(head) / max(1, len(head)), "loss_last_50": sum(tail) / max(1, len(tail)),
-            "loss_window": n,
-            "demo_windows": result.demo_windows, "rehearsal_windows": result.rehearsal_windows,
-            "seconds": round(result.seconds, 1),
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
 
 
 def _card_section(info: dict) -> str:

@@ -6,10 +6,14 @@ demonstration, so each taught demonstration is kept with the policy (``BehaviorB
 and saved beside the weights as ``taught_demonstrations.safetensors``: a later ``teach`` rehearses it at its
 taught latent(s) together with the training data. Its arrays are the demonstration as the steering API reads
 it (unnormalised vectors, float64; camera frames as uint8, a 1/255 step in [0, 1]) with its phase segments.
+What each teaching was (the base, the demonstration, the rehearsal data, the settings, the loss: ``teaching.json``,
+``BehaviorBank.teachings``, by mode) goes along the same way, so a checkpoint saved from Python after ``teach`` says
+where its modes came from as one ``lerobot-pdp teach`` writes does.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -24,6 +28,8 @@ from .taught_rehearsal import rehearse_taught_modes
 logger = logging.getLogger(__name__)
 
 TAUGHT_DEMOS = "taught_demonstrations.safetensors"
+# the last teaching's record, the ones before it as "earlier_teachings" (oldest first)
+TEACHING_INFO = "teaching.json"
 _SEGMENTS = "segments"  # [M, 2] int64 frame ranges of the demonstration's phases
 _PER_PHASE = "per_phase"
 
@@ -71,11 +77,25 @@ def write_taught_demos(bank: Any, image_keys: set[str], directory: Path) -> bool
     return True
 
 
+def write_teachings(bank: Any, directory: Path) -> bool:
+    """The records of ``bank``'s taught modes as :data:`TEACHING_INFO` in ``directory`` (nothing, and False, if
+    none): the last teaching at the top, the ones before as ``earlier_teachings``."""
+    taught = set(bank.taught_modes())
+    records = [r for m, r in sorted(getattr(bank, "teachings", {}).items()) if m in taught]
+    if not records:
+        return False
+    info = {**records[-1], "earlier_teachings": records[:-1]} if len(records) > 1 else records[-1]
+    (directory / TEACHING_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    return True
+
+
 def read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
-    """Give ``policy``'s behaviour bank the taught demonstrations its checkpoint ``pretrained`` keeps, if any
-    (a local folder or a Hub repo); a mode the bank does not hold as taught, or a damaged file, is left out with
-    a warning. Loaded to train on (lerobot-train), they are then rehearsed in every batch."""
+    """Give ``policy``'s behaviour bank the taught demonstrations and teaching records its checkpoint
+    ``pretrained`` keeps, if any (a local folder or a Hub repo); a mode the bank does not hold as taught, or a
+    damaged file, is left out with a warning. Loaded to train on (lerobot-train), they are then rehearsed in every
+    batch."""
     _read_taught_demos(policy, pretrained, **hub)
+    _read_teachings(policy.model.bank, pretrained, **hub)
     if policy.model.bank.taught_in_training:
         rehearse_taught_modes(policy)
 
@@ -102,3 +122,21 @@ def _read_taught_demos(policy: Any, pretrained: str | Path, **hub: Any) -> None:
         logger.warning("%s keeps demonstrations of modes %s, which this checkpoint's behaviour bank does not hold as "
                        "taught modes: ignored", path, unknown)
     bank.taught_demos = {m: d for m, d in demos.items() if m in taught}
+
+
+def _read_teachings(bank: Any, pretrained: str | Path, **hub: Any) -> None:
+    from .checkpoint_files import optional_checkpoint_file
+
+    path = optional_checkpoint_file(pretrained, TEACHING_INFO, **hub)
+    if path is None:
+        return
+    try:
+        info = json.loads(path.read_text())
+        records = [*info.pop("earlier_teachings", []), info]
+        by_mode = {int(r["mode"]): r for r in records}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as e:  # provenance only: the policy acts
+        logger.warning("%s is damaged (%s): this checkpoint's taught modes act as saved, but a folder it is saved "
+                       "to will not say where they came from", path, e)
+        return
+    taught = set(bank.taught_modes())
+    bank.teachings = {m: r for m, r in by_mode.items() if m in taught}

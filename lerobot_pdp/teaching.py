@@ -22,6 +22,7 @@ the optimizer groups, while teaching needs a fixed demonstration share and all b
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import math
@@ -87,6 +88,7 @@ class TrainingRehearsal:
     windows: DemoWindows
     latents: Tensor  # [N, d_z], each window's behaviour latent
     policy: Any  # the policy it was read for: its bank is what the dataset was checked against
+    root: Path  # the dataset's folder (teaching.json names it)
 
 
 def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
@@ -94,7 +96,7 @@ def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
     as ``training_data`` to :func:`teach_new_mode` to teach the policy several modes with one read."""
     episodes = check_training_data(policy, training_data)
     windows, latents = rehearsal_windows(policy, training_data, episodes)
-    return TrainingRehearsal(windows, latents, policy)
+    return TrainingRehearsal(windows, latents, policy, Path(training_data))
 
 
 def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal,
@@ -161,10 +163,31 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     result = TeachResult(mode, z_new, losses, steps, len(demo_win.actions), n_rehearsed, nearest,
                          time.perf_counter() - t0, {"steps": steps, "lr": lr, "demo_share": demo_share,
                                                     "batch_size": batch_size, "seed": seed, "latent": latent})
+    data = prepared.root if prepared is not None else Path(training_data)
+    model.bank.teachings[mode] = teaching_record(policy, episode, data, result, name)  # saved as teaching.json
     logger.info("taught mode %d (%s) in %.1f s: latent %s, %.1f spreads from the nearest training latent; L_DP "
                 "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, z_new.tolist(), nearest,
                 _mean(losses[:20]), _mean(losses[-20:]))
     return result
+
+
+def teaching_record(policy: Any, episode: Episode, data: Path, result: TeachResult, name: str) -> dict[str, Any]:
+    """What ``teaching.json`` records of one teaching: the base (the folder ``policy`` was loaded from), the
+    demonstration, the rehearsal data, the new mode, the settings, the mean loss over the first and the last
+    ``loss_window`` steps (50, or half a shorter run), the time, the date."""
+    base = getattr(policy, "_loaded_from", None)
+    demo: dict[str, Any] = {"arrays": "given in memory"}
+    if isinstance(episode, tuple):
+        demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
+    n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice
+    head, tail = result.losses[:n], result.losses[-n:]
+    return {"source": "teach", "base_checkpoint": None if base is None else str(Path(base).resolve()),
+            "demonstration": demo, "training_data": str(data.resolve()), "mode": result.mode, "mode_name": name,
+            "latent": result.z.tolist(), "nearest_training_latent_spreads": result.nearest_spreads,
+            "settings": result.settings, "loss_first": _mean(head), "loss_last": _mean(tail), "loss_window": n,
+            "demo_windows": result.demo_windows, "rehearsal_windows": result.rehearsal_windows,
+            "seconds": round(result.seconds, 1),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
 
 
 def new_mode_id(policy: Any) -> int:

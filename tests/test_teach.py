@@ -170,6 +170,7 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     assert info2["rehearsal_windows"] == info["rehearsal_windows"] + info["demo_windows"]
     assert [t["mode"] for t in info2["earlier_teachings"]] == [4] and info2["mode"] == 5  # both teachings recorded
     assert info2["loss_window"] == 1  # one step: its only loss, not a window counted as before and after
+    assert info2["loss_first"] == info2["loss_last"] > 0 and "loss_first_50" not in info2
     r = PDPPolicy.from_pretrained(tmp_path / "taught2")
     assert sorted(r.mode_latents()) == [0, 1, 2, 3, 4, 5] and sorted(r.model.bank.taught_demos) == [4, 5]
     np.testing.assert_allclose(r.model.bank.taught_demos[4].arrays["action"], new_route()["action"], atol=1e-6)
@@ -431,6 +432,15 @@ def test_a_policy_trained_without_mode_labels_is_taught_a_mode_past_its_clusters
         [first.mode, second.mode])
     third = again.teach(new_route(1.9), unlabeled, steps=1, name="farthest right")
     assert third.mode == before.k + 2 and third.rehearsal_windows > first.rehearsal_windows
+    # saved from Python, a taught policy says where its modes came from as `lerobot-pdp teach` does
+    info = json.loads((tmp_path / "taught" / TEACHING_INFO).read_text())
+    assert (info["mode"], info["mode_name"], info["base_checkpoint"]) == (second.mode, "far left", None)
+    assert info["demonstration"] == {"arrays": "given in memory"} and info["training_data"] == str(unlabeled.resolve())
+    assert [t["mode_name"] for t in info["earlier_teachings"]] == ["far right"] and info["loss_window"] == 1
+    again.save_pretrained(tmp_path / "taught3")
+    info3 = json.loads((tmp_path / "taught3" / TEACHING_INFO).read_text())
+    assert info3["mode_name"] == "farthest right" and info3["base_checkpoint"] == str((tmp_path / "taught").resolve())
+    assert [t["mode"] for t in info3["earlier_teachings"]] == [first.mode, second.mode]
     # the steer CLI takes a cluster's id and a taught mode's name (no labels: the policy's modes are not known to it)
     steer = ["steer", str(tmp_path / "steer.json"), "--policy-path", str(tmp_path / "taught"), "--mode"]
     assert cli([*steer, str(before.k - 1)]) == 0 and cli([*steer, "far left"]) == 0
@@ -470,6 +480,9 @@ def test_training_further_on_unlabelled_data_keeps_taught_modes_past_its_cluster
     assert ("its taught mode(s) 2 ('far right') are dropped (this dataset has no mode labels, and the 4 clusters "
             "discovered in it take ids up to 3, theirs among them; teach them" in caplog.text)
     assert four.model.bank.taught_modes() == [] and four.model.rehearsal is None and four.discover_modes().k == 4
+    assert sorted(more.model.bank.teachings) == [2] and four.model.bank.teachings == {}
+    four.save_pretrained(tmp_path / "taught")  # a folder reused: the dropped mode's demonstration and record go
+    assert not (tmp_path / "taught" / TEACHING_INFO).exists() and not (tmp_path / "taught" / TAUGHT_DEMOS).exists()
 
 
 def test_a_taught_and_adapted_checkpoint_loads_from_the_hub(synthetic_meta, tmp_path):
