@@ -80,7 +80,7 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
         return torch.randn(n, d, generator=torch.Generator().manual_seed(seed if seed is not None else 0))
     if init == "zero":
         return torch.zeros(n, d)
-    raise ValueError(f"init must be 'encoder', 'random', 'zero' or a latent (a tensor, array or list), got {init!r}"
+    raise ValueError(f"init must be one of {', '.join(map(repr, INITS))} or a latent (a tensor, array or list), got {init!r}"
                      + (f"; a mode's latent: init=policy.mode_latents()[{init!r}]" if isinstance(init, str) else ""))
 
 

@@ -21,17 +21,19 @@ PROCESSOR_PREFIXES = ("policy_preprocessor", "policy_postprocessor")  # the pipe
 DEPLOY_PROGRAMS = ("lerobot-eval", "lerobot-rollout")
 
 
-def not_a_checkpoint(folder: Path) -> str:
-    """The error for a folder that is not a PDP checkpoint folder."""
-    return f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors){layout_hint(folder)}"
-
-
 def require_checkpoint_files(folder: str | Path) -> Path:
-    """``folder`` as a Path when it holds a checkpoint's two files (config.json, model.safetensors), else the
-    FileNotFoundError of :func:`not_a_checkpoint` (with where a checkpoint is below a training run's folder)."""
+    """``folder`` as a Path when it is a local folder holding a checkpoint's two files (config.json,
+    model.safetensors), else a FileNotFoundError saying what is wrong: no such folder, a file, or the file it
+    lacks (with where a checkpoint is below a training run's folder)."""
     folder = Path(folder)
-    if not (folder / CONFIG_NAME).is_file() or not (folder / SAFETENSORS_SINGLE_FILE).is_file():
-        raise FileNotFoundError(not_a_checkpoint(folder))
+    give = "give a local pretrained_model folder holding config.json and model.safetensors"
+    if not folder.is_dir():
+        what = f"{folder} is a file, not a checkpoint folder" if folder.exists() else f"no such checkpoint folder: {folder}"
+        raise FileNotFoundError(f"{what} ({give})")
+    missing = [n for n in (CONFIG_NAME, SAFETENSORS_SINGLE_FILE) if not (folder / n).is_file()]
+    if missing:
+        raise FileNotFoundError(f"{folder} is not a PDP checkpoint folder (config.json + model.safetensors): it holds "
+                                f"no {' and no '.join(missing)}{layout_hint(folder)}")
     return folder
 
 

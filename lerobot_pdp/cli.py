@@ -1,7 +1,9 @@
-"""``lerobot-pdp``: command-line entry point of the benchmark suite.
+"""``lerobot-pdp``: the command line beside LeRobot's: datasets from the suite's experts, the benchmark, and the
+tools around a checkpoint (latent map, steering, search, adaptation, teaching, the explorer).
 
-Each subcommand is a ``cmd_<name>(args) -> int`` function registered by an ``add_<name>_parser`` helper,
-so further subcommands (e.g. ``benchmark``) plug in by adding one pair and listing it in ``SUBCOMMANDS``.
+Each subcommand is a ``cmd_<name>(args) -> int`` function registered by an ``add_<name>_parser`` helper and
+listed in ``SUBCOMMANDS``; heavy imports (torch, LeRobot) happen inside the ``cmd_`` functions, so that a wrong
+argument is named at once.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lerobot_pdp import console
+from lerobot_pdp.checkpoint_files import require_checkpoint_files
 from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
@@ -55,6 +58,11 @@ def _env_names() -> list[str]:
     return list(SUITE_ENVS)
 
 
+def _add_env_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. "
+                   "lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
+
+
 def _parse_modes(values: Sequence[str] | None) -> list[int | str] | None:
     if not values:
         return None
@@ -78,7 +86,7 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
         "episode task strings carry the mode label: state-only, or with --camera also camera images stored as "
         "video (observation.images.<camera>).",
     )
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
+    _add_env_argument(p)
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
@@ -212,7 +220,7 @@ def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_latent_map(args: argparse.Namespace) -> int:
-    _check_checkpoint_folder(args.checkpoint)  # named before torch and LeRobot are imported
+    require_checkpoint_files(args.checkpoint)  # named before torch and LeRobot are imported
     if args.k is not None and args.k < 1:
         raise ValueError(f"--k must be >= 1 (clusters to colour by), got {args.k}")
     from lerobot_pdp import PDPPolicy
@@ -341,7 +349,7 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
         "search). Deterministic under --seed; Ctrl-C stops the search and keeps the best so far.",
     )
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
+    _add_env_argument(p)
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--waypoints", default=None,
@@ -399,7 +407,7 @@ def cmd_search(args: argparse.Namespace) -> int:
                          f"{args.rollouts_per_candidate} rollouts")
     if args.waypoints is not None and not (math.isfinite(args.radius) and args.radius > 0):
         raise ValueError(f"--radius must be a finite number > 0 (metres), got {args.radius}")
-    _check_checkpoint_folder(args.checkpoint)
+    require_checkpoint_files(args.checkpoint)
 
     import gymnasium as gym
 
@@ -448,22 +456,11 @@ def cmd_search(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_checkpoint_folder(checkpoint: Path) -> None:
-    """A local checkpoint folder with its two files (torch-free), else an error naming what is wrong and, for a
-    folder in LeRobot's training layout, where the checkpoint is below it."""
-    from lerobot_pdp.checkpoint_files import require_checkpoint_files
-
-    if not checkpoint.is_dir():
-        raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a local pretrained_model folder holding "
-                                "config.json and model.safetensors)")
-    require_checkpoint_files(checkpoint)
-
-
 def _checkpoint_config(checkpoint: Path):
     from lerobot_pdp import PDPConfig
     from lerobot_pdp.checkpoint_files import check_checkpoint_source
 
-    _check_checkpoint_folder(checkpoint)
+    require_checkpoint_files(checkpoint)
     check_checkpoint_source(checkpoint)
     cfg = PDPConfig.from_pretrained(checkpoint)
     if not isinstance(cfg, PDPConfig):
@@ -518,7 +515,6 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
 
 def _check_teach_args(args: argparse.Namespace) -> None:
     """What ``teach`` would refuse after seconds of loading, refused at once (torch-free)."""
-    from lerobot_pdp.checkpoint_files import require_checkpoint_files
     from lerobot_pdp.episodes import recording_info
     from lerobot_pdp.teach_defaults import check_mode_name, check_teach_settings
 
@@ -662,7 +658,7 @@ def add_benchmark_parser(sub: argparse._SubParsersAction) -> None:
         "env's validation scenes instead), write results.json, results.md and figures/. Finished (method, seed) "
         "runs are reused.",
     )
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
+    _add_env_argument(p)
     p.add_argument("--out", required=True, type=Path, help="output folder (reused to resume)")
     # None = not given: the defaults depend on --quick (resolved in cmd_benchmark)
     p.add_argument("--seeds", type=int, nargs="+", default=None,
@@ -781,7 +777,7 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
         "finished (method, scene, seed) records are reused.",
     )
     p.add_argument("results", type=Path, help="a benchmark output folder (runs/<method>/seed<k>/pretrained_model)")
-    p.add_argument("--env", required=True, help=f"suite env, one of {', '.join(_env_names())} (its gym id, e.g. lerobot_pdp/ReachAround-v0, or its --env.type name, pdp_reach_around, names it too)")
+    _add_env_argument(p)
     p.add_argument("--scene", required=True, help="a shifted scene: 1-3 (test) or val1, val2, ... (validation)")
     p.add_argument("--seed", type=int, required=True, help="the training seed of the runs (e.g. 100)")
     p.add_argument("--budgets", type=int, nargs="+", default=[16, 32, 64, 128, 256, 512],
@@ -944,7 +940,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="PDP benchmark suite tools", allow_abbrev=False)
+    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="Parameterized Diffusion Policy tools beside LeRobot's CLIs: datasets, benchmark, steering, adaptation, teaching", allow_abbrev=False)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
         add(sub)

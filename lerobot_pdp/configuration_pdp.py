@@ -29,7 +29,9 @@ logger = logging.getLogger(__name__)
 
 # Fields whose default changed, with the value a checkpoint saved before the field existed was made with:
 # such a checkpoint (its config.json lacks the key) keeps sampling as it did (see apply_legacy_defaults).
-LEGACY_DEFAULTS = {"timestep_spacing": "even", "use_clipped_model_output": True}
+LEGACY_DEFAULTS = {"timestep_spacing": "even", "use_clipped_model_output": True, "beta_end": None}
+# Legacy defaults that matter only under another field's value (beta_end: the "linear" schedule's).
+LEGACY_ONLY_WITH = {"beta_end": ("beta_schedule", "linear")}
 
 
 @PreTrainedConfig.register_subclass("pdp")
@@ -171,6 +173,11 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     num_inference_steps: int = 20
     # Noise schedule of the forward process: "squaredcos_cap_v2" (cosine, as LeRobot) or "linear".
     beta_schedule: str = "squaredcos_cap_v2"
+    # The "linear" schedule's first beta (LeRobot diffusion's and diffusers' default).
+    beta_start: float = 1e-4
+    # The "linear" schedule's last beta (LeRobot diffusion's and diffusers' default). None = 0.02 * 100 /
+    # num_train_timesteps, the end a "linear" checkpoint saved before this field was made with.
+    beta_end: float | None = 0.02
     # Clip the predicted clean action chunk to [-clip_sample_range, clip_sample_range] at every DDIM step
     # (actions are min-max normalised to [-1, 1]).
     clip_sample: bool = True
@@ -359,6 +366,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"embed_rec_reduction must be 'mean' or 'sum', got {self.embed_rec_reduction!r}")
         if self.beta_schedule not in ("squaredcos_cap_v2", "linear"):
             errors.append(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
+        end = 0.02 * 100 / self.num_train_timesteps if self.beta_end is None else self.beta_end
+        if not 0 < self.beta_start <= end < 1:
+            errors.append(f"beta_start and beta_end must satisfy 0 < beta_start <= beta_end < 1, "
+                          f"got {self.beta_start} and {self.beta_end}")
         for name in ("beta_kl", "beta_geo", "fit_lambda", "async_execution_horizon"):
             if getattr(self, name) < 0:
                 errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -527,9 +538,13 @@ def apply_legacy_defaults(config: PDPConfig, saved: dict, given: Iterable[str] =
     for the fields that file lacks, so that a checkpoint written before a default changed samples as it did.
     A field named in ``given`` (the command line's ``--policy.<field>``) or holding another value than today's
     default was set on purpose and is kept; otherwise it cannot be told from a missing key and gets the legacy
-    value. Returns the fields changed."""
+    value. A field that has no effect under the config (:data:`LEGACY_ONLY_WITH`) is left as it is. Returns the
+    fields changed."""
     changed = []
     for name, old in LEGACY_DEFAULTS.items():
+        field, value = LEGACY_ONLY_WITH.get(name, (None, None))
+        if field is not None and getattr(config, field) != value:
+            continue
         if (name not in saved and name not in given
                 and getattr(config, name) == PDPConfig.__dataclass_fields__[name].default):
             setattr(config, name, old)

@@ -34,7 +34,7 @@ from .adapted import load_base_policy, write_adapted_checkpoint
 from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
 from .checkpoint import ADAPTATION_INFO, card_section
-from .checkpoint_files import layout_hint, read_config_json
+from .checkpoint_files import read_config_json, require_checkpoint_files
 from .demonstration import check_recording, recording_info
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
@@ -569,13 +569,7 @@ def _positive(name: str, value: Any) -> int:
 
 def check_checkpoint_folder(checkpoint: Path) -> None:
     """A PDP checkpoint folder (config.json of type pdp + model.safetensors), else an error naming what is wrong."""
-    if not checkpoint.is_dir():
-        raise FileNotFoundError(f"no such checkpoint folder: {checkpoint} (give a pretrained_model folder holding "
-                                "config.json and model.safetensors)")
-    for name in ("config.json", "model.safetensors"):
-        if not (checkpoint / name).is_file():
-            raise FileNotFoundError(f"{checkpoint} holds no {name}: give a PDP pretrained_model folder "
-                                    f"(config.json + model.safetensors){layout_hint(checkpoint)}")
+    require_checkpoint_files(checkpoint)
     kind = read_config_json(checkpoint / "config.json").get("type")  # a damaged file: named
     if kind != "pdp":
         raise ValueError(f"{checkpoint / 'config.json'} has type {kind!r}: the explorer needs a PDP checkpoint "

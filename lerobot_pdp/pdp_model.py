@@ -110,7 +110,8 @@ class PDPModel(nn.Module):
         """(Re)build the noise schedule with this DDIM grid and step rule (a legacy checkpoint's, on load)."""
         cfg = self.config
         self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
-                                            cfg.clip_sample_range, timestep_spacing, use_clipped_model_output)
+                                            cfg.clip_sample_range, timestep_spacing, use_clipped_model_output,
+                                            cfg.beta_start, cfg.beta_end)
         # captured (CUDA, see generate) and compiled (config.compile_model) samplers hold the step rule
         self.fast_denoiser = FastDenoiser(self.denoiser, cfg.num_train_timesteps)
         self._graphs = GraphCache()

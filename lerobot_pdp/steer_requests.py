@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import write_text_atomic
-from .checkpoint_files import read_config_json, require_checkpoint_files
+from .checkpoint_files import damaged_weights, read_config_json, require_checkpoint_files
 from .episodes import check_recording, recording_info
 
 REQUEST_KEYS = ("mode", "latent", "dataset")
@@ -64,7 +64,7 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
             labels = f.get_tensor("behavior_mode").tolist() if "behavior_mode" in f.keys() else []
             n_taught = f.get_slice("taught_latents").get_shape()[0] if "taught_latents" in f.keys() else 0
     except SafetensorError as e:
-        raise ValueError(f"{weights} is not a readable safetensors file ({e})") from e
+        raise damaged_weights(str(weights), e) from e
     names = {int(k): v for k, v in (cfg.get("mode_names") or {}).items()}
     labelled = sorted({int(m) for m in labels if m >= 0})
     trained = labels[: len(labels) - n_taught]  # taught modes (the last rows) have ids without labelled data too

@@ -191,12 +191,24 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
     return Path(out), [(mode, res) for (mode, _, _), res in zip(demos, results, strict=True)]
 
 
+def _demo_source(demo: dict) -> str:
+    """Where a teaching.json demonstration record says the demonstration came from, in a few words."""
+    if "taught_checkpoint" in demo:
+        return f"mode {demo.get('mode', '?')} kept by `{Path(str(demo['taught_checkpoint'])).name}`"
+    if "dataset" in demo:
+        return f"episode {demo.get('episode', '?')} of `{Path(str(demo['dataset'])).name}`"
+    return "arrays given in memory"
+
+
 def _card_section(info: dict) -> str:
-    demo = info["demonstration"]
-    return (f"## Taught mode\n\nThis checkpoint learned one demonstration (episode {demo.get('episode', '?')} of "
-            f"`{Path(str(demo.get('dataset', 'arrays'))).name}`) as mode {info['mode']} ({info['mode_name']}), latent "
-            f"`{info['latent']}`: its denoiser was fine-tuned {info['settings']['steps']} steps with rehearsal of the "
-            f"training data, the encoder kept as trained ({info['date']}). Steer to it with "
-            f"`--policy.steer_mode={info['mode']}`; the other modes keep their latents. `lerobot-train --policy.path` on "
-            f"this checkpoint keeps the mode, rehearsing the demonstration kept in `{TAUGHT_DEMOS}`. `{TEACHING_INFO}` "
-            "holds the provenance.\n")
+    """The model card's section on every mode the checkpoint was taught (teaching.json's records, oldest first)."""
+    records = [*info.get("earlier_teachings", []), info]
+    learned = ("one demonstration as a new mode" if len(records) == 1
+               else f"{len(records)} demonstrations, a new mode each (each teaching rehearsing the ones before)")
+    modes = "".join(f"- mode {r['mode']} ({r['mode_name']}), latent `{r['latent']}`: {_demo_source(r['demonstration'])},"
+                    f" {r['settings']['steps']} fine-tuning steps ({r['date']})\n" for r in records)
+    return (f"## Taught mode\n\nThis checkpoint learned {learned}: its denoiser was fine-tuned with rehearsal of the "
+            f"training data, the encoder kept as trained.\n\n{modes}\nSteer to one with "
+            f"`--policy.steer_mode=<mode>`; the other modes keep their latents. `lerobot-train --policy.path` on "
+            f"this checkpoint keeps the modes, rehearsing the demonstrations kept in `{TAUGHT_DEMOS}`. "
+            f"`{TEACHING_INFO}` holds the provenance.\n")

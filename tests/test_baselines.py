@@ -166,6 +166,10 @@ def test_dp_config_matching_gives_pdp_backbone_and_ddim():
     # padding: DP trains (and adapts) on copy-padded steps exactly when PDP does
     assert dp_config_kwargs(PDPConfig())["do_mask_loss_for_padding"] is True
     assert dp_config_kwargs(PDPConfig(do_mask_loss_for_padding=False))["do_mask_loss_for_padding"] is False
+    # the forward process too: a "linear" PDP's betas are DP's (a legacy one's scaled end is passed as it is)
+    lin = DiffusionConfig(**dp_config_kwargs(PDPConfig(beta_schedule="linear", beta_end=0.03)))
+    assert (lin.beta_schedule, lin.beta_start, lin.beta_end) == ("linear", 1e-4, 0.03)
+    assert dp_config_kwargs(PDPConfig(beta_schedule="linear", beta_end=None))["beta_end"] == pytest.approx(0.1)
 
 
 def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, episode):

@@ -45,6 +45,23 @@ def test_unconditioned_ignores_z():
 
 
 @pytest.mark.numerics
+def test_linear_schedule_is_diffusers_linear():
+    """"linear" is diffusers' (LeRobot diffusion's) schedule with the same beta_start / beta_end, so that DP and
+    PDP share the forward process; beta_end None is the scaled end "linear" checkpoints were saved with."""
+    from diffusers import DDIMScheduler
+
+    for K, start, end in ((20, 1e-4, 0.02), (100, 1e-4, 0.02), (20, 5e-4, 0.05)):
+        ref = DDIMScheduler(num_train_timesteps=K, beta_schedule="linear", beta_start=start, beta_end=end)
+        ours = NoiseSchedule(K, "linear", beta_start=start, beta_end=end)
+        torch.testing.assert_close(ours.alphas_cumprod, ref.alphas_cumprod, rtol=1e-6, atol=1e-6)
+    legacy = NoiseSchedule(20, "linear", beta_end=None)
+    expected = torch.cumprod(1 - torch.linspace(1e-4, 0.1, 20, dtype=torch.float64), 0).float()
+    torch.testing.assert_close(legacy.alphas_cumprod, expected)
+    with pytest.raises(ValueError, match="beta_schedule must be"):
+        NoiseSchedule(20, "cosine")
+
+
+@pytest.mark.numerics
 def test_schedule_and_ddim():
     s = NoiseSchedule(20)
     assert s.alphas_cumprod.shape == (20,) and bool((s.alphas_cumprod.diff() < 0).all())

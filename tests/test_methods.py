@@ -315,6 +315,27 @@ def test_vqbet_outside_the_camera_variant_is_refused_with_the_reason(tmp_path):
     assert not list((tmp_path / "b").glob("data/*"))  # refused before any dataset is made
 
 
+def test_a_failing_checkpoint_hook_stops_the_training_it_follows(tmp_path):
+    """run_logged stops the lerobot-train it reads when it is interrupted (Ctrl-C, or ``on_checkpoint`` failing):
+    no training is left running unread, holding the cores and its output folder."""
+    import os
+    import sys
+
+    from lerobot_pdp.benchmark.training import run_logged
+
+    pid_file = tmp_path / "pid"
+    child = (f"import os, pathlib, time; pathlib.Path({str(pid_file)!r}).write_text(str(os.getpid())); "
+             "print('Checkpoint policy after step 10', flush=True); time.sleep(120)")
+
+    def hook(step):
+        raise RuntimeError(f"copying checkpoint {step} failed")
+
+    with pytest.raises(RuntimeError, match="copying checkpoint 10 failed"):
+        run_logged([sys.executable, "-c", child], tmp_path / "log", 20, "test", on_checkpoint=hook)
+    with pytest.raises(ProcessLookupError):  # terminated and reaped
+        os.kill(int(pid_file.read_text()), 0)
+
+
 def test_the_training_progress_follows_lerobot_trains_rounded_step_counter():
     """lerobot-train logs ``step:<format_big_number(step)>`` every --log_freq steps: "2K" from 1500 on. The bar
     reads each log line as the next multiple of log_freq, so it neither stalls at 1000 nor jumps ahead."""

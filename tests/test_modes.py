@@ -159,6 +159,8 @@ def test_latent_map_cli_draws_any_checkpoint_labels_or_clusters(embedded, tmp_pa
     layout.joinpath("pretrained_model").rename(ckpt)
     assert main(["latent-map", str(tmp_path / "nope"), "--out", str(tmp_path / "x.png")]) == 2
     assert f"no such checkpoint folder: {tmp_path / 'nope'}" in capsys.readouterr().err
+    assert main(["latent-map", str(ckpt / "config.json"), "--out", str(tmp_path / "x.png")]) == 2
+    assert f"{ckpt / 'config.json'} is a file, not a checkpoint folder" in capsys.readouterr().err
     assert main(["latent-map", str(ckpt), "--out", str(tmp_path / "x.png"), "--k", "0"]) == 2
     assert "--k must be >= 1 (clusters to colour by), got 0" in capsys.readouterr().err
 

@@ -624,6 +624,32 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
     assert res.fit_error is None and res.error_ratio is None and not caplog.records
 
 
+def test_linear_checkpoint_saved_before_beta_end_keeps_its_schedule(tmp_path):
+    """"linear" once ended at 0.02 * 100 / K instead of diffusers' 0.02: a "linear" checkpoint whose config.json
+    lacks beta_end keeps its schedule; one that has the key, and a cosine one, are left as they are."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from lerobot_pdp.diffusion import NoiseSchedule
+
+    v1 = Path(__file__).parent / "data" / "pdp_checkpoint_v1"
+    cfg = json.loads((v1 / "config.json").read_text())
+    assert "beta_end" not in cfg
+    assert PDPPolicy.from_pretrained(v1).config.beta_end == 0.02  # cosine: beta_end plays no part, left alone
+    linear = tmp_path / "linear"
+    shutil.copytree(v1, linear)
+    (linear / "config.json").write_text(json.dumps({**cfg, "beta_schedule": "linear"}))
+    p = PDPPolicy.from_pretrained(linear)
+    assert p.config.beta_end is None
+    K = p.config.num_train_timesteps
+    torch.testing.assert_close(p.model.noise_schedule.alphas_cumprod,
+                               NoiseSchedule(K, "linear", beta_end=0.02 * 100 / K).alphas_cumprod)
+    (linear / "config.json").write_text(json.dumps({**cfg, "beta_schedule": "linear", "beta_end": 0.02}))
+    torch.testing.assert_close(PDPPolicy.from_pretrained(linear).model.noise_schedule.alphas_cumprod,
+                               NoiseSchedule(K, "linear").alphas_cumprod)
+
+
 def test_checkpoint_saved_before_the_sampler_fields_keeps_its_sampler(tmp_path, monkeypatch, caplog):
     """The DDIM grid and step rule defaults changed ("even" + clipped-output noise -> diffusers' "leading"
     without it): a checkpoint whose config.json lacks those keys samples as it was made to; one that has them,

@@ -254,6 +254,7 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
     assert [t["demonstration"]["mode"] for t in info["earlier_teachings"]] == [4]
     assert info["base_checkpoint"] == info["earlier_teachings"][0]["base_checkpoint"] == str((tmp_path / "trained").resolve())
     assert info["rehearsal_windows"] == info["earlier_teachings"][0]["rehearsal_windows"] + len(new_route()["action"])
+    assert "mode 5 kept by `t2`" in (tmp_path / "again" / "README.md").read_text()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".pdp-")) == []  # no stage left
 
     # argument errors, before anything is read
@@ -565,6 +566,10 @@ def test_several_routes_recorded_together_are_taught_in_one_command(synthetic_me
     info = json.loads((tmp_path / "t" / TEACHING_INFO).read_text())
     assert info["demonstration"]["episode"] == 1 and info["earlier_teachings"][0]["demonstration"]["episode"] == 0
     assert info["rehearsal_windows"] == info["earlier_teachings"][0]["rehearsal_windows"] + len(new_route()["action"])
+    card = (tmp_path / "t" / "README.md").read_text()  # the card names both teachings, not the last one only
+    assert "learned 2 demonstrations, a new mode each" in card
+    assert "- mode 4 (far right)" in card and "episode 0 of `routes`" in card
+    assert "- mode 5 (far left)" in card and "episode 1 of `routes`" in card
 
     for extra, msg in ((["--episode", "0", "1", "--name", "a"], "--name gives 1 name(s) for 2 --episode(s)"),
                        (["--episode", "1", "1"], "--episode 1 1 repeats an episode"),

@@ -44,8 +44,8 @@ logger = logging.getLogger(__name__)
 # do_mask_loss_for_padding default is False, PDP's True); a `pdp_like` mapping overrides any of them.
 DP_MATCHED_FIELDS = ("down_dims", "kernel_size", "n_groups", "diffusion_step_embed_dim", "horizon", "n_obs_steps",
                      "n_action_steps", "drop_n_last_frames", "do_mask_loss_for_padding", "num_train_timesteps",
-                     "num_inference_steps", "beta_schedule", "clip_sample", "clip_sample_range", "optimizer_lr",
-                     "scheduler_warmup_steps")
+                     "num_inference_steps", "beta_schedule", "beta_start", "beta_end", "clip_sample",
+                     "clip_sample_range", "optimizer_lr", "scheduler_warmup_steps")
 DP_MATCHING_DEFAULTS: dict[str, Any] = {f.name: f.default if f.default is not MISSING else f.default_factory()
                                         for f in fields(PDPConfig) if f.name in DP_MATCHED_FIELDS}
 # Fixed for DP whatever PDP uses: deterministic DDIM (noise-space adaptation needs a deterministic map
@@ -65,6 +65,8 @@ def dp_config_kwargs(pdp_like: Mapping[str, Any] | Any | None = None) -> dict[st
         pdp_like = asdict(pdp_like)
     out = {k: pdp_like.get(k, v) for k, v in DP_MATCHING_DEFAULTS.items()}
     out["down_dims"] = tuple(int(d) for d in out["down_dims"])
+    if out["beta_end"] is None:  # a legacy "linear" PDP checkpoint's scaled end (PDPConfig.beta_end)
+        out["beta_end"] = 0.02 * 100 / out["num_train_timesteps"]
     out.update(DP_FIXED)
     return out
 

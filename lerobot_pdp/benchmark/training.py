@@ -65,16 +65,25 @@ def run_logged(args: list[str], log: Path, total_steps: int, desc: str, start: i
         proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         assert proc.stdout is not None
         done = start
-        for line in proc.stdout:
-            fh.write(line)
-            step = logged_step(line, done, log_freq)
-            if step is not None:
-                step = min(step, total_steps)
-                bar.update(max(0, step - done))
-                done = max(done, step)
-            m = saving.search(line)
-            if m and on_checkpoint is not None:
-                on_checkpoint(int(m.group(1)))
+        try:
+            for line in proc.stdout:
+                fh.write(line)
+                step = logged_step(line, done, log_freq)
+                if step is not None:
+                    step = min(step, total_steps)
+                    bar.update(max(0, step - done))
+                    done = max(done, step)
+                m = saving.search(line)
+                if m and on_checkpoint is not None:
+                    on_checkpoint(int(m.group(1)))
+        except BaseException:  # Ctrl-C, or on_checkpoint failed: no training left running without its reader
+            proc.terminate()
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            raise
         rc = proc.wait()
         if rc == 0:
             bar.update(total_steps - done)

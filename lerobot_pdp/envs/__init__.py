@@ -32,12 +32,8 @@ from .suite import NOVEL, SUITE, SuiteEnv, get_suite_env, parse_task_mode  # noq
 # `configs` holds the LeRobot env configs (`--env.type=pdp_*`), generic over SUITE.
 ENV_MODULES = ("reach_around", "avoiding", "pick_place", "kitchen_microwave", "configs")
 
-for _name in ENV_MODULES:
-    try:
-        importlib.import_module(f"{__name__}.{_name}")
-    except ModuleNotFoundError as _e:  # an env module not written yet must not break the policy
-        if _e.name != f"{__name__}.{_name}":
-            raise
+for _name in ENV_MODULES:  # each registers its gymnasium id (and configs its LeRobot env configs) on import
+    importlib.import_module(f"{__name__}.{_name}")
 
 __all__ = ["NOVEL", "SUITE", "Barrier", "Scene", "SceneError", "SuiteEnv", "get_suite_env", "load_scene",
            "parse_task_mode"]

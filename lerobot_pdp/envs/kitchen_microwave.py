@@ -67,7 +67,6 @@ HANDLE = np.array([-0.641919, 0.492627, 1.792])  # microhandle_site, door closed
 HINGE = np.array([-1.12758, 0.454906, 1.792])  # microwave hinge anchor; axis +z
 DOOR_YAW = 0.30108  # rotation of the microwave about +z; the door's outward normal is (sin, -cos, 0)
 EE_START = np.array([-0.431879, 0.118886, 2.024569])  # end_effector site at the (deterministic) reset
-DOOR_OPEN = -0.45  # hinge angle below which the kitchen counts the microwave task as completed
 
 _T = np.array([math.cos(DOOR_YAW), math.sin(DOOR_YAW), 0.0])  # along the door, away from the hinge
 _N = np.array([math.sin(DOOR_YAW), -math.cos(DOOR_YAW), 0.0])  # outward door normal (towards the robot)

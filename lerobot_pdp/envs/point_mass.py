@@ -1,11 +1,11 @@
 """Shared base for the MuJoCo point end-effector envs (reach-around, avoiding).
 
 The end effector is a sphere on slide joints driven by position actuators: geoms on mocap bodies produce
-no contacts with static geoms (platform.md), and slide joints give real contact dynamics. Obstacles and
-scene barriers are static world geoms. Contacts are filtered so that only end-effector / hazard pairs
-exist (end effector ``contype=1 conaffinity=0``, hazards ``contype=0 conaffinity=1``); a collision is such
-a contact with ``dist < 0``, checked after every physics sub-step so a fast pass through a thin fin
-cannot slip between control steps.
+no contacts with static geoms (MuJoCo counts mocap bodies as static and skips static pairs), and slide
+joints give real contact dynamics. Obstacles and scene barriers are static world geoms. Contacts are
+filtered so that only end-effector / hazard pairs exist (end effector ``contype=1 conaffinity=0``, hazards
+``contype=0 conaffinity=1``); a collision is such a contact with ``dist < 0``, checked after every physics
+sub-step so a fast pass through a thin fin cannot slip between control steps.
 
 Actions are velocity fractions in [-1, 1] of ``max_speed``, integrated into the actuators' desired
 position (clipped to the workspace), so a policy cannot teleport and a zero action holds position.
