@@ -15,16 +15,15 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
-from lerobot.configs.parser import parse_arg  # LeRobot's reader of one command-line option
 from torch import Tensor, nn
 
 from .atomic import write_file_atomic
 from .distributed import main_process_first
 from .episodes import check_finite, parse_task_mode, parse_task_name, read_episodes  # noqa: F401  (re-exported)
+from .lerobot_command import command_line_value, lerobot_train_episodes, running_lerobot_train, train_value
 
 logger = logging.getLogger(__name__)
 
@@ -301,7 +300,7 @@ def read_training_behaviors(config, root: str | Path, features: dict,
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
         cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
     )
-    split = _train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split")) if running_lerobot_train(
+    split = train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split")) if running_lerobot_train(
         sys.argv) else None
     if split:
         behaviors.held_out = frozenset(eval_split_episodes(episodes, float(split), cfg.dataset_episodes))
@@ -329,7 +328,7 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
     if running_lerobot_train(sys.argv):
         trains_on = lerobot_train_episodes(sys.argv)
         if config.dataset_episodes is not None and config.dataset_episodes != trains_on:
-            chosen = parse_arg("dataset.episodes", sys.argv[1:]) is not None  # said on this command line: no surprise
+            chosen = command_line_value(sys.argv, "dataset.episodes") is not None  # said here: no surprise
             logger.log(logging.INFO if chosen else logging.WARNING,
                        "PDP: the behavior bank reads the episodes lerobot-train trains on (%s), not dataset_episodes "
                        "%s (a checkpoint's, a config file's or --policy.dataset_episodes)%s",
@@ -343,67 +342,6 @@ def read_training_episodes(config, root: str | Path, keys: list[str]) -> dict[in
     if missing:
         raise ValueError(f"{root}: dataset_episodes lists episodes {missing}, which the dataset does not hold")
     return episodes
-
-
-def running_lerobot_train(argv: list[str]) -> bool:
-    """This process is ``lerobot-train`` (also each process ``accelerate launch`` starts for it)."""
-    return bool(argv) and Path(argv[0]).name in ("lerobot-train", "lerobot_train.py")
-
-
-def lerobot_train_episodes(argv: list[str]) -> list[int] | None:
-    """``--dataset.episodes`` of a ``lerobot-train`` command line, else ``dataset.episodes`` of its
-    ``--config_path`` file (a ``train_config.json``, its folder, or a YAML/JSON file, as LeRobot reads it); the
-    command line wins, as in LeRobot's parser. None: not given, a Hub config (not read here), or another program."""
-    if not running_lerobot_train(argv):
-        return None
-    import yaml  # draccus parses its command-line values as YAML
-
-    given = parse_arg("dataset.episodes", argv[1:])
-    if given is not None:
-        return _episode_list(yaml.safe_load(given) if given.strip() else None, f"--dataset.episodes={given}")
-    path, value = _config_file_value(argv, ("dataset", "episodes"))
-    return _episode_list(value, f"{path}: dataset.episodes={value}")
-
-
-def _train_value(argv: list[str], flag: str, keys: tuple[str, ...]) -> Any:
-    """A lerobot-train setting as LeRobot's parser sees it: the command line's ``flag``, else the ``--config_path``
-    file's ``keys``; None when neither gives it."""
-    import yaml
-
-    given = parse_arg(flag.removeprefix("--"), argv[1:])
-    if given is not None:
-        return yaml.safe_load(given) if given.strip() else None
-    return _config_file_value(argv, keys)[1]
-
-
-def _config_file_value(argv: list[str], keys: tuple[str, ...]) -> tuple[Path | None, Any]:
-    """(the file, the value at ``keys``) of lerobot-train's ``--config_path`` (a ``train_config.json``, its folder,
-    or a YAML/JSON file, as LeRobot reads it); (None, None) without one or for a Hub config (not read here)."""
-    import yaml  # draccus reads config files as YAML/JSON
-
-    config_path = parse_arg("config_path", argv[1:])
-    if not config_path:
-        return None, None
-    path = Path(config_path)
-    if path.is_dir():
-        path = path / "train_config.json"
-    if not path.is_file():
-        return None, None
-    try:
-        value = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ValueError(f"{path}: cannot read --config_path ({e})") from e
-    for key in keys:
-        value = value.get(key) if isinstance(value, dict) else None
-    return path, value
-
-
-def _episode_list(parsed, where: str) -> list[int] | None:
-    if parsed is None:
-        return None
-    if not isinstance(parsed, list) or not all(isinstance(e, int) and not isinstance(e, bool) for e in parsed):
-        raise ValueError(f"{where}: expected a list of episode indices, e.g. '[0,2,5]'")
-    return [int(e) for e in parsed]
 
 
 def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None:

@@ -19,7 +19,6 @@ import json
 import logging
 import os
 import shutil
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from .checkpoint_files import (
     read_weight_shapes,
 )
 from .configuration_pdp import apply_legacy_defaults
+from .lerobot_command import given_policy_fields
 from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, write_taught_demos, write_teachings
 
 logger = logging.getLogger(__name__)
@@ -341,8 +341,7 @@ def apply_saved_config(policy: Any, model_file: str) -> None:
     saved = Path(model_file).with_name(CONFIG_NAME)
     if not saved.is_file():
         return
-    given = {a.partition("=")[0].removeprefix("--policy.") for a in sys.argv[1:] if a.startswith("--policy.")}
-    changed = apply_legacy_defaults(policy.config, read_config_json(saved), given)
+    changed = apply_legacy_defaults(policy.config, read_config_json(saved), given_policy_fields())
     if changed:
         policy.model.set_sampler(policy.config.timestep_spacing, policy.config.use_clipped_model_output)
         logger.info("%s predates %s: sampling as it was made, with %s (give --policy.<field>=... to change it)",

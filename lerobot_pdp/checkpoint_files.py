@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from pathlib import Path
 
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+
+from .lerobot_command import lerobot_program
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +81,7 @@ def check_checkpoint_source(pretrained: str | Path, need_config: bool = True, ne
                                 f"{layout_hint(folder)}")
     missing = [name for name in PROCESSOR_FILES if not (folder / name).is_file()]
     if missing:
-        program = Path(sys.argv[0]).stem.replace("_", "-") if sys.argv and sys.argv[0] else ""
+        program = lerobot_program()
         text = (f"{folder} lacks LeRobot's processor files {missing}, which lerobot-eval / lerobot-rollout load next "
                 "(LeRobot then says the model 'requires migration'; it does not): copy them from the training run's "
                 "checkpoint folder, where lerobot-train wrote them")

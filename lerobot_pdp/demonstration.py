@@ -21,9 +21,9 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 
 from .behavior import check_finite, gripper_segments, read_episodes
+from .chunk_windows import DemoWindows, frame_windows
 from .configuration_pdp import PDPConfig
 from .episodes import check_recording, read_episode_frames, recording_info  # noqa: F401  (re-exported)
-from .latent_fitting import DemoWindows, frame_windows
 from .normalization import FeatureStats
 
 Episode = dict[str, Any] | tuple[Any, int]

@@ -39,11 +39,12 @@ from .behavior_bank import resolve_dataset_config
 from .candidate_rollouts import EnvFactory
 from .checkpoint import apply_adaptation, flatten_model_keys, load_weights, nest_model_keys, save_checkpoint
 from .checkpoint_files import check_checkpoint_source
+from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
 from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
 from .interpolation import interpolate
-from .latent_fitting import DemoWindows, FitResult
+from .latent_fitting import FitResult
 from .latent_search import SearchResult, search_latent, search_provenance
 from .model_card import pdp_model_card
 from .modes import DiscoveredModes, ModeLatents

@@ -30,7 +30,6 @@ import contextvars
 import json
 import logging
 import os
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -41,6 +40,7 @@ import torch
 
 from .adaptation import fit_provenance
 from .latent_fitting import cancellable
+from .lerobot_command import rollout_with_rtc
 from .realtime_chunking import RTC_ENGINE, RTC_WAY_OUT
 from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks and writer live there)
     REQUEST_KEYS,
@@ -151,7 +151,7 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     and so each chunk's step (lerobot-rollout's RTC engine with ``rtc_consumed_delay``, PDP's policy server); the chunk-time checks, ``realtime_chunking.check_rtc_steering``, would refuse them only
     after it."""
     rtc = (RTC_ENGINE, RTC_WAY_OUT, bool(policy.config.rtc_consumed_delay))  # PDP's RTC queue reports them
-    engine, way_out, reports_executed = _PACED.get() or (rtc if _rollout_with_rtc() else (None, None, False))
+    engine, way_out, reports_executed = _PACED.get() or (rtc if rollout_with_rtc() else (None, None, False))
     if engine is None:
         return
     if policy.config.fit_noise == "chunks" and not reports_executed:  # noises are replayed by the reported step
@@ -166,15 +166,6 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
                          f"each, which advance on the gripper commands the robot executes; {engine} replans at its "
                          f"own pace and they do not reach PDP, so phases cannot follow. {way_out} steer with one "
                          "latent (--policy.steer_mode, --policy.steer_latent)")
-
-
-def _rollout_with_rtc() -> bool:
-    """This process is ``lerobot-rollout --inference.type=rtc`` (it loads the policy, and so fits at start-up,
-    before it tells the policy about RTC)."""
-    args = sys.argv[1:]
-    return (bool(sys.argv) and Path(sys.argv[0]).stem.replace("_", "-") == "lerobot-rollout"
-            and ("--inference.type=rtc" in args or any(a == "--inference.type" and b == "rtc"
-                                                        for a, b in zip(args, args[1:], strict=False))))
 
 
 def _known_modes(means: Any) -> str:

@@ -24,7 +24,7 @@ import torch
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .latent_fitting import window_indices
+from .chunk_windows import window_indices
 
 logger = logging.getLogger(__name__)
 

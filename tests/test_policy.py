@@ -780,7 +780,7 @@ def test_the_behavior_bank_reads_the_episodes_lerobot_train_trains_on(synthetic_
     """LeRobot does not tell a policy which episodes it trains on: under lerobot-train, --dataset.episodes is read
     from its command line (held-out episodes never shape the latent space) and recorded in the config; elsewhere
     dataset_episodes says it; an episode the dataset lacks is refused."""
-    from lerobot_pdp.behavior import lerobot_train_episodes
+    from lerobot_pdp.lerobot_command import lerobot_train_episodes
 
     assert lerobot_train_episodes(["/venv/bin/lerobot-train", "--dataset.episodes=[0, 3,5]"]) == [0, 3, 5]
     assert lerobot_train_episodes(["lerobot-train", "--dataset.episodes", "[2]", "--steps=4"]) == [2]

@@ -475,14 +475,15 @@ def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synt
     """lerobot-rollout loads (and so fits at start-up) before it tells the policy about RTC: on LeRobot's queue,
     which does not report the executed actions, chunk noises cannot be replayed in step and are refused from its
     command line before minutes of fitting (PDP's queue, the default, reports them: allowed)."""
-    from lerobot_pdp.steering import _rollout_with_rtc, refuse_paced_fit
+    from lerobot_pdp.lerobot_command import rollout_with_rtc
+    from lerobot_pdp.steering import refuse_paced_fit
 
     for argv, rtc in ((["/venv/bin/lerobot-rollout", "--inference.type=rtc"], True),
                       (["lerobot-rollout", "--inference.type", "rtc"], True),
                       (["lerobot-rollout", "--inference.type=sync"], False),
                       (["lerobot-eval", "--inference.type=rtc"], False)):
         monkeypatch.setattr("sys.argv", argv)
-        assert _rollout_with_rtc() is rtc, argv
+        assert rollout_with_rtc() is rtc, argv
     monkeypatch.setattr("sys.argv", ["lerobot-rollout", "--inference.type=rtc"])
     p = small_policy(synthetic_meta, steer_dataset_root=str(synthetic_meta.root), steer_episode_index=0,
                      fit_noise="chunks", fit_steps=10**6, rtc_consumed_delay=False)

@@ -13,7 +13,7 @@ Configurations", Table "baseline_compare").
 Everything here takes a LeRobot policy plus its *preprocessor* and a raw demonstration, so the demo is
 normalised with exactly the statistics the policy was trained with (the preprocessor's own normaliser
 step) and cut into exactly the windows LeRobotDataset yields in training
-(:func:`lerobot_pdp.latent_fitting.episode_windows`). Nothing assumes PDP internals: any policy whose
+(:func:`lerobot_pdp.chunk_windows.window_indices`). Nothing assumes PDP internals: any policy whose
 config uses LeRobot's standard ``n_obs_steps`` / ``horizon`` delta indices and whose ``forward`` takes the
 standard batch (``observation.state``, ``observation.environment_state``, ``action``, ``action_is_pad``)
 works with :func:`demo_batch` and :func:`finetune_bc`; :func:`adapt_dp_noise` needs LeRobot's
@@ -33,8 +33,8 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
+from ..chunk_windows import window_indices
 from ..configuration_pdp import PDPConfig
-from ..latent_fitting import episode_windows
 from ..steering_state import ChunkNoises
 
 logger = logging.getLogger(__name__)
@@ -143,16 +143,10 @@ def demo_batch(policy, preprocessor, episode: Mapping[str, Any]) -> dict[str, Te
     T = norm[OBS_STATE].shape[0]
     if any(norm[k].shape[0] != T for k in norm):
         raise ValueError(f"episode keys have different lengths { {k: tuple(v.shape) for k, v in norm.items()} }")
-    env_key = OBS_ENV_STATE if cfg.env_state_feature is not None else None
-    w = episode_windows(norm, n_obs, horizon, OBS_STATE, env_key, [(0, T)])
-    s = norm[OBS_STATE].shape[1]
-    obs = w.obs_cond.view(T, n_obs, -1)
-    batch = {OBS_STATE: obs[..., :s].contiguous(), ACTION: w.actions, "action_is_pad": w.is_pad}
-    if env_key is not None:
-        batch[OBS_ENV_STATE] = obs[..., s:].contiguous()
-    obs_idx = (torch.arange(T)[:, None] + torch.arange(1 - n_obs, 1)[None]).clamp(0, T - 1)
-    for cam in cameras:  # the same clamped observation frames as the vectors
-        batch[cam] = norm[cam][obs_idx]
+    obs_idx, act_idx, is_pad = window_indices(T, n_obs, horizon)
+    batch = {ACTION: norm[ACTION][act_idx], "action_is_pad": is_pad}
+    for key in (OBS_STATE,) + ((OBS_ENV_STATE,) if cfg.env_state_feature is not None else ()) + cameras:
+        batch[key] = norm[key][obs_idx]
     device = _device(policy)
     return {k: v.to(device) for k, v in batch.items()}
 
