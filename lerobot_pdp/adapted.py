@@ -29,7 +29,7 @@ from .checkpoint import (
     read_adaptation,
     write_adaptation,
 )
-from .checkpoint_files import read_config_json, require_checkpoint_files
+from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode, check_recording_exists
 from .latent_search import SearchResult
@@ -149,8 +149,8 @@ def _acting_adapted(config: Path) -> None:
 
 def _check_folders(base: Path, out: str | Path | None) -> None:
     require_checkpoint_files(base)
-    if out is not None and Path(out).exists():
-        raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
+    if out is not None:
+        require_new_folder(out, "adapted")
 
 
 def _origin(base: Path) -> str | None:

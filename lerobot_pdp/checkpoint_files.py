@@ -38,6 +38,15 @@ def require_checkpoint_files(folder: str | Path) -> Path:
     return folder
 
 
+def require_new_folder(out: str | Path, what: str) -> Path:
+    """``out`` as a Path when nothing is there yet (an adapted or taught checkpoint is written whole, never over
+    another), else a FileExistsError naming it; ``what``: "adapted" or "taught"."""
+    out = Path(out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists: give a new folder for the {what} checkpoint")
+    return out
+
+
 def layout_hint(folder: Path) -> str:
     """Where the checkpoint is in LeRobot's training layout below ``folder`` (``checkpoints/last`` holds
     ``pretrained_model``, which is the checkpoint): "; did you mean ...?", or ""."""

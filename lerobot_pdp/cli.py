@@ -18,8 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from lerobot_pdp import console
-from lerobot_pdp.checkpoint_files import require_checkpoint_files
+from lerobot_pdp.checkpoint_files import require_checkpoint_files, require_new_folder
 from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
@@ -522,8 +521,7 @@ def _check_teach_args(args: argparse.Namespace) -> None:
     for name in args.name or []:
         check_mode_name(name)
     require_checkpoint_files(args.checkpoint)
-    if args.out.exists():
-        raise FileExistsError(f"{args.out} exists: give a new folder for the taught checkpoint")
+    require_new_folder(args.out, "taught")
     if args.demo is not None:
         recording_info(args.demo)  # a missing or unfinished recording, named
     if args.taught_from is not None:
@@ -950,7 +948,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    console.install()  # LeRobot's torchcodec fallback warning in one line on a machine without FFmpeg
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

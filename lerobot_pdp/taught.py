@@ -21,7 +21,7 @@ from pathlib import Path
 
 from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
-from .checkpoint_files import read_config_json, require_checkpoint_files
+from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
 from .configuration_pdp import PDPConfig
 from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
@@ -112,8 +112,7 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
     from .adapted import LOAD_ONLY_FIELDS, load_base_policy
 
     require_checkpoint_files(base)
-    if out.exists():
-        raise FileExistsError(f"{out} exists: give a new folder for the taught checkpoint")
+    require_new_folder(out, "taught")
     for episode, _, _ in lessons:
         check_recording_exists(episode)
     if (base / ADAPTATION_INFO).is_file():  # the weights are taught; the taught checkpoint acts unadapted
