@@ -170,6 +170,7 @@ def test_dp_config_matching_gives_pdp_backbone_and_ddim():
     lin = DiffusionConfig(**dp_config_kwargs(PDPConfig(beta_schedule="linear", beta_end=0.03)))
     assert (lin.beta_schedule, lin.beta_start, lin.beta_end) == ("linear", 1e-4, 0.03)
     assert dp_config_kwargs(PDPConfig(beta_schedule="linear", beta_end=None))["beta_end"] == pytest.approx(0.1)
+    assert "beta_end" not in kw  # cosine: no betas to match, and DP's recorded command lines keep their flags
 
 
 def test_adapt_dp_noise_lowers_matching_loss_and_freezes_weights(reach_meta, episode):

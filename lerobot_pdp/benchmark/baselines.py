@@ -65,7 +65,9 @@ def dp_config_kwargs(pdp_like: Mapping[str, Any] | Any | None = None) -> dict[st
         pdp_like = asdict(pdp_like)
     out = {k: pdp_like.get(k, v) for k, v in DP_MATCHING_DEFAULTS.items()}
     out["down_dims"] = tuple(int(d) for d in out["down_dims"])
-    if out["beta_end"] is None:  # a legacy "linear" PDP checkpoint's scaled end (PDPConfig.beta_end)
+    if out["beta_schedule"] != "linear":  # the betas play no part: DP's command line stays as it was before them
+        del out["beta_start"], out["beta_end"]
+    elif out["beta_end"] is None:  # a legacy "linear" PDP checkpoint's scaled end (PDPConfig.beta_end)
         out["beta_end"] = 0.02 * 100 / out["num_train_timesteps"]
     out.update(DP_FIXED)
     return out
