@@ -67,9 +67,9 @@ def main() -> None:
 
     from lerobot_pdp import PDPConfig, latent_fitting
     from lerobot_pdp import fast_inference as fi
-    from lerobot_pdp.behavior import read_episodes
     from lerobot_pdp.benchmark.machine import cpu_model
     from lerobot_pdp.envs.recording import make_dataset
+    from lerobot_pdp.episodes import read_episodes
 
     torch.set_num_threads(args.threads)
     env = {"cpu": cpu_model(), "threads": torch.get_num_threads(), "torch": torch.__version__,

@@ -50,9 +50,9 @@ def main() -> None:
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
     from lerobot_pdp import PDPConfig
-    from lerobot_pdp.behavior import read_episodes
     from lerobot_pdp.benchmark.baselines import dp_config_matching
     from lerobot_pdp.envs.recording import make_dataset
+    from lerobot_pdp.episodes import read_episodes
 
     torch.set_num_threads(args.threads)
     root = Path(tempfile.mkdtemp()) / "ra"

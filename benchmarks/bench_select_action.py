@@ -51,7 +51,7 @@ def _stats(times_s: list[float]) -> dict:
 def _observation(root: Path) -> dict:
     import torch
 
-    from lerobot_pdp.behavior import read_episodes
+    from lerobot_pdp.episodes import read_episodes
 
     ep = read_episodes(root, ["observation.state", "observation.environment_state"], [0])[0]
     return {k: torch.as_tensor(ep[k][10:11], dtype=torch.float32)

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from .atomic import write_file_atomic
 from .distributed import main_process_first
-from .episodes import check_finite, parse_task_mode, parse_task_name, read_episodes  # noqa: F401  (re-exported)
+from .episodes import check_finite, parse_task_mode, parse_task_name, read_episodes
 from .lerobot_command import command_line_value, lerobot_train_episodes, running_lerobot_train, train_value
 
 logger = logging.getLogger(__name__)

@@ -20,10 +20,10 @@ import torch
 from lerobot.utils.constants import ACTION
 from torch import Tensor, nn
 
-from .behavior import check_finite, gripper_segments, read_episodes
+from .behavior import gripper_segments
 from .chunk_windows import DemoWindows, frame_windows
 from .configuration_pdp import PDPConfig
-from .episodes import check_recording, read_episode_frames, recording_info  # noqa: F401  (re-exported)
+from .episodes import check_finite, check_recording, read_episode_frames, read_episodes, recording_info  # noqa: F401  (re-exported)
 from .normalization import FeatureStats
 
 Episode = dict[str, Any] | tuple[Any, int]

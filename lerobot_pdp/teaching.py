@@ -37,12 +37,12 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import demonstration_traces, encode_demonstration
-from .behavior import UNLABELED, read_episodes, read_training_behaviors, training_behavior_keys
+from .behavior import UNLABELED, read_training_behaviors, training_behavior_keys
 from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
 from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
-from .episodes import read_episode_frames
+from .episodes import read_episode_frames, read_episodes
 from .teach_defaults import (  # noqa: F401  (re-exported)
     TEACH_BATCH_SIZE,
     TEACH_DEMO_SHARE,

@@ -14,7 +14,6 @@ from lerobot.policies.factory import get_policy_class, make_policy, make_pre_pos
 
 from lerobot_pdp import PDPConfig
 from lerobot_pdp.baselines import MLPBCConfig, MLPBCPolicy
-from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.benchmark.baselines import (
     FixedNoisePolicy,
     adapt_dp_noise,
@@ -25,6 +24,7 @@ from lerobot_pdp.benchmark.baselines import (
     finetune_bc,
 )
 from lerobot_pdp.envs.recording import make_dataset
+from lerobot_pdp.episodes import read_episodes
 
 KEYS = ["observation.state", "observation.environment_state", "action"]
 

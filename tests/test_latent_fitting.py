@@ -7,9 +7,9 @@ import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.chunk_windows import episode_windows
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
+from lerobot_pdp.episodes import read_episodes
 from lerobot_pdp.fast_inference import FrozenDenoiser
 from lerobot_pdp.latent_fitting import (
     _spread_steps,

@@ -13,8 +13,8 @@ from lerobot.utils.constants import ACTION
 from policies import small_policy, training_batch
 
 from lerobot_pdp import PDPPolicy
-from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.demonstration import read_demonstration
+from lerobot_pdp.episodes import read_episodes
 
 
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):

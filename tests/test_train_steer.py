@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_pdp.behavior import read_episodes
 from lerobot_pdp.benchmark.rollouts import run_rollouts
 from lerobot_pdp.benchmark.training import load_policy
 from lerobot_pdp.envs import get_suite_env
 from lerobot_pdp.envs.suite import parse_task_mode
+from lerobot_pdp.episodes import read_episodes
 
 pytestmark = pytest.mark.slow
 
