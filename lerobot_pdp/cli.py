@@ -938,7 +938,10 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lerobot-pdp", description="Parameterized Diffusion Policy tools beside LeRobot's CLIs: datasets, benchmark, steering, adaptation, teaching", allow_abbrev=False)
+    parser = argparse.ArgumentParser(
+        prog="lerobot-pdp", allow_abbrev=False,
+        description="Parameterized Diffusion Policy tools beside LeRobot's CLIs: datasets, benchmark, steering, "
+                    "adaptation, teaching")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
         add(sub)
