@@ -82,7 +82,8 @@ def main() -> None:
         _emit({"bench": "fit_latent_ratio", "steps": steps,
                "autograd_over_auto": statistics.median(ts["autograd"]) / statistics.median(ts["auto"]),
                "report_share": 1 - statistics.median(ts["auto_no_report"]) / statistics.median(ts["auto"]),
-               "target_100ms_met": steps != 10 or 1000 * statistics.median(ts["auto"]) <= 100})
+               # the target is of 10 steps: a 100-step line says nothing of it
+               **({"target_100ms_met": 1000 * statistics.median(ts["auto"]) <= 100} if steps == 10 else {})})
     # the optional noise-per-chunk adaptation (fit_latent(noise="chunks")): the default fit plus one noise per
     # executed chunk fitted through the sampler (fit_noise_steps chains of 32 windows), next to the fit alone
     ts = {"z": [], "z_and_noise": []}
