@@ -404,7 +404,8 @@ def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
         (["--waypoints", str(outside)], rf"{outside}: way-point 1 \[0.0, 0.0, 1.5\] lies outside reach-around's workspace"),
         (["--waypoints", str(flat)], rf"{flat}: reach-around way-points are points of 3 coordinates"),
         (["--waypoints", str(tmp_path / "none.json")], "way-point file .*none.json does not exist"),
-        (["--waypoints", "scene"], "waypoints='scene' but the scene has no 'waypoints'"),
+        (["--waypoints", "scene"], r"waypoints='scene' but the scene has no 'waypoints' \(the shipped reach-around "
+                                   r"scenes with way-points: 3, val3, val4; or give them in a JSON/YAML file\)"),
         (["--waypoints", "scene", "--scene", "3", "--radius", "0"], "--radius must be a finite number > 0"),
         (["--budget", "0"], "--budget must be >= 1, got 0"),
         (["--history", str(tmp_path / "nodir" / "h.json")], r"--history .*h.json: folder .*nodir does not exist"),

@@ -24,7 +24,7 @@ import numpy as np
 from ..atomic import staging_dir
 from ..cpu_priority import keep_cpu_scheduling
 from .camera import DEFAULT_IMAGE_SIZE, parse_image_size
-from .scene import VALIDATION_SCENE, Scene, SceneError, load_scene, read_scene_file
+from .scene import VALIDATION_SCENE, Scene, SceneError, load_scene, read_scene_file, scenes_with_waypoints
 from .suite import NOVEL, SuiteEnv, get_suite_env
 
 META_FILE = "pdp_suite.json"  # extra file in meta/: which env/scene generated the dataset (for plotting)
@@ -60,7 +60,9 @@ def resolve_waypoints(waypoints: Any, scene: Any, suite: SuiteEnv) -> np.ndarray
     if isinstance(waypoints, str) and waypoints == "scene":
         sc = load_scene(scene, suite.scene_key)
         if sc.waypoints is None:
-            raise SceneError(f"{sc.source}: waypoints='scene' but the scene has no 'waypoints'")
+            raise SceneError(f"{sc.source}: waypoints='scene' but the scene has no 'waypoints' (the shipped "
+                             f"{suite.name} scenes with way-points: {', '.join(scenes_with_waypoints(suite.scene_key))};"
+                             " or give them in a JSON/YAML file)")
         return np.asarray(sc.waypoints, dtype=float)
     if isinstance(waypoints, (str, Path)):
         path = Path(waypoints)

@@ -251,6 +251,13 @@ def scene_indices(env_name: str) -> list[int]:
     return sorted(int(n[5:]) for n in _shipped_names(env_name) if n.startswith("scene") and n[5:].isdigit())
 
 
+def scenes_with_waypoints(env_name: str) -> list[str]:
+    """The shipped scenes of ``env_name`` that carry way-points, as ``--scene`` names them (``"3"``, ``"val3"``)."""
+    names = [n for n in _shipped_names(env_name) if "waypoints" in json.loads(shipped_scene_path(env_name, n).read_text())]
+    named = sorted((n for n in names if VALIDATION_SCENE.match(n)), key=lambda n: int(n[3:]))
+    return sorted((n[5:] for n in names if n.startswith("scene")), key=int) + named
+
+
 def _shipped_names(env_name: str) -> list[str]:
     folder = resources.files("lerobot_pdp.envs") / "scenes"
     prefix = f"{env_name}_"
