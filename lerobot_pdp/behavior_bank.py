@@ -37,6 +37,7 @@ from torch import Tensor, nn
 
 from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
 from .configuration_pdp import PDPConfig
+from .console import latent_text
 from .distributed import (
     agree_across_ranks,
     release_process_group_at_exit,
@@ -361,7 +362,7 @@ class BehaviorBank(nn.Module):
         if far is not None:
             logger.warning("set_latent: latent %s is %.1f spreads of the training latents from the nearest one "
                            "(warning above %g; spread = their RMS standard deviation per dim, %.3g): the policy "
-                           "was never trained there and may act erratically", z.tolist(), far[0],
+                           "was never trained there and may act erratically", latent_text(z), far[0],
                            FAR_LATENT_SPREADS, far[1])
 
     # ------------------------------------------------------------------ modes

@@ -40,6 +40,7 @@ from .checkpoint_files import (
     read_weight_shapes,
 )
 from .configuration_pdp import apply_legacy_defaults
+from .console import latent_text
 from .lerobot_command import given_policy_fields
 from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, write_taught_demos, write_teachings
 
@@ -403,7 +404,7 @@ def apply_adaptation(policy: Any, pretrained: str | Path, **hub: Any) -> None:
         tensors, info = adaptation
         policy.steering.load_state_tensors(tensors, info)
         logger.info("adapted checkpoint %s: latent %s, %d chunk noise(s) (%s)", pretrained,
-                    tensors["latent"].tolist(), len(tensors.get("noise", ())), info.get("source", "?"))
+                    latent_text(tensors["latent"]), len(tensors.get("noise", ())), info.get("source", "?"))
 
 
 def read_adaptation(pretrained: str | Path, **hub: Any) -> tuple[dict[str, Tensor], dict] | None:

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lerobot_pdp.checkpoint_files import require_checkpoint_files, require_new_folder
+from lerobot_pdp.console import latent_text
 from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
@@ -331,7 +332,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     info = json.loads((out / "adaptation.json").read_text())
     sizes = {p.name: p.stat().st_size for p in sorted(out.glob("adaptation.*"))}
     ratio = info.get("error_ratio")
-    print(f"wrote {out}: latent {info['latent']}, {info['noise_chunks']} chunk noise(s), error ratio "
+    print(f"wrote {out}: latent {latent_text(info['latent'])}, {info['noise_chunks']} chunk noise(s), error ratio "
           f"{'n/a' if ratio is None else f'{ratio:.2f}'}{' (of the latent alone)' if info['noise_chunks'] else ''}; "
           f"adaptation files {sizes} bytes")
     return 0
@@ -445,7 +446,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         raise
     if args.history is not None:
         write_text_atomic(args.history, json.dumps(res.to_dict(), indent=1))
-    print(f"{'interrupted: ' if res.interrupted else ''}best latent {res.latent.tolist()}: score {res.score:.3g}, "
+    print(f"{'interrupted: ' if res.interrupted else ''}best latent {latent_text(res.latent)}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
     if not res.interrupted and all(c.generation == 0 for c in res.history):
@@ -548,7 +549,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
                                      steps=args.steps, lr=args.lr, demo_share=args.demo_share, seed=args.seed,
                                      latent=args.latent, device=args.device)
         for old, res in done:
-            print(f"mode {old} of {args.taught_from} -> mode {res.mode}, latent {res.z.tolist()}, {res.steps} steps in "
+            print(f"mode {old} of {args.taught_from} -> mode {res.mode}, latent {latent_text(res.z)}, {res.steps} steps in "
                   f"{res.seconds:.0f} s")
         ids = ", ".join(str(res.mode) for _, res in done)
         print(f"wrote {out}: {len(done)} taught mode(s), {ids}; steer with --policy.steer_mode=<one of them>")
@@ -558,7 +559,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
                                        demo_share=args.demo_share, seed=args.seed, names=args.name,
                                        latent=args.latent, device=args.device)
     for ep, res in zip(args.episode, done, strict=True):
-        print(f"{'episode ' + str(ep) + ': ' if len(done) > 1 else ''}mode {res.mode}, latent {res.z.tolist()} "
+        print(f"{'episode ' + str(ep) + ': ' if len(done) > 1 else ''}mode {res.mode}, latent {latent_text(res.z)} "
               f"({res.nearest_spreads:.1f} spreads from the nearest training latent), {res.steps} steps in "
               f"{res.seconds:.0f} s")
     print("(a spread: the training latents' RMS standard deviation per dim; a new route sharing most of its path "
@@ -947,11 +948,30 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub)
     for command in sub.choices.values():  # a mistyped flag (--step for --steps) is an error, not taken as a prefix
         command.allow_abbrev = False
+        command.set_defaults(_parser=command)  # an unknown flag is named by its subcommand (see main)
     return parser
 
 
+def _unknown_arguments(parser: argparse.ArgumentParser, extra: list[str]) -> None:
+    """Exit naming the subcommand's usage and, for a mistyped flag, the nearest it has (argparse names the
+    top-level usage instead, which lists no flag)."""
+    import difflib
+
+    flags = [f for action in parser._actions for f in action.option_strings if f.startswith("--")]
+
+    def nearest(given: str) -> str | None:
+        stem = [f for f in flags if f.startswith(given) or given.startswith(f)]  # --episodes: --episodes-per-mode
+        return (stem or difflib.get_close_matches(given, flags, n=1, cutoff=0.75) or [None])[0]
+
+    given = [x.partition("=")[0] for x in extra if x.startswith("--")]
+    hints = [f"{x}: did you mean {near}?" for x in given if (near := nearest(x)) is not None]
+    parser.error(f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(hints)})" if hints else ""))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args, extra = build_parser().parse_known_args(argv)
+    if extra:
+        _unknown_arguments(args._parser, extra)
     try:
         return int(args.func(args) or 0)
     except (ValueError, KeyError, OSError, RuntimeError) as e:

@@ -1,4 +1,5 @@
-"""A clean console: LeRobot's torchcodec fallback warning in one line when FFmpeg is simply not installed.
+"""A clean console: LeRobot's torchcodec fallback warning in one line when FFmpeg is simply not installed, and
+latents printed at a readable precision (:func:`latent_text`).
 
 LeRobot picks its default video decoder in ``lerobot.utils.import_utils.get_safe_default_video_backend``: it
 imports torchcodec and, when that fails, logs ``f"{e}\\n'torchcodec' is installed but cannot be loaded ..."``
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import re
+from typing import Any
 
 LOGGER_NAME = "lerobot.utils.import_utils"
 MARKER = "'torchcodec' is installed but cannot be loaded"
@@ -74,3 +76,13 @@ def install() -> None:
     logger = logging.getLogger(LOGGER_NAME)
     if not any(isinstance(f, TorchcodecFallbackFilter) for f in logger.filters):
         logger.addFilter(TorchcodecFallbackFilter())
+
+
+def latent_text(z: Any, digits: int = 4) -> str:
+    """A latent (tensor, array or nested list) as the console shows it: each value rounded to ``digits`` decimals,
+    the nesting kept (``[[1.3871, -0.8325]]`` for one phase latent). Files keep full precision; this is for reading."""
+    def rounded(v: Any) -> Any:
+        return [rounded(x) for x in v] if isinstance(v, (list, tuple)) else round(float(v), digits)
+
+    return str(rounded(z.tolist() if hasattr(z, "tolist") else z))
+

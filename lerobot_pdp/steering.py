@@ -39,6 +39,7 @@ from typing import Any
 import torch
 
 from .adaptation import fit_provenance
+from .console import latent_text
 from .latent_fitting import cancellable
 from .lerobot_command import rollout_with_rtc
 from .realtime_chunking import RTC_ENGINE, RTC_WAY_OUT
@@ -110,7 +111,7 @@ def apply_config_steering(policy: Any) -> None:
                            f"modes are {_known_modes(means)}")
         policy.steering.activate(means[mode], provenance={"source": "mode", "mode": mode})
         name = means.names.get(mode)
-        logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", means[mode].tolist())
+        logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", latent_text(means[mode]))
     elif cfg.steer_dataset_root is not None:
         episode = (cfg.steer_dataset_root, int(cfg.steer_episode_index))
         refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)
@@ -121,7 +122,7 @@ def apply_config_steering(policy: Any) -> None:
         noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
         logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s: its error on the demonstration "
                     "over the training demonstrations' at their own latents; steering is at risk from %g)", noises,
-                    cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, res.z.tolist(),
+                    cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, latent_text(res.z),
                     "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
 
@@ -281,8 +282,7 @@ class SteerFile:
             logger.error("steering file %s: %s; keeping the current latent%s", self.path, e,
                          " (the fit still running stays)" if pending is not None else "")
             return changed
-        logger.info("steering file %s: %s -> latent %s", self.path, request,
-                    z.tolist() if hasattr(z, "tolist") else z)
+        logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))
         return True
 
     def _checked(self, policy: Any, apply: Callable[[], Any]) -> Any:
@@ -317,7 +317,7 @@ class SteerFile:
             logger.error("steering file %s: %s; keeping the current latent", self.path, e)
             return False
         logger.info("steering file %s: latent %s fitted to %s episode %d in %.1f s, active from this chunk",
-                    self.path, result.z.tolist(), fit.root, fit.episode, fit.seconds)
+                    self.path, latent_text(result.z), fit.root, fit.episode, fit.seconds)
         return True
 
 

@@ -23,6 +23,7 @@ from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
 from .configuration_pdp import PDPConfig
+from .console import latent_text
 from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
 from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, tensors_to_demos
@@ -204,7 +205,7 @@ def _card_section(info: dict) -> str:
     records = [*info.get("earlier_teachings", []), info]
     learned = ("one demonstration as a new mode" if len(records) == 1
                else f"{len(records)} demonstrations, a new mode each (each teaching rehearsing the ones before)")
-    modes = "".join(f"- mode {r['mode']} ({r['mode_name']}), latent `{r['latent']}`: {_demo_source(r['demonstration'])},"
+    modes = "".join(f"- mode {r['mode']} ({r['mode_name']}), latent `{latent_text(r['latent'])}`: {_demo_source(r['demonstration'])},"
                     f" {r['settings']['steps']} fine-tuning steps ({r['date']})\n" for r in records)
     return (f"## Taught mode\n\nThis checkpoint learned {learned}: its denoiser was fine-tuned with rehearsal of the "
             f"training data, the encoder kept as trained.\n\n{modes}\nSteer to one with "

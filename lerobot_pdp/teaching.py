@@ -40,6 +40,7 @@ from .adaptation import demonstration_traces, encode_demonstration
 from .behavior import UNLABELED, read_training_behaviors, training_behavior_keys
 from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
+from .console import latent_text
 from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
 from .episodes import read_episode_frames, read_episodes
@@ -166,7 +167,7 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     data = prepared.root if prepared is not None else Path(training_data)
     model.bank.teachings[mode] = teaching_record(policy, episode, data, result, name)  # saved as teaching.json
     logger.info("taught mode %d (%s) in %.1f s: latent %s, %.1f spreads from the nearest training latent; L_DP "
-                "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, z_new.tolist(), nearest,
+                "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, latent_text(z_new), nearest,
                 _mean(losses[:20]), _mean(losses[-20:]))
     return result
 

@@ -124,3 +124,20 @@ def test_only_lerobots_commands_get_the_hook(script, hooked):
             "print(getattr(sys.excepthook, 'pdp_errors', False))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.stdout.strip().splitlines()[-1] == str(hooked), proc.stderr[-2000:]
+
+
+def test_a_mistyped_lerobot_pdp_flag_is_named_with_its_subcommand_and_the_nearest_flag(capsys):
+    """argparse names an unknown flag under the top-level usage, which lists no flag of the subcommand: the subcommand
+    says it, with its usage, and the flag meant when one is near (a prefix either way, or a close spelling)."""
+    from lerobot_pdp.cli import main
+
+    for argv, said in ((["adapt", "ckpt", "--demo", "d", "--out", "o", "--step", "5"],
+                        "lerobot-pdp adapt: error: unrecognized arguments: --step 5 (--step: did you mean --steps?)"),
+                       (["make-dataset", "--env", "reach-around", "--out", "o", "--episodes=3"],
+                        "(--episodes: did you mean --episodes-per-mode?)"),
+                       (["steer", "s.json", "--mode", "2", "--checkpoint", "c"],
+                        "lerobot-pdp steer: error: unrecognized arguments: --checkpoint c\n")):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        err = capsys.readouterr().err
+        assert done.value.code == 2 and said in err and f"usage: lerobot-pdp {argv[0]}" in err, err

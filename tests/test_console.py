@@ -140,3 +140,15 @@ def test_real_message_from_this_machine():
     if not importlib.util.find_spec("torchcodec"):
         return  # LeRobot's own one-line "not available" message
     assert len(seen) == 1 and "\n" not in seen[0].getMessage(), [r.getMessage()[:300] for r in seen]
+
+
+def test_latents_print_at_a_readable_precision():
+    """Logs and CLI lines show a latent rounded (files keep it whole): one phase latent keeps its nesting."""
+    import numpy as np
+    import torch
+
+    from lerobot_pdp.console import latent_text
+
+    assert latent_text(torch.tensor([[1.3870640993118286, -0.8325331807136536]])) == "[[1.3871, -0.8325]]"
+    assert latent_text(np.array([0.1, 2])) == "[0.1, 2.0]"
+    assert latent_text([1e6, -3.00004]) == "[1000000.0, -3.0]"

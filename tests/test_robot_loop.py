@@ -25,6 +25,7 @@ from lerobot.robots.utils import make_robot_from_config
 from policies import small_policy
 
 from lerobot_pdp import PDPConfig, PDPPolicy
+from lerobot_pdp.console import latent_text
 from lerobot_pdp.robots import PDPSimConfig
 from lerobot_pdp.robots.rollout_hooks import check_policy_inputs
 from lerobot_pdp.steering import SteerFile, apply_steering, write_steering
@@ -701,7 +702,7 @@ def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(
                     "--env.scene=0", "--policy.device=cpu", "--eval.n_episodes=1", "--eval.batch_size=1",
                     f"--output_dir={out}"], timeout=600)
     log = proc.stdout + proc.stderr
-    assert f"adapted checkpoint {adapted}: latent {latent}" in log and "fitted latent" not in log
+    assert f"adapted checkpoint {adapted}: latent {latent_text(latent)}" in log and "fitted latent" not in log
     assert json.loads(next(out.rglob("eval_info.json")).read_text())["overall"]["n_episodes"] == 1
     base = run_cli([lerobot_cli("lerobot-eval"), f"--policy.path={adapted}", "--policy.use_adaptation=false",
                     "--env.type=pdp_reach_around", "--env.scene=0", "--policy.device=cpu", "--eval.n_episodes=1",
@@ -714,7 +715,7 @@ def test_an_adapted_checkpoint_acts_adapted_in_lerobot_eval_and_lerobot_rollout(
                        "--robot.episodes=1", f"--robot.outcomes={outcomes}", f"--robot.calibration_dir={tmp_path / 'cal'}",
                        "--fps=50", "--duration=30", "--return_to_initial_position=false", "--play_sounds=false"],
                       timeout=300, env={**CLI_ENV, "HF_LEROBOT_HOME": str(tmp_path / "home")})
-    assert f"adapted checkpoint {adapted}: latent {latent}" in rollout.stdout + rollout.stderr
+    assert f"adapted checkpoint {adapted}: latent {latent_text(latent)}" in rollout.stdout + rollout.stderr
     assert len(_outcomes(outcomes)) == 1
 
 
@@ -743,7 +744,7 @@ def test_a_taught_checkpoint_steers_to_its_new_mode_in_lerobot_eval(untrained_re
     assert json.loads(next(out.rglob("eval_info.json")).read_text())["overall"]["n_episodes"] == 1
     policy = PDPPolicy.from_pretrained(taught)
     # lerobot-eval acted under the taught mode's latent, read from the taught checkpoint
-    assert f"steered to mode 8 (val3 route): latent {policy.mode_latents()[8].tolist()}" in proc.stdout + proc.stderr
+    assert f"steered to mode 8 (val3 route): latent {latent_text(policy.mode_latents()[8])}" in proc.stdout + proc.stderr
     base = PDPPolicy.from_pretrained(ckpt)
     for m, z in base.mode_latents().items():
         torch.testing.assert_close(policy.mode_latents()[m], z, rtol=0, atol=1e-6)
