@@ -80,9 +80,12 @@ def install() -> None:
 
 def latent_text(z: Any, digits: int = 4) -> str:
     """A latent (tensor, array or nested list) as the console shows it: each value rounded to ``digits`` decimals,
-    the nesting kept (``[[1.3871, -0.8325]]`` for one phase latent). Files keep full precision; this is for reading."""
+    the nesting kept (``[[1.3871, -0.8325]]`` for one phase latent); anything else (None: the default latent) as it
+    is. Files keep full precision; this is for reading."""
     def rounded(v: Any) -> Any:
-        return [rounded(x) for x in v] if isinstance(v, (list, tuple)) else round(float(v), digits)
+        if isinstance(v, (list, tuple)):
+            return [rounded(x) for x in v]
+        return round(float(v), digits) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
 
     return str(rounded(z.tolist() if hasattr(z, "tolist") else z))
 
