@@ -330,11 +330,11 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     out = adapt_checkpoint(args.checkpoint, (args.demo, args.episode), args.out, noise=args.noise, steps=args.steps,
                            lr=args.lr, seed=args.seed, device=args.device)
     info = json.loads((out / "adaptation.json").read_text())
-    sizes = {p.name: p.stat().st_size for p in sorted(out.glob("adaptation.*"))}
+    sizes = ", ".join(f"{p.name} ({p.stat().st_size / 1000:.1f} kB)" for p in sorted(out.glob("adaptation.*")))
     ratio = info.get("error_ratio")
     print(f"wrote {out}: latent {latent_text(info['latent'])}, {info['noise_chunks']} chunk noise(s), error ratio "
           f"{'n/a' if ratio is None else f'{ratio:.2f}'}{' (of the latent alone)' if info['noise_chunks'] else ''}; "
-          f"adaptation files {sizes} bytes")
+          f"adaptation files {sizes}")
     return 0
 
 

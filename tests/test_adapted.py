@@ -6,6 +6,7 @@ from __future__ import annotations
 import filecmp
 import json
 import logging
+import re
 import shutil
 
 import pytest
@@ -157,7 +158,7 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--episode", "2", "--steps", "2",
                 "--noise", "chunks", "--out", str(out)]) == 0
     cli_out = capsys.readouterr().out
-    assert "adaptation files" in cli_out
+    assert re.search(r"adaptation files adaptation\.json \(\d+\.\d kB\), adaptation\.safetensors \(\d+\.\d kB\)", cli_out)
     assert bars[-2:] == ["fit_latent", f"fit {info_noises(out)} chunk noises"], bars
     for f in base.iterdir():  # every file of the base, the weights bit for bit
         assert filecmp.cmp(f, out / f.name, shallow=False) or f.name == "README.md", f.name
