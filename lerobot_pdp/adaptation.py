@@ -81,7 +81,8 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
     if init == "zero":
         return torch.zeros(n, d)
     raise ValueError(f"init must be one of {', '.join(map(repr, INITS))} or a latent (a tensor, array or list), got {init!r}"
-                     + (f"; a mode's latent: init=policy.mode_latents()[{init!r}]" if isinstance(init, str) else ""))
+                     + (f"; a mode's latent: init=policy.mode_latents()[{init!r}]"
+                        if init in (config.mode_names or {}).values() else ""))
 
 
 def fit_to_demonstration(model: PDPModel, config: PDPConfig, demo: Demonstration, windows: DemoWindows,

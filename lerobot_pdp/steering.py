@@ -97,6 +97,12 @@ def apply_config_steering(policy: Any) -> None:
     ``lerobot-rollout``: ``steer_latent``, else ``steer_mode`` (that mode's mean latent), else
     ``steer_dataset_root`` + ``steer_episode_index`` (a fit to that episode, run now, not in the control loop)."""
     cfg = policy.config
+    given = [f"{name}={value}" for name, value in (("steer_latent", cfg.steer_latent), ("steer_mode", cfg.steer_mode),
+                                                  ("steer_dataset_root", cfg.steer_dataset_root)) if value is not None]
+    if len(given) > 1:  # one wins by this order; a flag left over from an earlier command must not pass unseen
+        logger.warning("steering: %s given together; %s wins (steer_latent, then steer_mode, then a fit to "
+                       "steer_dataset_root), %s ignored", ", ".join(given), given[0].partition("=")[0],
+                       ", ".join(g.partition("=")[0] for g in given[1:]))
     if cfg.steer_latent is not None:
         policy.set_latent(torch.tensor(cfg.steer_latent, dtype=torch.float32))
         logger.info("steered by steer_latent: latent %s", cfg.steer_latent)
@@ -187,7 +193,8 @@ def _mode_id(policy: Any, mode: Any) -> int:
             raise KeyError(f"steering: mode name {mode!r} names modes {ids}; steer by mode id")
         if ids:
             return ids[0]
-        raise KeyError(f"steering: unknown mode name {mode!r}; the checkpoint's modes are {names or 'unnamed'}")
+        known = ", ".join(f"{k} ({v})" for k, v in sorted(names.items(), key=lambda kv: int(kv[0]))) or "unnamed"
+        raise KeyError(f"steering: unknown mode name {mode!r}; the checkpoint's modes are {known}")
     raise ValueError(f"steering: mode must be a mode id or name, got {mode!r}")
 
 
@@ -240,7 +247,18 @@ class SteerFile:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        if self.path.is_dir():  # read at every chunk: refused now, not as a crash of the control loop's first chunk
+            raise ValueError(f"steer_file {self.path} is a folder: give the file `lerobot-pdp steer` writes, e.g. "
+                             f"{self.path / 'steer.json'}")
+        if not self.path.parent.is_dir():
+            logger.warning("steer_file %s: folder %s does not exist, so no request can reach the policy (`lerobot-pdp "
+                           "steer` refuses that path too); create it, or fix the path", self.path, self.path.parent)
+        else:
+            logger.info("steering file %s: read at each new chunk (`lerobot-pdp steer %s ...` writes it)", self.path,
+                        self.path)
         self._seen: tuple[tuple[int, int, int], bytes] | None = None
+        self._polled = False  # a bad request the file holds at the first poll is an error, as a bad steer_mode is
+        self._read_error: str | None = None  # said once, not at every chunk
         self.fit: BackgroundFit | None = None  # the fit of the newest request, while it is not applied
         # raises ValueError for a steering state the running engine cannot act under (realtime_chunking.py): the
         # request is then refused like a bad one, and the previous state kept
@@ -254,11 +272,18 @@ class SteerFile:
         """Apply the file's request if the file changed since the last poll, and a background fit that has
         finished; True when the latent changed."""
         changed = self._finish_fit(policy)
+        first, self._polled = not self._polled, True
         try:
             st = os.stat(self.path)
             content = self.path.read_bytes()
         except FileNotFoundError:
             return changed
+        except OSError as e:  # a folder or an unreadable file where the file was: the robot keeps its latent
+            if str(e) != self._read_error:
+                logger.error("steering file %s cannot be read (%s); keeping the current latent", self.path, e)
+                self._read_error = str(e)
+            return changed
+        self._read_error = None
         seen = ((st.st_mtime_ns, st.st_size, st.st_ino), content)
         if seen == self._seen:
             return changed
@@ -278,8 +303,11 @@ class SteerFile:
             if pending is not None:
                 pending.cancel()
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
+            said = e.args[0] if isinstance(e, KeyError) and e.args else e  # a KeyError's str() is its repr
+            if first:  # there before the first action: nothing to keep, refused as a bad --policy.steer_mode is
+                raise ValueError(f"steering file {self.path} (there when the policy started): {said}") from e
             self.fit = pending  # a refused request supersedes nothing: the last good one's fit goes on
-            logger.error("steering file %s: %s; keeping the current latent%s", self.path, e,
+            logger.error("steering file %s: %s; keeping the current latent%s", self.path, said,
                          " (the fit still running stays)" if pending is not None else "")
             return changed
         logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))

@@ -195,6 +195,8 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
         policy.fit_latent((synthetic_dataset, 0), steps=0, init="3")
     with pytest.raises(ValueError, match=re.escape("a mode's latent: init=policy.mode_latents()['left-wide']")):
         policy.fit_latent((synthetic_dataset, 0), steps=0, init="left-wide")
+    with pytest.raises(ValueError, match=r"init must be one of 'encoder', 'random', 'zero' or a latent .*got 'encodr'$"):
+        policy.fit_latent((synthetic_dataset, 0), steps=0, init="encodr")  # a typo: no mode hint
     for episode in (synthetic_dataset, [str(synthetic_dataset), 0]):  # a folder alone, a list: the tuple it takes
         with pytest.raises(TypeError, match=re.escape(f"one episode of a recording is the tuple "
                                                       f"({str(synthetic_dataset)!r}, <episode index>)")):

@@ -8,6 +8,7 @@ an untrained reach-around PDP: they check the plumbing, not the behavior. The sl
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -409,6 +410,58 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     write_steering(steer, {"latent": None})  # back to the default latent
     next_chunk()
     assert len(p.active_latent) == 0
+
+
+def test_a_steering_file_that_cannot_work_is_said_before_the_robot_acts(synthetic_meta, tmp_path, caplog):
+    """A folder given as the steering file is refused at load (it crashed the first chunk); a file in a folder that
+    does not exist is warned of (no request could ever reach the policy); a bad request the file holds when the
+    policy starts is an error, as a bad --policy.steer_mode is (there is no latent to keep); a file that cannot be
+    read later leaves the latent, said once."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    with pytest.raises(ValueError, match=rf"steer_file {tmp_path} is a folder: give the file `lerobot-pdp steer` "
+                                         rf"writes, e.g. {tmp_path / 'steer.json'}"):
+        small_policy(synthetic_meta, steer_file=str(tmp_path))
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+        small_policy(synthetic_meta, steer_file=str(tmp_path / "nodir" / "steer.json"))
+    assert f"folder {tmp_path / 'nodir'} does not exist, so no request can reach the policy" in caplog.text
+
+    steer = tmp_path / "steer.json"
+    steer.write_text('{"mode": "left-wid"}')
+    p = small_policy(synthetic_meta, steer_file=str(steer))
+    p.eval()
+    pre, _ = make_pre_post_processors(p.config, dataset_stats=synthetic_meta.stats)
+    batch = pre({"observation.state": torch.tensor([[0.0, -1.0]]),
+                 "observation.environment_state": torch.tensor([[0.0, 1.0]])})
+    with pytest.raises(ValueError, match=rf"steering file {steer} \(there when the policy started\): steering: unknown "
+                                         r"mode name 'left-wid'; the checkpoint's modes are 0 \("):
+        p.select_action(batch)
+    write_steering(steer, {"mode": 1})
+    p.reset()
+    p.select_action(batch)  # a good request: acted on
+    assert torch.allclose(p.active_latent[0], p.mode_latents()[1])
+    steer.unlink()
+    steer.mkdir()  # later unreadable: the latent stays, one error line for many chunks
+    caplog.clear()
+    for _ in range(3):
+        while len(p._queues["action"]):
+            p.select_action(batch)
+        p.select_action(batch)
+    assert torch.allclose(p.active_latent[0], p.mode_latents()[1])
+    assert caplog.text.count(f"steering file {steer} cannot be read") == 1
+
+
+def test_steering_flags_given_together_say_which_one_wins(synthetic_meta, caplog):
+    """steer_latent, steer_mode and steer_dataset_root left together (an old flag on the command line): one acts, by
+    the documented order, and a warning names the ones ignored (a start-up fit dropped silently before)."""
+    from lerobot_pdp.steering import apply_config_steering
+
+    p = small_policy(synthetic_meta, steer_mode=3, steer_latent=[0.1, 0.2])
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+        apply_config_steering(p)
+    assert p.active_latent[0].tolist() == pytest.approx([0.1, 0.2])
+    assert "steer_latent=[0.1, 0.2], steer_mode=3 given together; steer_latent wins" in caplog.text
+    assert "steer_mode ignored" in caplog.text
 
 
 def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_supersedes_it(synthetic_meta, tmp_path):
