@@ -209,7 +209,8 @@ def add_latent_map_parser(sub: argparse._SubParsersAction) -> None:
         "latent-map",
         help="draw a PDP checkpoint's latent space: its training behaviors by mode or discovered cluster",
         description="Scatter of every training behavior's latent, coloured by its mode label (or by the cluster "
-        "policy.discover_modes() finds when the data has no labels), and the behaviors' traces per mode.",
+        "policy.discover_modes() finds when the data has no labels), and the behaviors' traces per mode; an adapted "
+        "checkpoint's latent is marked with a diamond.",
     )
     p.add_argument("checkpoint", type=Path, help="a pretrained_model folder (config.json + model.safetensors)")
     p.add_argument("--out", required=True, type=Path, help="output PNG")

@@ -140,6 +140,12 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
                 # phases of one mode sit in different places, and their mean in none
                 ax.annotate(tag, xy[sel].mean(0), xytext=(5, 5), textcoords="offset points", fontsize=8,
                             ha="left", va="bottom", weight="bold")
+    active = policy.steering.latent.detach().cpu().numpy()  # an adapted checkpoint's (or set_latent's) latent
+    if len(active):
+        where = projection.to_map(active)
+        source = (policy.steering.provenance or {}).get("source", "set_latent")
+        ax.scatter(where[:, 0], where[:, 1], marker="D", s=70, color="white", edgecolor="k", lw=1.5, zorder=6,
+                   label=f"active latent ({source})")
     ax.set_xlabel(axes_label[0])
     ax.set_ylabel(axes_label[1])
     ax.set_title(f"latent map: {len(z)} behaviors" + (f" ({unlabelled} unlabelled, grey)" if unlabelled else "") +

@@ -337,6 +337,11 @@ def test_a_segmented_policys_map_labels_each_phase_beside_its_points():
         for t in labels:
             own = xy[drawn.groups == int(t.get_text())]
             assert np.linalg.norm(own - np.asarray(t.xy), axis=1).min() < 0.15 * span, t.get_text()
+        # an adapted checkpoint's map marks where its adaptation acts (one diamond per phase latent)
+        marks = [c for c in drawn.axes.collections if c.get_label().startswith("active latent")]
+        assert len(marks) == 1 and len(p.steering.latent) == 2
+        np.testing.assert_allclose(marks[0].get_offsets(), drawn.projection.to_map(p.steering.latent.numpy()),
+                                   rtol=1e-5)
     finally:
         plt.close(drawn.figure)
 
