@@ -134,9 +134,11 @@ def test_a_latent_the_denoiser_overflows_under_is_refused_before_it_acts(synthet
             p.set_latent(huge)
         torch.testing.assert_close(p.active_latent[0], good)
     steer = tmp_path / "steer.json"
+    live = SteerFile(steer)
+    assert not live.poll(p)  # the policy acts (no request yet); the next one is a live request
     steer.write_text('{"latent": [1e30, 1e30]}')
     with caplog.at_level(logging.ERROR):
-        assert not SteerFile(steer).poll(p)
+        assert not live.poll(p)
     assert "makes the denoiser overflow" in caplog.text and "keeping the current latent" in caplog.text
     torch.testing.assert_close(p.active_latent[0], good)
 
