@@ -34,6 +34,12 @@ LEGACY_DEFAULTS = {"timestep_spacing": "even", "use_clipped_model_output": True,
 LEGACY_ONLY_WITH = {"beta_end": ("beta_schedule", "linear")}
 
 
+def linear_beta_end(beta_end: float | None, num_train_timesteps: int) -> float:
+    """The "linear" schedule's last beta: ``beta_end``, or for None (a checkpoint saved before the field) the end
+    it was made with, 0.02 scaled by 100 / K."""
+    return 0.02 * 100 / num_train_timesteps if beta_end is None else beta_end
+
+
 @PreTrainedConfig.register_subclass("pdp")
 @dataclass
 class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
@@ -366,8 +372,7 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
             errors.append(f"embed_rec_reduction must be 'mean' or 'sum', got {self.embed_rec_reduction!r}")
         if self.beta_schedule not in ("squaredcos_cap_v2", "linear"):
             errors.append(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
-        end = 0.02 * 100 / self.num_train_timesteps if self.beta_end is None else self.beta_end
-        if not 0 < self.beta_start <= end < 1:
+        if not 0 < self.beta_start <= linear_beta_end(self.beta_end, self.num_train_timesteps) < 1:
             errors.append(f"beta_start and beta_end must satisfy 0 < beta_start <= beta_end < 1, "
                           f"got {self.beta_start} and {self.beta_end}")
         for name in ("beta_kl", "beta_geo", "fit_lambda", "async_execution_horizon"):

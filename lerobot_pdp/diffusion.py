@@ -28,7 +28,7 @@ class NoiseSchedule(nn.Module):
 
     def __init__(self, num_train_timesteps: int, beta_schedule: str = "squaredcos_cap_v2",
                  clip_sample: bool = True, clip_sample_range: float = 1.0, timestep_spacing: str = "even",
-                 use_clipped_model_output: bool = True, beta_start: float = 1e-4, beta_end: float | None = 0.02):
+                 use_clipped_model_output: bool = True, beta_start: float = 1e-4, beta_end: float = 0.02):
         super().__init__()
         if timestep_spacing not in TIMESTEP_SPACINGS:
             raise ValueError(f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {timestep_spacing!r}")
@@ -36,9 +36,8 @@ class NoiseSchedule(nn.Module):
         if beta_schedule == "squaredcos_cap_v2":
             f = [math.cos((t / K + 0.008) / 1.008 * math.pi / 2) ** 2 for t in range(K + 1)]
             betas = torch.tensor([min(1 - f[t + 1] / f[t], 0.999) for t in range(K)], dtype=torch.float64)
-        elif beta_schedule == "linear":  # diffusers' (LeRobot diffusion's); beta_end None: the legacy 0.02 * 100 / K
-            end = 0.02 * 100 / K if beta_end is None else beta_end
-            betas = torch.linspace(beta_start, end, K, dtype=torch.float64).clamp(max=0.999)
+        elif beta_schedule == "linear":  # diffusers' (LeRobot diffusion's)
+            betas = torch.linspace(beta_start, beta_end, K, dtype=torch.float64).clamp(max=0.999)
         else:
             raise ValueError(f"beta_schedule must be 'squaredcos_cap_v2' or 'linear', got {beta_schedule!r}")
         alphas_cumprod = torch.cumprod(1 - betas, dim=0)

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from .behavior import BehaviorTraces, TrajectoryVAE
 from .behavior_bank import BehaviorBank
-from .configuration_pdp import PDPConfig
+from .configuration_pdp import PDPConfig, linear_beta_end
 from .cuda_graphs import GraphCache, TrainGraphs
 from .denoiser import FiLMUnet1d
 from .diffusion import NoiseSchedule, diffusion_loss
@@ -111,7 +111,7 @@ class PDPModel(nn.Module):
         cfg = self.config
         self.noise_schedule = NoiseSchedule(cfg.num_train_timesteps, cfg.beta_schedule, cfg.clip_sample,
                                             cfg.clip_sample_range, timestep_spacing, use_clipped_model_output,
-                                            cfg.beta_start, cfg.beta_end)
+                                            cfg.beta_start, linear_beta_end(cfg.beta_end, cfg.num_train_timesteps))
         # captured (CUDA, see generate) and compiled (config.compile_model) samplers hold the step rule
         self.fast_denoiser = FastDenoiser(self.denoiser, cfg.num_train_timesteps)
         self._graphs = GraphCache()

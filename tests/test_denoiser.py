@@ -47,14 +47,17 @@ def test_unconditioned_ignores_z():
 @pytest.mark.numerics
 def test_linear_schedule_is_diffusers_linear():
     """"linear" is diffusers' (LeRobot diffusion's) schedule with the same beta_start / beta_end, so that DP and
-    PDP share the forward process; beta_end None is the scaled end "linear" checkpoints were saved with."""
+    PDP share the forward process; a config's beta_end None is the scaled end "linear" checkpoints were saved with."""
     from diffusers import DDIMScheduler
+
+    from lerobot_pdp.configuration_pdp import linear_beta_end
 
     for K, start, end in ((20, 1e-4, 0.02), (100, 1e-4, 0.02), (20, 5e-4, 0.05)):
         ref = DDIMScheduler(num_train_timesteps=K, beta_schedule="linear", beta_start=start, beta_end=end)
         ours = NoiseSchedule(K, "linear", beta_start=start, beta_end=end)
         torch.testing.assert_close(ours.alphas_cumprod, ref.alphas_cumprod, rtol=1e-6, atol=1e-6)
-    legacy = NoiseSchedule(20, "linear", beta_end=None)
+    assert linear_beta_end(None, 20) == pytest.approx(0.1) and linear_beta_end(0.03, 20) == 0.03
+    legacy = NoiseSchedule(20, "linear", beta_end=linear_beta_end(None, 20))
     expected = torch.cumprod(1 - torch.linspace(1e-4, 0.1, 20, dtype=torch.float64), 0).float()
     torch.testing.assert_close(legacy.alphas_cumprod, expected)
     with pytest.raises(ValueError, match="beta_schedule must be"):

@@ -34,7 +34,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
 from ..chunk_windows import window_indices
-from ..configuration_pdp import PDPConfig
+from ..configuration_pdp import PDPConfig, linear_beta_end
 from ..steering_state import ChunkNoises
 
 logger = logging.getLogger(__name__)
@@ -67,8 +67,8 @@ def dp_config_kwargs(pdp_like: Mapping[str, Any] | Any | None = None) -> dict[st
     out["down_dims"] = tuple(int(d) for d in out["down_dims"])
     if out["beta_schedule"] != "linear":  # the betas play no part: DP's command line stays as it was before them
         del out["beta_start"], out["beta_end"]
-    elif out["beta_end"] is None:  # a legacy "linear" PDP checkpoint's scaled end (PDPConfig.beta_end)
-        out["beta_end"] = 0.02 * 100 / out["num_train_timesteps"]
+    else:  # a legacy "linear" PDP checkpoint's beta_end None: its scaled end
+        out["beta_end"] = linear_beta_end(out["beta_end"], out["num_train_timesteps"])
     out.update(DP_FIXED)
     return out
 
