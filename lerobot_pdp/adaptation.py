@@ -31,6 +31,7 @@ from .latent_fitting import (
     select_code,
 )
 from .pdp_model import PDPModel
+from .steer_requests import mode_key
 from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
@@ -64,8 +65,7 @@ def initial_latent(model: PDPModel, config: PDPConfig, demo: Demonstration, init
                    seed: int | None) -> Tensor:
     """The warm start z0, [M, d_z] (one per segment)."""
     n, d = len(demo.segments), config.latent_dim
-    if isinstance(init, str) and init.strip().lstrip("-").isdigit():  # a mode id: its latent is meant
-        init = int(init)
+    init = mode_key(init)  # "3": mode id 3, whose latent is meant
     if not isinstance(init, (str, Tensor)):  # a list or an array (a mode id or name: named as such)
         init = as_latent_tensor(init)
     if isinstance(init, Tensor):

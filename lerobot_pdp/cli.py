@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 from lerobot_pdp.checkpoint_files import require_checkpoint_files, require_new_folder
 from lerobot_pdp.console import latent_text
 from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
+from lerobot_pdp.steer_requests import mode_key
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
     from lerobot_pdp.benchmark.settings import BenchmarkConfig
@@ -71,7 +72,7 @@ def _parse_modes(values: Sequence[str] | None) -> list[int | str] | None:
         for part in v.split(","):
             part = part.strip()
             if part:
-                out.append(int(part) if part.lstrip("-").isdigit() else part)
+                out.append(mode_key(part))
     return out
 
 
@@ -277,7 +278,7 @@ def cmd_steer(args: argparse.Namespace) -> int:
         raise ValueError("one request is needed: --mode ID|NAME, --latent Z..., --dataset DIR "
                          "(with --episode, --steps) or --default")
     elif args.mode is not None:
-        request = {"mode": int(args.mode) if args.mode.strip().lstrip("-").isdigit() else args.mode}
+        request = {"mode": mode_key(args.mode)}
     else:
         request = {"latent": None if args.default else args.latent}
     target = checkpoint_target(args.policy_path) if args.policy_path is not None else file_target(args.file)

@@ -38,6 +38,7 @@ from .checkpoint_files import read_config_json, require_checkpoint_files
 from .demonstration import check_recording, recording_info
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
+from .steer_requests import mode_key
 from .steering_state import Steering
 
 GRADIO_HINT = 'the explorer needs Gradio: pip install "lerobot_policy_pdp[explore]" (in a clone: pip install -e ".[explore]")'
@@ -349,7 +350,7 @@ class Explorer:
     def mode_key(self, mode: int | str) -> int | str:
         """A mode's id, given as an id or as a choice of :meth:`mode_choices` (``"2: right-wide"``)."""
         head = str(mode).split(":")[0].strip()
-        return int(head) if head.lstrip("-").isdigit() else mode
+        return head if isinstance(head := mode_key(head), int) else mode
 
     def mode_name(self, mode: int | str) -> str:
         key = self.mode_key(mode)

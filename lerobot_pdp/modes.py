@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .steer_requests import mode_key
+
 logger = logging.getLogger(__name__)
 
 # Default upper bound of k for the latents' search: half the episodes (a mode of one demonstration is not a
@@ -50,13 +52,15 @@ class ModeLatents(dict):
         self.discovered = discovered
 
     def __missing__(self, mode: object) -> Tensor:
-        # a one-element integer tensor or array (a cluster id read from a tensor) and a mode's name (as
-        # `lerobot-pdp steer --mode` takes it) find their mode too
+        # a one-element integer tensor or array (a cluster id read from a tensor), an id as typed ("3") and a
+        # mode's name (as `lerobot-pdp steer --mode` takes them) find their mode too
         if isinstance(mode, (Tensor, np.ndarray)) and (mode.numel() if isinstance(mode, Tensor) else mode.size) == 1:
             value = mode.item()
             if isinstance(value, int) and value in self:
                 return self[value]
         if isinstance(mode, str):
+            if isinstance(mode_key(mode), int) and mode_key(mode) in self:  # "3", as typed
+                return self[mode_key(mode)]
             named = [m for m, n in self.names.items() if n == mode and m in self]
             if len(named) == 1:
                 return self[named[0]]

@@ -21,6 +21,15 @@ from .episodes import check_recording, recording_info
 REQUEST_KEYS = ("mode", "latent", "dataset")
 
 
+def mode_key(mode: Any) -> Any:
+    """A mode as a user types it: a string of digits (``"3"``, ``" -1 "``) is the mode id it reads as, anything else
+    (a mode's name, an int) is returned as given. The one rule for every place a mode arrives as text: the steer
+    file, ``lerobot-pdp`` flags, ``--policy.steer_mode``, ``fit_latent(init=...)``, the explorer's choices."""
+    if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():
+        return int(mode)
+    return mode
+
+
 def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarget | None = None) -> None:
     """Validate ``request`` (its form; with ``expect``, also against the policy's latent size and modes; a
     recording to fit, its folder and episode, and with a checkpoint's ``expect`` its features and length) and write
@@ -135,8 +144,7 @@ def _check_latent(latent: Any, expect: SteerTarget | None) -> None:
 
 
 def _check_mode(mode: Any, expect: SteerTarget | None) -> None:
-    if isinstance(mode, str) and mode.strip().lstrip("-").isdigit():
-        mode = int(mode)
+    mode = mode_key(mode)
     if isinstance(mode, bool) or not isinstance(mode, (int, str)) or mode == "" or (isinstance(mode, int) and mode < 0):
         raise ValueError(f"steering: mode must be a mode id >= 0 or a mode name, got {mode!r}")
     if expect is None or expect.modes is None:

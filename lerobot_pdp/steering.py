@@ -50,6 +50,7 @@ from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks 
     checkpoint_target,
     file_target,
     fit_request,
+    mode_key,
     write_steering,
 )
 
@@ -185,7 +186,7 @@ def _mode_id(policy: Any, mode: Any) -> int:
     if isinstance(mode, int) and not isinstance(mode, bool):
         return mode
     if isinstance(mode, str):
-        if mode.strip().lstrip("-").isdigit():
+        if isinstance(mode_key(mode), int):  # "3"
             return int(mode)
         names = policy.config.mode_names or {}
         ids = [int(k) for k, name in names.items() if name == mode]

@@ -5,6 +5,8 @@ on avoiding's zero-mode validation scene (docs/experiments.md, "Teaching a new m
 route").
 """
 
+from .steer_requests import mode_key
+
 TEACH_STEPS = 3000
 TEACH_LR = 1e-4
 TEACH_DEMO_SHARE = 0.25
@@ -30,6 +32,6 @@ def check_teach_settings(steps: int, lr: float, demo_share: float, batch_size: i
 
 def check_mode_name(name: str | None) -> None:
     """A new mode's name must not read as a mode id: ``--policy.steer_mode=3`` steers to mode id 3."""
-    if name is not None and str(name).strip().lstrip("-").isdigit():
+    if name is not None and isinstance(mode_key(str(name)), int):
         raise ValueError(f"teach: mode name {name!r} reads as a mode id (--policy.steer_mode={str(name).strip()} "
                          "steers to the mode of that id); give a name with a letter in it")

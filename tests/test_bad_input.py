@@ -174,8 +174,24 @@ def test_an_unknown_mode_lists_the_modes(policy):
                                        r"2 \(right-tight\), 3 \(right-wide\)"):
         means[99]
     assert 99 not in means and means.get(99) is None  # still a dict: membership and get() do not raise
-    # a cluster id read from a tensor, and a mode's name (as `lerobot-pdp steer --mode` takes it), find their mode
+    # a cluster id read from a tensor, an id as typed and a mode's name (as `lerobot-pdp steer --mode` takes them)
+    # find their mode
     assert torch.equal(means[torch.tensor(1)], means[1]) and torch.equal(means["left-wide"], means[1])
+    assert torch.equal(means[" 1 "], means[1])
+    with pytest.raises(KeyError, match="no mode '99'"):
+        means["99"]
+
+
+@pytest.mark.parametrize("typed, key", [("3", 3), (" -1 ", -1), ("left-wide", "left-wide"), ("3a", "3a"), (2, 2),
+                                        ("", "")])
+def test_a_mode_typed_as_digits_is_its_id_everywhere(typed, key):
+    """One rule for a mode given as text (steer file, CLI flags, --policy.steer_mode, fit_latent's init)."""
+    from lerobot_pdp.cli import _parse_modes
+    from lerobot_pdp.steer_requests import mode_key
+
+    assert mode_key(typed) == key and type(mode_key(typed)) is type(key)
+    if isinstance(typed, str) and typed.strip():
+        assert _parse_modes([typed]) == [key]
 
 
 def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
