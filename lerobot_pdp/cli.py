@@ -253,7 +253,8 @@ def add_steer_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--mode", help="a training mode, by id or name")
     g.add_argument("--latent", type=float, nargs="+", help="a latent z (latent_dim values)")
     g.add_argument("--dataset", help="a recording (LeRobotDataset folder) to fit z to")
-    g.add_argument("--default", action="store_true", help="back to the policy's default latent")
+    g.add_argument("--default", action="store_true", help="back to the base policy's default latent "
+                   "(--policy.inference_latent; drops an adapted checkpoint's latent)")
     p.add_argument("--episode", type=int, default=None, help="episode of --dataset (default 0)")
     p.add_argument("--steps", type=int, default=None, help="fitting steps for --dataset (default: fit_steps)")
     p.add_argument("--policy-path", type=Path, default=None,

@@ -82,6 +82,10 @@ def dataset_message(argv: list[str]) -> str | None:
 def _hook(previous):
     def excepthook(kind: type[BaseException], error: BaseException, tb: TracebackType | None) -> None:
         quiet = os.environ.get(TRACEBACK_ENV) != "1"
+        if quiet and isinstance(error, KeyboardInterrupt) and getattr(error, "said_by_pdp", False):
+            prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+            print(f"{prog}: stopped: {error}", file=sys.stderr, flush=True)  # exit status still Ctrl-C's (130)
+            return
         ours = pdp_message(error, tb) if quiet else None
         said = (layout_message(error) or dataset_message(sys.argv)) if quiet and ours is None else None
         if said is not None:

@@ -28,10 +28,11 @@ def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[s
             hint = ""
             if key.startswith("observation.images.") and len(ft.shape) == 3:  # a camera checkpoint, an env without it
                 h, w = ft.shape[-2:]
-                hint = (f": the env must give this camera (lerobot_pdp's envs: --env.camera={key.rsplit('.', 1)[-1]} "
-                        f"--env.image_size={h if h == w else f'{h}x{w}'})")
-            raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has "
-                           f"{sorted(batch)}{hint}")
+                cams = ",".join(k.rsplit(".", 1)[-1] for k in features if k.startswith("observation.images."))
+                hint = (f": the env must give this camera (lerobot_pdp's envs: --env.camera={cams} "
+                        f"--env.image_size={h if h == w else f'{h}x{w}'}, every camera the policy was trained on)")
+            given = sorted(k for k in batch if k.startswith("observation."))  # not the pipeline's own entries
+            raise KeyError(f"PDP conditions on {key!r} {expected}, which the observation lacks; it has {given}{hint}")
         if not isinstance(x, Tensor):
             raise TypeError(f"observation {key!r} is a {type(x).__module__}.{type(x).__name__}; PDP takes torch "
                             f"tensors {expected}, as LeRobot's preprocessor gives them (make_pre_post_processors("

@@ -2,16 +2,26 @@
 
 PDP normalises like LeRobot's diffusion policy (min-max to [-1, 1] for states, env states and actions, mean-std
 for cameras), so the DDIM sampler's clipping range [-1, 1] matches the action range. The policy keeps a copy of the same
-statistics to normalise whole demonstrations in ``fit_latent``/``encode``.
+statistics to normalise whole demonstrations in ``fit_latent``/``encode``. One step of PDP's own comes first,
+:class:`CameraFrameCheck`: a camera frame in another layout than LeRobot's (uint8, channels last, 0-255, one channel)
+is refused by name before the normaliser, which would otherwise fail on it with a bare torch error or broadcast it.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
-from lerobot.processor import PolicyAction, PolicyProcessorPipeline, make_default_pre_post_processors
+from lerobot.processor import (
+    ObservationProcessorStep,
+    PolicyAction,
+    PolicyProcessorPipeline,
+    ProcessorStepRegistry,
+    make_default_pre_post_processors,
+)
 
 from .configuration_pdp import PDPConfig
 
@@ -30,4 +40,55 @@ def make_pdp_pre_post_processors(
         logger.warning("PDP processors built without dataset_stats do not normalise: the policy would act on raw "
                        "values. Load a checkpoint's with make_pre_post_processors(config, pretrained_path=<checkpoint>) "
                        "or pass dataset_stats=policy.stats.as_dict()")
-    return make_default_pre_post_processors(config, dataset_stats)
+    pre, post = make_default_pre_post_processors(config, dataset_stats)
+    cameras = {k: list(ft.shape) for k, ft in config.image_features.items()}
+    if cameras:  # after the rename (the policy's keys), before the normaliser
+        pre.steps.insert(1, CameraFrameCheck(cameras))
+    return pre, post
+
+
+# Camera frames reach the preprocessor as LeRobot gives them (env and robot paths alike): float, channels first, in
+# [0, 1]; a little slack for resampling and colour jitter
+FRAME_RANGE_SLACK = 1e-3
+
+
+@ProcessorStepRegistry.register(name="pdp_camera_frames")
+@dataclass
+class CameraFrameCheck(ObservationProcessorStep):
+    """Refuse a camera frame the policy would misread, naming its key, what it is and what is expected: an integer
+    frame (``uint8`` from a camera driver), channels last ``[H, W, C]``, other channels or size, values outside
+    [0, 1]. It changes nothing it lets through. ``cameras``: key -> ``[C, H, W]`` the policy was trained on."""
+
+    cameras: dict[str, list[int]] = field(default_factory=dict)
+
+    def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
+        for key, chw in self.cameras.items():
+            x = observation.get(key)
+            if isinstance(x, (torch.Tensor, np.ndarray)):  # missing keys and other types: the policy names them
+                check_camera_frame(key, x, chw)
+        return observation
+
+    def get_config(self) -> dict[str, Any]:
+        return {"cameras": self.cameras}
+
+    def transform_features(self, features: dict) -> dict:
+        return features
+
+
+def check_camera_frame(key: str, x: torch.Tensor | np.ndarray, chw: list[int]) -> None:
+    """One camera's frame(s) ``[..., C, H, W]`` against LeRobot's convention (float in [0, 1], channels first)."""
+    c, h, w = chw
+    fix = "torch.from_numpy(frame).permute(2, 0, 1).float() / 255 turns a uint8 [H, W, C] frame into one"
+    shape = list(x.shape)
+    if not (x.dtype.is_floating_point if isinstance(x, torch.Tensor) else np.issubdtype(x.dtype, np.floating)):
+        raise ValueError(f"camera {key!r} is {x.dtype} {shape}: PDP, as LeRobot's policies, takes float frames in "
+                         f"[0, 1], channels first [..., {c}, {h}, {w}] ({fix})")
+    if shape[-3:] != [c, h, w]:
+        layout = "channels last" if shape[-3:] == [h, w, c] else "another size or channel count"
+        raise ValueError(f"camera {key!r} has shape {shape} ({layout}); this policy expects [..., {c}, {h}, {w}] "
+                         f"(channels first, as its training dataset's frames; {fix})")
+    n = x.numel() if isinstance(x, torch.Tensor) else x.size
+    lo, hi = (float(x.min()), float(x.max())) if n else (0.0, 0.0)
+    if lo < -FRAME_RANGE_SLACK or hi > 1 + FRAME_RANGE_SLACK:
+        raise ValueError(f"camera {key!r} holds values in [{lo:.3g}, {hi:.3g}]; camera frames are float in [0, 1] "
+                         f"(0-255 values: divide by 255; {fix})")

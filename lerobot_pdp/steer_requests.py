@@ -166,6 +166,8 @@ def fit_request(request: dict[str, Any], base: str | Path | None = None) -> tupl
         root = Path(base) / root
     total = int(recording_info(root).get("total_episodes") or 0)  # the data files: the fit's own check
     episode = request.get("episode", 0)
+    if total == 0:
+        check_recording(root, episode, {})  # an empty recording: said as adapt and lerobot-rollout say it
     if not 0 <= episode < total:
         raise ValueError(f"steering: {root} holds {total} episode(s) (0-{total - 1}); no episode {episode}")
     return root, episode, request.get("steps")

@@ -30,6 +30,7 @@ import contextvars
 import json
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -40,7 +41,7 @@ import torch
 
 from .adaptation import fit_provenance
 from .console import latent_text
-from .latent_fitting import cancellable
+from .latent_fitting import FitCancelled, cancellable
 from .lerobot_command import rollout_with_rtc
 from .realtime_chunking import RTC_ENGINE, RTC_WAY_OUT
 from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks and writer live there)
@@ -96,8 +97,11 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
 def apply_config_steering(policy: Any) -> None:
     """Apply ``policy``'s config steering fields, the steering of a checkpoint loaded by ``lerobot-eval`` /
     ``lerobot-rollout``: ``steer_latent``, else ``steer_mode`` (that mode's mean latent), else
-    ``steer_dataset_root`` + ``steer_episode_index`` (a fit to that episode, run now, not in the control loop)."""
+    ``steer_dataset_root`` + ``steer_episode_index`` (a fit to that episode, run now, not in the control loop); then
+    a request already in ``steer_file`` (:meth:`SteerFile.start`)."""
     cfg = policy.config
+    # what the policy acts under once loaded, named when a steering file's `--default` request drops it
+    loaded = "the adapted checkpoint's latent" if len(policy.steering.latent) else None
     given = [f"{name}={value}" for name, value in (("steer_latent", cfg.steer_latent), ("steer_mode", cfg.steer_mode),
                                                   ("steer_dataset_root", cfg.steer_dataset_root)) if value is not None]
     if len(given) > 1:  # one wins by this order; a flag left over from an earlier command must not pass unseen
@@ -107,6 +111,7 @@ def apply_config_steering(policy: Any) -> None:
     if cfg.steer_latent is not None:
         policy.set_latent(torch.tensor(cfg.steer_latent, dtype=torch.float32))
         logger.info("steered by steer_latent: latent %s", cfg.steer_latent)
+        loaded = "--policy.steer_latent"
     elif cfg.steer_mode is not None:
         means = policy.mode_latents()
         try:
@@ -119,19 +124,69 @@ def apply_config_steering(policy: Any) -> None:
         policy.steering.activate(means[mode], provenance={"source": "mode", "mode": mode})
         name = means.names.get(mode)
         logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", latent_text(means[mode]))
+        loaded = f"mode {mode} (--policy.steer_mode)"
     elif cfg.steer_dataset_root is not None:
-        episode = (cfg.steer_dataset_root, int(cfg.steer_episode_index))
-        refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)
-        noises = " and one sampler noise per chunk" if cfg.fit_noise == "chunks" else ""
-        logger.info("fitting the latent%s to %s episode %d before the control loop starts", noises, *episode)
-        t0 = time.perf_counter()
-        res = policy.fit_latent(episode, progress=True)  # a bar: with chunk noises, a minute on a CPU
-        noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
-        logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s: its error on the demonstration "
-                    "over the training demonstrations' at their own latents; steering is at risk from %g)", noises,
-                    cfg.steer_dataset_root, cfg.steer_episode_index, time.perf_counter() - t0, latent_text(res.z),
-                    "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
+        start_up_fit(policy, (cfg.steer_dataset_root, int(cfg.steer_episode_index)))
+        loaded = "the latent fitted at start-up (--policy.steer_dataset_root)"
+    if getattr(policy, "_steer_file", None) is not None:  # a request already in the file wins over the above
+        policy._steer_file.start(policy, loaded)
 
+
+def start_up_fit(policy: Any, episode: tuple[Any, int], steps: int | None = None) -> None:
+    """Fit and activate z (and chunk noises with ``fit_noise=chunks``) to ``episode`` now, before the control loop
+    starts, with a progress bar: ``--policy.steer_dataset_root`` and a ``dataset`` request already in the steering file
+    when the policy loads."""
+    refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)
+    cfg = policy.config
+    noises = " and one sampler noise per chunk" if cfg.fit_noise == "chunks" else ""
+    logger.info("fitting the latent%s to %s episode %d before the control loop starts", noises, *episode)
+    t0 = time.perf_counter()
+    stop = threading.Event()
+    with stopped_by_signals(stop) as caught, cancellable(stop):
+        try:
+            res = policy.fit_latent(episode, steps=steps, progress=True)  # a bar: with chunk noises, a minute on a CPU
+        except FitCancelled:
+            stopped = KeyboardInterrupt(f"{caught[0]} during the start-up fit to {episode[0]} episode {episode[1]}, "
+                                        f"{time.perf_counter() - t0:.1f} s in: stopped before any control loop started "
+                                        "(no robot connected)")
+            stopped.said_by_pdp = True  # one line in LeRobot's commands (cli_errors)
+            raise stopped from None
+    noises = f" and {len(res.noise)} chunk noise(s)" if res.noise is not None else ""
+    logger.info("fitted latent%s to %s episode %d in %.1f s: %s (error ratio %s: its error on the demonstration "
+                "over the training demonstrations' at their own latents; steering is at risk from %g)", noises,
+                *episode, time.perf_counter() - t0, latent_text(res.z),
+                "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
+
+
+
+@contextlib.contextmanager
+def stopped_by_signals(stop: threading.Event) -> Iterator[list[str]]:
+    """In the block, SIGINT and SIGTERM set ``stop`` (the names of those caught are yielded) and reach the handlers
+    they had before too. A minute-long fit runs inside ``from_pretrained``, where LeRobot's own handlers (which
+    only set its shutdown event) went unseen: the fit ran out and the robot was connected after a Ctrl-C. Only on
+    the main thread, where Python runs signal handlers."""
+    caught: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+    signals = (signal.SIGINT, signal.SIGTERM)
+    before = {s: signal.getsignal(s) for s in signals}
+
+    def handler(signum: int, frame: Any) -> None:
+        caught.append(signal.Signals(signum).name)
+        stop.set()
+        previous = before[signal.Signals(signum)]
+        if callable(previous) and previous is not signal.default_int_handler:  # LeRobot's: its shutdown event set
+            previous(signum, frame)
+
+    for s in signals:
+        signal.signal(s, handler)
+    try:
+        yield caught
+    finally:
+        for s, h in before.items():
+            if h is not None:  # None: a handler not installed from Python, which cannot be put back
+                signal.signal(s, h)
 
 # (engine, way out, whether it reports the executed actions and each chunk's step) of a caller that replans at its
 # own pace, set while it loads the policy: LeRobot's async policy server (policy_server.py) sets it; lerobot-rollout's
@@ -260,18 +315,29 @@ class SteerFile:
         self._seen: tuple[tuple[int, int, int], bytes] | None = None
         self._polled = False  # a bad request the file holds at the first poll is an error, as a bad steer_mode is
         self._read_error: str | None = None  # said once, not at every chunk
+        self._loaded: str | None = None  # the steering the policy loaded with, until a request replaces it
         self.fit: BackgroundFit | None = None  # the fit of the newest request, while it is not applied
         # raises ValueError for a steering state the running engine cannot act under (realtime_chunking.py): the
         # request is then refused like a bad one, and the previous state kept
         self.check: Callable[[Any], None] | None = None
 
+    def start(self, policy: Any, loaded: str | None = None) -> None:
+        """The first poll, when the policy loads (:func:`apply_config_steering`): a request already in the file is
+        applied before the first action, a recording fitted now (:func:`start_up_fit`, not in the background); a
+        bad one is an error, as a bad ``--policy.steer_mode`` is. ``loaded``: the steering the policy loaded with
+        (an adaptation, a ``steer_*`` flag), named with a warning when a ``--default`` request drops it."""
+        self._loaded = loaded
+        if not self._polled:
+            self.poll(policy, at_start=True)
+
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the running fit (if any) is done; True when none is left running."""
         return self.fit is None or self.fit.wait(timeout)
 
-    def poll(self, policy: Any) -> bool:
+    def poll(self, policy: Any, at_start: bool = False) -> bool:
         """Apply the file's request if the file changed since the last poll, and a background fit that has
-        finished; True when the latent changed."""
+        finished; True when the latent changed. ``at_start``: before any control loop (:meth:`start`), so a
+        recording is fitted now rather than in the background."""
         changed = self._finish_fit(policy)
         first, self._polled = not self._polled, True
         try:
@@ -294,6 +360,11 @@ class SteerFile:
             request = check_request(json.loads(content, parse_constant=_no_constant))
             if "dataset" in request:
                 root, episode, steps = fit_request(request, base=self.path.parent)
+                if at_start:  # nothing acts yet: fitted now, with a bar, as --policy.steer_dataset_root is
+                    start_up_fit(policy, (root, episode), steps)
+                    logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(policy.active_latent))
+                    self._loaded = None
+                    return True
                 if pending is not None:
                     pending.cancel()
                 self.fit = BackgroundFit(policy, root, episode, steps)
@@ -311,7 +382,14 @@ class SteerFile:
             logger.error("steering file %s: %s; keeping the current latent%s", self.path, said,
                          " (the fit still running stays)" if pending is not None else "")
             return changed
-        logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))
+        if request.get("latent", 0) is None and self._loaded is not None:  # an adaptation dropped on the robot's next chunk
+            logger.warning("steering file %s: back to the default latent (inference_latent=%r, as the base policy "
+                           "acts); %s, which the policy loaded with, is dropped: write its request again, or restart "
+                           "with a fresh steering file, to act under it", self.path, policy.config.inference_latent,
+                           self._loaded)
+        else:
+            logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))
+        self._loaded = None
         return True
 
     def _checked(self, policy: Any, apply: Callable[[], Any]) -> Any:
@@ -345,6 +423,7 @@ class SteerFile:
         except ValueError as e:
             logger.error("steering file %s: %s; keeping the current latent", self.path, e)
             return False
+        self._loaded = None
         logger.info("steering file %s: latent %s fitted to %s episode %d in %.1f s, active from this chunk",
                     self.path, latent_text(result.z), fit.root, fit.episode, fit.seconds)
         return True

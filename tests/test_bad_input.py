@@ -258,6 +258,11 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert f"{tmp_path} is not a LeRobotDataset (no meta/info.json)" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--dataset", str(synthetic_meta.root), "--episode", "999"]) == 2
     assert "no episode 999" in capsys.readouterr().err
+    empty = tmp_path / "empty"  # a recording whose only episode was cut off by Ctrl-C (dropped, not saved)
+    (empty / "meta").mkdir(parents=True)
+    (empty / "meta" / "info.json").write_text(json.dumps({"total_episodes": 0}))
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(empty)]) == 2
+    assert f"recording {empty} is empty (no saved episode)" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--mode", "1", "--episode", "4"]) == 2
     assert "--episode and --steps go with --dataset" in capsys.readouterr().err
     assert lerobot_pdp(["steer", str(f), "--episode", "0"]) == 2  # alone: the request it belongs to is named

@@ -59,6 +59,19 @@ def test_pdps_message_wrapped_by_lerobot_is_told_alone_and_named_once(capsys, mo
                                                             "processor files")
 
 
+
+def test_a_start_up_fit_stopped_by_a_signal_ends_in_one_line(capsys, monkeypatch):
+    """steering.start_up_fit's KeyboardInterrupt (Ctrl-C / SIGTERM during the fit) is said in one line; any other
+    KeyboardInterrupt keeps Python's own handling."""
+    monkeypatch.setattr("sys.argv", ["/venv/bin/lerobot-rollout"])
+    stopped = KeyboardInterrupt("SIGTERM during the start-up fit to demo episode 0, 3.2 s in: stopped before ...")
+    stopped.said_by_pdp = True
+    shown = []
+    _hook(lambda *a: shown.append(a))(KeyboardInterrupt, stopped, None)
+    assert not shown and capsys.readouterr().err == f"lerobot-rollout: stopped: {stopped}\n"
+    _hook(lambda *a: shown.append(a))(KeyboardInterrupt, KeyboardInterrupt(), None)
+    assert len(shown) == 1
+
 def test_a_folder_in_lerobots_training_layout_is_pointed_to_its_checkpoint(tmp_path, capsys, monkeypatch):
     """``--policy.path=.../checkpoints/last``: LeRobot's config loader says "config.json not found in" it (with a
     traceback); the hook says it once, with the pretrained_model folder below it that holds the checkpoint."""

@@ -4,6 +4,7 @@ import json
 import logging
 import math
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from policies import small_policy, training_batch
 from lerobot_pdp import PDPPolicy
 from lerobot_pdp.demonstration import read_demonstration
 from lerobot_pdp.episodes import read_episodes
+from lerobot_pdp.steer_requests import write_steering
 
 
 def test_builds_behaviors_from_whole_episodes(synthetic_meta):
@@ -747,6 +749,44 @@ def test_a_loaded_checkpoint_is_steered_by_its_config_before_the_first_action(sy
     assert len(fitted.active_latent) == 1 and torch.isfinite(fitted.active_latent).all()
     assert len(PDPPolicy.from_pretrained(tmp_path / "ckpt").active_latent) == 0  # no steering fields: default
 
+
+
+def test_a_steering_file_is_read_when_the_checkpoint_loads(synthetic_meta, tmp_path, caplog):
+    """A request already in --policy.steer_file acts from the first action: a recording is fitted while
+    from_pretrained runs (it was fitted in the background, the first episode acting on the flags), over the steer_*
+    flags; a bad one stops the load; a later `--default` request that drops an adapted checkpoint's latent says so."""
+    import dataclasses
+
+    p = small_policy(synthetic_meta)
+    p.save_pretrained(tmp_path / "ckpt")
+    steer = tmp_path / "steer.json"
+    shutil.copytree(synthetic_meta.root, tmp_path / "demo")
+    write_steering(steer, {"dataset": "demo", "episode": 2, "steps": 2})
+    cfg = dataclasses.replace(p.config, steer_mode=sorted(p.mode_latents())[1], steer_file=str(steer))
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
+    assert q._steer_file.fit is None and q.steering.provenance["demonstration"]["episode"] == 2  # fitted, not mode 1
+    assert q.steering.provenance["fit"]["steps"] == 2
+    steer.write_text('{"mode": 99}')
+    with pytest.raises(ValueError, match=rf"steering file {steer} \(there when the policy started\): .*mode 99"):
+        PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
+
+    p.set_latent(p.mode_latents()[0])
+    p.save_pretrained(tmp_path / "adapted")
+    steer.unlink()
+    adapted = PDPPolicy.from_pretrained(tmp_path / "adapted", config=dataclasses.replace(p.config, steer_file=str(steer)))
+    write_steering(steer, {"latent": None})
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+        adapted._steer_file.poll(adapted)
+    assert len(adapted.active_latent) == 0
+    assert "back to the default latent (inference_latent='episode', as the base policy acts); the adapted " \
+           "checkpoint's latent, which the policy loaded with, is dropped" in caplog.text
+    write_steering(steer, {"mode": 1})  # a request since: the next --default drops nothing the policy loaded with
+    adapted._steer_file.poll(adapted)
+    caplog.clear()
+    write_steering(steer, {"latent": None})
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+        adapted._steer_file.poll(adapted)
+    assert "back to the default latent" not in caplog.text
 
 def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_meta, tmp_path):
     """A NaN checkpoint does not load, a training step whose loss goes NaN stops naming the term, and a

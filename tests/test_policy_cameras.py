@@ -248,8 +248,45 @@ def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):
     # an env without the camera (lerobot-eval of a camera checkpoint without --env.camera): the flags are named
     obs = {OBS_STATE: torch.zeros(1, 2), OBS_ENV_STATE: torch.zeros(1, 2)}
     with pytest.raises(KeyError, match=r"which the observation lacks; .*: the env must give this camera \(lerobot_pdp's "
-                                       r"envs: --env.camera=top --env.image_size=48\)"):
+                                       r"envs: --env.camera=top --env.image_size=48, every camera the policy was "
+                                       r"trained on\)"):
         policy.select_action(obs)
+
+
+def test_camera_frames_in_another_layout_are_refused_by_the_preprocessor(video_dataset, tmp_path):
+    """What a camera driver gives (uint8, channels last, 0-255, one channel) is named before LeRobot's normaliser,
+    which failed on it with a bare torch error or broadcast a one-channel frame to three; the step travels with the
+    checkpoint's processors and lets LeRobot's own frames through unchanged."""
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.processor import make_default_pre_post_processors
+
+    from lerobot_pdp.processor_pdp import CameraFrameCheck
+
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    policy.eval()
+    pre, post = make_pre_post_processors(policy.config, dataset_stats=policy.stats.as_dict())
+    pre.save_pretrained(tmp_path)
+    post.save_pretrained(tmp_path)
+    loaded, _ = make_pre_post_processors(policy.config, pretrained_path=str(tmp_path))
+    assert [type(s) for s in loaded.steps] == [type(s) for s in pre.steps]
+    assert loaded.steps[1] == CameraFrameCheck({TOP: [3, 48, 48]})
+    state = {OBS_STATE: torch.zeros(2), OBS_ENV_STATE: torch.zeros(2)}
+    frame = torch.rand(3, 48, 48, generator=torch.Generator().manual_seed(0))
+    hwc = (frame.permute(1, 2, 0) * 255).to(torch.uint8)
+    for image, message in [(hwc, r"is torch.uint8 \[48, 48, 3\]: PDP, as LeRobot's policies, takes float frames in "
+                                 r"\[0, 1\], channels first \[..., 3, 48, 48\]"),
+                           (hwc.numpy(), r"is uint8 \[48, 48, 3\]"),
+                           (hwc.float() / 255, r"has shape \[48, 48, 3\] \(channels last\); this policy expects "
+                                               r"\[..., 3, 48, 48\]"),
+                           (frame[:1], r"has shape \[1, 48, 48\] \(another size or channel count\)"),
+                           (frame * 255, r"holds values in \[.*\]; camera frames are float in \[0, 1\] \(0-255 values: "
+                                         r"divide by 255")]:
+        with pytest.raises(ValueError, match=rf"camera '{TOP}' " + message):
+            loaded({**state, TOP: image})
+    batch = loaded({**state, TOP: frame})  # LeRobot's own frames: through, normalised as before
+    lerobots, _ = make_default_pre_post_processors(policy.config, policy.stats.as_dict())
+    torch.testing.assert_close(batch[TOP], lerobots({**state, TOP: frame})[TOP], rtol=0, atol=0)
+    assert policy.select_action(batch).shape == (1, 2)
 
 
 # ---------------------------------------------------------------------------------------------- end to end

@@ -451,6 +451,33 @@ def test_a_steering_file_that_cannot_work_is_said_before_the_robot_acts(syntheti
     assert caplog.text.count(f"steering file {steer} cannot be read") == 1
 
 
+
+def test_a_signal_during_the_start_up_fit_stops_it_before_any_control_loop(synthetic_meta):
+    """Ctrl-C / SIGTERM while --policy.steer_dataset_root is fitted inside from_pretrained: the fit stops at its next
+    step and the load ends (LeRobot's handlers only set its shutdown event, which the fit never saw: it ran out and
+    the robot was connected after the signal). The handler that was there gets the signal too, and is put back."""
+    from lerobot_pdp.steering import start_up_fit
+
+    p = small_policy(synthetic_meta, fit_steps=100_000)
+    seen: list[int] = []
+
+    def lerobots(signum, frame):  # as lerobot-rollout's: it sets a shutdown event
+        seen.append(signum)
+
+    previous = signal.signal(signal.SIGTERM, lerobots)
+    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGTERM))
+    try:
+        timer.start()
+        t0 = time.perf_counter()
+        with pytest.raises(KeyboardInterrupt, match=r"SIGTERM during the start-up fit to .* episode 2, [\d.]+ s in: "
+                                                    r"stopped before any control loop started \(no robot connected\)"):
+            start_up_fit(p, (synthetic_meta.root, 2))
+        assert time.perf_counter() - t0 < 60 and seen == [signal.SIGTERM]
+        assert len(p.active_latent) == 0 and signal.getsignal(signal.SIGTERM) is lerobots
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGTERM, previous)
+
 def test_steering_flags_given_together_say_which_one_wins(synthetic_meta, caplog):
     """steer_latent, steer_mode and steer_dataset_root left together (an old flag on the command line): one acts, by
     the documented order, and a warning names the ones ignored (a start-up fit dropped silently before)."""
@@ -625,6 +652,25 @@ def test_an_interrupted_record_loop_labels_only_saved_episodes(tmp_path):
     finally:
         robot.disconnect()
 
+
+
+def test_outcome_lines_name_their_run_and_a_file_with_earlier_runs_is_said(tmp_path, caplog):
+    """Outcomes are appended: a rerun given the same file (or two runs sharing it) must not pass unseen, and each line
+    says which run and scene it came from (episode ids restart at 0 in every run)."""
+    outcomes = tmp_path / "o.jsonl"
+    runs = []
+    for i in range(2):
+        robot = make_robot_from_config(PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes),
+                                                    calibration_dir=tmp_path, id=f"run{i}"))
+        with caplog.at_level(logging.WARNING, logger="lerobot_pdp.robots.pdp_sim"):
+            robot.connect()
+        runs.append(robot.run_id)
+        robot.send_action(dict.fromkeys(robot.action_keys, 0.0))
+        robot.disconnect()  # the episode, cut: one line
+    first, second = _outcomes(outcomes)
+    assert (first["run"], second["run"]) == tuple(runs) and runs[0] != runs[1]
+    assert first["episode"] == second["episode"] == 0 and first["scene"] == second["scene"] == "0"
+    assert caplog.text.count(f"{outcomes} already holds 1 outcome line(s) of earlier runs") == 1
 
 # ---------------------------------------------------------------------------------------- real processes
 

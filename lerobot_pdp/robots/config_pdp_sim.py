@@ -19,7 +19,8 @@ class PDPSimConfig(RobotConfig):
             key, gym id or ``pdp_*`` env type.
         scene: scene index (``"0"``) or a scene file path.
         outcomes: JSON-lines file; one line per finished episode (``success``, ``collided``, ``mode``, ...)
-            is appended to it. None: no file.
+            is appended to it, marked with the run (``run``: start time and process id; a file that already
+            holds lines is warned of). None: no file.
         seed: reset noise of episode k comes from ``(seed, k)``, so a recording is reproducible.
         end_episodes: inside ``lerobot-record``, end the recorded episode when the env episode ends
             (success, collision, time limit), as the operator would press the "next episode" key, and end the

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -90,6 +92,7 @@ class PDPSim(Robot):
         self._rollout_events: dict | None = None  # the episodic strategy's keyboard flags
         self.finished = 0  # env episodes finished (success, collision, time limit or cut)
         self._connected = False
+        self.run_id: str | None = None  # set at connect: marks this run's outcome lines
         self.obs: dict[str, np.ndarray] | None = None  # the env's last observation (what the operator sees)
         self.episode = -1  # increases at every scene reset; the teleoperator restarts its route on a change
         self.holding = False  # True during lerobot-record's reset phase: actions are not applied
@@ -133,6 +136,12 @@ class PDPSim(Robot):
 
     def connect(self, calibrate: bool = True) -> None:
         self._connected = True
+        # each run's lines are told apart by their `run` (a rerun, or two runs given one file, append to it)
+        self.run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S.%fZ}-{os.getpid()}"
+        earlier = Path(self.config.outcomes) if self.config.outcomes else None
+        if earlier is not None and earlier.is_file() and earlier.stat().st_size > 0:
+            logger.warning("pdp_sim: %s already holds %d outcome line(s) of earlier runs; this run appends its own, "
+                           "marked run=%s", earlier, sum(1 for _ in earlier.open()), self.run_id)
         self.reset_scene()
 
     def disconnect(self) -> None:
@@ -216,6 +225,8 @@ class PDPSim(Robot):
         outcome = {
             "episode": self.episode,
             "env": self.suite.name,
+            "scene": self.config.scene,
+            "run": self.run_id,
             "success": bool(info.get("is_success", False)) and not cut,
             "collided": bool(info.get("collided", False)),
             "mode": label if isinstance(label, str) else int(label),
