@@ -83,10 +83,14 @@ def check_camera_frame(key: str, x: torch.Tensor | np.ndarray, chw: list[int]) -
     if not (x.dtype.is_floating_point if isinstance(x, torch.Tensor) else np.issubdtype(x.dtype, np.floating)):
         raise ValueError(f"camera {key!r} is {x.dtype} {shape}: PDP, as LeRobot's policies, takes float frames in "
                          f"[0, 1], channels first [..., {c}, {h}, {w}] ({fix})")
-    if shape[-3:] != [c, h, w]:
-        layout = "channels last" if shape[-3:] == [h, w, c] else "another size or channel count"
-        raise ValueError(f"camera {key!r} has shape {shape} ({layout}); this policy expects [..., {c}, {h}, {w}] "
+    if shape[-3:] == [h, w, c] and c != h:
+        raise ValueError(f"camera {key!r} has shape {shape} (channels last); this policy expects [..., {c}, {h}, {w}] "
                          f"(channels first, as its training dataset's frames; {fix})")
+    if shape[-3:] != [c, h, w]:
+        size = f"{h}" if h == w else f"{h}x{w}"
+        raise ValueError(f"camera {key!r} has shape {shape} (another size or channel count); this policy expects "
+                         f"[..., {c}, {h}, {w}], its training dataset's frames (lerobot_pdp's envs: "
+                         f"--env.image_size={size}; a robot's camera or a dataset: frames of that size)")
     n = x.numel() if isinstance(x, torch.Tensor) else x.size
     lo, hi = (float(x.min()), float(x.max())) if n else (0.0, 0.0)
     if lo < -FRAME_RANGE_SLACK or hi > 1 + FRAME_RANGE_SLACK:

@@ -218,8 +218,10 @@ def refuse_paced_fit(policy: Any, episode: tuple[Any, int]) -> None:
     if engine is None:
         return
     if policy.config.fit_noise == "chunks" and not reports_executed:  # noises are replayed by the reported step
+        cause = (" and, with --policy.rtc_consumed_delay=false, the actions the robot executes do not reach PDP (the "
+                 "default, true, has PDP's queue report them)" if engine == RTC_ENGINE else "")
         raise ValueError(f"--policy.fit_noise=chunks fits one sampler noise per {policy.config.n_action_steps} "
-                         f"executed actions, which {engine} cannot replay in step (it replans at its own pace). "
+                         f"executed actions, which {engine} cannot replay in step (it replans at its own pace{cause}). "
                          f"{way_out} --policy.fit_noise=none")
     if policy.config.segment_gripper_dim is None or reports_executed:  # one latent, or phases that follow the robot
         return

@@ -278,7 +278,9 @@ def test_camera_frames_in_another_layout_are_refused_by_the_preprocessor(video_d
                            (hwc.numpy(), r"is uint8 \[48, 48, 3\]"),
                            (hwc.float() / 255, r"has shape \[48, 48, 3\] \(channels last\); this policy expects "
                                                r"\[..., 3, 48, 48\]"),
-                           (frame[:1], r"has shape \[1, 48, 48\] \(another size or channel count\)"),
+                           (frame[:1], r"has shape \[1, 48, 48\] \(another size or channel count\); this policy "
+                                       r"expects \[..., 3, 48, 48\], its training dataset's frames \(lerobot_pdp's "
+                                       r"envs: --env.image_size=48;"),
                            (frame * 255, r"holds values in \[.*\]; camera frames are float in \[0, 1\] \(0-255 values: "
                                          r"divide by 255")]:
         with pytest.raises(ValueError, match=rf"camera '{TOP}' " + message):

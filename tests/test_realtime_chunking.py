@@ -488,7 +488,9 @@ def test_a_start_up_fit_of_chunk_noises_is_refused_under_rtc_before_fitting(synt
     p = small_policy(synthetic_meta, steer_dataset_root=str(synthetic_meta.root), steer_episode_index=0,
                      fit_noise="chunks", fit_steps=10**6, rtc_consumed_delay=False)
     monkeypatch.setattr(p, "fit_latent", lambda *a, **k: pytest.fail("fitted before refusing"))
-    with pytest.raises(ValueError, match=r"fit_noise=chunks .*Use --inference.type=sync, or --policy.fit_noise=none"):
+    with pytest.raises(ValueError, match=r"fit_noise=chunks .*with --policy.rtc_consumed_delay=false, the actions the "
+                                         r"robot executes do not reach PDP.*Use --inference.type=sync, or "
+                                         r"--policy.fit_noise=none"):
         p.apply_config_steering()
     assert not p.steering.active
     p.config.rtc_consumed_delay = True  # PDP's queue: the noises follow the executed actions
