@@ -1,7 +1,8 @@
 """Steer a trained PDP checkpoint in the reach-around env: per-mode latents, then one-demo adaptation.
 
 Only LeRobot's public API around PDP's steering calls: the checkpoint's own processors, LeRobot's env factory
-(``--env.type=pdp_reach_around``) and its evaluation loop, as ``lerobot-eval`` runs them.
+(``--env.type=pdp_reach_around``, with the checkpoint's cameras for a camera checkpoint) and its evaluation loop,
+as ``lerobot-eval`` runs them.
 
     # 1. data + training (LeRobot's own loop)
     lerobot-pdp make-dataset --env reach-around --scene 0 --episodes-per-mode 10 --out data/ra
@@ -30,7 +31,7 @@ register_third_party_plugins()  # what LeRobot's CLIs do first: the lab's envs (
 
 def success(policy: PDPPolicy, processors: tuple, scene: int, episodes: int, seed: int) -> float:
     """Success % of ``episodes`` rollouts in ``scene`` under the policy's active latent, as lerobot-eval counts it."""
-    env_cfg = make_env_config("pdp_reach_around", scene=scene)
+    env_cfg = make_env_config("pdp_reach_around", scene=scene, **camera_flags(policy))
     envs = make_env(env_cfg, n_envs=episodes)
     env = next(iter(next(iter(envs.values())).values()))  # one suite, one task: one vector env
     env_pre, env_post = make_env_pre_post_processors(env_cfg, policy.config)
@@ -39,6 +40,19 @@ def success(policy: PDPPolicy, processors: tuple, scene: int, episodes: int, see
     finally:
         env.close()
     return info["aggregated"]["pc_success"]
+
+
+def camera_flags(policy: PDPPolicy) -> dict[str, str]:
+    """The env's cameras for a camera checkpoint (``--env.camera=oblique,top --env.image_size=48``): every camera the
+    policy was trained on, at its size; none for a state-only one."""
+    cams = {key.rsplit(".", 1)[-1]: tuple(ft.shape[-2:]) for key, ft in policy.config.image_features.items()}
+    if not cams:
+        return {}
+    sizes = set(cams.values())
+    if len(sizes) > 1:
+        raise ValueError(f"the env renders every camera at one size; this checkpoint's cameras differ: {cams}")
+    (h, w), = sizes
+    return {"camera": ",".join(cams), "image_size": f"{h}x{w}"}
 
 
 def main(ckpt: str, demo_root: str) -> None:

@@ -158,7 +158,6 @@ def start_up_fit(policy: Any, episode: tuple[Any, int], steps: int | None = None
                 "n/a" if res.error_ratio is None else f"{res.error_ratio:.2f}", cfg.fit_warn_ratio)
 
 
-
 @contextlib.contextmanager
 def stopped_by_signals(stop: threading.Event) -> Iterator[list[str]]:
     """In the block, SIGINT and SIGTERM set ``stop`` (the names of those caught are yielded) and reach the handlers

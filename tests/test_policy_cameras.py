@@ -8,6 +8,7 @@ The datasets are the synthetic 4-mode paths with a rendered top-down camera, wri
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -290,6 +291,24 @@ def test_camera_frames_in_another_layout_are_refused_by_the_preprocessor(video_d
     torch.testing.assert_close(batch[TOP], lerobots({**state, TOP: frame})[TOP], rtol=0, atol=0)
     assert policy.select_action(batch).shape == (1, 2)
 
+
+
+def test_the_steering_example_gives_the_env_a_camera_checkpoints_cameras(video_dataset, synthetic_meta):
+    """examples/steer_reach_around.py builds its env with every camera the checkpoint was trained on, at its size
+    (it built a state-only env, which a camera checkpoint cannot act in)."""
+    import importlib.util
+
+    from lerobot.envs.factory import make_env_config
+
+    spec = importlib.util.spec_from_file_location("steer_example", Path(__file__).parents[1] / "examples" /
+                                                  "steer_reach_around.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    camera_policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    flags = example.camera_flags(camera_policy)
+    assert flags == {"camera": "top", "image_size": "48x48"}
+    assert make_env_config("pdp_reach_around", scene="0", **flags).camera == "top"
+    assert example.camera_flags(make_policy(PDPConfig(**SMALL), ds_meta=synthetic_meta)) == {}
 
 # ---------------------------------------------------------------------------------------------- end to end
 

@@ -141,7 +141,7 @@ class PDPSim(Robot):
         earlier = Path(self.config.outcomes) if self.config.outcomes else None
         if earlier is not None and earlier.is_file() and earlier.stat().st_size > 0:
             logger.warning("pdp_sim: %s already holds %d outcome line(s) of earlier runs; this run appends its own, "
-                           "marked run=%s", earlier, sum(1 for _ in earlier.open()), self.run_id)
+                           "marked run=%s", earlier, len(earlier.read_text().splitlines()), self.run_id)
         self.reset_scene()
 
     def disconnect(self) -> None:
