@@ -162,8 +162,8 @@ def start_up_fit(policy: Any, episode: tuple[Any, int], steps: int | None = None
 def stopped_by_signals(stop: threading.Event) -> Iterator[list[str]]:
     """In the block, SIGINT and SIGTERM set ``stop`` (the names of those caught are yielded) and reach the handlers
     they had before too. A minute-long fit runs inside ``from_pretrained``, where LeRobot's own handlers (which
-    only set its shutdown event) went unseen: the fit ran out and the robot was connected after a Ctrl-C. Only on
-    the main thread, where Python runs signal handlers."""
+    only set its shutdown event) would go unseen: the fit would run out and the robot be connected after a Ctrl-C.
+    Only on the main thread, where Python runs signal handlers."""
     caught: list[str] = []
     if threading.current_thread() is not threading.main_thread():
         yield caught
