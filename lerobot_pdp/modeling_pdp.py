@@ -43,6 +43,7 @@ from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
 from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
+from .episodes import check_camera_sizes
 from .interpolation import interpolate
 from .latent_fitting import FitResult
 from .latent_search import SearchResult, search_latent, search_provenance
@@ -83,6 +84,8 @@ class PDPPolicy(PreTrainedPolicy):
             self.stats.load(dataset_stats)
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
+            check_camera_sizes({k: ft.shape for k, ft in cfg.image_features.items()}, dataset_meta.root,
+                               dataset_meta.features)  # a fine-tune on another dataset: before its soft-DTW
             behaviors = read_training_behaviors(cfg, dataset_meta.root, dataset_meta.features)
             check_behaviors(behaviors, dataset_meta.root, cfg)
             resolve_dataset_config(cfg, behaviors)  # mode_names, one-hot latent_dim: before anything is built

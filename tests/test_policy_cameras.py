@@ -293,6 +293,20 @@ def test_camera_frames_in_another_layout_are_refused_by_the_preprocessor(video_d
 
 
 
+
+def test_fine_tuning_on_frames_of_another_size_is_refused_before_the_behaviours_are_read(video_dataset):
+    """lerobot-train --policy.path=<camera checkpoint> on a dataset of another image size: named when the policy is
+    built (it failed at the first training step, after the soft-DTW of every behaviour)."""
+    import copy
+    from types import SimpleNamespace
+
+    policy = make_policy(PDPConfig(**SMALL), ds_meta=_meta(video_dataset))
+    features = copy.deepcopy(_meta(video_dataset).features)
+    features[TOP]["shape"] = [64, 64, 3]  # stored (H, W, C)
+    with pytest.raises(ValueError, match=rf"dataset {video_dataset}: its frames are not the size this policy was "
+                                         rf"trained on \('{TOP}' is \(3, 64, 64\) there, \(3, 48, 48\) in the policy\)"):
+        PDPPolicy(policy.config, dataset_meta=SimpleNamespace(root=video_dataset, features=features))
+
 def test_the_steering_example_gives_the_env_a_camera_checkpoints_cameras(video_dataset, synthetic_meta):
     """examples/steer_reach_around.py builds its env with every camera the checkpoint was trained on, at its size
     (it built a state-only env, which a camera checkpoint cannot act in)."""
