@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -227,16 +228,16 @@ def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, d
 
 
 
-def check_camera_sizes(cameras: dict[str, tuple[int, ...]], root: object, features: dict[str, dict]) -> None:
+def check_camera_sizes(cameras: dict[str, Any], root: object, features: dict[str, dict]) -> None:
     """Refuse a training dataset whose cameras (``features``, as stored) are not the size of the policy's
-    (``cameras``: key -> (C, H, W)), before its behaviours are read: a checkpoint fine-tuned on another dataset
-    (``lerobot-train --policy.path=...``) keeps its features, and would fail only at its first step. Keys the dataset
-    lacks are left to LeRobot's own checks (a ``rename_map`` may name them)."""
-    wrong = [f"'{key}' is {policy_shape(features[key])} there, {tuple(shape)} in the policy"
-             for key, shape in cameras.items() if key in features and policy_shape(features[key]) != tuple(shape)]
+    (``cameras``: key -> feature of shape (C, H, W)), before its behaviours are read: a checkpoint fine-tuned on
+    another dataset (``lerobot-train --policy.path=...``) keeps its features, and would fail only at its first step.
+    Keys the dataset lacks are left to LeRobot's own checks (a ``rename_map`` may name them)."""
+    wrong = feature_problems({k: tuple(ft.shape) for k, ft in cameras.items() if k in features}, features)
     if wrong:
         raise ValueError(f"dataset {root}: its frames are not the size this policy was trained on ({'; '.join(wrong)}); "
                          "fine-tune on frames of the policy's size, or train a new policy on this dataset")
+
 
 def policy_shape(feature: dict) -> tuple[int, ...]:
     """A dataset feature's shape as the policy sees it: cameras stored (H, W, C) are (C, H, W)."""

@@ -84,8 +84,7 @@ class PDPPolicy(PreTrainedPolicy):
             self.stats.load(dataset_stats)
         behaviors = None
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
-            check_camera_sizes({k: ft.shape for k, ft in cfg.image_features.items()}, dataset_meta.root,
-                               dataset_meta.features)  # a fine-tune on another dataset: before its soft-DTW
+            check_camera_sizes(cfg.image_features, dataset_meta.root, dataset_meta.features)  # before the soft-DTW
             behaviors = read_training_behaviors(cfg, dataset_meta.root, dataset_meta.features)
             check_behaviors(behaviors, dataset_meta.root, cfg)
             resolve_dataset_config(cfg, behaviors)  # mode_names, one-hot latent_dim: before anything is built

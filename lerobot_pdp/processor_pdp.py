@@ -91,8 +91,9 @@ def check_camera_frame(key: str, x: torch.Tensor | np.ndarray, chw: list[int]) -
         raise ValueError(f"camera {key!r} has shape {shape} (another size or channel count); this policy expects "
                          f"[..., {c}, {h}, {w}], its training dataset's frames (lerobot_pdp's envs: "
                          f"--env.image_size={size}; a robot's camera or a dataset: frames of that size)")
-    n = x.numel() if isinstance(x, torch.Tensor) else x.size
-    lo, hi = (float(x.min()), float(x.max())) if n else (0.0, 0.0)
+    if x.size == 0 if isinstance(x, np.ndarray) else x.numel() == 0:
+        return
+    lo, hi = map(float, torch.aminmax(torch.as_tensor(x)))  # one pass over the frames: also on every training batch
     if lo < -FRAME_RANGE_SLACK or hi > 1 + FRAME_RANGE_SLACK:
         raise ValueError(f"camera {key!r} holds values in [{lo:.3g}, {hi:.3g}]; camera frames are float in [0, 1] "
                          f"(0-255 values: divide by 255; {fix})")

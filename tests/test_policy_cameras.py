@@ -304,7 +304,7 @@ def test_fine_tuning_on_frames_of_another_size_is_refused_before_the_behaviours_
     features = copy.deepcopy(_meta(video_dataset).features)
     features[TOP]["shape"] = [64, 64, 3]  # stored (H, W, C)
     with pytest.raises(ValueError, match=rf"dataset {video_dataset}: its frames are not the size this policy was "
-                                         rf"trained on \('{TOP}' is \(3, 64, 64\) there, \(3, 48, 48\) in the policy\)"):
+                                         rf"trained on \('{TOP}' has shape \(3, 64, 64\), the policy was trained on \(3, 48, 48\)\)"):
         PDPPolicy(policy.config, dataset_meta=SimpleNamespace(root=video_dataset, features=features))
 
 def test_the_steering_example_gives_the_env_a_camera_checkpoints_cameras(video_dataset, synthetic_meta):
