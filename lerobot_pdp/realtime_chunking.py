@@ -47,6 +47,11 @@ each executed action (its gripper phases and its step in the episode). It is set
 LeRobot's engine module when a PDP policy is prepared for RTC, so an engine started later in the same process, for
 any policy, builds it too (``lerobot-rollout`` runs one policy per process).
 On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
+
+When the engine gives up (LeRobot's engine retries a failed chunk, e.g. PDP's ``FloatingPointError`` for a
+non-finite action, and after 10 in a row logs "Fatal error in RTC thread" and ends the run as finished),
+``lerobot-rollout`` exits 1 naming the last error, after LeRobot's teardown has stopped the robot
+(:func:`install_exit_status`); LeRobot's own run exits 0 there.
 """
 
 from __future__ import annotations
@@ -69,6 +74,9 @@ from .pdp_model import check_finite_actions
 
 logger = logging.getLogger(__name__)
 ENGINE_MODULE = "lerobot.rollout.inference.rtc"
+SCRIPT_MODULE = "lerobot.scripts.lerobot_rollout"
+# what ended each PDP run whose RTC engine gave up, in this process (lerobot-rollout then exits 1 naming it)
+ENGINE_FAILURES: list[str] = []
 # How many actions a new chunk is held to the last one, chosen on validation checkpoints at 50 fps on a CPU
 # (docs/performance.md, "How long a new chunk is held to the last one")
 RECOMMENDED_EXECUTION_HORIZON = 3
@@ -278,6 +286,7 @@ def prepare_rtc(policy: Any) -> None:
     policy._rtc_observations = PublishedObservations(cfg.n_obs_steps, keep_history)
     policy._rtc_reports_executed = _install_queue(policy, sys.modules.get(ENGINE_MODULE), keep_history)
     policy.steering.by_step = policy._rtc_reports_executed  # chunk noises by the episode's step, not in order
+    _report_failures(sys.modules.get(ENGINE_MODULE))
     check_rtc_steering(policy)
     if policy._steer_file is not None:  # a live request the engine cannot follow is refused, the latent kept
         policy._steer_file.check = check_rtc_steering
@@ -317,6 +326,51 @@ def _install_queue(policy: Any, engine: Any, keep_history: bool) -> bool:
                 "--inference.queue_threshold=%d replans every ~%d actions as sync does (docs/deploy.md)",
                 future, future - cfg.n_action_steps, cfg.n_action_steps)
     return True
+
+
+def _report_failures(engine: Any) -> None:
+    """Have LeRobot's RTC engine thread, when it ends failed while running a PDP policy, add what failed last to
+    :data:`ENGINE_FAILURES` (the engine only logs it)."""
+    if engine is None or getattr(engine.RTCInferenceEngine._rtc_loop, "reports_to_pdp", False):
+        return
+    loop = engine.RTCInferenceEngine._rtc_loop
+
+    @functools.wraps(loop)
+    def _rtc_loop(self: Any) -> None:
+        loop(self)
+        policy = getattr(self, "_policy", None)
+        if getattr(self, "failed", False) and hasattr(policy, "_rtc_observations"):
+            error = getattr(policy, "_rtc_error", None)
+            ENGINE_FAILURES.append(f"{type(error).__name__}: {error}" if error is not None else
+                                   "an error outside PDP's chunk (the log's 'Fatal error in RTC thread' names it)")
+
+    _rtc_loop.reports_to_pdp = True
+    engine.RTCInferenceEngine._rtc_loop = _rtc_loop
+
+
+def install_exit_status() -> None:
+    """Make ``lerobot-rollout`` exit 1 when a PDP run's RTC engine gave up (LeRobot's script ends it as finished, exit
+    0, so a supervising script sees success): its ``rollout`` is wrapped to raise ``SystemExit`` with the last
+    error after it returns, i.e. after LeRobot's teardown stopped the robot. Only ``lerobot-rollout`` (the plugin
+    module is imported before its ``main`` calls ``rollout``); other policies' runs are not changed."""
+    main = sys.modules.get("__main__")
+    script = main if getattr(getattr(main, "__spec__", None), "name", None) == SCRIPT_MODULE else \
+        sys.modules.get(SCRIPT_MODULE)
+    run = getattr(script, "rollout", None)
+    if run is None or getattr(run, "exits_on_pdp_failure", False):
+        return
+
+    @functools.wraps(run)
+    def rollout(*args: Any, **kwargs: Any) -> Any:
+        done = len(ENGINE_FAILURES)
+        result = run(*args, **kwargs)
+        if len(ENGINE_FAILURES) > done:
+            raise SystemExit(f"lerobot-rollout: error: LeRobot's RTC engine stopped generating PDP's chunks, so the run "
+                             f"was ended and the robot stopped; the last chunk failed with {ENGINE_FAILURES[-1]}")
+        return result
+
+    rollout.exits_on_pdp_failure = True
+    script.rollout = rollout
 
 
 def _executed(policy: Any, action: Tensor) -> None:
@@ -418,6 +472,23 @@ def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_siz
     return guide
 
 
+def _remembering_errors(chunk: Callable[..., Tensor]) -> Callable[..., Tensor]:
+    """``chunk``, keeping on the policy the error of its last call, if it failed (``_rtc_error``): LeRobot's engine
+    only logs it."""
+
+    @functools.wraps(chunk)
+    def remembering(policy: Any, *args: Any, **kwargs: Any) -> Tensor:
+        policy._rtc_error = None
+        try:
+            return chunk(policy, *args, **kwargs)
+        except Exception as error:
+            policy._rtc_error = error
+            raise
+
+    return remembering
+
+
+@_remembering_errors
 @torch.no_grad()
 def rtc_chunk(policy: Any, batch: dict[str, Tensor], inference_delay: int | None = None,
               prev_chunk_left_over: Tensor | None = None, noise: Tensor | None = None, **_: object) -> Tensor:

@@ -6,7 +6,8 @@ column at a time on LeRobot <= 0.6.1 (``lerobot_pdp.column_views``). On a machin
 "torchcodec cannot be loaded" warning (a hundred lines of tracebacks) is reported in one line
 (``lerobot_pdp.console``); every ``lerobot-*`` command imports this module first, before it builds any config.
 An error PDP raises on purpose ends those commands with its message, not under a traceback
-(``lerobot_pdp.cli_errors``).
+(``lerobot_pdp.cli_errors``), and ``lerobot-rollout`` exits 1 when LeRobot's RTC engine gave up on PDP's chunks
+(``lerobot_pdp.realtime_chunking.install_exit_status``).
 """
 
 from lerobot_pdp import *  # noqa: F401,F403
@@ -14,9 +15,11 @@ from lerobot_pdp import __all__  # noqa: F401
 from lerobot_pdp import cli_errors as _cli_errors
 from lerobot_pdp import column_views as _column_views
 from lerobot_pdp import console as _console
+from lerobot_pdp import realtime_chunking as _realtime_chunking
 
 _console.install()
 _cli_errors.install()
+_realtime_chunking.install_exit_status()
 
 if _column_views.requested():
     _column_views.install()

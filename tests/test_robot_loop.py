@@ -258,6 +258,64 @@ def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase_with_chu
     assert policy.steering.by_step  # chunk noises by the episode's step
 
 
+def test_an_rtc_engine_that_gives_up_on_pdp_fails_the_rollout(untrained_reach_around, tmp_path, monkeypatch):
+    """A weight turned NaN mid-run: PDP's chunk raises ``FloatingPointError`` in LeRobot's RTC thread, which retries,
+    gives up, and ends the run as finished (LeRobot's ``lerobot-rollout`` then exits 0). The run still ends with the
+    robot stopped and disconnected, and ``lerobot-rollout``'s ``rollout`` (wrapped when the plugin is imported)
+    raises ``SystemExit`` naming the error; a run that did not fail is left alone."""
+    import lerobot.rollout.inference.rtc as engine_module
+    import lerobot.scripts.lerobot_rollout as script
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference import RTCInferenceConfig
+
+    from lerobot_pdp import realtime_chunking
+
+    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
+    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
+                        engine_module.RTCInferenceEngine.notify_observation)
+    monkeypatch.setattr(engine_module, "_RTC_ERROR_RETRY_DELAY_S", 0.01)  # LeRobot waits 0.5 s between its retries
+    monkeypatch.setattr(realtime_chunking, "ENGINE_FAILURES", [])
+    ckpt, _ = untrained_reach_around
+    outcomes = tmp_path / "o.jsonl"
+    chunks = []
+
+    def poison_after_two_chunks(ctx):
+        policy = ctx.policy.policy
+        predict = policy.predict_action_chunk
+
+        def predicting(batch, **k):
+            chunks.append(1)
+            if len(chunks) == 3:
+                with torch.no_grad():
+                    dict(policy.model.named_parameters())["denoiser.final.1.weight"].fill_(float("nan"))
+            return predict(batch, **k)
+
+        policy.predict_action_chunk = predicting
+
+    contexts = []
+
+    def rollout(poison: bool) -> str | None:  # what LeRobot's rollout(cfg) does, with this test's fault
+        if not poison:
+            return "a run without a failure"
+        contexts.append(run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes),
+                                                       episodes=3, calibration_dir=tmp_path),
+                                    before_run=poison_after_two_chunks if poison else None,
+                                    inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=3), queue_threshold=7)))
+
+    monkeypatch.setattr(script, "rollout", rollout)
+    realtime_chunking.install_exit_status()
+    assert script.rollout is not rollout and script.rollout.exits_on_pdp_failure
+    with pytest.raises(SystemExit, match="lerobot-rollout: error: LeRobot's RTC engine stopped generating PDP's chunks"
+                                         ".* the last chunk failed with FloatingPointError: PDP generated non-finite"):
+        script.rollout(True)
+    assert contexts[0].policy.inference.failed and not contexts[0].hardware.robot_wrapper.inner.is_connected
+    assert len(_outcomes(outcomes)) < 3  # ended before its episodes
+    assert len(realtime_chunking.ENGINE_FAILURES) == 1
+    assert script.rollout(False) == "a run without a failure"  # an earlier run's failure is not this one's
+    realtime_chunking.install_exit_status()  # once
+    assert script.rollout.__wrapped__ is rollout
+
+
 def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, monkeypatch):
     """``--inference.type=rtc`` with a camera policy on a robot that renders it: each chunk is conditioned on the
     observation history the loop published (images included), none of its observations missed."""
@@ -724,8 +782,8 @@ def test_record_fit_deploy_reaches_the_goal_in_a_shifted_scene(reach_around_pdp,
 @pytest.mark.slow
 def test_record_fit_deploy_with_real_time_chunking(reach_around_pdp, tmp_path):
     """The same with ``--inference.type=rtc``: chunks from LeRobot's background thread, each continuing the
-    actions still queued, into PDP's queue (LeRobot's engine exits 0 even when its thread failed, so the five
-    outcome lines are the check that it ran), with the settings docs/deploy.md recommends; the same bar as the
+    actions still queued, into PDP's queue (the five outcome lines and a log without RTC errors are the check
+    that it ran: LeRobot's engine retries a failed chunk), with the settings docs/deploy.md recommends; the same bar as the
     synchronous engine."""
     lines, log = record_fit_deploy(reach_around_pdp, tmp_path, 5, "--inference.type=rtc",
                                    "--inference.queue_threshold=7", "--inference.rtc.execution_horizon=3")
@@ -734,6 +792,53 @@ def test_record_fit_deploy_with_real_time_chunking(reach_around_pdp, tmp_path):
     assert "RTC inference error" not in log and "over its first 3 actions" in log
     # each chunk conditioned on the observations the loop published, none missed
     assert "conditioned on the last 2 observations the loop published" in log and "was not among" not in log
+
+
+POISON_THIRD_CHUNK = '''
+import torch
+import lerobot_pdp.modeling_pdp as modeling
+
+chunk, calls = modeling.rtc_chunk, []
+
+
+def poisoned(policy, *args, **kwargs):  # from the third chunk on, a denoiser weight is NaN
+    calls.append(1)
+    if len(calls) == 3:
+        with torch.no_grad():
+            next(policy.model.denoiser.parameters()).fill_(float("nan"))
+    return chunk(policy, *args, **kwargs)
+
+
+modeling.rtc_chunk = poisoned
+'''
+
+
+@pytest.mark.slow
+def test_lerobot_rollout_with_rtc_exits_1_when_pdp_cannot_plan(untrained_reach_around, tmp_path):
+    """The real ``lerobot-rollout --inference.type=rtc``, a weight turned NaN mid-run (injected by a
+    ``sitecustomize`` on the child's path): the engine gives up, LeRobot's teardown disconnects the robot, and the
+    command exits 1 naming PDP's error (LeRobot's exits 0 there)."""
+    from conftest import lerobot_cli
+
+    ckpt, _ = untrained_reach_around
+    (tmp_path / "inject").mkdir()
+    (tmp_path / "inject" / "sitecustomize.py").write_text(POISON_THIRD_CHUNK)
+    outcomes = tmp_path / "o.jsonl"
+    env = {**os.environ, **CLI_ENV, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(tmp_path / "inject"), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={ckpt}",
+                           "--policy.device=cpu", "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=0",
+                           "--robot.episodes=20", f"--robot.outcomes={outcomes}",
+                           f"--robot.calibration_dir={tmp_path / 'cal'}", "--fps=50", "--duration=120",
+                           "--return_to_initial_position=false", "--play_sounds=false", "--inference.type=rtc",
+                           "--inference.queue_threshold=7", "--inference.rtc.execution_horizon=3"],
+                          capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("lerobot-rollout: error: LeRobot's RTC engine stopped generating PDP's chunks"), last
+    assert "FloatingPointError: PDP generated non-finite actions" in last, last
+    assert "Disconnecting robot" in proc.stderr + proc.stdout  # LeRobot's teardown ran first
+    assert len(_outcomes(outcomes)) < 20
 
 
 @pytest.mark.slow
