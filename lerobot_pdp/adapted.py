@@ -150,7 +150,7 @@ def _acting_adapted(config: Path) -> None:
 def _check_folders(base: Path, out: str | Path | None) -> None:
     require_checkpoint_files(base)
     if out is not None:
-        require_new_folder(out, "adapted")
+        require_new_folder(out, "adapted", base)
 
 
 def _origin(base: Path) -> str | None:

@@ -38,12 +38,16 @@ def require_checkpoint_files(folder: str | Path) -> Path:
     return folder
 
 
-def require_new_folder(out: str | Path, what: str) -> Path:
+def require_new_folder(out: str | Path, what: str, base: str | Path | None = None) -> Path:
     """``out`` as a Path when nothing is there yet (an adapted or taught checkpoint is written whole, never over
-    another), else a FileExistsError naming it; ``what``: "adapted" or "taught"."""
+    another), else a FileExistsError naming it; ``what``: "adapted" or "taught". With ``base`` (the checkpoint
+    whose files ``out`` gets), ``out`` inside it is refused: copying ``base`` would copy ``out`` being written."""
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists: give a new folder for the {what} checkpoint")
+    if base is not None and out.resolve().is_relative_to(Path(base).resolve()):
+        raise ValueError(f"{out} lies inside the checkpoint {base}, whose every file the {what} checkpoint "
+                         "copies: give a folder outside it")
     return out
 
 

@@ -525,7 +525,7 @@ def _check_teach_args(args: argparse.Namespace) -> None:
     for name in args.name or []:
         check_mode_name(name)
     require_checkpoint_files(args.checkpoint)
-    require_new_folder(args.out, "taught")
+    require_new_folder(args.out, "taught", args.checkpoint)
     if args.demo is not None:
         recording_info(args.demo)  # a missing or unfinished recording, named
     if args.taught_from is not None:

@@ -113,7 +113,7 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
     from .adapted import LOAD_ONLY_FIELDS, load_base_policy
 
     require_checkpoint_files(base)
-    require_new_folder(out, "taught")
+    require_new_folder(out, "taught", base)
     for episode, _, _ in lessons:
         check_recording_exists(episode)
     if (base / ADAPTATION_INFO).is_file():  # the weights are taught; the taught checkpoint acts unadapted

@@ -22,11 +22,13 @@ the optimizer groups, while teaching needs a fixed demonstration share and all b
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import logging
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -148,17 +150,18 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     else:
         rehearsal, z_old = prepared.windows, prepared.latents
     taught = taught_windows(policy, z_bank)  # the modes taught before, which the training data does not hold
-    mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new, new_mode_id(policy))
-    model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)
-    warn_if_known_route(model.bank, len(z_bank), mode)
-    if latent == "geometry":
-        delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
-        z_new = geometric_latent(z_new, z_bank, delta, float(model.bank.kappa))
-        model.bank.place_taught(z_new)
-    spread = float(z_bank.var(0).mean().sqrt()) if len(z_bank) > 1 else float("nan")  # as set_latent's warning
-    nearest = float(torch.cdist(z_new, z_bank).min()) / spread
-    losses = _finetune(model, cfg, demo_win, z_new[demo_win.segment], rehearsal, z_old, steps, lr, demo_share,
-                       batch_size, seed, progress, taught)
+    with restored_on_failure(policy):  # Ctrl-C or an error from here on leaves the policy as it was
+        mode = model.bank.append(demonstration_traces(cfg, demo), demo.segments, name, z_new, new_mode_id(policy))
+        model.bank.taught_demos[mode] = demo  # rehearsed when the policy is taught again (taught_demos.py)
+        warn_if_known_route(model.bank, len(z_bank), mode)
+        if latent == "geometry":
+            delta = model.bank.distances[len(z_bank):, : len(z_bank)].detach().cpu()
+            z_new = geometric_latent(z_new, z_bank, delta, float(model.bank.kappa))
+            model.bank.place_taught(z_new)
+        spread = float(z_bank.var(0).mean().sqrt()) if len(z_bank) > 1 else float("nan")  # as set_latent's warning
+        nearest = float(torch.cdist(z_new, z_bank).min()) / spread
+        losses = _finetune(model, cfg, demo_win, z_new[demo_win.segment], rehearsal, z_old, steps, lr, demo_share,
+                           batch_size, seed, progress, taught)
     policy.steering.activate(None)
     n_rehearsed = len(rehearsal.actions) + (len(taught[0].actions) if taught is not None else 0)
     result = TeachResult(mode, z_new, losses, steps, len(demo_win.actions), n_rehearsed, nearest,
@@ -170,6 +173,27 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
                 "%.4f -> %.4f", mode, cfg.mode_names.get(str(mode)), result.seconds, latent_text(z_new), nearest,
                 _mean(losses[:20]), _mean(losses[-20:]))
     return result
+
+
+@contextlib.contextmanager
+def restored_on_failure(policy: Any) -> Iterator[None]:
+    """Put ``policy`` back as it was when the block fails or is interrupted (Ctrl-C in a notebook): the behaviour
+    bank (the new mode, its trace, distances and demonstration), the mode names and the denoiser's weights; then
+    the error goes on. Teaching changes nothing else of the policy before it succeeds."""
+    model, cfg = policy.model, policy.config
+    bank = model.bank.snapshot()
+    names = dict(cfg.mode_names) if cfg.mode_names is not None else None
+    weights = {k: v.clone() for k, v in model.denoiser.state_dict().items()}
+    try:
+        yield
+    except BaseException:
+        model.bank.restore(bank)
+        cfg.mode_names = names
+        with torch.no_grad():
+            model.denoiser.load_state_dict(weights)
+        logger.warning("teach stopped before it ended: the policy is as it was before teach (no mode added, weights "
+                       "unchanged)")
+        raise
 
 
 def teaching_record(policy: Any, episode: Episode, data: Path, result: TeachResult, name: str) -> dict[str, Any]:
@@ -388,8 +412,7 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
                 value = float(loss.detach())
                 if not math.isfinite(value):
                     raise FloatingPointError(f"teach: the loss became non-finite at step {len(losses) + 1} ({value}); "
-                                             "the policy's weights are now partly fine-tuned and its behavior bank holds the "
-                                             "new mode: reload it. Lower the lr")
+                                             "the policy is left as it was before teach. Lower the lr")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(params, cfg.optimizer_grad_clip_norm)

@@ -183,6 +183,10 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
     # an existing output is refused by name; so is a folder that is no checkpoint
     assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--out", str(out)]) == 2
     assert f"{out} exists" in capsys.readouterr().err
+    # an output inside the base would be copied into itself (with its staging folder): refused before any work
+    assert cli(["adapt", str(base), "--demo", str(synthetic_meta.root), "--out", str(base / "adapted")]) == 2
+    assert f"{base / 'adapted'} lies inside the checkpoint {base}" in capsys.readouterr().err
+    assert sorted(f.name for f in base.iterdir() if f.is_dir()) == []
     assert cli(["adapt", str(tmp_path), "--demo", str(synthetic_meta.root), "--out", str(tmp_path / "x")]) == 2
     assert "is not a PDP checkpoint folder" in capsys.readouterr().err
     last = tmp_path / "train" / "checkpoints" / "last"  # LeRobot's layout: the checkpoint is its pretrained_model

@@ -580,6 +580,42 @@ def test_several_routes_recorded_together_are_taught_in_one_command(synthetic_me
     assert not (tmp_path / "x").exists()
 
 
+def test_teach_interrupted_or_failed_leaves_the_policy_as_it_was(synthetic_meta, monkeypatch, caplog):
+    """Ctrl-C in a notebook (or a non-finite loss) midway through ``teach``: no half-taught mode, no partly
+    fine-tuned weights, nothing missing from what was taught before; the same teaching then runs as if it never
+    started."""
+    from lerobot_pdp import teaching
+
+    p = small_policy(synthetic_meta)
+    p.teach(new_route(1.6), synthetic_meta.root, steps=2, seed=0, name="far right")
+    modes, names = {m: z.clone() for m, z in p.mode_latents().items()}, dict(p.config.mode_names)
+    den, bank, demos = _params(p.model.denoiser), p.model.bank.snapshot(), dict(p.model.bank.taught_demos)
+    loss, calls = teaching.diffusion_loss, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return loss(*args, **kwargs)
+
+    monkeypatch.setattr(teaching, "diffusion_loss", interrupted)
+    with caplog.at_level("WARNING", logger="lerobot_pdp.teaching"), pytest.raises(KeyboardInterrupt):
+        p.teach(new_route(-1.7), synthetic_meta.root, steps=5, seed=0, name="far left")
+    assert "the policy is as it was before teach" in caplog.text
+    assert sorted(p.mode_latents()) == sorted(modes) and p.config.mode_names == names
+    for k, v in den.items():
+        assert torch.equal(p.model.denoiser.state_dict()[k], v), k
+    assert p.model.bank.same_behaviors(p.model.bank.snapshot(), bank)
+    assert torch.equal(p.model.bank.taught, bank["taught"]) and p.model.bank.taught_demos == demos
+
+    monkeypatch.setattr(teaching, "diffusion_loss", lambda *a, **k: loss(*a, **k) * float("nan"))
+    with pytest.raises(FloatingPointError, match="non-finite at step 1 .* the policy is left as it was before teach"):
+        p.teach(new_route(-1.7), synthetic_meta.root, steps=5, seed=0, name="far left")
+    assert sorted(p.mode_latents()) == sorted(modes)
+    monkeypatch.setattr(teaching, "diffusion_loss", loss)
+    assert p.teach(new_route(-1.7), synthetic_meta.root, steps=2, seed=0, name="far left").mode == max(modes) + 1
+
+
 def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     p = small_policy(synthetic_meta)
     other = write_dataset(tmp_path / "other", episodes_per_mode=2, seed=5)
@@ -607,6 +643,9 @@ def test_teach_refuses_bad_inputs_by_name(synthetic_meta, tmp_path, capsys):
     args = ["teach", str(base), "--demo", str(synthetic_meta.root), "--data", str(synthetic_meta.root)]
     assert cli([*args, "--out", str(tmp_path / "taken")]) == 2
     assert "taken exists" in capsys.readouterr().err
+    assert cli([*args, "--out", str(base / "taught")]) == 2  # it would copy itself in: refused before any work
+    assert f"{base / 'taught'} lies inside the checkpoint {base}" in capsys.readouterr().err
+    assert not (base / "taught").exists()
     # refused before the checkpoint loads, each named once ("lerobot-pdp teach: error: ...", no "teach: " again)
     for extra, said in ((["--name", "3"], "error: mode name '3' reads as a mode id (--policy.steer_mode=3 steers to "
                                           "the mode of that id)"),
