@@ -10,8 +10,8 @@ package) or the cross-entropy method, a population per step rolled out together 
 
 The budget counts rollouts. The starting points are scored first (the mode means, or a given latent such as a
 fit's), so the search never returns worse than where it started, as measured. Same seed, same history; Ctrl-C
-returns the best so far, marked interrupted; a failing rollout or score raises :class:`LatentSearchError`
-carrying the search so far.
+returns the best so far, marked interrupted; a rollout or score failing after the first candidate raises
+:class:`LatentSearchError` carrying the search so far (at the first, the error itself: nothing to keep).
 """
 
 from __future__ import annotations
@@ -103,7 +103,8 @@ class SearchResult:
 
 
 class LatentSearchError(RuntimeError):
-    """A rollout or the score failed; ``result`` holds the search up to the candidates before it."""
+    """A rollout or the score failed after the first candidate; ``result`` holds the search up to the candidates
+    before it (a failure at the first candidate raises its own error: a setup error, most often)."""
 
     def __init__(self, message: str, result: SearchResult):
         super().__init__(message)

@@ -184,6 +184,16 @@ def teach_again_from(base: str | Path, taught_from: str | Path, out: str | Path,
     Returns ``out`` and ``(mode id in taught_from, result)`` per mode."""
     taught_from = Path(taught_from)
     demos = taught_demonstrations(taught_from)
+    kept = {name: mode for mode, name, _ in taught_demonstrations(Path(base))} \
+        if (Path(base) / TAUGHT_DEMOS).is_file() else {}  # lerobot-train kept them (rehearsing their demonstrations)
+    held = [(mode, name) for mode, name, _ in demos if name in kept]
+    if held:
+        said = ", ".join(f"{kept[name]} ({name!r})" for _, name in held)
+        if len(held) == len(demos):
+            raise ValueError(f"{base} still holds every mode taught to {taught_from}: {said} (lerobot-train kept "
+                             "them): nothing to teach again")
+        logger.info("%s still holds %s (lerobot-train kept them): teaching only the others", base, said)
+        demos = [d for d in demos if d[1] not in kept]
     lessons = [(demo.arrays, name, {"taught_checkpoint": str(taught_from.resolve()), "mode": mode})
                for mode, name, demo in demos]
     settings = {"steps": steps, "lr": lr, "demo_share": demo_share, "seed": seed, "latent": latent}

@@ -265,7 +265,17 @@ def test_taught_modes_dropped_by_training_are_taught_again_from_the_taught_check
         assert msg in capsys.readouterr().err
     assert cli(["teach", str(tmp_path / "trained"), "--taught-from", str(base), *data, "--out", str(tmp_path / "x")]) == 2
     assert f"{base} keeps no taught demonstrations ({TAUGHT_DEMOS})" in capsys.readouterr().err
+    # a base that kept the taught modes (lerobot-train's default) has nothing to be taught again; one that kept some
+    # is taught the others
+    assert cli(["teach", str(tmp_path / "t2"), "--taught-from", str(tmp_path / "t1"), *data, "--out",
+                str(tmp_path / "x")]) == 2
+    assert (f"{tmp_path / 't2'} still holds every mode taught to {tmp_path / 't1'}: 4 ('far right') (lerobot-train "
+            "kept them): nothing to teach again") in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+    assert cli(["teach", str(tmp_path / "t1"), "--taught-from", str(tmp_path / "t2"), *data, "--out",
+                str(tmp_path / "t12")]) == 0
+    assert f"mode 5 of {tmp_path / 't2'} -> mode 5" in capsys.readouterr().out
+    assert sorted(PDPPolicy.from_pretrained(tmp_path / "t12").model.bank.taught_demos) == [4, 5]
 
 
 def test_training_a_taught_checkpoint_further_rehearses_its_taught_modes(synthetic_meta, tmp_path, caplog):
