@@ -178,6 +178,7 @@ def _search_card_section(provenance: dict, result: SearchResult) -> str:
             if isinstance(objective, dict) and "waypoints" in objective else f"its score `{objective}`")
     where = "".join(f", {k} `{provenance[k]}`" for k in ("env", "scene") if k in provenance)
     return card_section(f"This checkpoint acts under a latent found by searching for an outcome, without a "
-                        f"demonstration ({result.method}, {result.rollouts_used} rollouts{where}): "
+                        f"demonstration ({result.method}, {result.rollouts_used} rollouts"
+                        f"{f' of {result.budget}: interrupted' if result.interrupted else ''}{where}): "
                         f"`{result.latent.tolist()}`, {what}: score {result.score:.3g}, success "
                         f"{100 * result.success:.0f} % of its rollouts ({provenance['date']}).")

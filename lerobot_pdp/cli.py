@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from lerobot_pdp.checkpoint_files import require_checkpoint_files, require_new_folder
 from lerobot_pdp.console import latent_text
-from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS
+from lerobot_pdp.search_defaults import CONFIRM_ROLLOUTS, WAYPOINT_RADIUS
 from lerobot_pdp.steer_requests import mode_key
 
 if TYPE_CHECKING:  # the benchmark pulls in torch and LeRobot: imported only when a command needs it
@@ -349,7 +349,7 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
         "rollouts in a suite env: by task success, the summed reward, or --waypoints passed in order within "
         "--radius, which steers without any demonstration. With --out, writes a complete LeRobot checkpoint acting "
         "under the best latent (the base's files plus adaptation.safetensors / adaptation.json recording the "
-        "search). Deterministic under --seed; Ctrl-C stops the search and keeps the best so far.",
+        "search). Deterministic under --seed; Ctrl-C stops the search and keeps the best so far (written to --out; exit status 130).",
     )
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
     _add_env_argument(p)
@@ -358,8 +358,8 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--waypoints", default=None,
                    help="score by way-points passed in order: a JSON/YAML file (a list of points or a scene file "
                    "with 'waypoints') or 'scene' for the scene's own")
-    p.add_argument("--radius", type=float, default=0.05, help="a way-point counts as passed within this distance "
-                   "(metres, default 0.05)")
+    p.add_argument("--radius", type=float, default=WAYPOINT_RADIUS, help="a way-point counts as passed within "
+                   f"this distance (metres, default {WAYPOINT_RADIUS})")
     p.add_argument("--score", choices=("success", "reward"), default=None,
                    help="without --waypoints: task success (default) or the summed reward")
     p.add_argument("--finish", action="store_true",
@@ -427,7 +427,8 @@ def cmd_search(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, suite.scene_key)
     objective: dict = {"env": suite.name, "scene": scene.name}
     if args.waypoints is not None:
-        source = f"way-points of {scene.source}" if args.waypoints == "scene" else args.waypoints
+        # a shipped scene by its name (its file's path is the installed package's, no use on another machine)
+        source = f"way-points of scene {args.scene}" if args.waypoints == "scene" else args.waypoints
         points = resolve_waypoints(args.waypoints, scene, suite)
         check_waypoints(suite, points, source)
         score = WaypointScore(points, args.radius, dims=suite.trace_dims, finish=args.finish)
@@ -449,6 +450,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         raise
     if args.history is not None:
         write_text_atomic(args.history, json.dumps(res.to_dict(), indent=1))
+        print(f"wrote {args.history}: the {len(res.history)} candidates")
     print(f"{'interrupted: ' if res.interrupted else ''}best latent {latent_text(res.latent)}: score {res.score:.3g}, "
           f"success {100 * res.success:.0f} % of its {res.history[res.best_trace[-1][1]].rollouts} rollouts; "
           f"{len(res.history)} candidates, {res.rollouts_used} of {res.budget} rollouts in {res.seconds:.0f} s")
@@ -456,7 +458,7 @@ def cmd_search(args: argparse.Namespace) -> int:
         print(f"the budget ended with the starting latents ({len(res.history)} of them): no {res.method} step was "
               "taken; a larger --budget lets it search beyond them")
     print(f"wrote {args.out}" if args.out is not None else "no --out: no checkpoint written")
-    return 0
+    return 130 if res.interrupted else 0  # as Ctrl-C ends every other command, the best so far kept all the same
 
 
 def _checkpoint_config(checkpoint: Path):
@@ -797,7 +799,7 @@ def add_search_curves_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--finish", action="store_true",
                    help="with --score waypoints: the way-points and then the task's success, as `lerobot-pdp search "
                    "--finish` (the same as --score waypoints_finish)")
-    p.add_argument("--radius", type=float, default=0.05, help="with way-points: pass radius (default 0.05)")
+    p.add_argument("--radius", type=float, default=WAYPOINT_RADIUS, help="with way-points: pass radius (default 0.05)")
     p.add_argument("--methods", nargs="+", default=None,
                    help="any of z_fit z_modes fit dp_noise (default: all that --score allows)")
     p.add_argument("--dp-results", type=Path, default=None,

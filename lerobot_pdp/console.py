@@ -1,5 +1,5 @@
 """A clean console: LeRobot's torchcodec fallback warning in one line when FFmpeg is simply not installed, and
-latents printed at a readable precision (:func:`latent_text`).
+latents printed at a readable precision (:func:`latent_text`), a run's losses summarised (:func:`loss_ends_text`).
 
 LeRobot picks its default video decoder in ``lerobot.utils.import_utils.get_safe_default_video_backend``: it
 imports torchcodec and, when that fails, logs ``f"{e}\\n'torchcodec' is installed but cannot be loaded ..."``
@@ -89,3 +89,12 @@ def latent_text(z: Any, digits: int = 4) -> str:
 
     return str(rounded(z.tolist() if hasattr(z, "tolist") else z))
 
+
+def loss_ends_text(losses: list[float], window: int = 10) -> str:
+    """The mean loss over the first and over the last ``window`` steps (half of a shorter run), for a result's
+    summary: one step's loss against another's is mostly their batches' noise."""
+    if not losses:
+        return "none"
+    n = max(1, min(window, len(losses) // 2))
+    first, last = sum(losses[:n]) / n, sum(losses[-n:]) / n
+    return f"{first:.4g} -> {last:.4g}" + (f" (means of the first and last {n} steps)" if n > 1 else "")

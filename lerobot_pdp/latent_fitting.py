@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from .chunk_windows import DemoWindows
+from .console import loss_ends_text
 from .denoiser import FiLMUnet1d
 from .diffusion import NoiseSchedule
 from .fast_inference import Context, FrozenDenoiser
@@ -49,7 +50,7 @@ class FitResult:
         def fmt(x: float | None) -> str:
             return "None" if x is None else f"{x:.4g}"
 
-        loss = f"{fmt(self.losses[0])} -> {fmt(self.losses[-1])}" if self.losses else "none"
+        loss = loss_ends_text(self.losses)
         noise = "None" if self.noise is None else f"<{len(self.noise)} chunk noises {tuple(self.noise.shape)}>"
         def short(t: Tensor) -> str:
             return str(np.round(t.detach().cpu().double().numpy(), 4).tolist())

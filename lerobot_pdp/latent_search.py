@@ -31,6 +31,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .candidate_rollouts import CandidateRollouts, EnvFactory
+from .console import latent_text
 from .outcome_scores import Outcome, Score, WaypointScore, resolve_score
 from .search_defaults import CONFIRM_ROLLOUTS
 from .steering_state import as_latent_tensor
@@ -83,6 +84,12 @@ class SearchResult:
     @property
     def rollouts_used(self) -> int:
         return sum(c.rollouts for c in self.history)
+
+    def __repr__(self) -> str:  # a summary: the dataclass's would print every candidate (to_dict() holds them)
+        latent = None if self.latent is None else latent_text(self.latent)
+        return (f"SearchResult(latent={latent}, score={self.score:.4g}, success={self.success:.3g}, "
+                f"{len(self.history)} candidates, {self.rollouts_used} of {self.budget} rollouts, method={self.method!r}, "
+                f"objective={self.objective!r}{', interrupted' if self.interrupted else ''}, seconds={self.seconds:.1f})")
 
     def to_dict(self) -> dict[str, Any]:
         return {"latent": None if self.latent is None else self.latent.tolist(), "score": self.score,

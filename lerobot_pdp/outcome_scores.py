@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from .search_defaults import WAYPOINT_RADIUS
+
 
 @dataclass(frozen=True)
 class Outcome:
@@ -77,7 +79,7 @@ class WaypointScore:
     that passes them all and fails 1: way-point progress ranks routes, not whether they end in the task done, and
     a search by progress alone can trade a finishing route for one that passes the points and stops short."""
 
-    def __init__(self, waypoints: Sequence[Sequence[float]] | np.ndarray, radius: float,
+    def __init__(self, waypoints: Sequence[Sequence[float]] | np.ndarray, radius: float = WAYPOINT_RADIUS,
                  dims: Sequence[int] | None = None, finish: bool = False):
         w = np.asarray(waypoints, dtype=float)
         if w.ndim != 2 or len(w) == 0 or not np.all(np.isfinite(w)):

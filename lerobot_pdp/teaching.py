@@ -42,7 +42,7 @@ from .adaptation import demonstration_traces, encode_demonstration
 from .behavior import UNLABELED, read_training_behaviors, training_behavior_keys
 from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
-from .console import latent_text
+from .console import latent_text, loss_ends_text
 from .demonstration import Episode, check_recording, read_demonstration
 from .diffusion import diffusion_loss
 from .episodes import read_episode_frames, read_episodes
@@ -76,7 +76,7 @@ class TeachResult:
     settings: dict[str, Any] = field(default_factory=dict)
 
     def __repr__(self) -> str:  # a summary: the dataclass's would print every step's loss
-        loss = f"{self.losses[0]:.4g} -> {self.losses[-1]:.4g}" if self.losses else "none"
+        loss = loss_ends_text(self.losses)
         return (f"TeachResult(mode={self.mode}, z={[[round(x, 4) for x in r] for r in self.z.tolist()]}, "
                 f"steps={self.steps}, loss {loss}, windows {self.demo_windows} demo + {self.rehearsal_windows} "
                 f"rehearsal, nearest_spreads={self.nearest_spreads:.3g}, seconds={self.seconds:.1f})")
@@ -105,7 +105,7 @@ def read_rehearsal(policy: Any, training_data: str | Path) -> TrainingRehearsal:
 def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | TrainingRehearsal,
                    steps: int = TEACH_STEPS, lr: float = TEACH_LR, demo_share: float = TEACH_DEMO_SHARE,
                    batch_size: int = TEACH_BATCH_SIZE, seed: int = 0, name: str | None = None,
-                   latent: str = TEACH_LATENT, progress: bool = False) -> TeachResult:
+                   latent: str = TEACH_LATENT, progress: bool = True) -> TeachResult:
     """Add one demonstration to ``policy`` (a ``PDPPolicy``, changed in place) as a new mode; see the module.
 
     Args:

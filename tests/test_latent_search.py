@@ -255,6 +255,12 @@ def test_ctrl_c_returns_the_best_so_far_marked_interrupted(policy):
                         progress=False)
     assert res.interrupted and len(res.history) == 3 and res.rollouts_used == 6
     assert torch.equal(res.latent, res.history[1].latent) and res.score == 0.5
+    said = repr(res)  # a summary, not every candidate
+    assert said.startswith("SearchResult(latent=[") and "3 candidates, 6 of 40 rollouts" in said and "interrupted" in said
+    from lerobot_pdp.adapted import _search_card_section
+
+    card = _search_card_section({"objective": "success", "env": "avoiding", "date": "today"}, res)
+    assert "(cma, 6 rollouts of 40: interrupted, env `avoiding`)" in card  # the card says it stopped short
 
 
 def test_a_failing_score_keeps_the_search_so_far(policy):
