@@ -43,6 +43,8 @@ from .steering_state import Steering
 
 GRADIO_HINT = 'the explorer needs Gradio: pip install "lerobot_policy_pdp[explore]" (in a clone: pip install -e ".[explore]")'
 MAP_DPI = 80  # the map's pixels: a click's coordinates are read in them
+MAP_WIDEN_SPANS = 2.0  # a mark off the training latents widens the map's view by at most this many spans each side
+LANDSCAPE_MAX_ROLLOUTS = 1024  # rollouts one landscape request may run (grid^2 x rollouts); Python: limit=None
 LANDSCAPE_VERSION = 1  # bump when what a cached landscape holds changes
 Progress = Callable[[float, str], None]  # fraction done, what is running (gr.Progress is one)
 
@@ -247,19 +249,29 @@ class Explorer:
                 artists.append(ax.scatter(*xy, marker="D", s=90, color="white", edgecolor="k", lw=1.5, zorder=7))
                 artists.append(ax.annotate(f"{fit.label}\nerror ratio {ratio}", xy, xytext=(8, -18),
                                            textcoords="offset points", fontsize=8, zorder=8))
+            star = None
             if selected is not None:
-                xy = proj.to_map(self.latent(selected.z))[0]
+                star = proj.to_map(self.latent(selected.z))[0]
                 # an outline: the training points under the selection stay visible
-                artists.append(ax.scatter(*xy, marker="*", s=260, facecolor="none", edgecolor="darkgoldenrod",
+                artists.append(ax.scatter(*star, marker="*", s=260, facecolor="none", edgecolor="darkgoldenrod",
                                           lw=1.8, zorder=9))
             marked = [a.get_offsets() if hasattr(a, "get_offsets") else np.c_[a.get_xdata(), a.get_ydata()]
                       for a in artists if hasattr(a, "get_offsets") or hasattr(a, "get_xdata")]
             (x0, x1), (y0, y1) = self._limits
-            if marked:  # a mark beyond the training latents widens the view, for this picture only
-                pts = np.concatenate([np.asarray(m, dtype=float).reshape(-1, 2) for m in marked])
-                pad = 0.05 * max(x1 - x0, y1 - y0)
+            if marked:  # a mark beyond the training latents widens the view, for this picture only, up to
+                # MAP_WIDEN_SPANS of the map each side: a latent far out would shrink the training latents to a dot
+                span = max(x1 - x0, y1 - y0)
+                lo = np.array([x0, y0]) - MAP_WIDEN_SPANS * span
+                hi = np.array([x1, y1]) + MAP_WIDEN_SPANS * span
+                pts = np.clip(np.concatenate([np.asarray(m, dtype=float).reshape(-1, 2) for m in marked]), lo, hi)
+                pad = 0.05 * span
                 x0, x1 = min(x0, pts[:, 0].min() - pad), max(x1, pts[:, 0].max() + pad)
                 y0, y1 = min(y0, pts[:, 1].min() - pad), max(y1, pts[:, 1].max() + pad)
+            if star is not None and not (x0 <= star[0] <= x1 and y0 <= star[1] <= y1):  # said at the edge
+                edge = (float(np.clip(star[0], x0, x1)), float(np.clip(star[1], y0, y1)))
+                artists.append(ax.annotate("selection off the map", edge, xytext=(0.5, 0.04),
+                                           textcoords="axes fraction", ha="center", fontsize=8, color="darkgoldenrod",
+                                           arrowprops={"arrowstyle": "->", "color": "darkgoldenrod"}, zorder=9))
             ax.set_xlim(x0, x1)
             ax.set_ylim(y0, y1)
             fig = self.map.figure
@@ -457,9 +469,11 @@ class Explorer:
         pad = np.maximum((hi - lo) * margin, 1e-3)
         return np.round(np.stack([lo - pad, hi + pad], 1), 6)
 
-    def landscape(self, grid: int = 5, rollouts: int = 2, progress: Progress | None = None) -> Landscape:
+    def landscape(self, grid: int = 5, rollouts: int = 2, progress: Progress | None = None,
+                  limit: int | None = LANDSCAPE_MAX_ROLLOUTS) -> Landscape:
         """Success rate of ``rollouts`` rollouts at each point of a ``grid`` x ``grid`` grid over the latent box,
-        read from the cache when this checkpoint, scene and grid were run before (else run and cached)."""
+        read from the cache when this checkpoint, scene and grid were run before (else run and cached). More than
+        ``limit`` rollouts to run is refused (a page's request would hold the app for hours; None: no limit)."""
         grid, rollouts = _positive("grid", grid), _positive("rollouts", rollouts)
         key = self.landscape_key(grid, rollouts)
         digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
@@ -473,6 +487,10 @@ class Explorer:
                     return Landscape(xs, ys, np.asarray(saved["success"]), np.asarray(saved["collision"]), cache, True)
             except (ValueError, KeyError):
                 pass  # a damaged cache file is run again and replaced
+        if limit is not None and grid * grid * rollouts > limit:
+            raise ValueError(f"a {grid} x {grid} grid at {rollouts} rollout(s) each is {grid * grid * rollouts} "
+                             f"rollouts, over the limit of {limit} per request: use a coarser grid or fewer rollouts "
+                             "(from Python: landscape(..., limit=None))")
         points = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)  # row-major: y outer, x inner
         latents = list(self.map.projection.to_latent(points))
         outcomes = self.run_latents(latents, rollouts, progress)

@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 from dataclasses import asdict
 from typing import Any
 
-from .explorer import Explorer, FitMark, MapImage, Selection, import_gradio
+from .explorer import LANDSCAPE_MAX_ROLLOUTS, Explorer, FitMark, MapImage, Selection, import_gradio
 
 logger = logging.getLogger(__name__)
 USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, RuntimeError)
@@ -26,6 +27,7 @@ USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, Runtime
 def build_app(explorer: Explorer) -> Any:
     """The explorer as a ``gr.Blocks`` app, queued, not launched (``app.launch()``; a Space runs it as is)."""
     gr = import_gradio()
+    stopping = threading.Event()  # the page's "stop" for a landscape being computed
 
     def _message(e: Exception) -> str:
         message = str(e.args[0] if isinstance(e, KeyError) and e.args else e)
@@ -107,15 +109,19 @@ def build_app(explorer: Explorer) -> Any:
         with gr.Accordion("fit a demonstration", open=True):
             with gr.Row():
                 demo_box = gr.Textbox(value=str(explorer.dataset or ""), label="LeRobotDataset folder")
-                demo_episode = gr.Number(value=0, precision=0, label="episode index")
-                fit_steps = gr.Number(value=0, precision=0, label="fit steps (0: the checkpoint's fit_steps)")
+                # no precision=0: the page would round 1.5 to 2 before the checks see it
+                demo_episode = gr.Number(value=0, label="episode index")
+                fit_steps = gr.Number(value=0, label="fit steps (0: the checkpoint's fit_steps)")
             fit_btn = gr.Button("fit z to this episode")
         if explorer.has_env:
             with gr.Accordion("success landscape over z", open=False):
                 with gr.Row():
-                    grid = gr.Number(value=5, precision=0, label="grid points per axis")
-                    land_rollouts = gr.Number(value=2, precision=0, label="rollouts per point")
-                land_btn = gr.Button("compute (cached per checkpoint, scene and grid)")
+                    grid = gr.Number(value=5, label="grid points per axis")
+                    land_rollouts = gr.Number(value=2, label="rollouts per point")
+                with gr.Row():
+                    land_btn = gr.Button(f"compute (cached per checkpoint, scene and grid; at most "
+                                         f"{LANDSCAPE_MAX_ROLLOUTS} rollouts)")
+                    land_stop = gr.Button("stop", scale=0)
                 land_img = gr.Image(label="success landscape", type="numpy", interactive=False)
                 land_note = gr.Markdown()
         with gr.Accordion("save the selected latent as an adapted checkpoint", open=True):
@@ -163,7 +169,14 @@ def build_app(explorer: Explorer) -> Any:
                         selection)
 
         def landscape(grid_n, rollouts, progress=gr.Progress()):  # noqa: B008 (how Gradio asks for a progress bar)
-            land = explorer.landscape(grid_n, rollouts, progress=lambda f, d: progress(f, desc=d))
+            stopping.clear()
+
+            def report(fraction: float, what: str) -> None:  # between batches of rollouts: where a stop takes effect
+                if stopping.is_set():
+                    raise RuntimeError("the landscape was stopped; nothing was cached")
+                progress(fraction, desc=what)
+
+            land = explorer.landscape(grid_n, rollouts, progress=report)
             note = (f"{'read from the cache' if land.from_cache else 'computed and cached'}: `{land.cache.name}`; "
                     f"mean success {land.success.mean():.0%}")
             return explorer.landscape_image(land), note
@@ -186,6 +199,8 @@ def build_app(explorer: Explorer) -> Any:
                       api_name=False)
         if explorer.has_env:
             land_btn.click(on_page(landscape, 1, 2), [grid, land_rollouts], [land_img, land_note], api_name=False)
+            # outside the queue: the landscape it stops holds the app's one turn
+            land_stop.click(stopping.set, None, None, queue=False, api_name=False)
         save_btn.click(on_page(save, 0, 1), [out_box, state], [save_note], api_name=False)
         # the endpoints a client calls (hidden buttons: the page uses the twins above)
         api = {"pick": (pick, [px, py, state], outputs), "select": (select, [latent_box, state], outputs),

@@ -142,6 +142,28 @@ def test_the_success_landscape_is_cached_per_checkpoint_scene_and_grid(explorer,
     assert explorer.landscape_image(again).ndim == 3
     with pytest.raises(AssertionError, match="must not roll out"):  # another grid is another cache entry
         explorer.landscape(grid=4, rollouts=1)
+    # a request that would hold the app for hours is refused before any rollout (from Python: limit=None)
+    with pytest.raises(ValueError, match=r"a 500 x 500 grid at 8 rollout\(s\) each is 2000000 rollouts, over the "
+                                         r"limit of 1024 per request"):
+        explorer.landscape(grid=500, rollouts=8)
+    with pytest.raises(AssertionError, match="must not roll out"):
+        explorer.landscape(grid=500, rollouts=8, limit=None)
+
+
+def test_a_latent_far_off_the_map_is_pointed_at_not_zoomed_out_to(explorer):
+    """A typed latent far from the training latents (1e9) widens the map's view by at most two spans each side,
+    so the training latents stay a map and clicks stay near them; an arrow at the edge says where it went."""
+    from lerobot_pdp.explorer import Selection
+
+    base = explorer.render_map()
+    span = max(base.xlim[1] - base.xlim[0], base.ylim[1] - base.ylim[0])
+    near = explorer.render_map(Selection([float(v) * 1.2 for v in explorer.mode_latent(0)], "typed", {}))
+    far = explorer.render_map(Selection([1e9, 1e9], "typed", {}))
+    for view in (near, far):
+        assert view.xlim[1] - view.xlim[0] <= 5.2 * span and view.ylim[1] - view.ylim[0] <= 5.2 * span
+    texts = [t.get_text() for t in explorer.map.axes.texts]
+    assert "selection off the map" not in texts  # the marks are removed after each picture
+    assert not np.array_equal(far.image, base.image)
 
 
 def test_a_saved_adapted_checkpoint_acts_at_the_selected_latent(explorer, tmp_path):
