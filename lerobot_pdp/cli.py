@@ -91,7 +91,7 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="seed of all jitter; same seed -> same dataset")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of all jitter; same seed -> same dataset")
     p.add_argument("--out", required=True, type=Path, help="output dataset directory (must not exist)")
     p.add_argument("--modes", nargs="+", default=None,
                    help="subset of modes, by id or name (space- or comma-separated); default all")
@@ -322,7 +322,7 @@ def add_adapt_parser(sub: argparse._SubParsersAction) -> None:
                    help="also fit one sampler noise per chunk (default: the checkpoint's fit_noise)")
     p.add_argument("--steps", type=int, default=None, help="gradient steps on z (default: fit_steps)")
     p.add_argument("--lr", type=float, default=None, help="Adam step size on z (default: fit_lr)")
-    p.add_argument("--seed", type=int, default=0, help="fitting seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="fitting seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device to fit on (default cpu)")
     p.set_defaults(func=cmd_adapt)
 
@@ -461,6 +461,17 @@ def cmd_search(args: argparse.Namespace) -> int:
     return 130 if res.interrupted else 0  # as Ctrl-C ends every other command, the best so far kept all the same
 
 
+def _seed(text: str) -> int:
+    """``--seed``'s type: an integer >= 0 (numpy refuses a negative seed without naming the flag)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
 def _checkpoint_config(checkpoint: Path):
     from lerobot_pdp import PDPConfig
     from lerobot_pdp.checkpoint_files import check_checkpoint_source
@@ -513,7 +524,7 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--latent", choices=TEACH_LATENTS, default=TEACH_LATENT,
                    help="the new mode's latent: the encoder's mean of the demonstration, or where the latent "
                    f"geometry puts it against the training latents (default {TEACH_LATENT})")
-    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device to fine-tune on (default cpu)")
     p.set_defaults(func=cmd_teach)
 
@@ -879,7 +890,7 @@ def cmd_merge_results(args: argparse.Namespace) -> int:
     for f in files:
         try:
             loaded.append((str(f), json.loads(f.read_text())))
-        except json.JSONDecodeError as e:
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:  # a text that is no JSON, or no text at all
             raise ValueError(f"{f} is not JSON ({e})") from e
     res = merge_results(loaded)
     # named relative to the merged folder: the merged results.json records where its parts came from

@@ -260,6 +260,19 @@ def recording_info(root: str | Path) -> dict:
         raise ValueError(f"{info_path} is not valid JSON ({e}): the recording's metadata is damaged") from e
 
 
+def check_data_files(root: Path, files: list[Path]) -> None:
+    """Each of a recording's parquet ``files`` opens (a file cut off while written has no footer); else an error
+    naming it, where pyarrow names only "<Buffer>"."""
+    import pyarrow.parquet as pq
+
+    for f in files:
+        try:
+            pq.ParquetFile(f)
+        except Exception as e:  # noqa: BLE001 - any unreadable file means the same thing here
+            raise ValueError(f"recording {root}: {f.relative_to(root)} is unreadable ({e}); the recording was "
+                             "probably interrupted while writing: record it again") from e
+
+
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]],
                     min_frames: int | None = None, what: str = "recording",
                     advice: str = "Record with the robot/env (and features) the policy was trained on") -> None:
@@ -278,14 +291,7 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     if total == 0 or not files:
         raise ValueError(f"recording {root} is empty (no saved episode): record at least one whole episode "
                          "(an episode cut off by Ctrl-C is dropped, not saved)")
-    import pyarrow.parquet as pq
-
-    for f in files:
-        try:
-            pq.ParquetFile(f)
-        except Exception as e:  # noqa: BLE001 - any unreadable file means the same thing here
-            raise ValueError(f"recording {root}: {f.relative_to(root)} is unreadable ({e}); the recording was "
-                             "probably interrupted while writing: record it again") from e
+    check_data_files(root, files)
     if not 0 <= int(episode) < total:
         raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
     problems = feature_problems(required, info.get("features", {}))

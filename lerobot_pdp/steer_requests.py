@@ -37,6 +37,9 @@ def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarge
     Infinity, which the policy would reject)."""
     check_request(request, expect)
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder: give the steering file's path (the one the running policy's "
+                                "--policy.steer_file names)")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write the steering file {path}: folder {path.parent} does not exist "
                                 "(give the path the running policy's --policy.steer_file names)")

@@ -307,6 +307,18 @@ def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"cannot write the steering file {tmp_path / 'nowhere' / 'steer.json'}: folder {tmp_path / 'nowhere'} " \
            "does not exist" in err and ".tmp" not in err
+    assert lerobot_pdp(["steer", str(tmp_path), "--mode", "1"]) == 2  # a folder where the file goes
+    err = capsys.readouterr().err
+    assert f"{tmp_path} is a folder: give the steering file's path" in err and ".tmp" not in err
+
+
+def test_a_negative_seed_is_named_by_its_flag(capsys):
+    for command in (["make-dataset", "--env", "reach-around", "--out", "x"], ["adapt", "ckpt", "--demo", "d", "--out", "x"],
+                    ["teach", "ckpt", "--demo", "d", "--data", "d", "--out", "x"]):
+        with pytest.raises(SystemExit) as ended:
+            lerobot_pdp([*command, "--seed", "-5"])
+        assert ended.value.code == 2
+        assert "argument --seed: must be an integer >= 0, got '-5'" in capsys.readouterr().err
 
 
 def test_a_steer_file_rewritten_in_place_within_one_tick_is_seen(policy, tmp_path):

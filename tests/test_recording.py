@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -131,6 +132,12 @@ def test_plot_dataset_and_scene_drawing(reach_dataset, tmp_path):
         plot_dataset(reach_dataset, tmp_path / "other.png", env="avoiding")
     with pytest.raises(FileNotFoundError, match="is not a LeRobotDataset folder"):
         plot_dataset(tmp_path / "nope", tmp_path / "nope.png")
+    cut = tmp_path / "cut"  # a data file cut off while written: named, not pyarrow's "<Buffer>"
+    shutil.copytree(reach_dataset, cut)
+    data = sorted((cut / "data").glob("*/*.parquet"))[0]
+    data.write_bytes(data.read_bytes()[:1000])
+    with pytest.raises(ValueError, match=rf"recording {cut}: {data.relative_to(cut)} is unreadable"):
+        plot_dataset(cut, tmp_path / "cut.png")
     assert not (tmp_path / "other.png").exists()
     fig, ax = plt.subplots()
     draw_scene(ax, "avoiding", 3, "xy")

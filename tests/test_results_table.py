@@ -229,7 +229,8 @@ def test_merge_results_cli_writes_both_files_and_never_overwrites_an_input(tmp_p
     assert "no results file at" in capsys.readouterr().err and not (tmp_path / "x").exists()
     (tmp_path / "bad.json").write_text("{not json")
     (tmp_path / "other.json").write_text(json.dumps({"env": "reach-around"}))
-    for bad, msg in (("bad.json", "bad.json is not JSON"), ("other.json", "other.json: not a benchmark results.json")):
+    (tmp_path / "fig.png").write_bytes(b"\x89PNG\r\n\x1a\n")  # not even text
+    for bad, msg in (("bad.json", "bad.json is not JSON"), ("fig.png", "fig.png is not JSON"), ("other.json", "other.json: not a benchmark results.json")):
         assert main(["merge-results", str(tmp_path / "seed0"), str(tmp_path / bad), "--out", str(tmp_path / "x")]) == 2
         assert msg in capsys.readouterr().err and not (tmp_path / "x").exists()
 

@@ -151,10 +151,14 @@ def load_episodes(dataset_dir: str | Path) -> tuple[list[np.ndarray], list[int |
     """``observation.state`` rows per episode and each episode's mode (parsed from its task string)."""
     import pandas as pd
 
+    from ..episodes import check_data_files, recording_info
+
     root = Path(dataset_dir)
     files = sorted((root / "data").glob("*/*.parquet"))
     if not files:
         raise FileNotFoundError(f"{root} has no data/*/*.parquet: not a LeRobotDataset v3 directory")
+    recording_info(root)  # a missing or damaged meta/info.json, named
+    check_data_files(root, files)
     df = pd.concat([pd.read_parquet(f, columns=["observation.state", "episode_index", "frame_index", "task_index"])
                     for f in files])
     tasks = pd.read_parquet(root / "meta" / "tasks.parquet")
