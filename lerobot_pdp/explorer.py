@@ -34,7 +34,7 @@ from .adapted import load_base_policy, write_adapted_checkpoint
 from .atomic import write_text_atomic
 from .candidate_rollouts import CandidateRollouts, check_env_features, env_camera_kwargs
 from .checkpoint import ADAPTATION_INFO, card_section
-from .checkpoint_files import read_config_json, require_checkpoint_files
+from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
 from .demonstration import check_recording, recording_info
 from .latent_map import LatentMap, latent_map_figure
 from .outcome_scores import Outcome
@@ -532,8 +532,7 @@ class Explorer:
         out = Path(str(out).strip()) if str(out).strip() else None
         if out is None:
             raise ValueError("give a folder to write the adapted checkpoint to")
-        if out.exists():
-            raise FileExistsError(f"{out} exists: give a new folder for the adapted checkpoint")
+        require_new_folder(out, "adapted", self.checkpoint)  # not there yet, nor inside the checkpoint it copies
         z = self.latent(selection.z)
         date = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         where = {"env": self.suite.name, "scene": self.scene.name} if self.has_env else {}

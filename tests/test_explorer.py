@@ -181,6 +181,9 @@ def test_a_saved_adapted_checkpoint_acts_at_the_selected_latent(explorer, tmp_pa
     assert torch.isfinite(policy.select_action(obs)).all()
     with pytest.raises(FileExistsError, match="exists"):
         explorer.save_adapted(sel, out)
+    with pytest.raises(ValueError, match="lies inside the checkpoint"):  # it would copy itself in
+        explorer.save_adapted(sel, explorer.checkpoint / "adapted")
+    assert not (explorer.checkpoint / "adapted").exists()
 
 
 def test_without_an_env_the_decoder_view_replaces_rollouts(made):
