@@ -150,6 +150,24 @@ def test_the_success_landscape_is_cached_per_checkpoint_scene_and_grid(explorer,
         explorer.landscape(grid=500, rollouts=8, limit=None)
 
 
+def test_a_landscape_stopped_between_batches_caches_nothing(explorer):
+    """The page's *stop* raises from the progress report, which comes between batches of rollouts: the request
+    ends with that error, no cache entry is written, and the explorer runs the next request as before."""
+    calls = []
+
+    def stop_at_the_second_batch(fraction, what):
+        calls.append(fraction)
+        if len(calls) == 2:
+            raise RuntimeError("the landscape was stopped; nothing was cached")
+
+    before = set(explorer.cache_dir.glob("landscape-*.json")) if explorer.cache_dir.is_dir() else set()
+    with pytest.raises(RuntimeError, match="the landscape was stopped"):
+        explorer.landscape(grid=5, rollouts=2, progress=stop_at_the_second_batch)
+    assert len(calls) == 2 and calls[1] < 1.0  # stopped midway, not at the end
+    assert set(explorer.cache_dir.glob("landscape-*.json")) == before
+    assert explorer.landscape(grid=1, rollouts=1).success.shape == (1, 1)  # the lock and envs were given back
+
+
 def test_a_latent_far_off_the_map_is_pointed_at_not_zoomed_out_to(explorer):
     """A typed latent far from the training latents (1e9) widens the map's view by at most two spans each side,
     so the training latents stay a map and clicks stay near them; an arrow at the edge says where it went."""

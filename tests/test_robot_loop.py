@@ -50,6 +50,18 @@ def _no_robot_left_behind():
 
 
 
+@pytest.fixture
+def engine_module(monkeypatch):
+    """LeRobot's RTC engine module, with what PDP's RTC preparation sets on it (its queue class, the announcing
+    ``notify_observation``, the failure-reporting thread loop) put back after the test."""
+    import lerobot.rollout.inference.rtc as engine
+
+    monkeypatch.setattr(engine, "ActionQueue", engine.ActionQueue)
+    for name in ("notify_observation", "_rtc_loop"):
+        monkeypatch.setattr(engine.RTCInferenceEngine, name, getattr(engine.RTCInferenceEngine, name))
+    return engine
+
+
 @pytest.fixture(scope="module")
 def untrained_reach_around(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint, its dataset): an untrained PDP with reach-around's features, saved as lerobot-train saves
@@ -182,20 +194,16 @@ def test_live_steering_through_a_file_on_a_running_robot(untrained_reach_around,
     assert all(torch.allclose(z, means[2]) for z in used[2:])  # from the next chunk on, across the new episode
 
 
-def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monkeypatch):
+def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, engine_module):
     """``--inference.type=rtc``: LeRobot's engine generates PDP's chunks in its own thread from the observations
     pdp_sim gives (state and environment state split, as trained), each after the first with the previous chunk's
     unexecuted actions, into a queue that drops the actions executed since the chunk's observation; episodes reset the policy and the
     run ends itself. A fitted start-up latent steers it."""
-    import lerobot.rollout.inference.rtc as engine_module
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceConfig
 
     from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
 
-    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
-    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
-                        engine_module.RTCInferenceEngine.notify_observation)
     ckpt, data = untrained_reach_around
     outcomes = tmp_path / "o.jsonl"
     calls: list[dict] = []
@@ -223,20 +231,17 @@ def test_rollout_with_real_time_chunking(untrained_reach_around, tmp_path, monke
     assert not ctx.hardware.robot_wrapper.inner.is_connected
 
 
-def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase_with_chunk_noises(tmp_path, monkeypatch):
+def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase_with_chunk_noises(tmp_path, monkeypatch,
+                                                                                         engine_module):
     """``--inference.type=rtc`` on pick-place, steered by a start-up fit to a demonstration that splits into
     gripper phases (one latent each) with chunk noises: accepted, and every action the loop executes reaches the
     policy (its phases, its step) through PDP's queue."""
-    import lerobot.rollout.inference.rtc as engine_module
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceConfig
 
     from lerobot_pdp import realtime_chunking
     from lerobot_pdp.envs.recording import make_dataset
 
-    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
-    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
-                        engine_module.RTCInferenceEngine.notify_observation)
     monkeypatch.setattr("sys.argv", ["lerobot-rollout", "--inference.type=rtc"])  # the start-up fit knows its caller
     reported = []
     executed = realtime_chunking._executed
@@ -258,21 +263,18 @@ def test_rollout_with_real_time_chunking_and_a_latent_per_gripper_phase_with_chu
     assert policy.steering.by_step  # chunk noises by the episode's step
 
 
-def test_an_rtc_engine_that_gives_up_on_pdp_fails_the_rollout(untrained_reach_around, tmp_path, monkeypatch):
+def test_an_rtc_engine_that_gives_up_on_pdp_fails_the_rollout(untrained_reach_around, tmp_path, monkeypatch,
+                                                               engine_module):
     """A weight turned NaN mid-run: PDP's chunk raises ``FloatingPointError`` in LeRobot's RTC thread, which retries,
     gives up, and ends the run as finished (LeRobot's ``lerobot-rollout`` then exits 0). The run still ends with the
     robot stopped and disconnected, and ``lerobot-rollout``'s ``rollout`` (wrapped when the plugin is imported)
     raises ``SystemExit`` naming the error; a run that did not fail is left alone."""
-    import lerobot.rollout.inference.rtc as engine_module
     import lerobot.scripts.lerobot_rollout as script
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceConfig
 
     from lerobot_pdp import realtime_chunking
 
-    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
-    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
-                        engine_module.RTCInferenceEngine.notify_observation)
     monkeypatch.setattr(engine_module, "_RTC_ERROR_RETRY_DELAY_S", 0.01)  # LeRobot waits 0.5 s between its retries
     monkeypatch.setattr(realtime_chunking, "ENGINE_FAILURES", [])
     ckpt, _ = untrained_reach_around
@@ -316,17 +318,13 @@ def test_an_rtc_engine_that_gives_up_on_pdp_fails_the_rollout(untrained_reach_ar
     assert script.rollout.__wrapped__ is rollout
 
 
-def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, monkeypatch):
+def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, engine_module):
     """``--inference.type=rtc`` with a camera policy on a robot that renders it: each chunk is conditioned on the
     observation history the loop published (images included), none of its observations missed."""
-    import lerobot.rollout.inference.rtc as engine_module
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
     from lerobot.rollout.inference import RTCInferenceConfig
     from policies import saved_steerable_checkpoint
 
-    monkeypatch.setattr(engine_module, "ActionQueue", engine_module.ActionQueue)  # LeRobot's, back after the test
-    monkeypatch.setattr(engine_module.RTCInferenceEngine, "notify_observation",
-                        engine_module.RTCInferenceEngine.notify_observation)
     ckpt, _ = saved_steerable_checkpoint(tmp_path, camera="top")
     outcomes = tmp_path / "o.jsonl"
     ctx = run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes), episodes=1,
