@@ -27,6 +27,9 @@ def read_episodes(root: str | Path, keys: list[str], episodes: list[int] | None 
     import pandas as pd
 
     root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder {root} does not exist" if not root.exists() else
+                                f"{root} is a file; give a LeRobotDataset v3 folder")
     files = sorted((root / "data").glob("**/*.parquet"))
     if not files:
         raise FileNotFoundError(f"no parquet data files under {root / 'data'}; is {root} a LeRobotDataset v3?")

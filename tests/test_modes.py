@@ -244,6 +244,11 @@ def test_labels_from_task_strings_and_their_absence(synthetic_dataset, instructi
     capsys.readouterr()
     assert main(["label-modes", str(instruction_dataset), "--from-tasks"]) == 2
     assert "carries no 'mode <id>: <name>' label; give --labels" in capsys.readouterr().err
+    assert main(["label-modes", str(tmp_path / "missing"), "--from-tasks"]) == 2
+    assert f"dataset folder {tmp_path / 'missing'} does not exist" in capsys.readouterr().err
+    (tmp_path / "file.json").write_text("{}")
+    assert main(["label-modes", str(tmp_path / "file.json"), "--from-tasks"]) == 2
+    assert "file.json is a file; give a LeRobotDataset v3 folder" in capsys.readouterr().err
 
 
 def test_label_modes_from_tasks_replaces_a_stale_label_file(synthetic_dataset, tmp_path, capsys):
