@@ -91,14 +91,14 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
     p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of all jitter; same seed -> same dataset")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of all jitter; same seed -> same dataset (default 0)")
     p.add_argument("--out", required=True, type=Path, help="output dataset directory (must not exist)")
     p.add_argument("--modes", nargs="+", default=None,
                    help="subset of modes, by id or name (space- or comma-separated); default all")
     p.add_argument("--waypoints", default=None,
                    help="record along way-points instead of mode templates: a JSON/YAML file (a list of "
                         "points or a scene file) or 'scene' for the scene's own")
-    p.add_argument("--max-attempts", type=int, default=20, help="tries per episode before giving up")
+    p.add_argument("--max-attempts", type=int, default=20, help="tries per episode before giving up (default 20)")
     p.add_argument("--camera", default=None,
                    help="record camera images too: a camera of the env (reach-around: top, front, oblique; "
                         "avoiding: top; pick-place: top, side, oblique), or several comma-separated")
@@ -374,7 +374,9 @@ def add_search_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", choices=("modes", "adaptation"), default="modes",
                    help="start from every mode's mean latent (default), or from the latent CHECKPOINT carries (an "
                    "adapted checkpoint, e.g. from lerobot-pdp adapt)")
-    p.add_argument("--seed", type=int, default=0, help="search seed: same seed, same candidates and rollouts (default 0)")
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="search seed, which seeds the env's resets too: same seed, same candidates and rollouts "
+                   "(default 0)")
     p.add_argument("--out", type=Path, default=None,
                    help="the adapted checkpoint folder to write (must not exist); without it nothing is written")
     p.add_argument("--history", type=Path, default=None,
@@ -398,8 +400,6 @@ def cmd_search(args: argparse.Namespace) -> int:
     for flag, value in (("--budget", args.budget), ("--rollouts-per-candidate", args.rollouts_per_candidate)):
         if value < 1:
             raise ValueError(f"{flag} must be >= 1, got {value}")
-    if args.seed < 0:
-        raise ValueError(f"--seed must be >= 0 (it seeds the env's resets too), got {args.seed}")
     if args.finish and args.waypoints is None:
         raise ValueError("--finish adds the task's success to the way-point score: give --waypoints too")
     if args.score is not None and args.waypoints is not None:

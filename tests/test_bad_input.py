@@ -314,7 +314,7 @@ def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
 
 def test_a_negative_seed_is_named_by_its_flag(capsys):
     for command in (["make-dataset", "--env", "reach-around", "--out", "x"], ["adapt", "ckpt", "--demo", "d", "--out", "x"],
-                    ["teach", "ckpt", "--demo", "d", "--data", "d", "--out", "x"]):
+                    ["teach", "ckpt", "--demo", "d", "--data", "d", "--out", "x"], ["search", "ckpt", "--env", "reach-around"]):
         with pytest.raises(SystemExit) as ended:
             lerobot_pdp([*command, "--seed", "-5"])
         assert ended.value.code == 2

@@ -62,7 +62,7 @@ def test_steer_writes_and_checks_without_torch_or_lerobot(tmp_path, small_checkp
 
 
 @pytest.mark.parametrize(("extra", "said"), [(["--budget", "0"], "--budget must be >= 1, got 0"),
-                                             (["--seed", "-1"], "--seed must be >= 0"),
+                                             (["--seed", "-1"], "argument --seed: must be an integer >= 0"),
                                              (["--waypoints", "scene", "--radius", "0"], "--radius must be a finite")])
 def test_search_names_a_bad_argument_before_importing_torch(tmp_path, small_checkpoint, extra, said):
     res = _cli("search", str(small_checkpoint), "--env", "reach-around", *extra)

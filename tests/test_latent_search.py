@@ -418,7 +418,6 @@ def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
         (["--budget", "1"], "--budget 1 rollouts pays for no candidate of --rollouts-per-candidate 2"),
         (["--scene", "val9"], "ships no validation scene 'val9'"),
         (["--init", "adaptation", "--budget", "1", "--rollouts-per-candidate", "1"], "carries no adaptation.safetensors"),
-        (["--seed", "-1"], "--seed must be >= 0"),
         (["--score", "reward", "--waypoints", "scene", "--scene", "3"], "--score reward and --waypoints are two objectives"),
         (["--out", str(outside / "sub")], r"--out .*sub: .*outside.json is a file, not a folder"),
         (["--out", str(tmp_path / "o"), "--history", str(tmp_path / "o")], "--out and --history are both"),
