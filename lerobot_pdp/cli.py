@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import sys
@@ -90,7 +91,7 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
     _add_env_argument(p)
     p.add_argument("--scene", default="0",
                    help="scene index 0-3, a validation scene (val1, val2, ...) or a scene file (JSON/YAML); default 0")
-    p.add_argument("--episodes-per-mode", type=int, default=10, help="demonstrations per mode (default 10)")
+    p.add_argument("--episodes-per-mode", type=_count, default=10, help="demonstrations per mode (default 10)")
     p.add_argument("--seed", type=_seed, default=0, help="seed of all jitter; same seed -> same dataset (default 0)")
     p.add_argument("--out", required=True, type=Path, help="output dataset directory (must not exist)")
     p.add_argument("--modes", nargs="+", default=None,
@@ -98,7 +99,7 @@ def add_make_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--waypoints", default=None,
                    help="record along way-points instead of mode templates: a JSON/YAML file (a list of "
                         "points or a scene file) or 'scene' for the scene's own")
-    p.add_argument("--max-attempts", type=int, default=20, help="tries per episode before giving up (default 20)")
+    p.add_argument("--max-attempts", type=_count, default=20, help="tries per episode before giving up (default 20)")
     p.add_argument("--camera", default=None,
                    help="record camera images too: a camera of the env (reach-around: top, front, oblique; "
                         "avoiding: top; pick-place: top, side, oblique), or several comma-separated")
@@ -301,9 +302,9 @@ def add_demonstration_arguments(p: argparse.ArgumentParser, written: str, demo_r
     p.add_argument("checkpoint", type=Path, help="a PDP pretrained_model folder (config.json + model.safetensors)")
     p.add_argument("--demo", required=demo_required, type=Path, help="the demonstration: a LeRobotDataset folder")
     if episode_help is None:
-        p.add_argument("--episode", type=int, default=0, help="its episode index (default 0)")
+        p.add_argument("--episode", type=_non_negative, default=0, help="its episode index (default 0)")
     else:
-        p.add_argument("--episode", type=int, nargs="+", default=[0], help=episode_help)
+        p.add_argument("--episode", type=_non_negative, nargs="+", default=[0], help=episode_help)
     p.add_argument("--out", required=True, type=Path, help=f"the {written} checkpoint folder to write (must not exist)")
 
 
@@ -320,8 +321,8 @@ def add_adapt_parser(sub: argparse._SubParsersAction) -> None:
     add_demonstration_arguments(p, "adapted")
     p.add_argument("--noise", choices=("none", "chunks"), default=None,
                    help="also fit one sampler noise per chunk (default: the checkpoint's fit_noise)")
-    p.add_argument("--steps", type=int, default=None, help="gradient steps on z (default: fit_steps)")
-    p.add_argument("--lr", type=float, default=None, help="Adam step size on z (default: fit_lr)")
+    p.add_argument("--steps", type=_non_negative, default=None, help="gradient steps on z (default: fit_steps)")
+    p.add_argument("--lr", type=_step_size, default=None, help="Adam step size on z (default: fit_lr)")
     p.add_argument("--seed", type=_seed, default=0, help="fitting seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device to fit on (default cpu)")
     p.set_defaults(func=cmd_adapt)
@@ -461,15 +462,41 @@ def cmd_search(args: argparse.Namespace) -> int:
     return 130 if res.interrupted else 0  # as Ctrl-C ends every other command, the best so far kept all the same
 
 
-def _seed(text: str) -> int:
-    """``--seed``'s type: an integer >= 0 (numpy refuses a negative seed without naming the flag)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return value
+def _integer(minimum: int) -> Callable[[str], int]:
+    """An integer flag's type, refused below ``minimum`` by the parser, which names the flag (the functions behind
+    the flags would name their Python parameters, or numpy a seed, instead)."""
+    def integer(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
+        return value
+
+    return integer
+
+
+def _number(low: float, high: float = math.inf, low_included: bool = False) -> Callable[[str], float]:
+    """A float flag's type: a finite number above ``low`` (or at it, ``low_included``) and at most ``high``."""
+    def number(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        inside = (value >= low if low_included else value > low) and value <= high and math.isfinite(value)
+        if not inside:
+            bounds = f"{'>=' if low_included else '>'} {low:g}" + (f" and <= {high:g}" if math.isfinite(high) else "")
+            raise argparse.ArgumentTypeError(f"must be a finite number {bounds}, got {text!r}")
+        return value
+
+    return number
+
+
+_non_negative = _integer(0)
+_seed = _non_negative  # numpy refuses a negative seed without naming the flag
+_count = _integer(1)
+_step_size = _number(0)
 
 
 def _checkpoint_config(checkpoint: Path):
@@ -516,10 +543,10 @@ def add_teach_parser(sub: argparse._SubParsersAction) -> None:
                    "train_config.json names)")
     p.add_argument("--name", nargs="+", default=None,
                    help="the new mode's name, one per --episode (default: where the demonstration came from)")
-    p.add_argument("--steps", type=int, default=TEACH_STEPS,
+    p.add_argument("--steps", type=_count, default=TEACH_STEPS,
                    help=f"fine-tuning steps, per new mode (default {TEACH_STEPS})")
-    p.add_argument("--lr", type=float, default=TEACH_LR, help=f"their Adam step size (default {TEACH_LR:g})")
-    p.add_argument("--demo-share", type=float, default=TEACH_DEMO_SHARE,
+    p.add_argument("--lr", type=_step_size, default=TEACH_LR, help=f"their Adam step size (default {TEACH_LR:g})")
+    p.add_argument("--demo-share", type=_number(0, 1), default=TEACH_DEMO_SHARE,
                    help=f"the demonstration's share of each batch (default {TEACH_DEMO_SHARE:g})")
     p.add_argument("--latent", choices=TEACH_LATENTS, default=TEACH_LATENT,
                    help="the new mode's latent: the encoder's mean of the demonstration, or where the latent "

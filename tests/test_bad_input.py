@@ -312,13 +312,32 @@ def test_steer_into_a_missing_folder_names_the_folder(tmp_path, capsys):
     assert f"{tmp_path} is a folder: give the steering file's path" in err and ".tmp" not in err
 
 
-def test_a_negative_seed_is_named_by_its_flag(capsys):
-    for command in (["make-dataset", "--env", "reach-around", "--out", "x"], ["adapt", "ckpt", "--demo", "d", "--out", "x"],
-                    ["teach", "ckpt", "--demo", "d", "--data", "d", "--out", "x"], ["search", "ckpt", "--env", "reach-around"]):
+@pytest.mark.parametrize(("flag", "value", "said"), [
+    ("--seed", "-5", "must be an integer >= 0, got '-5'"),
+    ("--episode", "0.9", "must be an integer >= 0, got '0.9'"),
+    ("--steps", "-1", None),
+    ("--lr", "nan", "must be a finite number > 0, got 'nan'"),
+])
+def test_a_bad_number_is_named_by_its_flag(capsys, flag, value, said):
+    """Refused by the parser, naming the flag (the functions behind it would name a Python parameter, numpy a seed,
+    or read 0.9 as episode 0), before any file is read."""
+    commands = {"make-dataset": ["--env", "reach-around", "--out", "x"], "adapt": ["ckpt", "--demo", "d", "--out", "x"],
+                "teach": ["ckpt", "--demo", "d", "--data", "d", "--out", "x"], "search": ["ckpt", "--env", "reach-around"]}
+    takes = {"--seed": list(commands), "--episode": ["adapt", "teach"], "--steps": ["adapt", "teach"],
+             "--lr": ["adapt", "teach"]}
+    for command in takes[flag]:
         with pytest.raises(SystemExit) as ended:
-            lerobot_pdp([*command, "--seed", "-5"])
+            lerobot_pdp([command, *commands[command], flag, value])
         assert ended.value.code == 2
-        assert "argument --seed: must be an integer >= 0, got '-5'" in capsys.readouterr().err
+        expected = said or f"must be an integer >= {1 if command == 'teach' else 0}, got '-1'"
+        assert f"argument {flag}: {expected}" in capsys.readouterr().err, command
+    for args, said in ((["make-dataset", *commands["make-dataset"], "--episodes-per-mode", "0"],
+                        "argument --episodes-per-mode: must be an integer >= 1, got '0'"),
+                       (["teach", *commands["teach"], "--demo-share", "1.5"],
+                        "argument --demo-share: must be a finite number > 0 and <= 1, got '1.5'")):
+        with pytest.raises(SystemExit):
+            lerobot_pdp(args)
+        assert said in capsys.readouterr().err
 
 
 def test_a_steer_file_rewritten_in_place_within_one_tick_is_seen(policy, tmp_path):
