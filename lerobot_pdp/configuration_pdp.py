@@ -298,7 +298,8 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # Fit z at start-up to this episode of this local LeRobotDataset (one new demonstration): when the
     # checkpoint is loaded (PDPPolicy.from_pretrained), before LeRobot's control loop starts.
     steer_dataset_root: str | None = None
-    # The episode of steer_dataset_root to fit z to (given with it).
+    # The episode of steer_dataset_root to fit z to (None: episode 0, as `lerobot-pdp adapt --episode` and a
+    # steer file's {"dataset": DIR} default to).
     steer_episode_index: int | None = None
     # Live steering: a JSON file polled at every new action chunk; when it changes, its request
     # ({"mode": 3}, {"latent": [..]}, {"dataset": DIR, "episode": 0}) sets the active latent without
@@ -443,8 +444,12 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                           f"weights {self.pretrained_backbone_weights!r}: set use_group_norm=false with them")
         if self.spatial_softmax_num_keypoints < 1:
             errors.append(f"spatial_softmax_num_keypoints must be >= 1, got {self.spatial_softmax_num_keypoints}")
-        if (self.steer_dataset_root is None) != (self.steer_episode_index is None):
-            errors.append("steer_dataset_root and steer_episode_index must be given together")
+        if self.steer_episode_index is not None and self.steer_dataset_root is None:
+            errors.append(f"steer_episode_index={self.steer_episode_index} names an episode of no dataset: give "
+                          "steer_dataset_root (the recording to fit z to) too")
+        if self.steer_episode_index is not None and not (isinstance(self.steer_episode_index, int)
+                                                         and self.steer_episode_index >= 0):
+            errors.append(f"steer_episode_index must be an episode index >= 0, got {self.steer_episode_index!r}")
         if errors:
             raise config_error("Invalid PDPConfig: " + "; ".join(errors))  # --policy.* named on LeRobot's command line
 

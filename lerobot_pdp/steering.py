@@ -126,7 +126,7 @@ def apply_config_steering(policy: Any) -> None:
         logger.info("steered to mode %s%s: latent %s", mode, f" ({name})" if name else "", latent_text(means[mode]))
         loaded = f"mode {mode} (--policy.steer_mode)"
     elif cfg.steer_dataset_root is not None:
-        start_up_fit(policy, (cfg.steer_dataset_root, int(cfg.steer_episode_index)))
+        start_up_fit(policy, (cfg.steer_dataset_root, int(cfg.steer_episode_index or 0)))
         loaded = "the latent fitted at start-up (--policy.steer_dataset_root)"
     if getattr(policy, "_steer_file", None) is not None:  # a request already in the file wins over the above
         policy._steer_file.start(policy, loaded)

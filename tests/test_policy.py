@@ -333,6 +333,12 @@ def test_fit_latent_works_under_inference_mode(synthetic_meta, caplog):
     assert z.shape == (2, 2) and len(p.active_latent) == 1
     message = next(r.getMessage() for r in caplog.records if "fitted latent" in r.getMessage())
     assert re.search(r"episode 1 in \d+\.\d s: .*error ratio n/a: .*; steering is at risk from 2\)", message), message
+    caplog.clear()
+    p.config.steer_episode_index = None  # the dataset alone: its episode 0, as `lerobot-pdp adapt` takes
+    with caplog.at_level("INFO", logger="lerobot_pdp.steering"):
+        p.apply_config_steering()
+    assert any("episode 0 in" in r.getMessage() for r in caplog.records if "fitted latent" in r.getMessage())
+    assert p.steering.provenance["demonstration"]["episode"] == 0
 
 
 def _gripper_actions(p):
