@@ -142,7 +142,8 @@ class Explorer:
             check_recording(dataset, 0, {k: tuple(ft.shape) for k, ft in self.policy.config.condition_features.items()})
         self.rollouts, self.seed, self.device = _positive("rollouts", rollouts), seed, device
         self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-        self.dataset = Path(dataset) if dataset is not None else _training_dataset(self.checkpoint)
+        self._training_data = _training_dataset(self.checkpoint)
+        self.dataset = Path(dataset) if dataset is not None else self._training_data
         self._lock = threading.RLock()  # Gradio serves requests from threads; the policy acts for one at a time
         self.suite = self.scene = None
         self.max_steps = max_steps
@@ -411,16 +412,34 @@ class Explorer:
         return ("the decoder's view needs a recorded episode: start with --dataset DATA (a LeRobotDataset folder), "
                 f"or fit an episode below ({_training_dataset_note(self.checkpoint)})")
 
-    def decoder_view(self, z: Any, dataset: str | Path | None = None, episode: int = 0, frames: int = 4,
+    def decoder_episode(self, z: Any, dataset: str | Path | None = None) -> tuple[int, str]:
+        """The episode the decoder's view compares latent ``z`` with when none is given, and why: in the training
+        dataset, the one whose behaviour's latent lies nearest ``z`` (a mode's latent meets a demonstration of that
+        mode); in another recording, its first."""
+        source = self.decoder_source(dataset)
+        training = self._training_data
+        if source is None or training is None or source.resolve() != training.resolve():
+            return 0, "its first"
+        table = self.policy.behavior_table()
+        trained = ~self.policy.model.bank.is_taught().cpu().numpy()  # taught rows hold no episode of this dataset
+        if not trained.any():
+            return 0, "its first"
+        dist = np.linalg.norm(table["z"][trained] - np.asarray(self.latent(z))[None], axis=1)
+        return int(table["episode"][trained][int(dist.argmin())]), "the training episode nearest z"
+
+    def decoder_view(self, z: Any, dataset: str | Path | None = None, episode: int | None = None, frames: int = 4,
                      samples: int = 4) -> np.ndarray:
         """What the denoiser makes of latent ``z``: ``samples`` action chunks sampled at ``frames`` observations
-        of a recorded episode (default: the training dataset's first), against the recorded actions."""
+        of a recorded episode (default: :meth:`decoder_episode`), against the recorded actions."""
         from lerobot.utils.constants import ACTION
 
         z = self.latent(z)
         source = self.decoder_source(dataset)
         if source is None:
             raise ValueError(self.no_recording_note())
+        why = "the one fitted" if episode is not None else None
+        if episode is None:
+            episode, why = self.decoder_episode(z, dataset)
         root, episode = _check_episode(source, episode)
         with self._lock:
             windows = self.policy.demo_windows((root, episode))
@@ -448,7 +467,7 @@ class Explorer:
                     ax.set_title(f"frame {t}", fontsize=8)
         axes[0][0].legend(fontsize=6)
         fig.suptitle(f"decoder's view of z = {np.round(z, 3).tolist()}: action chunks at frames of episode {episode} "
-                     f"of {root.name}", fontsize=9)
+                     f"of {root.name} ({why})", fontsize=9)
         fig.tight_layout()
         return _pixels(fig)
 

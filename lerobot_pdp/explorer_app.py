@@ -59,7 +59,7 @@ def build_app(explorer: Explorer) -> Any:
         return wrapped
 
     def fresh() -> dict:
-        return {"selection": None, "fit": None, "path": None, "view": None, "dataset": None, "episode": 0}
+        return {"selection": None, "fit": None, "path": None, "view": None, "dataset": None, "episode": None}
 
     def show(state: dict, selection: Selection | None, act: bool = True) -> tuple:
         """Redraw the map with the marks; with a selection, its rollouts (or the decoder's view)."""
@@ -75,7 +75,9 @@ def build_app(explorer: Explorer) -> Any:
             elif explorer.decoder_source(state.get("dataset")) is None:  # selected (and savable) all the same
                 summary += f"; {explorer.no_recording_note()}"
             else:
-                image = explorer.decoder_view(selection.z, state.get("dataset"), state.get("episode", 0))
+                # the episode fitted last; before any fit, the one the explorer picks for this latent
+                image = explorer.decoder_view(selection.z, state.get("dataset"),
+                                              state.get("episode") if state.get("dataset") else None)
         if selection is not None:
             summary += explorer.far_note(selection.z)
         latent = "" if selection is None else ", ".join(f"{v:.4g}" for v in selection.z)

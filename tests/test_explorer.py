@@ -219,6 +219,22 @@ def test_without_an_env_the_decoder_view_replaces_rollouts(made):
         ex.landscape(2, 1)
     with pytest.raises(ValueError, match="needs a recorded episode: start with --dataset DATA"):
         Explorer(ckpt).decoder_view(ex.mode_latent(1))
+    assert ex.decoder_episode(ex.mode_latent(1)) == (0, "its first")  # not known to be the training data
+
+
+def test_the_decoder_view_compares_a_latent_with_the_training_episode_nearest_it(made, tmp_path):
+    """A mode's latent meets a demonstration of that mode, not the dataset's episode 0 whatever its mode."""
+    from lerobot_pdp.explorer import Explorer
+
+    ckpt, data = made
+    named = Path(shutil.copytree(ckpt, tmp_path / "ckpt"))
+    (named / "train_config.json").write_text(json.dumps({"dataset": {"root": str(data)}}))
+    ex = Explorer(named)
+    table = ex.policy.behavior_table()
+    for mode in (1, 3):
+        episode, why = ex.decoder_episode(ex.mode_latent(mode))
+        assert why == "the training episode nearest z" and set(table["mode"][table["episode"] == episode]) == {mode}
+    assert ex.decoder_view(ex.mode_latent(3), frames=1, samples=1).ndim == 3
 
 
 def test_without_an_env_or_a_recording_a_latent_is_still_selected_and_saved(made, tmp_path):
