@@ -78,6 +78,11 @@ def install() -> None:
         logger.addFilter(TorchcodecFallbackFilter())
 
 
+def counted(n: int, noun: str) -> str:
+    """``"1 demonstration"``, ``"3 demonstrations"``: a count and its noun, singular for one."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def latent_text(z: Any, digits: int = 4) -> str:
     """A latent (tensor, array or nested list) as the console shows it: each value rounded to ``digits`` decimals,
     the nesting kept (``[[1.3871, -0.8325]]`` for one phase latent); anything else (None: the default latent) as it

@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .atomic import write_figure_atomic  # noqa: E402
+from .console import counted  # noqa: E402
 
 MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
 UNLABELLED = -1  # group of the behaviors without a mode label (behavior.UNLABELED), drawn in grey
@@ -101,7 +102,7 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
         groups = np.array([group_of[int(m)] if t else found.labels[int(e)]
                            for e, m, t in zip(episode, mode, taught, strict=True)])
         what = f"discovered cluster (k = {found.k})"
-        names = {c: f"{int((groups[~taught] == c).sum())} behaviors" for c in range(found.k)}
+        names = {c: counted(int((groups[~taught] == c).sum()), "behavior") for c in range(found.k)}
         names.update({g: f"mode {m}, taught: {mode_names.get(str(m), '')}" for m, g in group_of.items()})
     projection = MapProjection.fit(z)
     xy, axes_label = projection.to_map(z), projection.axis_labels
@@ -130,15 +131,17 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
     phase = policy.behavior_phase().cpu().numpy()
     for g in drawn:
         tag = "" if g == UNLABELLED else f"{g}" + (f" ({names[g]})" if g in taught_groups and len(drawn) > 12 else "")
-        label = " ".join(x for x in (tag, names[g] if names[g] and len(drawn) <= 12 else "") if x)
+        label = ": ".join(x for x in (tag, names[g] if names[g] and len(drawn) <= 12 else "") if x)
         for ph in np.unique(phase):
             sel = (groups == g) & (phase == ph)
             ax.scatter(xy[sel, 0], xy[sel, 1], s=14, color=color[g], marker="os^v"[int(ph) % 4],
                        label=label if ph == 0 else None)
             if tag and sel.any():
-                # beside the points of each of the mode's phases (up and right, in points), not on them: the
-                # phases of one mode sit in different places, and their mean in none
-                ax.annotate(tag, xy[sel].mean(0), xytext=(5, 5), textcoords="offset points", fontsize=8,
+                # beside (up and right, in points) the point of each of the group's phases nearest their mean: the
+                # phases of one mode sit in different places, and a spread cluster's mean lies between its points
+                pts = xy[sel]
+                at = pts[np.linalg.norm(pts - pts.mean(0), axis=1).argmin()]
+                ax.annotate(tag, at, xytext=(5, 5), textcoords="offset points", fontsize=8,
                             ha="left", va="bottom", weight="bold")
     active = policy.steering.latent.detach().cpu().numpy()  # an adapted checkpoint's (or set_latent's) latent
     if len(active):
@@ -148,7 +151,7 @@ def latent_map_figure(policy, k: int | None = None, title: str | None = None) ->
                    label=f"active latent ({source})")
     ax.set_xlabel(axes_label[0])
     ax.set_ylabel(axes_label[1])
-    ax.set_title(f"latent map: {len(z)} behaviors" + (f" ({unlabelled} unlabelled, grey)" if unlabelled else "") +
+    ax.set_title(f"latent map: {counted(len(z), 'behavior')}" + (f" ({unlabelled} unlabelled, grey)" if unlabelled else "") +
                  f", coloured by {what}" +
                  (" (markers = phases)" if len(np.unique(phase)) > 1 else ""), fontsize=10)
     if len(drawn) <= 12:

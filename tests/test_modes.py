@@ -301,7 +301,8 @@ def test_latent_map_draws_unlabelled_behaviors_in_grey(tmp_path):
         assert drawn.axes.get_title().startswith("latent map: 6 behaviors (2 unlabelled, grey), coloured by mode label")
         points = {tuple(c.get_facecolor()[0]): len(c.get_offsets()) for c in drawn.axes.collections if len(c.get_offsets())}
         assert sum(points.values()) == 6 and points[to_rgba(UNLABELLED_COLOR)] == 2
-        assert [t.get_text() for t in drawn.axes.get_legend().get_texts()][-1] == "unlabelled"
+        legend = [t.get_text() for t in drawn.axes.get_legend().get_texts()]
+        assert legend[-1] == "unlabelled" and legend[0] == f"0: {MODES[0][0]}"  # the id, then its name
     finally:
         import matplotlib.pyplot as plt
 

@@ -60,7 +60,7 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
 
     fig = latent_map_figure(p).figure  # the taught mode is drawn as one, and said to be taught
     labels = fig.axes[0].get_legend_handles_labels()[1]
-    assert "4 far right, taught" in labels and "taught modes" in fig.get_suptitle()
+    assert "4: far right, taught" in labels and "taught modes" in fig.get_suptitle()
     __import__("matplotlib.pyplot").pyplot.close(fig)
     import lerobot_pdp.latent_map as latent_map
 

@@ -23,6 +23,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
 from ..atomic import write_figure_atomic  # noqa: E402
+from ..console import counted  # noqa: E402
 from .scene import Barrier, load_scene  # noqa: E402
 from .suite import NOVEL, SuiteEnv, get_suite_env, parse_task_mode  # noqa: E402
 
@@ -218,7 +219,7 @@ def plot_dataset(
         handles += [route] if route is not None else []
         ax.set_title(VIEW_TITLES.get(plane, plane))
     sc_name = load_scene(scene, suite.scene_key).name
-    fig.suptitle(f"{suite.name}: {len(trajs)} demonstrations, {sc_name}")
+    fig.suptitle(f"{suite.name}: {counted(len(trajs), 'demonstration')}, {sc_name}")
     ncol = 1 if len(handles) <= 12 else 2
     fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), ncol=ncol, fontsize=8,
                title="mode")
