@@ -29,6 +29,11 @@ from .steering_state import as_latent_tensor
 
 logger = logging.getLogger(__name__)
 
+# Weight of each training step's L_DP in train_loss_dp's running mean (~20 steps). A slower mean lags a falling
+# loss: at 0.01 (~100 steps) it read about twice the true error of a few-hundred-step training, so a fit's
+# error ratio flattered it; at the end of a long (cosine-decayed) training the two agree.
+TRAIN_LOSS_RATE = 0.05
+
 
 def read_loss_terms(metrics: dict[str, Tensor], train_step: int | None = None) -> dict[str, float]:
     """The logged loss terms as floats, in one host transfer (each ``.item()`` would wait for the GPU on its
@@ -78,8 +83,8 @@ class PDPModel(nn.Module):
         self.action_dim = action_dim
         # The training behaviors (traces, where they sit, modes, delta^X, kappa): see behavior_bank.py.
         self.bank = BehaviorBank(cfg)
-        # Running mean of L_DP over the last ~100 training steps: the denoising error of the training
-        # demonstrations at their own latents, what a fitted demonstration's L_fit is compared with
+        # Running mean of L_DP over the last ~20 training steps (TRAIN_LOSS_RATE): the denoising error of the
+        # training demonstrations at their own latents, what a fitted demonstration's L_fit is compared with
         # (FitResult.error_ratio). NaN until trained (and in checkpoints saved before it existed).
         self.register_buffer("train_loss_dp", torch.tensor(float("nan")))
         if behaviors is not None:
@@ -190,7 +195,7 @@ class PDPModel(nn.Module):
         if self.training:
             with torch.no_grad():  # on the device, no host sync
                 seen = self.train_loss_dp
-                self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, torch.lerp(seen, loss_dp, 0.01)))
+                self.train_loss_dp.copy_(torch.where(seen.isnan(), loss_dp, torch.lerp(seen, loss_dp, TRAIN_LOSS_RATE)))
         metrics: dict[str, Tensor] = {"loss_dp": loss_dp}
         if len(actions) > n_data:  # what the taught windows alone weigh, for the log
             metrics["loss_dp_taught"] = diffusion_loss(pred[n_data:], eps[n_data:],

@@ -600,6 +600,8 @@ def test_fit_noise_chunks_are_the_sampler_noises_of_the_next_chunks(synthetic_me
 def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, caplog):
     """Training tracks L_DP's running mean on the device (``train_loss_dp``, saved with the checkpoint);
     fit_latent scores the demonstration at the fitted latent against it and warns from ``fit_warn_ratio``."""
+    from lerobot_pdp.pdp_model import TRAIN_LOSS_RATE
+
     p = small_policy(synthetic_meta)
     assert torch.isnan(p.model.train_loss_dp)
     p.train()
@@ -607,10 +609,11 @@ def test_fit_is_judged_against_the_training_error(synthetic_meta, tmp_path, capl
     first = p.model.loss_terms(batch)[1]["loss_dp"].item()
     assert p.model.train_loss_dp.item() == pytest.approx(first)  # the first step starts the mean
     second = p.model.loss_terms(batch)[1]["loss_dp"].item()
-    assert p.model.train_loss_dp.item() == pytest.approx(0.99 * first + 0.01 * second)
+    mean = (1 - TRAIN_LOSS_RATE) * first + TRAIN_LOSS_RATE * second
+    assert p.model.train_loss_dp.item() == pytest.approx(mean)
     p.eval()
     p.model.loss_terms(batch)  # evaluation passes leave it alone
-    assert p.model.train_loss_dp.item() == pytest.approx(0.99 * first + 0.01 * second)
+    assert p.model.train_loss_dp.item() == pytest.approx(mean)
     p.save_pretrained(tmp_path / "ckpt")
     q = PDPPolicy.from_pretrained(tmp_path / "ckpt")
     assert torch.equal(q.model.train_loss_dp, p.model.train_loss_dp)
