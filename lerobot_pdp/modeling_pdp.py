@@ -50,7 +50,7 @@ from .latent_search import SearchResult, search_latent, search_provenance
 from .model_card import pdp_model_card
 from .modes import DiscoveredModes, ModeLatents
 from .normalization import FeatureStats
-from .observation_encoder import check_observation
+from .observation_encoder import check_camera_resolution, check_observation
 from .outcome_scores import Score
 from .paced_chunks import is_one_frame, paced_history
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
@@ -83,6 +83,7 @@ class PDPPolicy(PreTrainedPolicy):
         if dataset_stats is not None:
             self.stats.load(dataset_stats)
         behaviors = None
+        check_camera_resolution(cfg, training=dataset_meta is not None)
         if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
             check_camera_sizes(cfg.image_features, dataset_meta.root, dataset_meta.features)  # before the soft-DTW
             behaviors = read_training_behaviors(cfg, dataset_meta.root, dataset_meta.features)

@@ -9,11 +9,40 @@ and a ``diffusion`` policy with the same camera settings see images identically.
 
 from __future__ import annotations
 
+import logging
+import math
+
 import torch
 from lerobot.configs import FeatureType
 from torch import Tensor, nn
 
 from .configuration_pdp import PDPConfig
+
+logger = logging.getLogger(__name__)
+
+# Every torchvision ResNet halves a frame five times (stem convolution, max pool, layers 2-4): its feature map is
+# ceil(H / 32) x ceil(W / 32) cells.
+RESNET_STRIDE = 32
+
+
+def check_camera_resolution(config: PDPConfig, training: bool) -> None:
+    """Frames the backbone turns into a 1x1 feature map leave the spatial-softmax keypoints the same for every image
+    (the softmax's one cell is its only position): the cameras would condition nothing, silently. Refused when a
+    policy is built to train (``training``); a checkpoint already trained so loads with a warning."""
+    if not config.image_features:
+        return
+    size = config.crop_shape or config.resize_shape or next(iter(config.image_features.values())).shape[1:]
+    h, w = (int(x) for x in size)
+    if math.ceil(h / RESNET_STRIDE) * math.ceil(w / RESNET_STRIDE) > 1:
+        return
+    which = "crop_shape" if config.crop_shape else "resize_shape" if config.resize_shape else "the cameras' size"
+    message = (f"camera frames of {h}x{w} ({which}) leave {config.vision_backbone} a 1x1 feature map: its "
+               f"spatial-softmax keypoints are then the same for every image, so the cameras condition nothing. Give "
+               f"the backbone frames of more than {RESNET_STRIDE} pixels on a side (record larger frames, or "
+               f"--policy.resize_shape='[64,64]'; a crop_shape above {RESNET_STRIDE})")
+    if training:
+        raise ValueError(message)
+    logger.warning("%s: this checkpoint was trained so and acts on its other inputs alone", message)
 
 
 def check_observation(batch: dict[str, Tensor], features: dict, leading: tuple[str | int, ...]) -> None:

@@ -44,7 +44,7 @@ def saved_steerable_checkpoint(root: Path, camera: str | None = None) -> tuple[P
     from lerobot_pdp.envs.recording import make_dataset
 
     data = make_dataset("reach-around", root / "data", scene=0, episodes_per_mode=1, progress=False, camera=camera,
-                        image_size=32)
+                        image_size=40)
     meta = LeRobotDatasetMetadata("local/ra", root=data)
     extra = {"spatial_softmax_num_keypoints": 8} if camera else {}
     cfg = PDPConfig(device="cpu", push_to_hub=False, down_dims=(16, 32), trace_dims=[0, 1, 2], num_inference_steps=4,

@@ -221,7 +221,7 @@ def test_cameras_of_different_shapes_are_encoded_with_resize_shape(separate):
     cfg = PDPConfig(input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (2,)),
                                     TOP: PolicyFeature(FeatureType.VISUAL, (3, 48, 48)),
                                     SIDE: PolicyFeature(FeatureType.VISUAL, (3, 32, 40))},
-                    output_features={ACTION: PolicyFeature(FeatureType.ACTION, (2,))}, resize_shape=(32, 32),
+                    output_features={ACTION: PolicyFeature(FeatureType.ACTION, (2,))}, resize_shape=(40, 40),
                     use_separate_rgb_encoder_per_camera=separate, spatial_softmax_num_keypoints=8)
     cfg.validate_features()
     enc = ObservationEncoder(cfg).eval()
@@ -231,6 +231,22 @@ def test_cameras_of_different_shapes_are_encoded_with_resize_shape(separate):
     with torch.no_grad():
         out = enc(batch)
     assert out.shape == (2, 2, 2 + 2 * 2 * 8) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("shape", [{"resize_shape": (32, 32)}, {"crop_shape": (24, 32)}])
+def test_frames_the_backbone_maps_to_one_cell_are_refused_for_training(video_dataset, caplog, shape):
+    """A 1x1 feature map gives every image the same keypoints: training such a policy is refused, naming the size
+    and the fix; a checkpoint already trained so loads with a warning (its cameras never conditioned it)."""
+    with pytest.raises(ValueError, match=r"camera frames of \d+x\d+ \((resize|crop)_shape\) leave resnet18 a 1x1 "
+                                         r"feature map: .* the cameras condition nothing.*resize_shape='\[64,64\]'"):
+        make_policy(PDPConfig(**shape, **SMALL), ds_meta=_meta(video_dataset))
+    cfg = make_policy(PDPConfig(crop_shape=(24, 40), **SMALL), ds_meta=_meta(video_dataset)).config  # 1x2: trains
+    cfg.crop_shape = None
+    for k, v in shape.items():
+        setattr(cfg, k, v)
+    with caplog.at_level("WARNING", logger="lerobot_pdp.observation_encoder"):
+        PDPPolicy(cfg)
+    assert any("this checkpoint was trained so" in r.getMessage() for r in caplog.records)
 
 
 def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):

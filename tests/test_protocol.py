@@ -105,11 +105,11 @@ def test_camera_variant_tiny(tmp_path):
     demonstration, camera rollouts."""
     out = tmp_path / "cam"
     proc = run_cli([lerobot_cli("lerobot-pdp"), "benchmark", "--env", "reach-around", "--obs", "images",
-                    "--image-size", "32", "--out", str(out), "--seeds", "0", "--rollouts", "2", "--steps", "4",
+                    "--image-size", "40", "--out", str(out), "--seeds", "0", "--rollouts", "2", "--steps", "4",
                     "--episodes-per-mode", "1", "--scenes", "0", "3", "--no-figures", "--inference-steps", "2"])
-    assert "camera 'oblique' (32x32) for every method" in proc.stdout
+    assert "camera 'oblique' (40x40) for every method" in proc.stdout
     res = json.loads((out / "results.json").read_text())
-    assert res["observation"] == {"obs": "images", "camera": "oblique", "image_size": 32}
+    assert res["observation"] == {"obs": "images", "camera": "oblique", "image_size": 40}
     assert set(res["methods"]) == {"pdp", "dp", "vqbet"}
     for m in ("pdp", "dp", "vqbet"):
         assert set(_eval_json(out, m)["scenes"]) == {"0", "3"}
