@@ -382,7 +382,13 @@ class BehaviorBank(nn.Module):
         with torch.no_grad():
             z = self.latents(vae)
         if not self.labelled():
-            found = self.discover_modes(vae)
+            try:
+                found = self.discover_modes(vae)
+            except ValueError as e:  # too few episodes to cluster: mode_latents has no k to pass
+                raise ValueError(f"mode_latents(): the training episodes carry no mode labels, and finding their modes "
+                                 f"failed: {str(e).split('; pass k')[0]}. Label them (`lerobot-pdp label-modes DATASET`, "
+                                 "then train), or choose the number of modes: policy.discover_modes(k=K).means (its "
+                                 "ids: `lerobot-pdp latent-map CKPT --k K`)") from e
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
                            "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
                            "ids, see `lerobot-pdp latent-map`)%s", found.k,

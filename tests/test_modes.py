@@ -391,3 +391,19 @@ def test_training_says_what_its_behavior_bank_holds(synthetic_meta, caplog):
     assert bank_summary(t) == ("3 episode(s), 3 behavior(s); no mode labels (mode_latents() discovers the modes by "
                                "clustering; lerobot-pdp latent-map draws them)")
     assert "1 episode(s) without a label" in bank_summary(dataclasses.replace(t, mode=np.array([0, 1, -1])))
+
+
+def test_mode_latents_of_too_few_unlabelled_episodes_say_how_to_get_modes(tmp_path):
+    """Four unlabelled episodes are too few to find modes: mode_latents() (which has no k) says to label them or
+    to choose k with discover_modes, which then works."""
+    from policies import small_policy
+
+    from synthetic import write_dataset
+
+    root = write_dataset(tmp_path / "few", episodes_per_mode=1, task=INSTRUCTION)
+    policy = small_policy(_meta(root))
+    with pytest.raises(ValueError, match=r"mode_latents\(\): the training episodes carry no mode labels, and finding "
+                                         r"their modes failed: finding the modes needs at least 6 training episodes "
+                                         r".*got 4\. Label them \(`lerobot-pdp label-modes DATASET`.*discover_modes\(k=K\)"):
+        policy.mode_latents()
+    assert len(policy.discover_modes(k=2).means) == 2
