@@ -54,7 +54,7 @@ from .observation_encoder import check_camera_resolution, check_observation
 from .outcome_scores import Score
 from .paced_chunks import is_one_frame, paced_history
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
-from .processor_pdp import CameraFrameCheck  # noqa: F401  (registered: a checkpoint's preprocessor names it)
+from .processor_pdp import CameraFrameCheck, VectorSizeCheck  # noqa: F401  (registered: checkpoints name them)
 from .realtime_chunking import prepare_rtc, rtc_chunk
 from .steering import SteerFile, apply_config_steering
 from .steering_state import Steering

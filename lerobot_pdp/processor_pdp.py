@@ -2,9 +2,10 @@
 
 PDP normalises like LeRobot's diffusion policy (min-max to [-1, 1] for states, env states and actions, mean-std
 for cameras), so the DDIM sampler's clipping range [-1, 1] matches the action range. The policy keeps a copy of the same
-statistics to normalise whole demonstrations in ``fit_latent``/``encode``. One step of PDP's own comes first,
-:class:`CameraFrameCheck`: a camera frame in another layout than LeRobot's (uint8, channels last, 0-255, one channel)
-is refused by name before the normaliser, which would otherwise fail on it with a bare torch error or broadcast it.
+statistics to normalise whole demonstrations in ``fit_latent``/``encode``. Two steps of PDP's own come first:
+:class:`CameraFrameCheck`, a camera frame in another layout than LeRobot's (uint8, channels last, 0-255, one channel)
+refused by name before the normaliser, which would otherwise fail on it with a bare torch error or broadcast it; and
+:class:`VectorSizeCheck`, a state of another size refused by name (the normaliser's error names no key).
 """
 
 from __future__ import annotations
@@ -42,8 +43,10 @@ def make_pdp_pre_post_processors(
                        "or pass dataset_stats=policy.stats.as_dict()")
     pre, post = make_default_pre_post_processors(config, dataset_stats)
     cameras = {k: list(ft.shape) for k, ft in config.image_features.items()}
-    if cameras:  # after the rename (the policy's keys), before the normaliser
-        pre.steps.insert(1, CameraFrameCheck(cameras))
+    vectors = {k: list(ft.shape) for k, ft in config.condition_features.items() if k not in cameras}
+    # after the rename (the policy's keys), before the normaliser
+    checks = ([CameraFrameCheck(cameras)] if cameras else []) + ([VectorSizeCheck(vectors)] if vectors else [])
+    pre.steps[1:1] = checks
     return pre, post
 
 
@@ -70,6 +73,31 @@ class CameraFrameCheck(ObservationProcessorStep):
 
     def get_config(self) -> dict[str, Any]:
         return {"cameras": self.cameras}
+
+    def transform_features(self, features: dict) -> dict:
+        return features
+
+
+@ProcessorStepRegistry.register(name="pdp_observation_sizes")
+@dataclass
+class VectorSizeCheck(ObservationProcessorStep):
+    """Refuse a state-like observation of another size than the policy's, naming its key, its shape and the
+    expected size: LeRobot's normaliser fails on it with a bare broadcasting error ("The size of tensor a (5) must
+    match ..."). It changes nothing. ``vectors``: key -> ``[D]`` the policy was trained on."""
+
+    vectors: dict[str, list[int]] = field(default_factory=dict)
+
+    def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
+        for key, shape in self.vectors.items():
+            x = observation.get(key)
+            if isinstance(x, (torch.Tensor, np.ndarray)) and (x.ndim == 0 or list(x.shape[-1:]) != shape[-1:]):
+                raise ValueError(f"observation {key!r} has shape {list(x.shape)}; this policy expects [..., "
+                                 f"{shape[-1]}], its training dataset's {key} (the env or robot it was trained on, "
+                                 "with the same features)")
+        return observation
+
+    def get_config(self) -> dict[str, Any]:
+        return {"vectors": self.vectors}
 
     def transform_features(self, features: dict) -> dict:
         return features

@@ -523,3 +523,17 @@ def test_an_unknown_steer_mode_names_the_checkpoints_modes():
     taught.config.steer_mode = "taught: episode 0 of ra_s3"  # a name, as --policy.steer_mode takes it too
     taught.apply_config_steering()
     torch.testing.assert_close(taught.current_latent()[0], taught.mode_latents()[8])
+
+
+def test_a_state_of_another_size_is_named_by_the_preprocessor(checkpoint):
+    """LeRobot's normaliser failed on it with "The size of tensor a (5) must match the size of tensor b (6)"; the
+    checkpoint's preprocessor names the key and the size it expects, and lets the right size through."""
+    p = PDPPolicy.from_pretrained(checkpoint)
+    pre, _ = make_pre_post_processors(p.config, pretrained_path=str(checkpoint))
+    state, env = (p.config.input_features[k].shape[0] for k in ("observation.state", "observation.environment_state"))
+    obs = {"observation.state": torch.zeros(state + 1), "observation.environment_state": torch.zeros(env)}
+    with pytest.raises(ValueError, match=rf"observation 'observation.state' has shape \[{state + 1}\]; this policy "
+                                         rf"expects \[..., {state}\], its training dataset's observation.state"):
+        pre(obs)
+    obs["observation.state"] = torch.zeros(state)
+    assert pre(obs)["observation.state"].shape == (1, state)
