@@ -118,7 +118,8 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
         states = item[trace_key]
         check_finite(trace_key, states, f"episode {ep}")
         if len(states) < min_length:
-            raise ValueError(f"episode {ep} has {len(states)} frames; PDP needs at least {min_length} (one chunk)")
+            raise ValueError(f"episode {ep} has {len(states)} frames; PDP needs at least {min_length} (its observation "
+                             "history, n_obs_steps)")
         if "mode" in item:  # an episode-level label (meta/mode_labels.json) leaves the task string alone
             mode = int(item["mode"])
             names.setdefault(mode, item.get("mode_name") or str(mode))
@@ -136,6 +137,13 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
             gstarts.append(item.get("from_index", 0) + a)
             ends.append(b)
             modes.append(mode)
+    if gripper_dim is not None and len(traces) == len(episodes):  # asked for phases, and not one gripper event
+        g = np.concatenate([np.asarray(item["action"])[:, gripper_dim] for item in episodes.values()])
+        raise ValueError(f"segment_gripper_dim={gripper_dim}: no episode's gripper command (action[{gripper_dim}], "
+                         f"values in [{g.min():.4g}, {g.max():.4g}]) crosses segment_gripper_threshold="
+                         f"{gripper_threshold:g}, so no episode splits into phases. Set --policy."
+                         "segment_gripper_threshold between the gripper's open and closed values (raw, as recorded), "
+                         "or leave segment_gripper_dim unset for one latent per episode")
     return BehaviorTraces(np.stack(traces), np.array(ep_idx), np.array(starts), np.array(gstarts), np.array(ends),
                           np.array(modes), names)
 

@@ -51,6 +51,19 @@ def test_gripper_segments_too_short_first_or_last_run_joins_its_neighbour():
     assert gripper_segments(a[:1], 3, 0.0) == [(0, 1)]  # shorter than min_length as a whole: one phase
 
 
+def test_phases_asked_for_and_never_found_are_refused():
+    """A real gripper recorded 0..100 never crosses the default threshold 0: no phases, which training said nothing
+    of (one latent per episode where the user asked for one per phase)."""
+    a = np.zeros((20, 4))
+    a[8:15, 3] = 80.0  # closed 80, open 0
+    episodes = {0: {"observation.state": np.zeros((20, 2)), "action": a + 5.0, "task": "pick"}}
+    with pytest.raises(ValueError, match=r"segment_gripper_dim=3: no episode's gripper command \(action\[3\], values "
+                                         r"in \[5, 85\]\) crosses segment_gripper_threshold=0, .*between the gripper's "
+                                         r"open and closed values"):
+        build_behavior_traces(episodes, "observation.state", None, 8, "none", 3, 0.0)
+    assert len(build_behavior_traces(episodes, "observation.state", None, 8, "none", 3, 40.0).traces) == 3
+
+
 def test_prior_mean_distance_matches_monte_carlo():
     rng = np.random.default_rng(0)
     for d in (1, 2, 5):

@@ -208,7 +208,7 @@ def test_save_load_round_trip_same_actions(synthetic_meta, tmp_path):
     assert sorted(f.name for f in (tmp_path / "ckpt").iterdir()) == [  # a checkpoint lerobot-eval loads
         "config.json", "model.safetensors", "policy_postprocessor.json",
         "policy_postprocessor_step_0_unnormalizer_processor.safetensors", "policy_preprocessor.json",
-        "policy_preprocessor_step_3_normalizer_processor.safetensors"]
+        "policy_preprocessor_step_4_normalizer_processor.safetensors"]
     from lerobot.policies.factory import make_pre_post_processors
     from safetensors import safe_open
 
