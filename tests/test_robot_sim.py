@@ -126,6 +126,8 @@ def test_bad_input_gets_a_clear_error(tmp_path):
     robot = make_robot_from_config(PDPSimConfig(env="reach-around", calibration_dir=tmp_path))
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([[0.0, "x"]]))
+    far = tmp_path / "far.json"
+    far.write_text(json.dumps([[5.0, 5.0, 5.0], [0.0, 0.0, 0.4]]))
     try:
         # lerobot-record makes the robot, then the teleoperator, then the dataset folder: a route the robot's env
         # cannot take is refused when the teleoperator is made, before anything is written (LeRobot's factory
@@ -134,7 +136,9 @@ def test_bad_input_gets_a_clear_error(tmp_path):
                         ({"mode": "sideways"}, "unknown mode 'sideways'"),
                         ({"waypoints": str(tmp_path / "none.json")}, "none.json does not exist"),
                         ({"waypoints": "scene"}, "the scene has no 'waypoints'"),
-                        ({"waypoints": str(bad)}, "way-points must be")]:
+                        ({"waypoints": str(bad)}, "way-points must be"),
+                        ({"waypoints": str(far)}, r"--teleop.waypoints=.*far.json: way-point 0 \[5.0, 5.0, 5.0\] lies "
+                                                  r"outside reach-around's workspace")]:
             with pytest.raises(ValueError, match=msg):
                 make_teleoperator_from_config(PDPWaypointsConfig(calibration_dir=tmp_path, **kw))
         with pytest.raises(LookupError, match="no pdp_sim robot with id 'other'"):

@@ -282,6 +282,8 @@ def make_dataset(
     scene_obj = load_scene(scene, suite.scene_key)  # validate early, before any work
     camera_kwargs = _camera_kwargs(suite, camera, image_size)
     wps = resolve_waypoints(waypoints, scene, suite) if waypoints is not None else None
+    if wps is not None:  # a point the agent can never reach would record idle or colliding episodes
+        check_waypoints(suite, wps, waypoints if isinstance(waypoints, (str, Path)) else "waypoints")
     mode_list = _resolve_modes(suite, modes) if wps is None else []
     jobs: list[tuple[int | None, int]] = (
         [(m, e) for m in mode_list for e in range(episodes_per_mode)]

@@ -45,12 +45,14 @@ class PDPWaypoints(Teleoperator):
 
     def _resolve_route(self, robot: PDPSim) -> None:
         """The mode id or way-points of the route in ``robot``'s env and scene (a clear error if they do not fit)."""
-        from lerobot_pdp.envs.recording import _resolve_modes, resolve_waypoints
+        from lerobot_pdp.envs.recording import _resolve_modes, check_waypoints, resolve_waypoints
 
         if self.config.mode is not None:
             self._mode = _resolve_modes(robot.suite, [self.config.mode])[0]
         else:
             self._waypoints = resolve_waypoints(self.config.waypoints, robot.scene, robot.suite)
+            # a point the arm can never reach would record an idle or colliding episode as a demonstration
+            check_waypoints(robot.suite, self._waypoints, f"--teleop.waypoints={self.config.waypoints}")
         self._checked_for = robot
 
     @property
