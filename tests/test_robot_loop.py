@@ -391,6 +391,11 @@ def test_policy_input_check_names_a_missing_trace_key(tmp_path):
                                              r"trained on \(3, 64, 64\).*'observation.images.oblique': \(3, 32, 32\)\}"
                                              r".*--robot.camera_size"):
             check_policy_inputs(cfg, feats, robot)
+        feats["observation.images.top"] = {"dtype": "video", "shape": (64, 64, 3)}  # another camera, mapped by
+        del feats["observation.images.oblique"]                                 # --rename_map
+        with pytest.raises(ValueError, match=r"lacks 'observation.images.oblique'"):
+            check_policy_inputs(cfg, feats, robot)
+        check_policy_inputs(cfg, feats, robot, {"observation.images.top": "observation.images.oblique"})
     finally:
         robot.env.close()
 

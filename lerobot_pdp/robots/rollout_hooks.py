@@ -73,7 +73,10 @@ def _wrap_create_engine(original):
         ours = [r for r in _rollout_robots() if r is robot]
         policy = kwargs.get("policy")
         if ours and policy is not None:  # before the first action: a policy for another env fails here, clearly
-            check_policy_inputs(getattr(policy, "config", None), kwargs.get("dataset_features") or {}, ours[0])
+            steps = getattr(kwargs.get("preprocessor"), "steps", [])  # its rename step holds --rename_map
+            renames = next((s.rename_map for s in steps if isinstance(getattr(s, "rename_map", None), dict)), {})
+            check_policy_inputs(getattr(policy, "config", None), kwargs.get("dataset_features") or {}, ours[0],
+                                renames)
             if kwargs.get("hw_features"):  # what the RTC engine builds observations from: the same split
                 kwargs["hw_features"] = split_environment_state(kwargs["hw_features"], ours[0].state_keys,
                                                                 ours[0].env_state_keys)
@@ -99,11 +102,15 @@ def _wrap_keyboard(original):
     return init_keyboard_listener
 
 
-def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], robot: Any) -> None:
-    """The robot must give every input the policy was trained on, with its shape (PDP's trace key included).
+def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], robot: Any,
+                        rename_map: dict[str, str] | None = None) -> None:
+    """The robot must give every input the policy was trained on, with its shape (PDP's trace key included), under
+    the names ``rename_map`` (``--rename_map``, which the preprocessor applies) gives its features.
 
     LeRobot would fail later, deep in the preprocessor, or not at all for a same-sized vector of another env.
     """
+    renames = rename_map or {}
+    dataset_features = {renames.get(k, k): v for k, v in dataset_features.items()}
     inputs = getattr(policy_config, "input_features", None) or {}
     problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features)
     trace_key = getattr(policy_config, "trace_key", None)
