@@ -303,7 +303,7 @@ def read_training_behaviors(config, root: str | Path, features: dict,
         episodes = read_training_episodes(cfg, root, keys)
     for ep, item in episodes.items():
         for k in keys:
-            check_finite(k, item[k], f"episode {ep}")
+            check_finite(k, item[k], f"dataset {root}, episode {ep}")
     behaviors = build_behavior_traces(
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
         cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,

@@ -202,6 +202,9 @@ def _camera_frames(key: str, v: np.ndarray, shape: tuple[int, ...], where: str) 
                          f"(or [T, {h}, {w}, {c}] uint8), the shape the policy was trained on")
     if v.dtype == np.uint8:
         return v.astype(np.float32) / 255.0
+    if not np.issubdtype(v.dtype, np.floating):
+        raise ValueError(f"{where}: camera '{key}' has {v.dtype} frames; expected uint8 (0-255) or float in [0, 1] "
+                         "(as LeRobotDataset yields frames)")
     v = v.astype(np.float32)
     check_finite(key, v.reshape(len(v), -1), where)
     if v.min() < -1e-3 or v.max() > 1 + 1e-3:

@@ -259,6 +259,9 @@ def test_camera_frames_of_the_wrong_shape_or_range_are_refused(video_dataset):
     ep[TOP] = np.stack([camera_image(p, 48) for p in pos]).transpose(0, 3, 1, 2).astype(np.float32)  # 0..255
     with pytest.raises(ValueError, match=r"float values in \[.*\]; expected \[0, 1\]"):
         policy.fit_latent(ep, steps=1)
+    ep[TOP] = ep[TOP].astype(np.int64)  # integers, not uint8: neither a camera's bytes nor [0, 1]
+    with pytest.raises(ValueError, match=r"camera 'observation.images.top' has int64 frames; expected uint8"):
+        policy.fit_latent(ep, steps=1)
     del ep[TOP]
     with pytest.raises(KeyError, match="missing 'observation.images.top'"):
         policy.fit_latent(ep, steps=1)
