@@ -328,7 +328,7 @@ def test_rollout_with_real_time_chunking_and_a_camera(tmp_path, engine_module):
     ckpt, _ = saved_steerable_checkpoint(tmp_path, camera="top")
     outcomes = tmp_path / "o.jsonl"
     ctx = run_rollout(ckpt, PDPSimConfig(env="reach-around", scene="0", outcomes=str(outcomes), episodes=1,
-                                         camera_names=["top"], camera_size=(32, 32), calibration_dir=tmp_path),
+                                         camera_names=["top"], camera_size=(40, 40), calibration_dir=tmp_path),
                       inference=RTCInferenceConfig(rtc=RTCConfig(execution_horizon=3), queue_threshold=7))
     policy = ctx.policy.policy
     assert "observation.images.top" in policy.config.condition_features
