@@ -88,6 +88,10 @@ def _resolve_segments(config: PDPConfig, ep: dict[str, np.ndarray], segments) ->
     for a, b in segs:
         if not 0 <= a < b <= T:
             raise ValueError(f"segment ({a}, {b}) is not a non-empty frame range within the episode's {T} frames")
+    # every window is fitted under the phase of its frame: the phases must tile the episode, in order
+    if not segs or segs[0][0] != 0 or segs[-1][1] != T or any(b != a for (_, b), (a, _) in zip(segs[:-1], segs[1:], strict=True)):
+        raise ValueError(f"segments {segs} must cover the episode's {T} frames in order, each starting where the "
+                         f"one before ends (e.g. [(0, k), (k, {T})]): one latent per phase, used in order")
     return segs
 
 

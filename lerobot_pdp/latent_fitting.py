@@ -45,6 +45,8 @@ class FitResult:
     error_ratio: float | None = None
     # with fit_noise="chunks": one initial sampler noise per executed chunk, [C, horizon, A], played in order
     noise: Tensor | None = None
+    # where the fit came from, as adaptation.json keeps it (set by PDPPolicy.fit_latent)
+    provenance: dict | None = None
 
     def __repr__(self) -> str:  # a summary: the dataclass's would print every step's loss and every noise
         def fmt(x: float | None) -> str:

@@ -283,10 +283,11 @@ class PDPPolicy(PreTrainedPolicy):
             result = fit_to_demonstration(self.model, self.config, demo, self._demo_windows(demo), init=init,  # fit
                                           steps=steps, lr=lr, lam=lam, seed=seed, progress=progress,
                                           objective=objective, noise=noise, optimizer=optimizer)
-        if activate:  # act under it, and keep where it came from (an adapted checkpoint saves it)
-            self.steering.activate(result.z, result.noise, fit_provenance(
-                episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
-                objective=objective, noise=noise, optimizer=optimizer))
+        result.provenance = fit_provenance(  # where it came from (an adapted checkpoint saves it)
+            episode, result, self.config, steps=steps, init=init, lr=lr, lam=lam, segments=segments, seed=seed,
+            objective=objective, noise=noise, optimizer=optimizer)
+        if activate:
+            self.steering.activate(result.z, result.noise, result.provenance)
         return result
 
     def search_latent(self, env_factory: EnvFactory, score: str | Score = "success", budget: int = 200, init: Any = "modes",

@@ -39,7 +39,6 @@ from typing import Any
 
 import torch
 
-from .adaptation import fit_provenance
 from .console import latent_text
 from .latent_fitting import FitCancelled, cancellable
 from .lerobot_command import rollout_with_rtc
@@ -419,8 +418,7 @@ class SteerFile:
             return False
         result = fit.result
         try:
-            self._checked(policy, lambda: policy.steering.activate(
-                result.z, result.noise, fit_provenance((fit.root, fit.episode), result, policy.config, steps=fit.steps)))
+            self._checked(policy, lambda: policy.steering.activate(result.z, result.noise, result.provenance))
         except ValueError as e:
             logger.error("steering file %s: %s; keeping the current latent", self.path, e)
             return False

@@ -202,8 +202,9 @@ def teaching_record(policy: Any, episode: Episode, data: Path, result: TeachResu
     ``loss_window`` steps (50, or half a shorter run), the time, the date."""
     base = getattr(policy, "_loaded_from", None)
     demo: dict[str, Any] = {"arrays": "given in memory"}
-    if isinstance(episode, tuple):
-        demo = {"dataset": str(Path(str(episode[0])).resolve()), "episode": int(episode[1])}
+    if isinstance(episode, tuple):  # (folder or LeRobotDataset, index), as fit_provenance reads it
+        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
+        demo = {"dataset": str(Path(str(root)).resolve()), "episode": int(episode[1])}
     n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice
     head, tail = result.losses[:n], result.losses[-n:]
     return {"source": "teach", "base_checkpoint": None if base is None else str(Path(base).resolve()),

@@ -163,8 +163,11 @@ def test_encode_and_fit_latent_inputs(synthetic_meta):
     for k, v in p.state_dict().items():  # (an untrained policy's train_loss_dp is NaN)
         torch.testing.assert_close(v, before[k], rtol=0, atol=0, equal_nan=True, msg=f"fit_latent changed {k}")
     assert torch.equal(p.active_latent[0], res.z)
-    seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, 40)], activate=False)
+    seg = p.fit_latent((root, 2), steps=2, segments=[(0, 20), (20, len(ep["action"]))], activate=False)
     assert seg.z.shape == (2, 2)
+    for gappy in ([(0, 20), (20, 40)], [(0, 20), (25, len(ep["action"]))], [(0, 30), (20, len(ep["action"]))]):
+        with pytest.raises(ValueError, match=r"must cover the episode's \d+ frames in order"):  # frames left out
+            p.fit_latent((root, 2), steps=1, segments=gappy, activate=False)  # were fitted under phase 0
     # one latent per phase on a policy that never changes phase (no gripper dim): only the first would act
     for several in (seg.z, p.interpolate(seg.z[0], seg.z[1], n=3)):
         with pytest.raises(ValueError, match=r"this policy has no phases .* Give one latent \[2\]"):

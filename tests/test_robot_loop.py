@@ -453,6 +453,7 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     next_chunk()
     assert len(p.active_latent) == 1 and p.active_latent[0].tolist() != [1.0, 1.0]
     assert p.steering.provenance["demonstration"]["episode"] == 2
+    assert p.steering.provenance["fit"]["lr"] == p.config.fit_lr  # every setting, as fit_latent records them
     name = p.config.mode_names["1"]
     write_steering(steer, {"mode": name})
     next_chunk()

@@ -746,3 +746,16 @@ def test_a_used_mode_name_and_a_known_route_are_named_before_the_fine_tuning(syn
                          latent_source="its config")
     with pytest.raises(ValueError, match=r"mode name 'far right' names modes \[4, 5\] in checkpoint C; steer by mode id"):
         check_request({"mode": "far right"}, target)
+
+
+def test_the_teaching_record_names_a_lerobot_dataset_by_its_folder(synthetic_meta):
+    """A demonstration given as (LeRobotDataset, index) is recorded as the dataset's folder, as adaptation.json
+    records it (the repr of the dataset object was written as a path)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_pdp.teaching import TeachResult, teaching_record
+
+    ds = LeRobotDataset("local/synthetic", root=synthetic_meta.root, video_backend="pyav")
+    record = teaching_record(small_policy(synthetic_meta), (ds, 2), Path(synthetic_meta.root),
+                             TeachResult(mode=4, z=torch.zeros(1, 2), losses=[1.0, 0.5], steps=2), "far right")
+    assert record["demonstration"] == {"dataset": str(Path(synthetic_meta.root).resolve()), "episode": 2}
