@@ -59,6 +59,7 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     old ones. A folder reused for a policy without an adaptation (or taught modes) loses its stale files, and its
     model card's adaptation section is rewritten for the adaptation saved (:func:`refresh_card`)."""
     save_directory = Path(save_directory)
+    made = not save_directory.exists()
     save_directory.mkdir(parents=True, exist_ok=True)
     fresh = not any(save_directory.iterdir())
     try:
@@ -86,8 +87,8 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
             if not recorded:
                 (save_directory / TEACHING_INFO).unlink(missing_ok=True)
             refresh_card(save_directory, policy.steering if adapted else None)
-    finally:
-        if not any(save_directory.iterdir()):
+    finally:  # a failed save into a folder it made leaves none (a folder the caller had stays)
+        if made and save_directory.exists() and not any(save_directory.iterdir()):
             save_directory.rmdir()
 
 

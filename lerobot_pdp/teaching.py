@@ -398,7 +398,10 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
     was_training = model.denoiser.training
     model.denoiser.train()
     try:
-        with torch.inference_mode(False), torch.enable_grad(), torch.random.fork_rng(devices=[]):
+        # the seed reaches the draws on the model's device too (CUDA's generator), and leaves the caller's as found
+        on = torch.device(device)
+        cuda = [on.index or 0] if on.type == "cuda" else []
+        with torch.inference_mode(False), torch.enable_grad(), torch.random.fork_rng(devices=cuda):
             torch.manual_seed(int(seed))
             for _ in range(steps):
                 picks = [(w, z, torch.randint(0, len(w.actions), (n,), generator=g)) for w, z, n in pools]
@@ -423,6 +426,7 @@ def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, reh
                     bar.update(1)
                     bar.set_postfix(loss=f"{losses[-1]:.4f}", refresh=False)
     finally:  # also when the loss turns non-finite: the policy's mode and the console are left as found
+        opt.zero_grad(set_to_none=True)  # no gradient left on the denoiser's weights
         model.denoiser.train(was_training)
         if bar is not None:
             bar.close()

@@ -47,6 +47,7 @@ def test_teach_adds_a_mode_moving_only_the_denoiser(synthetic_meta):
     res = p.teach(demo, synthetic_meta.root, steps=3, seed=0, name="far right")
 
     assert res.mode == 4 and res.steps == 3 and len(res.losses) == 3
+    assert all(w.grad is None for w in p.model.denoiser.parameters())  # no gradient left on the weights
     assert res.rehearsal_windows == sum(int(e - s) for s, e in zip(p.model.bank.start[:n], p.model.bank.end[:n],
                                                                   strict=True))
     assert res.demo_windows == len(demo["action"]) and np.isfinite(res.nearest_spreads)
