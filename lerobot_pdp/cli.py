@@ -1020,8 +1020,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, KeyError, OSError, RuntimeError) as e:
         # Expected user errors (bad scene, existing output, infeasible mode) and the file system's (a read-only
         # or missing place, a file where a folder goes: OSError names the path): one clear line, no traceback.
+        # One raised elsewhere (inside torch, say) says how to see where; LEROBOT_PDP_TRACEBACK=1 shows every one.
+        from lerobot_pdp.cli_errors import TRACEBACK_ENV, raised_in_pdp
+
+        if os.environ.get(TRACEBACK_ENV) == "1":
+            raise
         msg = str(e.args[0] if isinstance(e, KeyError) and e.args else e).removeprefix(f"{args.command}: ")
         print(f"lerobot-pdp {args.command}: error: {msg}", file=sys.stderr)
+        if not isinstance(e, OSError) and not raised_in_pdp(e.__traceback__) and not (
+                e.__cause__ is not None and raised_in_pdp(e.__cause__.__traceback__)):
+            print(f"({type(e).__name__} not raised by lerobot-pdp's own checks; {TRACEBACK_ENV}=1 shows the "
+                  "traceback)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: a line, not torch's traceback (outputs go through atomic.py's staging)
         print(f"lerobot-pdp {args.command}: interrupted", file=sys.stderr)

@@ -32,15 +32,20 @@ LEROBOT_NO_CONFIG = "config.json not found in "
 _PACKAGE = Path(__file__).resolve().parent  # lerobot_pdp: the envs, robots and teleoperators live below it
 
 
-def raised_by_pdp(error: BaseException, tb: TracebackType | None) -> bool:
-    """Whether ``error`` is a message PDP raised on purpose: a user-error type whose innermost frame is a ``raise``
-    statement in PDP's code (an error a library or an expression raised has another innermost frame or line)."""
-    if not isinstance(error, USER_ERRORS) or tb is None:
+def raised_in_pdp(tb: TracebackType | None) -> bool:
+    """Whether a traceback's innermost frame is a ``raise`` statement in PDP's code (an error a library or an
+    expression raised has another innermost frame or line)."""
+    if tb is None:
         return False
     while tb.tb_next is not None:
         tb = tb.tb_next
     path = Path(tb.tb_frame.f_code.co_filename).resolve()
     return path.is_relative_to(_PACKAGE) and linecache.getline(str(path), tb.tb_lineno).lstrip().startswith("raise ")
+
+
+def raised_by_pdp(error: BaseException, tb: TracebackType | None) -> bool:
+    """Whether ``error`` is a message PDP raised on purpose: a user-error type raised by PDP (:func:`raised_in_pdp`)."""
+    return isinstance(error, USER_ERRORS) and raised_in_pdp(tb)
 
 
 def pdp_message(error: BaseException, tb: TracebackType | None) -> BaseException | None:

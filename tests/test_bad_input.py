@@ -537,3 +537,21 @@ def test_a_state_of_another_size_is_named_by_the_preprocessor(checkpoint):
         pre(obs)
     obs["observation.state"] = torch.zeros(state)
     assert pre(obs)["observation.state"].shape == (1, state)
+
+
+def test_an_error_raised_inside_a_library_says_how_to_see_where(monkeypatch, capsys):
+    """lerobot-pdp prints its errors as one line; one PDP did not raise itself (inside torch, say) adds how to see
+    its traceback, and LEROBOT_PDP_TRACEBACK=1 lets it run out with it."""
+    import lerobot_pdp.cli as cli
+
+    monkeypatch.setattr(cli, "cmd_label_modes", lambda args: torch.zeros(2) @ torch.zeros(3))
+    assert lerobot_pdp(["label-modes", "x", "--from-tasks"]) == 2
+    err = capsys.readouterr().err
+    assert "lerobot-pdp label-modes: error: " in err and "(RuntimeError not raised by lerobot-pdp's own checks; " \
+        "LEROBOT_PDP_TRACEBACK=1 shows the traceback)" in err
+    monkeypatch.undo()
+    assert lerobot_pdp(["label-modes", "missing-folder", "--from-tasks"]) == 2  # PDP's own message: one line
+    assert "shows the traceback" not in capsys.readouterr().err
+    monkeypatch.setenv("LEROBOT_PDP_TRACEBACK", "1")
+    with pytest.raises(FileNotFoundError, match="dataset folder missing-folder does not exist"):
+        lerobot_pdp(["label-modes", "missing-folder", "--from-tasks"])
