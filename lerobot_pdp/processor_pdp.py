@@ -21,6 +21,7 @@ from lerobot.processor import (
     PolicyAction,
     PolicyProcessorPipeline,
     ProcessorStepRegistry,
+    RenameObservationsProcessorStep,
     make_default_pre_post_processors,
 )
 
@@ -46,7 +47,8 @@ def make_pdp_pre_post_processors(
     vectors = {k: list(ft.shape) for k, ft in config.condition_features.items() if k not in cameras}
     # after the rename (the policy's keys), before the normaliser
     checks = ([CameraFrameCheck(cameras)] if cameras else []) + ([VectorSizeCheck(vectors)] if vectors else [])
-    pre.steps[1:1] = checks
+    after = next((i + 1 for i, step in enumerate(pre.steps) if isinstance(step, RenameObservationsProcessorStep)), 0)
+    pre.steps[after:after] = checks
     return pre, post
 
 
