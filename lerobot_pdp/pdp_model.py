@@ -293,11 +293,12 @@ class PDPModel(nn.Module):
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
         n = self.config.num_inference_steps
+        z, noise = z.to(obs_cond), noise.to(obs_cond)  # a caller's CPU latent or noise for a policy on a GPU
         if guide is not None:
             return self._sample(obs_cond, z, noise, n, guide)
         if obs_cond.device.type == "cuda" and self._cuda_graphs:
             try:
-                return self._generate_graphed(obs_cond, z.to(obs_cond), noise.to(obs_cond), n)
+                return self._generate_graphed(obs_cond, z, noise, n)
             except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
                 logger.warning("CUDA graph capture of the sampler failed (%r); acting eagerly", e)
                 self._cuda_graphs = False
