@@ -114,15 +114,15 @@ def test_camera_variant_tiny(tmp_path):
     for m in ("pdp", "dp", "vqbet"):
         assert set(_eval_json(out, m)["scenes"]) == {"0", "3"}
         cfg = json.loads((out / "runs" / m / "seed0" / "pretrained_model" / "config.json").read_text())
-        assert cfg["input_features"]["observation.images.oblique"]["shape"] == [3, 32, 32]
+        assert cfg["input_features"]["observation.images.oblique"]["shape"] == [3, 40, 40]
         assert cfg["pretrained_backbone_weights"] is None and cfg["use_group_norm"] is True
         assert cfg["spatial_softmax_num_keypoints"] == 32 and cfg["n_obs_steps"] == 2
         assert cfg.get("use_separate_rgb_encoder_per_camera", False) is False
     vq = json.loads((out / "runs" / "vqbet" / "seed0" / "pretrained_model" / "config.json").read_text())
     assert vq["crop_shape"] is None and vq["n_vqvae_training_steps"] == 1  # a fifth of the 4 steps, at least 1
-    demo = demo_episode(out / "data" / "reach_around_scene3_demo_oblique32")
+    demo = demo_episode(out / "data" / "reach_around_scene3_demo_oblique40")
     cam = demo["observation.images.oblique"]
-    assert cam.shape == (len(demo["action"]), 3, 32, 32) and 0.0 <= cam.min() and cam.max() <= 1.0
+    assert cam.shape == (len(demo["action"]), 3, 40, 40) and 0.0 <= cam.min() and cam.max() <= 1.0
     with pytest.raises(AssertionError, match="take state only"):  # BC has no camera input
         run_cli([lerobot_cli("lerobot-pdp"), "benchmark", "--env", "reach-around", "--obs", "images",
                  "--out", str(out), "--methods", "bc"])
