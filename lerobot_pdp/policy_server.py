@@ -26,6 +26,9 @@ only (nothing of LeRobot is changed on disk):
   policy, so a latent per gripper phase follows the robot (:class:`lerobot_pdp.paced_chunks.ExecutedActions`),
   and so does each chunk's step in the episode, so fitted chunk noises are replayed aligned to the frames they
   were fitted to (:meth:`lerobot_pdp.paced_chunks.LastChunk.fitted_noise`);
+* a robot client whose features are not the checkpoint's (another env, a missing camera) is refused as it connects
+  (gRPC ``FAILED_PRECONDITION``, :data:`CLIENT_REFUSED`, each difference named), before LeRobot loads anything, so
+  a client already being served keeps its policy;
 * a chunk the served PDP cannot plan (an error: a non-finite action, an observation it cannot read) ends the
   client's run: its action request fails with the error (gRPC ``ABORTED``, :data:`PLANNING_FAILED`) and the
   server serves nothing more until a client connects again; LeRobot's logs the error and answers nothing, for
@@ -58,6 +61,7 @@ STATE = "observation.state"
 _ORIGINAL = "_lerobot_original"
 # how the failed action request of a client whose chunk PDP could not plan begins (its gRPC details)
 PLANNING_FAILED = "the PDP policy server could not plan a chunk"
+CLIENT_REFUSED = "the PDP policy server refused this robot client"
 
 
 def split_policy_options(argv: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -122,20 +126,32 @@ def with_vector_features(original: Callable) -> Callable:
 
 
 def with_input_check(original: Callable) -> Callable:
-    """Wrap LeRobot's ``PolicyServer.SendPolicyInstructions``: once PDP is loaded, the features the robot client
-    sends must be the ones it was trained on, else an error naming them, which ends the client at connect (a robot
-    of another env would otherwise get no action, the server failing at every chunk, and wait for good)."""
+    """Wrap LeRobot's ``PolicyServer.SendPolicyInstructions``: the features a robot client of PDP sends must be the
+    ones the checkpoint was trained on (its config.json, read first), else the request fails (gRPC
+    ``FAILED_PRECONDITION``, details beginning with :data:`CLIENT_REFUSED`, naming each difference) and the client
+    ends at connect. Checked before LeRobot loads anything: the policy, its start-up fit and the features a client
+    already running is served with stay as they were (a robot of another env would otherwise get no action, the
+    server failing at every chunk, and wait for good)."""
 
     @functools.wraps(original)
     def SendPolicyInstructions(self: Any, request: Any, context: Any):  # noqa: N802 - LeRobot's gRPC method
-        out = original(self, request, context)
-        policy, features = getattr(self, "policy", None), getattr(self, "lerobot_features", None) or {}
-        if getattr(getattr(policy, "config", None), "type", None) == SERVED:
-            import pickle
+        import pickle
 
-            rename = getattr(pickle.loads(request.data), "rename_map", None) or {}  # nosec - LeRobot's own message
-            check_client_features(policy.config, {rename.get(k, k): v for k, v in features.items()})
-        return out
+        specs = pickle.loads(request.data)  # nosec - LeRobot's own message, which its server unpickles too
+        if getattr(specs, "policy_type", None) == SERVED:
+            from lerobot.configs.policies import PreTrainedConfig
+
+            rename = getattr(specs, "rename_map", None) or {}
+            features = getattr(specs, "lerobot_features", None) or {}
+            try:
+                config = PreTrainedConfig.from_pretrained(specs.pretrained_name_or_path)
+                check_client_features(config, {rename.get(k, k): v for k, v in features.items()})
+            except ValueError as e:
+                import grpc
+
+                logger.error("refused the robot client %s: %s", context.peer(), e)
+                context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{CLIENT_REFUSED}: {e}")
+        return original(self, request, context)
 
     return SendPolicyInstructions
 

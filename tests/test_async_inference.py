@@ -605,6 +605,26 @@ def test_a_latent_per_gripper_phase_follows_the_commands_the_client_executed(ser
     assert all(t >= last for t, last in counted)  # in order, each once
 
 
+def test_a_refused_client_leaves_the_one_being_served_alone(server_module, client_module, tmp_path):
+    """A client of another robot is refused from the checkpoint's config, before LeRobot loads anything: the
+    client already served keeps its policy and features (they were replaced by the refused client's, and its next
+    chunk failed naming them), and the refused one ends with the differences named (not a gRPC error dump)."""
+    from lerobot_pdp.policy_server import CLIENT_REFUSED
+
+    with _serving(server_module) as (service, port, _, _):
+        served = client_module.RobotClient(_client_config(port, tmp_path / "a"))
+        try:
+            assert served.start()
+            policy, features = service.policy, service.lerobot_features
+            other = client_module.RobotClient(_client_config(port, tmp_path / "b", env="avoiding"))
+            assert not other.start()
+            assert service.policy is policy and service.lerobot_features is features
+            assert client_hooks.FAILURES[0].startswith(f"{CLIENT_REFUSED}: the robot client does not give what the "
+                                                       "PDP policy needs: 'observation.state' has shape (4,)")
+        finally:
+            served.stop()
+
+
 def test_a_chunk_that_arrives_before_the_must_go_flag_is_cleared_does_not_stall_the_run(
         server_module, client_module, tmp_path):
     """LeRobot's control loop clears "must go" after sending a must-go observation; the chunk answering it can

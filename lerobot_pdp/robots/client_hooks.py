@@ -147,6 +147,7 @@ def _wrap_client(original):
                 if self.config.chunk_size_threshold <= 0:
                     logger.warning(EMPTY_ONLY, self.config.chunk_size_threshold)
                 self.stub.GetActions = _ending_on_failed_planning(self.stub.GetActions, self)
+                self.stub.SendPolicyInstructions = _naming_refusal(self.stub.SendPolicyInstructions)
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
@@ -219,6 +220,26 @@ def _wrap_client(original):
 
     RobotClient.__doc__ = original.__doc__
     return RobotClient
+
+
+def _naming_refusal(send_instructions: Any) -> Any:
+    """The client stub's ``SendPolicyInstructions``: the server's refusal (another robot's features) becomes the
+    run's failure, its message whole (LeRobot logs the gRPC error object and returns from ``start``)."""
+    import grpc
+
+    from ..policy_server import CLIENT_REFUSED
+
+    @functools.wraps(send_instructions)
+    def SendPolicyInstructions(*args: Any, **kwargs: Any):  # noqa: N802 - the gRPC method's name
+        try:
+            return send_instructions(*args, **kwargs)
+        except grpc.RpcError as e:
+            details = e.details() if callable(getattr(e, "details", None)) else ""
+            if e.code() == grpc.StatusCode.FAILED_PRECONDITION and (details or "").startswith(CLIENT_REFUSED):
+                FAILURES.append(details)
+            raise
+
+    return SendPolicyInstructions
 
 
 def _ending_on_failed_planning(get_actions: Any, client: Any) -> Any:
