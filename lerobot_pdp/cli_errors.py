@@ -17,9 +17,13 @@ expression in PDP's code), keeps Python's traceback, and ``LEROBOT_PDP_TRACEBACK
 
 from __future__ import annotations
 
+import contextlib
 import linecache
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 
@@ -118,3 +122,28 @@ def install() -> None:
         return
     if not getattr(sys.excepthook, "pdp_errors", False):
         sys.excepthook = _hook(sys.excepthook)
+
+
+@contextlib.contextmanager
+def ending_on_signals(prog: str) -> Iterator[None]:
+    """SIGTERM (``systemctl stop``, ``docker stop``) unwinds the main thread as Ctrl-C does, through the program's
+    ``finally`` blocks (a robot client stopped and its robot disconnected, a server shut down), where it killed the
+    process on the spot; either ends the program with one line and the signal's exit status (130, 143), not a
+    ``KeyboardInterrupt`` traceback. For LeRobot's robot client and policy server, which handle neither."""
+    caught: list[int] = []
+
+    def on_term(signum: int, frame: object) -> None:
+        caught.append(signum)
+        raise KeyboardInterrupt
+
+    main = threading.current_thread() is threading.main_thread()
+    before = signal.signal(signal.SIGTERM, on_term) if main else None
+    try:
+        yield
+    except KeyboardInterrupt:
+        signum = caught[0] if caught else int(signal.SIGINT)
+        print(f"{prog}: stopped by {signal.Signals(signum).name}", file=sys.stderr, flush=True)
+        raise SystemExit(128 + signum) from None
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGTERM, before)

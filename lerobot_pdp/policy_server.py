@@ -373,7 +373,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     register_third_party_plugins()
     check_policy_options(overrides)
     admit_pdp(server, overrides)
-    server.serve(draccus.parse(PolicyServerConfig, args=args))
+    from .cli_errors import ending_on_signals
+
+    config = draccus.parse(PolicyServerConfig, args=args)
+    with ending_on_signals("lerobot_pdp.policy_server"):  # Ctrl-C / SIGTERM: one line, not grpc's traceback
+        server.serve(config)
 
 
 if __name__ == "__main__":

@@ -819,3 +819,27 @@ def test_record_then_serve_a_fitted_pdp_to_lerobot_robot_client(reach_around_pdp
     server_log = server_log.read_text()
     assert "fitted latent to" in server_log, server_log[-3000:]
     assert sum(d["success"] for d in lines) >= 3, lines
+
+
+def test_sigterm_unwinds_the_client_or_server_as_ctrl_c_does(capsys):
+    """LeRobot's robot client and policy server handle neither signal: SIGTERM killed the client on the spot (no
+    robot disconnected, no outcome line) and Ctrl-C printed a KeyboardInterrupt traceback. Under PDP both unwind
+    through the program's finally blocks and end with one line and the signal's status."""
+    import os
+    import signal
+
+    from lerobot_pdp.cli_errors import ending_on_signals
+
+    before, cleaned = signal.getsignal(signal.SIGTERM), []
+    with pytest.raises(SystemExit) as ended, ending_on_signals("robot client"):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(10)
+        finally:
+            cleaned.append("robot disconnected")
+    assert ended.value.code == 143 and cleaned == ["robot disconnected"]
+    assert capsys.readouterr().err == "robot client: stopped by SIGTERM\n"
+    assert signal.getsignal(signal.SIGTERM) is before
+    with pytest.raises(SystemExit) as ended, ending_on_signals("lerobot_pdp.policy_server"):
+        raise KeyboardInterrupt  # Ctrl-C
+    assert ended.value.code == 130 and capsys.readouterr().err == "lerobot_pdp.policy_server: stopped by SIGINT\n"

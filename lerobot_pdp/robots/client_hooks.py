@@ -92,8 +92,11 @@ def _ours(robot: Any) -> bool:
 def _wrap_main(original):
     @functools.wraps(original)
     def async_client(*args: Any, **kwargs: Any):
+        from ..cli_errors import ending_on_signals
+
         FAILURES.clear()
-        result = original(*args, **kwargs)
+        with ending_on_signals("robot client"):  # Ctrl-C / SIGTERM: LeRobot's finally stops it, the robot disconnected
+            result = original(*args, **kwargs)
         if FAILURES:
             raise SystemExit(f"robot client: {FAILURES[0]}")  # exit status 1, the reason on stderr
         return result
