@@ -357,7 +357,11 @@ class SteerFile:
         self._seen = seen
         pending, self.fit = self.fit, None  # a newer request supersedes a fit still running (cancelled below)
         try:
-            request = check_request(json.loads(content, parse_constant=_no_constant))
+            try:
+                request = json.loads(content, parse_constant=_no_constant)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"not valid JSON ({e})") from e
+            request = check_request(request)
             if "dataset" in request:
                 root, episode, steps = fit_request(request, base=self.path.parent)
                 if at_start:  # nothing acts yet: fitted now, with a bar, as --policy.steer_dataset_root is
@@ -365,15 +369,13 @@ class SteerFile:
                     logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(policy.active_latent))
                     self._loaded = None
                     return True
-                if pending is not None:
-                    pending.cancel()
+                self._supersede(pending, request)
                 self.fit = BackgroundFit(policy, root, episode, steps)
                 logger.info("steering file %s: fitting z to %s episode %d in the background; acting on the "
                             "current latent until it is ready", self.path, root, episode)
                 return changed
             z = self._checked(policy, lambda: apply_steering(policy, request, base=self.path.parent))
-            if pending is not None:
-                pending.cancel()
+            self._supersede(pending, request)
         except Exception as e:  # noqa: BLE001 - a running robot keeps its latent on any bad request
             said = e.args[0] if isinstance(e, KeyError) and e.args else e  # a KeyError's str() is its repr
             if first:  # there before the first action: nothing to keep, refused as a bad --policy.steer_mode is
@@ -391,6 +393,13 @@ class SteerFile:
             logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))
         self._loaded = None
         return True
+
+    def _supersede(self, pending: BackgroundFit | None, request: dict[str, Any]) -> None:
+        """Stop the fit a newer request replaces (at its next step), and say so: its latent will never act."""
+        if pending is not None:
+            pending.cancel()
+            logger.info("steering file %s: the fit to %s episode %d still running is cancelled (%s supersedes it)",
+                        self.path, pending.root, pending.episode, request)
 
     def _checked(self, policy: Any, apply: Callable[[], Any]) -> Any:
         """``apply()``, undone when :attr:`check` refuses the steering state it leaves."""

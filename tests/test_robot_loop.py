@@ -461,7 +461,7 @@ def test_steering_file_requests_and_bad_requests_keep_the_latent(synthetic_meta,
     # bad requests: logged, the latent stays
     for text, message in [('{"mode": 9}', f"mode 9 is not a mode of this checkpoint; its modes are 0 ({p.config.mode_names['0']}), "),
                           ('{"latent": [1, 2, 3]}', "latent must have shape"),
-                          ('{"mode": 1', "Expecting"),
+                          ('{"mode": 1', "steer.json: not valid JSON (Expecting"),
                           ('{"dataset": "nowhere"}', "nowhere does not exist"),
                           ('{"mode": 1, "latent": [0, 0]}', "exactly one of")]:
         caplog.clear()
@@ -553,7 +553,8 @@ def test_steering_flags_given_together_say_which_one_wins(synthetic_meta, caplog
     assert "steer_mode ignored" in caplog.text
 
 
-def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_supersedes_it(synthetic_meta, tmp_path):
+def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_supersedes_it(synthetic_meta, tmp_path,
+                                                                                          caplog):
     steer = tmp_path / "steer.json"
     p = small_policy(synthetic_meta, steer_file=str(steer), fit_steps=150)
     p.eval()
@@ -589,7 +590,10 @@ def test_a_steering_fit_runs_off_the_control_path_and_a_newer_good_request_super
     next_chunk()
     assert p._steer_file.fit is running or running.done()  # (done: it landed at that poll, before the typo)
     write_steering(steer, {"mode": 0})
-    next_chunk()
+    with caplog.at_level("INFO", logger="lerobot_pdp.steering"):
+        next_chunk()
+    assert running.done() or any("episode 2 still running is cancelled ({'mode': 0} supersedes it)" in r.getMessage()
+                                 for r in caplog.records)  # said: its latent will never act
     assert running.wait(120)  # cancelled at its next step, not run to its end beside the control loop
     next_chunk()
     assert torch.allclose(p.active_latent[0], p.mode_latents()[0])
