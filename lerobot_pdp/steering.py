@@ -366,7 +366,8 @@ class SteerFile:
                 root, episode, steps = fit_request(request, base=self.path.parent)
                 if at_start:  # nothing acts yet: fitted now, with a bar, as --policy.steer_dataset_root is
                     start_up_fit(policy, (root, episode), steps)
-                    logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(policy.active_latent))
+                    logger.info("steering file %s: %s -> latent %s%s", self.path, request,
+                                latent_text(policy.active_latent), self._overriding(at_start))
                     self._loaded = None
                     return True
                 self._supersede(pending, request)
@@ -390,9 +391,14 @@ class SteerFile:
                            "with a fresh steering file, to act under it", self.path, policy.config.inference_latent,
                            self._loaded)
         else:
-            logger.info("steering file %s: %s -> latent %s", self.path, request, latent_text(z))
+            logger.info("steering file %s: %s -> latent %s%s", self.path, request, latent_text(z),
+                        self._overriding(at_start))
         self._loaded = None
         return True
+
+    def _overriding(self, at_start: bool) -> str:
+        """At load, what the file's request replaces (a ``steer_*`` flag, an adaptation), for its log line."""
+        return f" (the file's request, in place of {self._loaded})" if at_start and self._loaded else ""
 
     def _supersede(self, pending: BackgroundFit | None, request: dict[str, Any]) -> None:
         """Stop the fit a newer request replaces (at its next step), and say so: its latent will never act."""

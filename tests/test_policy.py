@@ -775,8 +775,11 @@ def test_a_steering_file_is_read_when_the_checkpoint_loads(synthetic_meta, tmp_p
     shutil.copytree(synthetic_meta.root, tmp_path / "demo")
     write_steering(steer, {"dataset": "demo", "episode": 2, "steps": 2})
     cfg = dataclasses.replace(p.config, steer_mode=sorted(p.mode_latents())[1], steer_file=str(steer))
-    q = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.steering"):
+        q = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
     assert q._steer_file.fit is None and q.steering.provenance["demonstration"]["episode"] == 2  # fitted, not mode 1
+    assert f"(the file's request, in place of mode {cfg.steer_mode} (--policy.steer_mode))" in caplog.text  # said
+    caplog.clear()
     assert q.steering.provenance["fit"]["steps"] == 2
     steer.write_text('{"mode": 99}')
     with pytest.raises(ValueError, match=rf"steering file {steer} \(there when the policy started\): .*mode 99"):
