@@ -149,8 +149,12 @@ def _wrap_client(original):
                     logger.warning(BLENDED, aggregation)
                 if self.config.chunk_size_threshold <= 0:
                     logger.warning(EMPTY_ONLY, self.config.chunk_size_threshold)
-                self.stub.GetActions = _ending_on_failed_planning(self.stub.GetActions, self)
-                self.stub.SendPolicyInstructions = _naming_refusal(self.stub.SendPolicyInstructions)
+                from ..policy_server import CLIENT_REFUSED, PLANNING_FAILED
+
+                # a chunk PDP could not plan ends the run; a refusal at connect (another robot) names its reason
+                self.stub.GetActions = _failing_on(self.stub.GetActions, "ABORTED", PLANNING_FAILED, self)
+                self.stub.SendPolicyInstructions = _failing_on(self.stub.SendPolicyInstructions, "FAILED_PRECONDITION",
+                                                               CLIENT_REFUSED)
             if self._pdp_sim:  # the run ends below, before an observation would be sent to a stopped client
                 self.robot.attach_rollout(QueuedActions(self), None)
 
@@ -225,43 +229,24 @@ def _wrap_client(original):
     return RobotClient
 
 
-def _naming_refusal(send_instructions: Any) -> Any:
-    """The client stub's ``SendPolicyInstructions``: the server's refusal (another robot's features) becomes the
-    run's failure, its message whole (LeRobot logs the gRPC error object and returns from ``start``)."""
+def _failing_on(call: Any, code: str, prefix: str, client: Any = None) -> Any:
+    """The client stub's method ``call``: an error the PDP server sent on purpose (gRPC status ``code``, details
+    beginning with ``prefix``) becomes the run's failure, its message whole; with ``client``, the run also ends, as
+    Ctrl-C would. LeRobot's client only logs the gRPC error object: at connect (``start`` returns False) or per
+    action request (its receiver asks again, for good)."""
     import grpc
 
-    from ..policy_server import CLIENT_REFUSED
-
-    @functools.wraps(send_instructions)
-    def SendPolicyInstructions(*args: Any, **kwargs: Any):  # noqa: N802 - the gRPC method's name
+    @functools.wraps(call)
+    def failing_on(*args: Any, **kwargs: Any):
         try:
-            return send_instructions(*args, **kwargs)
+            return call(*args, **kwargs)
         except grpc.RpcError as e:
             details = e.details() if callable(getattr(e, "details", None)) else ""
-            if e.code() == grpc.StatusCode.FAILED_PRECONDITION and (details or "").startswith(CLIENT_REFUSED):
+            if e.code() == getattr(grpc.StatusCode, code) and (details or "").startswith(prefix):
                 FAILURES.append(details)
+                if client is not None:
+                    logger.error("%s; ending the run", details)
+                    client.shutdown_event.set()
             raise
 
-    return SendPolicyInstructions
-
-
-def _ending_on_failed_planning(get_actions: Any, client: Any) -> Any:
-    """The client stub's ``GetActions``, ending the run (as Ctrl-C would) when the server says PDP could not plan a
-    chunk: LeRobot's receiver logs the failed request and, its client stopped, asks no more."""
-    import grpc
-
-    from ..policy_server import PLANNING_FAILED
-
-    @functools.wraps(get_actions)
-    def GetActions(*args: Any, **kwargs: Any):  # noqa: N802 - the gRPC method's name
-        try:
-            return get_actions(*args, **kwargs)
-        except grpc.RpcError as e:
-            details = e.details() if callable(getattr(e, "details", None)) else ""
-            if e.code() == grpc.StatusCode.ABORTED and (details or "").startswith(PLANNING_FAILED):
-                FAILURES.append(details)
-                logger.error("%s; ending the run", details)
-                client.shutdown_event.set()
-            raise
-
-    return GetActions
+    return failing_on
