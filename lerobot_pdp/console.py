@@ -90,7 +90,10 @@ def latent_text(z: Any, digits: int = 4) -> str:
     def rounded(v: Any) -> Any:
         if isinstance(v, (list, tuple)):
             return [rounded(x) for x in v]
-        return round(float(v), digits) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            return v
+        v = float(v)  # a huge value (a typo'd exponent) to ``digits`` significant digits: 1e+30, not 1.00000001e+30
+        return float(f"{v:.{digits}g}") if abs(v) >= 1e6 else round(v, digits)
 
     return str(rounded(z.tolist() if hasattr(z, "tolist") else z))
 

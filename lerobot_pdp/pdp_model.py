@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from .behavior import BehaviorTraces, TrajectoryVAE
 from .behavior_bank import BehaviorBank
 from .configuration_pdp import PDPConfig, linear_beta_end
+from .console import latent_text
 from .cuda_graphs import GraphCache, TrainGraphs
 from .denoiser import FiLMUnet1d
 from .diffusion import NoiseSchedule, diffusion_loss
@@ -253,7 +254,7 @@ class PDPModel(nn.Module):
         eps = self.denoiser(torch.zeros(m, self.config.horizon, self.action_dim, device=dev), k,
                             torch.zeros(m, self.denoiser.obs_cond_dim, device=dev), t.to(dev).repeat(2, 1))
         if not bool(torch.isfinite(eps).all()):
-            raise ValueError(f"latent {t.tolist()} makes the denoiser overflow (non-finite output): every action "
+            raise ValueError(f"latent {latent_text(t)} makes the denoiser overflow (non-finite output): every action "
                              "under it would be non-finite. Steer within the training latents (mode_latents(), "
                              "latent-map)")
         return z

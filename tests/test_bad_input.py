@@ -129,7 +129,8 @@ def test_a_latent_the_denoiser_overflows_under_is_refused_before_it_acts(synthet
     p.set_latent([1e15, 1e15])  # far, but the network stays finite: acted on (with the far-latent warning)
     for huge in ([1e30, 1e30], torch.tensor([[1e30, -1e30]])):
         p.set_latent(good)
-        with pytest.raises(ValueError, match=r"makes the denoiser overflow \(non-finite output\): every action under "
+        with pytest.raises(ValueError, match=r"latent \[\[1e\+30, -?1e\+30\]\] makes the denoiser overflow \(non-finite "
+                                             r"output\): every action under "
                                              r"it would be non-finite"):
             p.set_latent(huge)
         torch.testing.assert_close(p.active_latent[0], good)

@@ -152,4 +152,5 @@ def test_latents_print_at_a_readable_precision():
     assert latent_text(torch.tensor([[1.3870640993118286, -0.8325331807136536]])) == "[[1.3871, -0.8325]]"
     assert latent_text(np.array([0.1, 2])) == "[0.1, 2.0]"
     assert latent_text([1e6, -3.00004]) == "[1000000.0, -3.0]"
+    assert latent_text(torch.tensor([[1e30, -2.5e7]])) == "[[1e+30, -25000000.0]]"  # float32's 1e30 is 1.00000002e30
     assert latent_text(None) == "None"  # a steering request back to the default latent
