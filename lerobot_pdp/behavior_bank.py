@@ -35,7 +35,15 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
 
-from .behavior import UNLABELED, BehaviorTraces, TrajectoryVAE, choose_kappa, trace_distances
+from .behavior import (
+    UNLABELED,
+    BehaviorTraces,
+    TrajectoryVAE,
+    check_behaviors,
+    choose_kappa,
+    read_training_behaviors,
+    trace_distances,
+)
 from .configuration_pdp import PDPConfig
 from .console import latent_text
 from .distributed import (
@@ -44,6 +52,7 @@ from .distributed import (
     warn_if_cpu_launch_ran_one_process,
     world,
 )
+from .episodes import check_camera_sizes
 from .modes import SPACES, DiscoveredModes, ModeLatents, discover, labelled_mode_latents
 from .steering_state import as_latent_tensor
 
@@ -101,6 +110,20 @@ def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces) -> None
         if config.latent_dim != n_modes:
             logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
             config.latent_dim = n_modes
+
+
+def dataset_behaviors(config: PDPConfig, dataset_meta: Any) -> BehaviorTraces | None:
+    """The training behaviours of the local dataset ``dataset_meta`` describes (as ``lerobot-train`` passes it),
+    checked, and the config fields they decide set (:func:`resolve_dataset_config`), before the model is built;
+    None without a local dataset. Cameras of another size than the policy's are refused before the soft-DTW."""
+    root = getattr(dataset_meta, "root", None)
+    if root is None:
+        return None
+    check_camera_sizes(config.image_features, root, dataset_meta.features)
+    behaviors = read_training_behaviors(config, root, dataset_meta.features)
+    check_behaviors(behaviors, root, config)
+    resolve_dataset_config(config, behaviors)
+    return behaviors
 
 
 class BehaviorBank(nn.Module):

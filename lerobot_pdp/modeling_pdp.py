@@ -34,8 +34,7 @@ from lerobot.utils.constants import ACTION
 from torch import Tensor
 
 from .adaptation import encode_demonstration, fit_provenance, fit_to_demonstration
-from .behavior import check_behaviors, read_training_behaviors
-from .behavior_bank import resolve_dataset_config
+from .behavior_bank import dataset_behaviors
 from .candidate_rollouts import EnvFactory
 from .checkpoint import apply_adaptation, flatten_model_keys, load_weights, nest_model_keys, save_checkpoint
 from .checkpoint_files import check_checkpoint_source
@@ -43,7 +42,6 @@ from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
 from .cpu_threads import apply_cpu_threads
 from .demonstration import Demonstration, Episode, demonstration_windows, read_demonstration
-from .episodes import check_camera_sizes
 from .interpolation import interpolate
 from .latent_fitting import FitResult
 from .latent_search import SearchResult, search_latent, search_provenance
@@ -82,13 +80,8 @@ class PDPPolicy(PreTrainedPolicy):
         self.stats = FeatureStats(cfg)
         if dataset_stats is not None:
             self.stats.load(dataset_stats)
-        behaviors = None
         check_camera_resolution(cfg, training=dataset_meta is not None)
-        if dataset_meta is not None and getattr(dataset_meta, "root", None) is not None:
-            check_camera_sizes(cfg.image_features, dataset_meta.root, dataset_meta.features)  # before the soft-DTW
-            behaviors = read_training_behaviors(cfg, dataset_meta.root, dataset_meta.features)
-            check_behaviors(behaviors, dataset_meta.root, cfg)
-            resolve_dataset_config(cfg, behaviors)  # mode_names, one-hot latent_dim: before anything is built
+        behaviors = dataset_behaviors(cfg, dataset_meta)  # read, checked, mode_names (...) set: before any build
         self.model = PDPModel(cfg, self.action_dim, behaviors)
         self.register_state_dict_post_hook(flatten_model_keys)  # the first release's keys ("vae.*", "behavior_traces")
         self.register_load_state_dict_pre_hook(nest_model_keys)
