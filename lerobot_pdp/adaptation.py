@@ -12,7 +12,6 @@ import dataclasses
 import datetime
 import logging
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -21,7 +20,7 @@ from torch import Tensor
 
 from .behavior import make_trace
 from .configuration_pdp import PDPConfig
-from .demonstration import Demonstration
+from .demonstration import Demonstration, demonstration_source
 from .latent_fitting import (
     DemoWindows,
     FitResult,
@@ -208,11 +207,7 @@ def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **sett
     """Where a fitted latent came from, as an adapted checkpoint keeps it (``adaptation.json``): the
     demonstration, the fit settings (``None`` = the config's default, filled in), the fit error and its
     ratio to the training error, and the date."""
-    source = {"arrays": "given in memory"}
-    if isinstance(episode, tuple):
-        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
-        source = {"dataset": str(Path(root).resolve()) if isinstance(root, (str, Path)) else str(root),
-                  "episode": int(episode[1])}
+    source = demonstration_source(episode)
     defaults = {"steps": config.fit_steps, "lr": config.fit_lr, "lam": config.fit_lambda,
                 "objective": config.fit_objective, "noise": config.fit_noise, "optimizer": config.fit_optimizer}
     fit = {k: (defaults.get(k) if v is None else v) for k, v in settings.items()}

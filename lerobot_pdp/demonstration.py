@@ -114,6 +114,16 @@ def _required_features(cfg: PDPConfig, action_dim: int, need_action: bool) -> di
     return required
 
 
+def demonstration_source(episode: Any) -> dict[str, Any]:
+    """Where a demonstration came from, as adaptation.json and teaching.json record it: ``{"dataset": <its folder,
+    absolute>, "episode": <index>}`` for a ``(folder or LeRobotDataset, index)`` pair, else arrays given in memory."""
+    if not isinstance(episode, tuple):
+        return {"arrays": "given in memory"}
+    source, index = episode
+    root = source if isinstance(source, (str, Path)) else getattr(source, "root", source)
+    return {"dataset": str(Path(str(root)).resolve()), "episode": int(index)}
+
+
 def _recorded_episode(episode: tuple, required: dict[str, tuple[int, ...]]) -> tuple[Path | str, int]:
     """A ``(dataset, episode index)`` pair's folder and index, the recording checked (empty, interrupted,
     index out of range, features that differ: a clear error) without reading its frames."""

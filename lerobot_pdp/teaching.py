@@ -43,7 +43,7 @@ from .behavior import UNLABELED, read_training_behaviors, training_behavior_keys
 from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
 from .console import latent_text, loss_ends_text
-from .demonstration import Episode, check_recording, read_demonstration
+from .demonstration import Episode, check_recording, demonstration_source, read_demonstration
 from .diffusion import diffusion_loss
 from .episodes import read_episode_frames, read_episodes
 from .teach_defaults import (  # noqa: F401  (re-exported)
@@ -201,10 +201,7 @@ def teaching_record(policy: Any, episode: Episode, data: Path, result: TeachResu
     demonstration, the rehearsal data, the new mode, the settings, the mean loss over the first and the last
     ``loss_window`` steps (50, or half a shorter run), the time, the date."""
     base = getattr(policy, "_loaded_from", None)
-    demo: dict[str, Any] = {"arrays": "given in memory"}
-    if isinstance(episode, tuple):  # (folder or LeRobotDataset, index), as fit_provenance reads it
-        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
-        demo = {"dataset": str(Path(str(root)).resolve()), "episode": int(episode[1])}
+    demo = demonstration_source(episode)
     n = max(1, min(50, len(result.losses) // 2))  # a short run: two halves, not one window counted twice
     head, tail = result.losses[:n], result.losses[-n:]
     return {"source": "teach", "base_checkpoint": None if base is None else str(Path(base).resolve()),
@@ -271,10 +268,8 @@ def _mean(xs: list[float]) -> float:
 
 
 def _demo_name(episode: Episode) -> str:
-    if isinstance(episode, tuple):
-        root = episode[0] if isinstance(episode[0], (str, Path)) else getattr(episode[0], "root", episode[0])
-        return f"taught: episode {int(episode[1])} of {Path(str(root)).name}"
-    return "taught"
+    source = demonstration_source(episode)
+    return f"taught: episode {source['episode']} of {Path(source['dataset']).name}" if "dataset" in source else "taught"
 
 
 def check_training_data(policy: Any, root: str | Path) -> dict[int, dict]:
