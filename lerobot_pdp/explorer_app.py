@@ -75,9 +75,8 @@ def build_app(explorer: Explorer) -> Any:
             elif explorer.decoder_source(state.get("dataset")) is None:  # selected (and savable) all the same
                 summary += f"; {explorer.no_recording_note()}"
             else:
-                # the episode fitted last; before any fit, the one the explorer picks for this latent
-                image = explorer.decoder_view(selection.z, state.get("dataset"),
-                                              state.get("episode") if state.get("dataset") else None)
+                # the episode fitted last (a fit sets both); before any, None: the one the explorer picks
+                image = explorer.decoder_view(selection.z, state.get("dataset"), state.get("episode"))
         if selection is not None:
             summary += explorer.far_note(selection.z)
         latent = "" if selection is None else ", ".join(f"{v:.4g}" for v in selection.z)
