@@ -17,8 +17,8 @@ It is filled once from the dataset (:meth:`~BehaviorBank.set`, at training), siz
 loads into it (:meth:`~BehaviorBank.resize`), and grows by a taught mode (:meth:`~BehaviorBank.append`). Its
 buffers are saved under the first release's flat key names (``CHECKPOINT_KEYS``; ``checkpoint.py`` maps them).
 
-The mode names and the one-hot ablation's latent size are config fields (config.json keeps them with the
-checkpoint): :func:`resolve_dataset_config` sets them from the dataset before the model is built, the one place
+The mode names, the one-hot ablation's latent size and the dataset's frame rate and value names are config fields
+(config.json keeps them with the checkpoint): :func:`resolve_dataset_config` sets them from the dataset before the model is built, the one place
 the config is written from data. The model and its bank only read the config; a taught mode's name is the one
 field :meth:`~BehaviorBank.append` adds to it.
 """
@@ -52,7 +52,7 @@ from .distributed import (
     warn_if_cpu_launch_ran_one_process,
     world,
 )
-from .episodes import check_camera_sizes
+from .episodes import check_camera_sizes, dataset_value_names
 from .modes import SPACES, DiscoveredModes, ModeLatents, discover, labelled_mode_latents
 from .steering_state import as_latent_tensor
 
@@ -97,11 +97,13 @@ def bank_summary(behaviors: BehaviorTraces) -> str:
     return f"{episodes} episode(s), {len(behaviors)} behavior(s); {modes}"
 
 
-def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces) -> None:
+def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces, dataset_meta: Any = None) -> None:
     """Set the config fields the training dataset decides, before the model is built from the config:
     ``mode_names`` (the episodes' mode labels) and, for the one-hot ablation, ``latent_dim`` (the number of
-    modes). They are config fields because config.json is where a checkpoint keeps them, and LeRobot builds
-    the networks of every later load (and a resumed training) from ``config.latent_dim``."""
+    modes); from ``dataset_meta`` (LeRobot's dataset metadata), the frame rate and the vector values' names that
+    demonstrations and robots are checked against (``dataset_fps``, ``dataset_feature_names``). They are config
+    fields because config.json is where a checkpoint keeps them, and LeRobot builds the networks of every later
+    load (and a resumed training) from ``config.latent_dim``."""
     logger.info("PDP behavior bank: %s", bank_summary(behaviors))
     if behaviors.mode_names:
         config.mode_names = {str(k): v for k, v in sorted(behaviors.mode_names.items())}
@@ -110,6 +112,12 @@ def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces) -> None
         if config.latent_dim != n_modes:
             logger.info("onehot latent: setting latent_dim = %d (number of modes)", n_modes)
             config.latent_dim = n_modes
+    if dataset_meta is not None:
+        fps = getattr(dataset_meta, "fps", None)
+        config.dataset_fps = float(fps) if isinstance(fps, (int, float)) and not isinstance(fps, bool) else None
+        vectors = [k for k in (*config.input_features, *config.output_features, config.trace_key)
+                   if k not in config.image_features]
+        config.dataset_feature_names = dataset_value_names(dataset_meta.features, list(dict.fromkeys(vectors)))
 
 
 def dataset_behaviors(config: PDPConfig, dataset_meta: Any) -> BehaviorTraces | None:
@@ -122,7 +130,7 @@ def dataset_behaviors(config: PDPConfig, dataset_meta: Any) -> BehaviorTraces | 
     check_camera_sizes(config.image_features, root, dataset_meta.features)
     behaviors = read_training_behaviors(config, root, dataset_meta.features)
     check_behaviors(behaviors, root, config)
-    resolve_dataset_config(config, behaviors)
+    resolve_dataset_config(config, behaviors, dataset_meta)
     return behaviors
 
 

@@ -343,6 +343,12 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
     # behavior_bank.resolve_dataset_config) ----
     # Mode names by mode id, from meta/mode_labels.json or task strings "mode <id>: <name>"; teach adds one.
     mode_names: dict[str, str] | None = None
+    # The training dataset's frame rate: a demonstration recorded at another rate is refused (its actions span
+    # another time per frame; episodes.recording_problems). None: not recorded (checkpoints from before it).
+    dataset_fps: float | None = None
+    # The names of the training dataset's vector values by key (observation.state, action, ...), in its order: a
+    # demonstration or robot naming the same values in another order is refused, not fitted position by position.
+    dataset_feature_names: dict[str, list[str]] | None = None
 
     def __post_init__(self):
         super().__post_init__()

@@ -124,15 +124,16 @@ def demonstration_source(episode: Any) -> dict[str, Any]:
     return {"dataset": str(Path(str(root)).resolve()), "episode": int(index)}
 
 
-def _recorded_episode(episode: tuple, required: dict[str, tuple[int, ...]]) -> tuple[Path | str, int]:
+def _recorded_episode(episode: tuple, required: dict[str, tuple[int, ...]], config: PDPConfig) -> tuple[Path | str, int]:
     """A ``(dataset, episode index)`` pair's folder and index, the recording checked (empty, interrupted,
-    index out of range, features that differ: a clear error) without reading its frames."""
+    index out of range, features that differ, values in another order, another frame rate: a clear error) without
+    reading its frames."""
     source, index = episode
     root = source if isinstance(source, (str, Path)) else getattr(source, "root", None)
     if root is None:
         raise TypeError(f"episode source must be a LeRobotDataset or a dataset folder, got {type(source)}")
     index = episode_index(index, root)
-    check_recording(root, index, required)
+    check_recording(root, index, required, fps=config.dataset_fps, names=config.dataset_feature_names)
     return root, index
 
 
@@ -140,7 +141,7 @@ def check_demonstration(episode: Episode, config: PDPConfig, action_dim: int, ne
     """What :func:`read_demonstration` refuses about a recorded episode before reading it, without reading it (so
     a bad one of several is named before work on the first); arrays given in memory are checked when read."""
     if isinstance(episode, tuple):
-        _recorded_episode(episode, _required_features(config, action_dim, need_action))
+        _recorded_episode(episode, _required_features(config, action_dim, need_action), config)
 
 
 def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_action: bool) -> dict[str, np.ndarray]:
@@ -151,7 +152,7 @@ def _episode_arrays(episode: Episode, config: PDPConfig, action_dim: int, need_a
     required = _required_features(cfg, action_dim, need_action)
     where = "episode"
     if isinstance(episode, tuple):
-        root, index = _recorded_episode(episode, required)
+        root, index = _recorded_episode(episode, required, cfg)
         where = f"episode {index} of {root}"
         cameras = [k for k in required if k in cfg.image_features]
         eps = read_episodes(root, [k for k in required if k not in cameras], [index])

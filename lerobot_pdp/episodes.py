@@ -209,11 +209,13 @@ def write_mode_labels(root: str | Path, labels: dict[int, int], names: dict[int,
     return path
 
 
-def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, dict]) -> list[str]:
+def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, dict],
+                     names: dict[str, list[str]] | None = None) -> list[str]:
     """How dataset-format ``features`` (a recording's ``meta/info.json``, a robot's or a robot client's; cameras stored
-    (H, W, C)) differ from what a policy was trained on (``required``: key -> shape, cameras (C, H, W)): each key
-    lacking (with what is there in its place) or of another shape; [] when they fit."""
-    problems = []
+    (H, W, C)) differ from what a policy was trained on (``required``: key -> shape, cameras (C, H, W); ``names``: the
+    training data's value names by key, ``PDPConfig.dataset_feature_names``): each key lacking (with what is there in
+    its place), of another shape, or naming its values in another order; [] when they fit."""
+    problems = order_problems({k: v for k, v in (names or {}).items() if k in required}, features)
     for key, shape in required.items():
         ft = features.get(key)
         if ft is None:
@@ -229,6 +231,44 @@ def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, d
                             f"the policy was trained on {tuple(shape)}")
     return problems
 
+
+def value_names(feature: dict) -> list[str] | None:
+    """A vector feature's value names as a list (LeRobot stores a list, or a dict of one list such as
+    ``{"motors": [...]}``); None where it names none."""
+    names = feature.get("names")
+    if isinstance(names, dict) and len(names) == 1:
+        names = next(iter(names.values()))
+    if isinstance(names, list) and names and all(isinstance(n, str) for n in names):
+        return list(names)
+    return None
+
+
+def order_problems(trained: dict[str, list[str]], features: dict[str, dict]) -> list[str]:
+    """Vector features naming the values the policy was trained on (``trained``: key -> names in the training data's
+    order) in another order: read position by position, each value would be taken for another. Names are compared
+    without LeRobot's hardware suffix (``shoulder_pan.pos`` is ``shoulder_pan``: a robot's recording of a
+    dataset's state); values named otherwise altogether are not compared (another naming, not another order)."""
+    problems = []
+    for key, want in trained.items():
+        got = value_names(features.get(key) or {})
+        if got is None or len(got) != len(want):
+            continue
+        stems, wanted = [_stem(n) for n in got], [_stem(n) for n in want]
+        if stems != wanted and sorted(stems) == sorted(wanted):
+            problems.append(f"'{key}' names its values {got}, in another order than the policy's training data "
+                            f"({want}): reorder them to the training data's")
+    return problems
+
+
+def _stem(name: str) -> str:
+    """A value's name without LeRobot's hardware suffix (``.pos``, ``.vel``...)."""
+    return name.rsplit(".", 1)[0] if "." in name else name
+
+
+def dataset_value_names(features: dict[str, dict], keys: list[str]) -> dict[str, list[str]] | None:
+    """The value names of a dataset's vector ``keys`` (``PDPConfig.dataset_feature_names``); None when it names none."""
+    names = {k: n for k in keys if (n := value_names(features.get(k) or {})) is not None}
+    return names or None
 
 
 def check_camera_sizes(cameras: dict[str, Any], root: object, features: dict[str, dict]) -> None:
@@ -278,14 +318,16 @@ def check_data_files(root: Path, files: list[Path]) -> None:
 
 def check_recording(root: str | Path, episode: int, required: dict[str, tuple[int, ...]],
                     min_frames: int | None = None, what: str = "recording",
-                    advice: str = "Record with the robot/env (and features) the policy was trained on") -> None:
+                    advice: str = "Record with the robot/env (and features) the policy was trained on",
+                    fps: float | None = None, names: dict[str, list[str]] | None = None) -> None:
     """Fail early, naming the problem, on a recording PDP cannot fit z to.
 
     Checks what deep reads would report obscurely: a missing folder, an empty recording (no episode saved), an
     interrupted one (a data file without its parquet footer), an episode index out of range, and features
     that differ from the checkpoint's (``required``: key -> shape the policy was trained on; cameras are
-    compared as (C, H, W) against the recording's (H, W, C)); with ``min_frames``, an episode shorter than that
-    (one action chunk: the horizon). Torch-free: ``lerobot-pdp steer`` checks a recording with it.
+    compared as (C, H, W) against the recording's (H, W, C); ``names``: the training data's value names, compared
+    for their order), a frame rate other than ``fps`` (the training data's); with ``min_frames``, an episode
+    shorter than that (one action chunk: the horizon). Torch-free: ``lerobot-pdp steer`` checks a recording with it.
     """
     root = Path(root)
     info = recording_info(root)
@@ -297,7 +339,11 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     check_data_files(root, files)
     if not 0 <= int(episode) < total:
         raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
-    problems = feature_problems(required, info.get("features", {}))
+    problems = feature_problems(required, info.get("features", {}), names)
+    recorded_fps = info.get("fps")
+    if fps is not None and isinstance(recorded_fps, (int, float)) and abs(float(recorded_fps) - float(fps)) > 1e-6:
+        problems.append(f"it was recorded at {recorded_fps:g} fps, the policy's training data at {fps:g} fps (each "
+                        f"action spans another time: record at {fps:g} fps, --dataset.fps={fps:g})")
     if problems:
         raise ValueError(f"{what} {root} does not match the checkpoint: " + "; ".join(problems) + f". {advice}")
     if min_frames is not None:

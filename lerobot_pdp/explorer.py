@@ -139,7 +139,9 @@ class Explorer:
             _check_episode(dataset, 0)
         self.policy = load_base_policy(self.checkpoint, device)
         if dataset is not None:  # ... also a recording the checkpoint cannot read (another camera, no state)
-            check_recording(dataset, 0, {k: tuple(ft.shape) for k, ft in self.policy.config.condition_features.items()})
+            cfg = self.policy.config
+            check_recording(dataset, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()},
+                            fps=cfg.dataset_fps, names=cfg.dataset_feature_names)
         self.rollouts, self.seed, self.device = _positive("rollouts", rollouts), seed, device
         self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
         self._training_data = _training_dataset(self.checkpoint)

@@ -161,7 +161,8 @@ def check_client_features(config: Any, features: dict[str, dict]) -> None:
     cameras (H, W, C)); else a ValueError naming each difference."""
     from .episodes import feature_problems
 
-    problems = feature_problems({k: tuple(ft.shape) for k, ft in config.input_features.items()}, features)
+    problems = feature_problems({k: tuple(ft.shape) for k, ft in config.input_features.items()}, features,
+                                getattr(config, "dataset_feature_names", None))
     if problems:
         raise ValueError("the robot client does not give what the PDP policy needs: " + "; ".join(problems)
                          + f". The client gives {sorted(k for k in features if k.startswith('observation.'))}: is "

@@ -46,7 +46,8 @@ def write_steering(path: str | Path, request: dict[str, Any], expect: SteerTarge
     if "dataset" in request:  # the recording as the policy will look for it (relative: to the file's folder)
         root, episode, _ = fit_request(request, base=path.parent)
         if expect is not None and expect.recording is not None:  # what the policy's fit would refuse
-            check_recording(root, episode, expect.recording, min_frames=expect.horizon)
+            check_recording(root, episode, expect.recording, min_frames=expect.horizon, fps=expect.fps,
+                            names=expect.names)
     write_text_atomic(path, json.dumps(request, allow_nan=False) + "\n")
 
 
@@ -61,6 +62,8 @@ class SteerTarget:
     latent_source: str  # why latent_dim is expected, named with a latent of another size
     recording: dict[str, tuple[int, ...]] | None = None  # features a recording to fit must have (key -> shape)
     horizon: int | None = None  # frames a recording's episode needs at least (one action chunk)
+    fps: float | None = None  # the frame rate of the policy's training data (a recording's must be it)
+    names: dict[str, list[str]] | None = None  # the training data's value names by key (a recording's order)
 
 
 def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
@@ -84,7 +87,8 @@ def checkpoint_target(checkpoint: str | Path) -> SteerTarget:
     features = {**(cfg.get("input_features") or {}), **(cfg.get("output_features") or {})}
     recording = {k: tuple(ft["shape"]) for k, ft in features.items() if isinstance(ft, dict) and "shape" in ft}
     return SteerTarget(int(cfg.get("latent_dim", 2)), modes, f"checkpoint {folder}",
-                       f"latent_dim of checkpoint {folder}", recording or None, cfg.get("horizon"))
+                       f"latent_dim of checkpoint {folder}", recording or None, cfg.get("horizon"),
+                       cfg.get("dataset_fps"), cfg.get("dataset_feature_names"))
 
 
 def file_target(path: str | Path) -> SteerTarget | None:

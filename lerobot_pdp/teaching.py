@@ -282,7 +282,8 @@ def check_training_data(policy: Any, root: str | Path) -> dict[int, dict]:
                                 "policy was trained on")
     model, cfg = policy.model, policy.config
     check_recording(root, 0, {k: tuple(ft.shape) for k, ft in cfg.condition_features.items()},
-                    what="training dataset", advice="Give the dataset the policy was trained on (--data)")
+                    what="training dataset", advice="Give the dataset the policy was trained on (--data)",
+                    fps=cfg.dataset_fps, names=cfg.dataset_feature_names)
     features = json.loads((root / "meta" / "info.json").read_text()).get("features", {})
     # the episodes it trained on (lerobot-train's --dataset.episodes), not the held-out ones
     episodes = read_episodes(root, list(dict.fromkeys([*training_behavior_keys(cfg, features), *_rehearsal_keys(cfg)])),

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -484,6 +485,13 @@ def test_a_client_of_another_robot_is_refused_at_connect(synthetic_meta):
                                          r"\(it has observations 'observation.state'\)"
                                          r".*--robot.env"):
         policy_server.check_client_features(cfg, other)
+    # a robot naming the same joints in another order than the training data: refused, not read position by position
+    swapped = {**same, "observation.state": {"dtype": "float32", "shape": (2,), "names": ["y.pos", "x.pos"]}}
+    with pytest.raises(ValueError, match=re.escape("'observation.state' names its values ['y.pos', 'x.pos'], in "
+                                                   "another order than the policy's training data (['x', 'y'])")):
+        policy_server.check_client_features(cfg, swapped)
+    policy_server.check_client_features(cfg, {**same, "observation.state": {"dtype": "float32", "shape": (2,),
+                                                                            "names": ["x.pos", "y.pos"]}})
     from lerobot.async_inference import policy_server as server
 
     policy_server.admit_pdp(server, [])

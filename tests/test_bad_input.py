@@ -222,6 +222,53 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
             policy.fit_latent(episode, steps=0)
 
 
+def _recording_with(synthetic_meta, tmp_path: Path, **edit) -> Path:
+    """A copy of the training dataset whose info.json is edited: ``fps``, or a feature's ``names``."""
+    rec = Path(shutil.copytree(synthetic_meta.root, tmp_path / "rec"))
+    info = json.loads((rec / "meta" / "info.json").read_text())
+    if "fps" in edit:
+        info["fps"] = edit["fps"]
+    for key, names in edit.get("names", {}).items():
+        info["features"][key]["names"] = names
+    (rec / "meta" / "info.json").write_text(json.dumps(info))
+    return rec
+
+
+def test_a_checkpoint_keeps_its_training_datas_frame_rate_and_value_names(checkpoint):
+    cfg = json.loads((checkpoint / "config.json").read_text())
+    assert cfg["dataset_fps"] == 10.0
+    assert cfg["dataset_feature_names"] == {"observation.state": ["x", "y"], "observation.environment_state":
+                                            ["goal_x", "goal_y"], "action": ["dx", "dy"]}
+    assert PDPPolicy.from_pretrained(checkpoint).config.dataset_feature_names == cfg["dataset_feature_names"]
+
+
+def test_a_recording_naming_its_values_in_another_order_is_refused(policy, synthetic_meta, tmp_path):
+    rec = _recording_with(synthetic_meta, tmp_path, names={"action": ["dy", "dx"]})
+    with pytest.raises(ValueError, match=re.escape(f"recording {rec} does not match the checkpoint: 'action' names its "
+                                                   "values ['dy', 'dx'], in another order than the policy's training "
+                                                   "data (['dx', 'dy'])")):
+        policy.fit_latent((rec, 0), steps=1, activate=False)
+    # a robot's recording names them with LeRobot's hardware suffix: the same values, fitted
+    rec = _recording_with(synthetic_meta, tmp_path / "suffix", names={"action": ["dx.vel", "dy.vel"],
+                                                                      "observation.state": ["x.pos", "y.pos"]})
+    assert policy.fit_latent((rec, 0), steps=0, activate=False).steps == 0
+    # other names altogether are another naming, not another order: fitted by position
+    rec = _recording_with(synthetic_meta, tmp_path / "other", names={"action": ["a0", "a1"]})
+    assert policy.fit_latent((rec, 0), steps=0, activate=False).steps == 0
+
+
+def test_a_recording_at_another_frame_rate_is_refused(policy, synthetic_meta, tmp_path, checkpoint, capsys):
+    rec = _recording_with(synthetic_meta, tmp_path, fps=30)
+    with pytest.raises(ValueError, match=re.escape("it was recorded at 30 fps, the policy's training data at 10 fps "
+                                                   "(each action spans another time: record at 10 fps, "
+                                                   "--dataset.fps=10)")):
+        policy.fit_latent((rec, 0), steps=1, activate=False)
+    f = tmp_path / "steer.json"  # lerobot-pdp steer checks it against the checkpoint before writing the request
+    assert lerobot_pdp(["steer", str(f), "--dataset", str(rec), "--policy-path", str(checkpoint)]) == 2
+    assert "it was recorded at 30 fps, the policy's training data at 10 fps" in capsys.readouterr().err
+    assert not f.exists()
+
+
 # ---- live steering: the file and lerobot-pdp steer
 
 

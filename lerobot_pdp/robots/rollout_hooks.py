@@ -112,7 +112,8 @@ def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], r
     renames = rename_map or {}
     dataset_features = {renames.get(k, k): v for k, v in dataset_features.items()}
     inputs = getattr(policy_config, "input_features", None) or {}
-    problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features)
+    problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features,
+                                getattr(policy_config, "dataset_feature_names", None))
     trace_key = getattr(policy_config, "trace_key", None)
     if trace_key is not None and trace_key not in inputs and trace_key not in dataset_features:
         problems.append(f"no trace key '{trace_key}' (PDP's behavior trace)")
