@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -365,6 +366,45 @@ def test_a_policy_for_another_env_fails_before_the_robot_moves(untrained_reach_a
     with pytest.raises(ValueError, match=r"pdp_sim \(avoiding, scene 0\) does not give what the policy needs: "
                                          r"'observation.state' has shape \(4,\) \(names .*\), the policy was trained on \(6,\)"):
         run_rollout(ckpt, PDPSimConfig(env="avoiding", calibration_dir=tmp_path, id="other_env"))
+
+
+def test_any_robot_is_checked_against_the_training_data_before_the_first_action(synthetic_meta, caplog):
+    """lerobot-rollout on a robot other than pdp_sim (an SO-101, say): joints listed in another order than the
+    training data's are refused before the first action, another --fps warns. Installed as the plugin loads."""
+    import lerobot.scripts.lerobot_rollout  # noqa: F401 - LeRobot's rollout context, loaded as the command loads it
+    from lerobot.rollout import context
+    from lerobot.rollout.inference import SyncInferenceConfig
+
+    from lerobot_pdp import rollout_checks
+
+    rollout_checks.install()  # what importing the plugin does (this process may have imported it first)
+    joints = ["shoulder_pan", "elbow_flex", "gripper"]
+    cfg = PDPConfig(device="cpu", dataset_fps=30.0, dataset_feature_names={"observation.state": joints,
+                                                                            "action": joints})
+    arm = {"observation.state": {"dtype": "float32", "shape": (3,), "names": [f"{j}.pos" for j in joints]},
+           "action": {"dtype": "float32", "shape": (3,), "names": [f"{j}.pos" for j in joints]}}
+    with caplog.at_level(logging.WARNING, logger=rollout_checks.logger.name):
+        rollout_checks.check_robot_against_training_data(cfg, arm, 30, "so101_follower")
+        assert not caplog.records
+        rollout_checks.check_robot_against_training_data(cfg, arm, 50, "so101_follower")
+        assert "runs at --fps=50, the policy's training data was recorded at 30 fps: an action is sent every " \
+               "1/50 s, so the robot moves 1.67x as fast as demonstrated (--fps=30 runs it as trained)" in caplog.text
+        caplog.clear()
+        rollout_checks.check_robot_against_training_data(cfg, arm, 50, "pdp_sim")  # a step per action: wall time only
+        assert not caplog.records
+    swapped = {**arm, "action": {**arm["action"], "names": ["elbow_flex.pos", "shoulder_pan.pos", "gripper.pos"]}}
+    with pytest.raises(ValueError, match=re.escape("the robot (so101_follower) does not give its values as the policy "
+                                                   "was trained on them: 'action' names its values ['elbow_flex.pos', "
+                                                   "'shoulder_pan.pos', 'gripper.pos'], in another order")):
+        rollout_checks.check_robot_against_training_data(cfg, swapped, 30, "so101_follower")
+    # through LeRobot's own create_inference_engine, with a PDP trained on x, y: refused before an engine is built
+    policy = small_policy(synthetic_meta)
+    robot = {"observation.state": {"dtype": "float32", "shape": (2,), "names": ["y.pos", "x.pos"]}}
+    with pytest.raises(ValueError, match=re.escape("'observation.state' names its values ['y.pos', 'x.pos'], in "
+                                                   "another order than the policy's training data (['x', 'y'])")):
+        context.create_inference_engine(SyncInferenceConfig(), policy=policy, preprocessor=None, postprocessor=None,
+                                        robot_wrapper=None, hw_features={}, dataset_features=robot,
+                                        ordered_action_keys=[], task="", fps=10, device="cpu")
 
 
 def test_policy_input_check_names_a_missing_trace_key(tmp_path):

@@ -1,0 +1,70 @@
+"""``lerobot-rollout`` on any robot: the robot's values checked against the data the PDP policy was trained on.
+
+LeRobot checks a robot's features against the policy's by key and shape at most; a robot whose joints are listed in
+another order than the training dataset's (another robot config, a driver update) is read position by position,
+each joint taken for another, and a loop run at another ``--fps`` than the data was recorded at moves the robot
+faster or slower than demonstrated, both without a word. Checkpoints keep the training data's value names and frame
+rate (``PDPConfig.dataset_feature_names``, ``dataset_fps``); :func:`install` wraps the rollout context's
+``create_inference_engine``, which sees the robot's dataset features and ``--fps`` before the first action. Other
+policies' runs are untouched; checkpoints without these fields are not checked.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from typing import Any
+
+from .episodes import order_problems
+
+logger = logging.getLogger(__name__)
+
+CONTEXT_MODULE = "lerobot.rollout.context"
+SIMULATED = "pdp_sim"  # steps its env once per action whatever the loop's pace: --fps changes wall time only
+
+
+def check_robot_against_training_data(policy_config: Any, dataset_features: dict[str, dict], fps: float | None,
+                                      robot: str, rename_map: dict[str, str] | None = None) -> None:
+    """The robot's values named in another order than the training data's are refused (a ValueError naming both);
+    a loop ``fps`` other than the training data's warns (the robot moves fps / dataset_fps as fast as demonstrated).
+    ``dataset_features``: the robot's, in dataset format, under the names ``rename_map`` gives them."""
+    renames = rename_map or {}
+    features = {renames.get(k, k): v for k, v in dataset_features.items()}
+    problems = order_problems(getattr(policy_config, "dataset_feature_names", None) or {}, features)
+    if problems:
+        raise ValueError(f"the robot ({robot}) does not give its values as the policy was trained on them: "
+                         + "; ".join(problems))
+    trained_fps = getattr(policy_config, "dataset_fps", None)
+    if robot != SIMULATED and trained_fps and fps and abs(float(fps) - float(trained_fps)) > 1e-6:
+        logger.warning("lerobot-rollout runs at --fps=%g, the policy's training data was recorded at %g fps: an action "
+                       "is sent every 1/%g s, so the robot moves %.2fx as fast as demonstrated (--fps=%g runs it as "
+                       "trained)", fps, trained_fps, fps, fps / trained_fps, trained_fps)
+
+
+def _checking(original: Any) -> Any:
+    @functools.wraps(original)
+    def create_inference_engine(*args: Any, **kwargs: Any):
+        policy = kwargs.get("policy")
+        if getattr(getattr(policy, "config", None), "type", None) == "pdp":
+            wrapper = kwargs.get("robot_wrapper")
+            robot = getattr(wrapper, "inner", wrapper)
+            steps = getattr(kwargs.get("preprocessor"), "steps", [])  # its rename step holds --rename_map
+            renames = next((s.rename_map for s in steps if isinstance(getattr(s, "rename_map", None), dict)), {})
+            check_robot_against_training_data(policy.config, kwargs.get("dataset_features") or {}, kwargs.get("fps"),
+                                              str(getattr(robot, "name", type(robot).__name__)), renames)
+        return original(*args, **kwargs)
+
+    create_inference_engine.pdp_checks_training_data = True
+    return create_inference_engine
+
+
+def install() -> bool:
+    """Wrap ``create_inference_engine`` once; False when LeRobot's rollout is not loaded (any other command)."""
+    context = sys.modules.get(CONTEXT_MODULE)
+    original = getattr(context, "create_inference_engine", None)
+    if original is None:
+        return False
+    if not getattr(original, "pdp_checks_training_data", False):
+        context.create_inference_engine = _checking(original)
+    return True
