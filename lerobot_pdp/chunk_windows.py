@@ -19,6 +19,13 @@ class DemoWindows:
     segment: Tensor  # [N] phase index of each window
     n_segments: int
 
+    @staticmethod
+    def concat(parts: list[DemoWindows]) -> DemoWindows:
+        """The windows of several demonstrations as one set (on the CPU; their phase indices kept as they are)."""
+        return DemoWindows(*(torch.cat([getattr(w, f).cpu() for w in parts]) for f in ("obs_cond", "actions",
+                                                                                       "is_pad", "segment")),
+                           max(w.n_segments for w in parts))
+
 
 def window_indices(T: int, n_obs_steps: int, horizon: int) -> tuple[Tensor, Tensor, Tensor]:
     """For the window at each frame t of a T-frame episode: its observation frames t-n_obs+1..t [T, n_obs], its

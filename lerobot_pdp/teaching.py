@@ -336,10 +336,7 @@ def rehearsal_windows(policy: Any, root: str | Path,
         w = policy._demo_windows(demo)
         parts.append(w)
         zs.append(z_bank[torch.as_tensor(ids)][w.segment])
-    windows = DemoWindows(torch.cat([w.obs_cond for w in parts]), torch.cat([w.actions for w in parts]),
-                          torch.cat([w.is_pad for w in parts]), torch.cat([w.segment for w in parts]),
-                          max(w.n_segments for w in parts))
-    return windows, torch.cat(zs)
+    return DemoWindows.concat(parts), torch.cat(zs)
 
 
 def taught_windows(policy: Any, z_bank: Tensor) -> tuple[DemoWindows, Tensor] | None:
@@ -360,10 +357,7 @@ def taught_windows(policy: Any, z_bank: Tensor) -> tuple[DemoWindows, Tensor] | 
         w = policy._demo_windows(demo)
         parts.append(w)
         zs.append(z_bank[rows][w.segment.cpu()])
-    windows = DemoWindows(torch.cat([w.obs_cond.cpu() for w in parts]), torch.cat([w.actions.cpu() for w in parts]),
-                          torch.cat([w.is_pad.cpu() for w in parts]), torch.cat([w.segment.cpu() for w in parts]),
-                          max(w.n_segments for w in parts))
-    return windows, torch.cat(zs)
+    return DemoWindows.concat(parts), torch.cat(zs)
 
 
 def _finetune(model: Any, cfg: PDPConfig, demo: DemoWindows, z_demo: Tensor, rehearsal: DemoWindows, z_old: Tensor,
