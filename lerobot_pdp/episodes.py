@@ -326,8 +326,9 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
     interrupted one (a data file without its parquet footer), an episode index out of range, and features
     that differ from the checkpoint's (``required``: key -> shape the policy was trained on; cameras are
     compared as (C, H, W) against the recording's (H, W, C); ``names``: the training data's value names, compared
-    for their order), a frame rate other than ``fps`` (the training data's); with ``min_frames``, an episode
-    shorter than that (one action chunk: the horizon). Torch-free: ``lerobot-pdp steer`` checks a recording with it.
+    for their order), a frame rate other than ``fps`` (the training data's; not for a simulated recording); with
+    ``min_frames``, an episode shorter than that (one action chunk: the horizon). Torch-free: ``lerobot-pdp steer``
+    checks a recording with it.
     """
     root = Path(root)
     info = recording_info(root)
@@ -341,7 +342,8 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
         raise KeyError(f"recording {root} has {total} episode(s) (0..{total - 1}); no episode {episode}")
     problems = feature_problems(required, info.get("features", {}), names)
     recorded_fps = info.get("fps")
-    if fps is not None and isinstance(recorded_fps, (int, float)) and abs(float(recorded_fps) - float(fps)) > 1e-6:
+    if fps is not None and isinstance(recorded_fps, (int, float)) and abs(float(recorded_fps) - float(fps)) > 1e-6 \
+            and not simulated_recording(info):
         problems.append(f"it was recorded at {recorded_fps:g} fps, the policy's training data at {fps:g} fps (each "
                         f"action spans another time: record at {fps:g} fps, --dataset.fps={fps:g})")
     if problems:
@@ -351,6 +353,14 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
         if length is not None and length < min_frames:
             raise ValueError(f"recording {root}: episode {episode} has {length} frames, shorter than one action chunk "
                              f"(horizon {min_frames})")
+
+
+def simulated_recording(info: dict) -> bool:
+    """A recording of this project's simulation (``pdp_sim``, or ``make-dataset``'s ``pdp_<env>``): one env step per
+    frame whatever its ``fps`` says (``lerobot-rollout``'s episodic strategy labels it with ``--dataset.fps``, 30 by
+    default, while the loop runs at ``--fps``), so its frame rate is no time scale to compare."""
+    robot = str(info.get("robot_type") or "")
+    return robot == "pdp_sim" or robot.startswith("pdp_")
 
 
 def _episode_length(root: Path, episode: int) -> int | None:

@@ -223,11 +223,10 @@ def test_fit_latent_bad_steps_init_and_episode_index(policy, synthetic_dataset):
 
 
 def _recording_with(synthetic_meta, tmp_path: Path, **edit) -> Path:
-    """A copy of the training dataset whose info.json is edited: ``fps``, or a feature's ``names``."""
+    """A copy of the training dataset whose info.json is edited: ``fps``, ``robot_type``, or a feature's ``names``."""
     rec = Path(shutil.copytree(synthetic_meta.root, tmp_path / "rec"))
     info = json.loads((rec / "meta" / "info.json").read_text())
-    if "fps" in edit:
-        info["fps"] = edit["fps"]
+    info.update({k: edit[k] for k in ("fps", "robot_type") if k in edit})
     for key, names in edit.get("names", {}).items():
         info["features"][key]["names"] = names
     (rec / "meta" / "info.json").write_text(json.dumps(info))
@@ -263,6 +262,9 @@ def test_a_recording_at_another_frame_rate_is_refused(policy, synthetic_meta, tm
                                                    "(each action spans another time: record at 10 fps, "
                                                    "--dataset.fps=10)")):
         policy.fit_latent((rec, 0), steps=1, activate=False)
+    # a recording of the project's simulation steps its env once per frame, whatever fps it is labelled with
+    sim = _recording_with(synthetic_meta, tmp_path / "sim", fps=30, robot_type="pdp_sim")
+    assert policy.fit_latent((sim, 0), steps=0, activate=False).steps == 0
     f = tmp_path / "steer.json"  # lerobot-pdp steer checks it against the checkpoint before writing the request
     assert lerobot_pdp(["steer", str(f), "--dataset", str(rec), "--policy-path", str(checkpoint)]) == 2
     assert "it was recorded at 30 fps, the policy's training data at 10 fps" in capsys.readouterr().err
