@@ -39,6 +39,12 @@ def test_scene_index_as_int_or_string(scene):
     assert load_scene(scene, "reach_around") == load_scene(int(scene), "reach_around")
 
 
+@pytest.mark.parametrize("scene", [3, "val3"])
+def test_scene_by_the_envs_cli_name(scene):
+    """``load_scene`` takes the env as the CLI names it (``reach-around``) as well as by its scene key."""
+    assert load_scene(scene, "reach-around") == load_scene(scene, "reach_around")
+
+
 def test_scene_from_mapping_and_object():
     d = {"name": "one slab", "barriers": [{"shape": "box", "pos": [0.3, 0, 0.4], "half_size": [0.05, 0.03, 0.4]}]}
     env = gym.make(ENVS["reach_around"], scene=d)

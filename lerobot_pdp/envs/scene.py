@@ -266,7 +266,9 @@ def _shipped_names(env_name: str) -> list[str]:
 
 def load_scene(scene: int | str | Path | Scene | dict | None, env_name: str) -> Scene:
     """Resolve ``scene=`` as accepted by every env: an int 0-3, a validation scene name (``"val1"``), a path,
-    a mapping or a :class:`Scene`."""
+    a mapping or a :class:`Scene`. ``env_name``: the env's scene key (``reach_around``) or its CLI name
+    (``reach-around``)."""
+    env_name = env_name.replace("-", "_")  # the files are named by the scene key
     if scene is None:
         scene = 0
     if isinstance(scene, Scene):
