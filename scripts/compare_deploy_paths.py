@@ -13,7 +13,7 @@ Both fit with the checkpoint's own fitting settings plus ``--policy-flag`` overr
 outcome is one JSON file with both success rates; nothing is chosen from it.
 
     .venv/bin/python scripts/compare_deploy_paths.py --ckpt runs/.../pretrained_model --env reach-around \
-        --scene 3 --episodes 20 --out runs/deploy_paths [--policy-flag --policy.fit_lambda=0]
+        --scene val3 --episodes 20 --out runs/deploy_paths [--policy-flag=--policy.fit_noise=chunks]
 """
 
 from __future__ import annotations
@@ -53,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ckpt", type=Path, required=True, help="a PDP pretrained_model folder")
     ap.add_argument("--env", default="reach-around", choices=sorted(ENV_TYPES))
-    ap.add_argument("--scene", default="3", help="scene index or validation scene name")
+    ap.add_argument("--scene", default="val3",
+                    help="scene index or validation scene name (default val3: a validation scene whose wall blocks "
+                         "the training routes; the test scenes 1-3 are the benchmark's)")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--fps", type=int, default=50)
     ap.add_argument("--out", type=Path, required=True, help="output folder (an earlier output of this script is replaced)")
