@@ -114,6 +114,7 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
     """Turn whole episodes into behaviors (split on gripper events when ``gripper_dim`` is set)."""
     traces, ep_idx, starts, gstarts, ends, modes = [], [], [], [], [], []
     names: dict[int, str] = {}
+    named: dict[int, dict[str, list[int]]] = {}  # mode id -> name -> its episodes (two names: two modes merged?)
     for ep, item in episodes.items():
         states = item[trace_key]
         check_finite(trace_key, states, f"episode {ep}")
@@ -127,6 +128,9 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
             names.setdefault(mode, parse_task_name(item["task"]) or str(mode))
         else:  # e.g. a language instruction: no label (modes can be discovered, see PDPPolicy.discover_modes)
             mode = UNLABELED
+        if mode != UNLABELED:
+            name = item.get("mode_name") if "mode" in item else parse_task_name(item.get("task", ""))
+            named.setdefault(mode, {}).setdefault(name or "", []).append(ep)
         segs = [(0, len(states))]
         if gripper_dim is not None:
             segs = gripper_segments(item["action"], gripper_dim, gripper_threshold)
@@ -137,6 +141,12 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
             gstarts.append(item.get("from_index", 0) + a)
             ends.append(b)
             modes.append(mode)
+    for mode, by_name in named.items():
+        if len([n for n in by_name if n]) > 1:  # e.g. two recordings merged, each labelled from mode 0
+            logger.warning("mode %d has %d names: %s; PDP trains them as one mode named %r (one mean latent). If they "
+                           "are different behaviours, give them different mode ids (lerobot-pdp label-modes)", mode,
+                           len(by_name), "; ".join(f"{n!r} (episodes {eps[:8]}{', ...' if len(eps) > 8 else ''})"
+                                                   for n, eps in by_name.items()), names[mode])
     if gripper_dim is not None and len(traces) == len(episodes):  # asked for phases, and not one gripper event
         g = np.concatenate([np.asarray(item["action"])[:, gripper_dim] for item in episodes.values()])
         raise ValueError(f"segment_gripper_dim={gripper_dim}: no episode's gripper command (action[{gripper_dim}], "

@@ -105,8 +105,9 @@ def resolve_dataset_config(config: PDPConfig, behaviors: BehaviorTraces, dataset
     fields because config.json is where a checkpoint keeps them, and LeRobot builds the networks of every later
     load (and a resumed training) from ``config.latent_dim``."""
     logger.info("PDP behavior bank: %s", bank_summary(behaviors))
-    if behaviors.mode_names:
-        config.mode_names = {str(k): v for k, v in sorted(behaviors.mode_names.items())}
+    # this dataset's names only: a checkpoint trained further on data without labels must not name its discovered
+    # clusters after the old data's modes (a taught mode's name is added back where it is kept: checkpoint.py)
+    config.mode_names = {str(k): v for k, v in sorted(behaviors.mode_names.items())} or None
     if config.latent_type == "onehot":
         n_modes = onehot_modes(behaviors)
         if config.latent_dim != n_modes:

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 from huggingface_hub.serialization import save_torch_state_dict
+from lerobot.configs.types import NormalizationMode
 from safetensors.torch import save_model as save_model_as_safetensor
 from torch import Tensor, nn
 
@@ -146,6 +147,7 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
     shapes = read_weight_shapes(model_file)  # a damaged file: an error naming it
     bank = policy.model.bank
     read = bank.snapshot() if len(bank.episode) else None  # the training dataset's, read by lerobot-train
+    built_stats = _training_stats(policy) if read is not None else None
     resize_to_checkpoint(policy.model, shapes)
     check_weight_shapes(policy, model_file, shapes)  # e.g. latent_dim edited in config.json
     try:
@@ -155,9 +157,57 @@ def load_weights(policy: Any, model_file: str, load: Callable[[Any], Any]) -> An
     check_finite_weights(policy, model_file)
     policy._loaded_from = Path(model_file).parent  # its processors go with a folder it is saved to
     apply_saved_config(policy, model_file)
+    apply_training_stats(policy, built_stats, model_file)
     if read is not None:
         keep_training_behaviors(policy, read, model_file)
     return policy
+
+
+# how far (a share of the old min-max range) a resumed run's data may reach past the checkpoint's statistics unsaid:
+# a grown dataset's few percent are within what the networks extrapolate; a new region of the workspace is not
+RESUME_RANGE_TOLERANCE = 0.05
+
+
+def _training_stats(policy: Any) -> tuple[dict[str, dict[str, Tensor]], bool] | None:
+    """Under lerobot-train, the dataset statistics the policy was built with and whether this run resumes
+    (``--resume``); None elsewhere or without statistics."""
+    import sys
+
+    from .lerobot_command import running_lerobot_train, train_value
+
+    if not bool(policy.stats.loaded) or not running_lerobot_train(sys.argv):
+        return None
+    resume = train_value(sys.argv, "--resume", ("resume",)) is True  # the command line's, else its config file's
+    return {k: {s: v.detach().clone() for s, v in d.items()} for k, d in policy.stats.as_dict().items()}, resume
+
+
+def apply_training_stats(policy: Any, built: tuple[dict[str, dict[str, Tensor]], bool] | None, model_file: str) -> None:
+    """Fine-tuning (``--policy.path``): LeRobot's processors normalise every batch with the dataset's statistics,
+    so the policy's own copy (fit_latent, teach, taught rehearsal, phases) takes them too. Resuming: LeRobot keeps
+    the checkpoint's processors, so its statistics stay; a dataset that reaches past their min/max is warned of,
+    since the sampler clips actions to that range (clip_sample) and such actions can never be produced."""
+    if built is None:
+        return
+    stats, resume = built
+    if not resume:
+        policy.stats.load(stats)
+        return
+    saved = policy.stats.as_dict()
+    wider = []
+    for key, ft in policy.stats.features.items():
+        if policy.config.normalization_mapping.get(ft.type.value) is not NormalizationMode.MIN_MAX or key not in stats:
+            continue
+        lo, hi = saved[key]["min"].cpu(), saved[key]["max"].cpu()
+        span = (hi - lo).clamp_min(1e-8)
+        out = torch.maximum((lo - stats[key]["min"].cpu()) / span, (stats[key]["max"].cpu() - hi) / span).max()
+        if float(out) > RESUME_RANGE_TOLERANCE:
+            wider.append(f"{key} by up to {float(out):.0%} of its range")
+    if wider:
+        logger.warning("resuming %s on a dataset whose values reach past the checkpoint's normalisation statistics "
+                       "(min/max), which a resumed run keeps: %s. Actions beyond them can never be sampled (clip_sample "
+                       "clips to the old range), observations beyond them are ones the networks never saw; to train "
+                       "on the new range, start from the checkpoint with --policy.path instead of --resume",
+                       model_file, "; ".join(wider))
 
 
 def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: str) -> None:
@@ -170,6 +220,13 @@ def keep_training_behaviors(policy: Any, read: dict[str, Tensor], model_file: st
     bank = policy.model.bank
     loaded = bank.snapshot()
     if bank.same_behaviors(loaded, read):
+        # the same behaviours, but this run's sdtw_gamma / sdtw_normalize / geo_kappa may give other distances
+        if loaded["distances"].shape != read["distances"].shape or not (
+                torch.allclose(loaded["distances"], read["distances"], rtol=1e-4, atol=1e-6)
+                and torch.allclose(loaded["kappa"], read["kappa"], rtol=1e-5)):
+            logger.info("%s: the behaviours are the same, their soft-DTW distances / kappa follow this run's config "
+                        "(kappa %.4g -> %.4g)", model_file, float(loaded["kappa"]), float(read["kappa"]))
+            bank.distances, bank.kappa = read["distances"], read["kappa"]
         return
     n_taught = loaded["taught"].shape[0]
     trained = {k: v[: len(v) - n_taught] for k, v in loaded.items() if k in ("episode", "start", "end", "global_start",

@@ -89,6 +89,22 @@ def test_read_episodes_and_traces(synthetic_dataset):
     assert b.global_start[1] == len(eps[0]["action"])
 
 
+def test_one_mode_id_with_two_names_warns_naming_both(synthetic_dataset, caplog):
+    """Two recordings merged, each labelled from mode 0: their episodes train as one mode, which is said."""
+    eps = read_episodes(synthetic_dataset, ["observation.state", "action"], [0, 4, 8])
+    eps[8]["task"] = "mode 0: pick-left"
+    with caplog.at_level("WARNING", logger="lerobot_pdp.behavior"):
+        b = build_behavior_traces(eps, "observation.state", None, 8, "none")
+    assert "mode 0 has 2 names: 'left-tight' (episodes [0, 4]); 'pick-left' (episodes [8]); PDP trains them as one " \
+           "mode named 'left-tight'" in caplog.text
+    assert b.mode.tolist() == [0, 0, 0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lerobot_pdp.behavior"):
+        build_behavior_traces(read_episodes(synthetic_dataset, ["observation.state", "action"], [0, 4]),
+                              "observation.state", None, 8, "none")
+    assert "names" not in caplog.text
+
+
 def test_read_episodes_reads_only_the_episodes_asked_for(synthetic_dataset):
     """The episode filter is pushed into the parquet read: the same arrays as a full read, nothing else; an
     unknown column is refused naming the file and the columns it has."""

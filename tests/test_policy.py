@@ -5,6 +5,7 @@ import logging
 import math
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -958,6 +959,62 @@ def test_training_on_from_a_checkpoint_keeps_the_datasets_behaviors(synthetic_me
     resumed = train_from(tmp_path / "same")
     assert "holds the behaviours of other data" not in caplog.text
     assert torch.equal(resumed.model.bank.distances, same.model.bank.distances)
+
+
+def test_fine_tuning_takes_the_datasets_statistics_mode_names_and_distances(synthetic_meta, tmp_path, monkeypatch,
+                                                                             caplog):
+    """lerobot-train --policy.path=CKPT over other data: LeRobot's processors normalise every batch with that
+    dataset's statistics, so the policy's own copy (fit_latent, teach, phases) takes them too, and its mode names
+    are that dataset's (none for unlabelled data: discovered clusters are not named after the old modes). A resume
+    keeps the checkpoint's statistics, as LeRobot's processors do. Over the same behaviours, this run's geo_kappa
+    decides the geometry the checkpoint keeps."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+
+    from lerobot_pdp import PDPConfig
+
+    from synthetic import write_dataset
+
+    labelled = small_policy(synthetic_meta)
+    labelled.save_pretrained(tmp_path / "labelled")
+    assert labelled.config.mode_names == {"0": "left-tight", "1": "left-wide", "2": "right-tight", "3": "right-wide"}
+    plain = LeRobotDatasetMetadata("local/plain", root=write_dataset(tmp_path / "plain", episodes_per_mode=3, seed=5,
+                                                                      task="reach the goal"))
+    fresh = small_policy(plain)  # what the plain data's statistics are
+
+    def train_from(ckpt, meta, *flags, **fields):  # as lerobot-train builds it: the checkpoint's config, the data's meta
+        monkeypatch.setattr("sys.argv", ["lerobot-train", f"--policy.path={ckpt}", *flags])
+        cfg = PDPConfig.from_pretrained(ckpt)
+        cfg.pretrained_path = ckpt
+        for k, v in fields.items():
+            setattr(cfg, k, v)
+        return make_policy(cfg, ds_meta=meta)
+
+    tuned = train_from(tmp_path / "labelled", plain)
+    assert tuned.config.mode_names is None
+    stats, old = tuned.stats.as_dict(), labelled.stats.as_dict()
+    for key, values in fresh.stats.as_dict().items():
+        for name, value in values.items():
+            torch.testing.assert_close(stats[key][name], value)
+    assert any(not torch.equal(old[k][n], v) for k, vs in stats.items() for n, v in vs.items())  # they differ
+    caplog.set_level(logging.INFO, logger="lerobot_pdp.checkpoint")
+    resumed = train_from(tmp_path / "labelled", plain, "--resume=true")
+    for key, values in old.items():
+        for name, value in values.items():
+            torch.testing.assert_close(resumed.stats.as_dict()[key][name], value)
+    assert "reach past" not in caplog.text  # a few percent: within what the networks extrapolate
+    wide = Path(shutil.copytree(plain.root, tmp_path / "wide"))  # a dataset grown into a new region of actions
+    stats_file = wide / "meta" / "stats.json"
+    data_stats = json.loads(stats_file.read_text())
+    data_stats["action"]["max"] = [2 * v for v in data_stats["action"]["max"]]
+    stats_file.write_text(json.dumps(data_stats))
+    train_from(tmp_path / "labelled", LeRobotDatasetMetadata("local/wide", root=wide), "--resume=true")
+    assert re.search(r"resuming .* on a dataset whose values reach past the checkpoint's normalisation statistics "
+                     r"\(min/max\), which a resumed run keeps: action by up to \d+% of its range", caplog.text)
+    kappa = float(labelled.model.bank.kappa)
+    rekappa = train_from(tmp_path / "labelled", synthetic_meta, geo_kappa=5.0)
+    assert float(rekappa.model.bank.kappa) == 5.0 != kappa
+    assert f"kappa {kappa:.4g} -> 5" in caplog.text
 
 
 def test_lerobot_trains_eval_split_stays_out_of_the_latent_space(synthetic_dataset, synthetic_meta, monkeypatch):
