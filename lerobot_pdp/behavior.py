@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from .atomic import write_file_atomic
 from .distributed import main_process_first
-from .episodes import check_finite, parse_task_mode, parse_task_name, read_episodes
+from .episodes import check_finite, episode_first_tasks, parse_task_mode, parse_task_name, read_episodes
 from .lerobot_command import command_line_value, lerobot_train_episodes, running_lerobot_train, train_value
 
 logger = logging.getLogger(__name__)
@@ -321,20 +321,25 @@ def read_training_behaviors(config, root: str | Path, features: dict,
     split = train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split")) if running_lerobot_train(
         sys.argv) else None
     if split:
-        behaviors.held_out = frozenset(eval_split_episodes(episodes, float(split), cfg.dataset_episodes))
+        behaviors.held_out = frozenset(eval_split_episodes(episodes, float(split), cfg.dataset_episodes,
+                                                           episode_first_tasks(root)))
         logger.info("PDP: --dataset.eval_split=%s holds out episodes %s for LeRobot's eval loss: the behavior bank "
                     "encodes them (that loss needs their latents) but the latent space is trained on the other %d",
                     split, sorted(behaviors.held_out), len(episodes) - len(behaviors.held_out))
     return behaviors
 
 
-def eval_split_episodes(episodes: dict[int, dict], split: float, order: list[int] | None = None) -> list[int]:
+def eval_split_episodes(episodes: dict[int, dict], split: float, order: list[int] | None = None,
+                        tasks: dict[int, str] | None = None) -> list[int]:
     """The episodes ``lerobot-train --dataset.eval_split=split`` holds out, by LeRobot 0.6's rule
     (``make_train_eval_datasets``): per task, the last ``ceil(n * split)`` of its episodes, in the order of
-    ``--dataset.episodes`` (``order``; default the dataset's)."""
+    ``--dataset.episodes`` (``order``; default the dataset's). An episode's task is its first in the episode
+    metadata (``tasks``: :func:`~lerobot_pdp.episodes.episode_first_tasks`, as LeRobot groups it; an episode of
+    several tasks may list another first than its first frame's), else its first frame's."""
     per_task: dict[str, list[int]] = {}
     for ep in order if order is not None else sorted(episodes):
-        per_task.setdefault(str(episodes[ep].get("task", "")), []).append(ep)
+        task = (tasks or {}).get(ep)
+        per_task.setdefault(str(episodes[ep].get("task", "")) if task is None else task, []).append(ep)
     return [ep for eps in per_task.values() for ep in eps[len(eps) - math.ceil(len(eps) * split):]]
 
 

@@ -363,6 +363,23 @@ def simulated_recording(info: dict) -> bool:
     return robot == "pdp_sim" or robot.startswith("pdp_")
 
 
+def episode_first_tasks(root: str | Path) -> dict[int, str]:
+    """Each episode's first task as the recording's episode metadata lists it (``meta/episodes``' ``tasks``, in the
+    order LeRobot wrote them, which need not be the frames' order): the task LeRobot's ``--dataset.eval_split``
+    groups an episode by. Empty where the metadata does not say."""
+    import pyarrow.parquet as pq
+
+    tasks: dict[int, str] = {}
+    for f in sorted((Path(root) / "meta" / "episodes").glob("**/*.parquet")):
+        try:
+            table = pq.read_table(f, columns=["episode_index", "tasks"]).to_pydict()
+        except Exception:  # noqa: BLE001 - other metadata: the frames' tasks stand in
+            return {}
+        for ep, listed in zip(table["episode_index"], table["tasks"], strict=True):
+            tasks[int(ep)] = str(listed[0]) if listed else ""
+    return tasks
+
+
 def _episode_length(root: Path, episode: int) -> int | None:
     """An episode's frame count from the recording's episode metadata (None where it does not say)."""
     import pyarrow.parquet as pq

@@ -1047,6 +1047,34 @@ def test_lerobot_trains_eval_split_stays_out_of_the_latent_space(synthetic_datas
     assert len(small_policy(synthetic_meta).model.bank.embed_pool) == 0
 
 
+def test_eval_split_groups_episodes_by_the_task_lerobot_groups_them_by(synthetic_dataset, tmp_path, monkeypatch):
+    """An episode of several tasks: LeRobot's eval split groups it by the first task its episode metadata lists
+    (written in no set order), not by its first frame's; PDP holds out exactly LeRobot's episodes all the same."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.train import TrainPipelineConfig
+    from lerobot.datasets.factory import make_train_eval_datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from lerobot_pdp import PDPConfig
+
+    root = Path(shutil.copytree(synthetic_dataset, tmp_path / "multi"))
+    for f in sorted((root / "meta" / "episodes").glob("**/*.parquet")):  # episodes 33, 37 list another task first
+        table = pq.read_table(f)
+        eps, tasks = table.column("episode_index").to_pylist(), table.column("tasks").to_pylist()
+        tasks = [["mode 3: right-wide", *t] if ep in (33, 37) else t for ep, t in zip(eps, tasks, strict=True)]
+        i = table.schema.get_field_index("tasks")
+        pq.write_table(table.set_column(i, table.schema.field(i), pa.array(tasks, table.schema.field(i).type)), f)
+    cfg = TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/multi", root=str(root), eval_split=0.25),
+                              policy=PDPConfig(push_to_hub=False))
+    _, held_by_lerobot = make_train_eval_datasets(cfg)
+    monkeypatch.setattr("sys.argv", ["lerobot-train", "--policy.type=pdp", "--dataset.eval_split=0.25"])
+    bank = small_policy(LeRobotDatasetMetadata("local/multi", root=root)).model.bank
+    held = sorted(set(bank.episode.tolist()) - set(bank.episode[bank.embed_pool].tolist()))
+    assert held == sorted(held_by_lerobot.episodes)
+
+
 
 def test_fit_optimizer_reaches_the_fit_and_the_benchmarks_adaptation(synthetic_meta):
     """The paper's plain steps (``optimizer="gradient"``) are taken as a fit_latent argument, as the config's
