@@ -167,7 +167,18 @@ def trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir
     ``"computed"`` or ``"read from cache"``.
     """
     with main_process_first():
-        return _trace_distances(traces, gamma, normalize, cache_dir, progress, report if report is not None else {})
+        d = _trace_distances(traces, gamma, normalize, cache_dir, progress, report if report is not None else {})
+    off = ~np.eye(len(d), dtype=bool)
+    zero = int((d[off] <= 0).sum())  # soft-DTW values <= 0 are clamped to 0
+    if zero > off.sum() // 10 and not normalize:  # identical traces aside, a gamma large for these traces
+        _, ids = np.unique(np.asarray(traces).reshape(len(traces), -1), axis=0, return_inverse=True)
+        zero = int(((d <= 0) & (ids.reshape(-1)[:, None] != ids.reshape(-1)[None, :])).sum())  # different traces only
+    if zero > off.sum() // 10 and not normalize:
+        logger.warning("soft-DTW with sdtw_gamma=%g puts %d of the %d distances between different behaviours at 0 "
+                       "(soft-DTW dipped below 0 and was clamped): the geometry term treats those pairs as one "
+                       "behaviour. Use a smaller --policy.sdtw_gamma (default 1e-5), or --policy.sdtw_normalize=true "
+                       "(the soft-DTW divergence, >= 0 by construction)", gamma, zero, int(off.sum()))
+    return d
 
 
 def _trace_distances(traces: np.ndarray, gamma: float, normalize: bool, cache_dir: str | Path | None,

@@ -536,6 +536,27 @@ def test_a_damaged_soft_dtw_cache_is_recomputed_with_a_warning(tmp_path, caplog)
     assert np.array_equal(np.load(cache), d)  # rewritten whole
 
 
+def test_an_sdtw_gamma_that_drowns_the_distances_warns(tmp_path, caplog):
+    """A large sdtw_gamma makes soft-DTW dip below 0 between different traces (clamped to 0): the geometry term
+    would treat them as one behaviour. Said, computed or read from the cache; the default gamma says nothing."""
+    from lerobot_pdp.behavior import trace_distances
+
+    traces = np.random.default_rng(0).normal(scale=0.1, size=(6, 16, 2))
+    for _ in range(2):  # computed, then read from the cache
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            trace_distances(traces, 10.0, False, cache_dir=tmp_path, progress=False)
+        (msg,) = _warnings(caplog, "sdtw_gamma")
+        assert re.search(r"soft-DTW with sdtw_gamma=10 puts \d+ of the 30 distances between different behaviours at 0",
+                         msg) and "--policy.sdtw_normalize=true" in msg
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        trace_distances(traces, 1e-5, False, cache_dir=tmp_path, progress=False)
+        trace_distances(np.concatenate([traces[:2]] * 3), 1e-5, False, cache_dir=tmp_path, progress=False)  # copies
+        trace_distances(traces, 10.0, True, cache_dir=tmp_path, progress=False)  # the divergence: >= 0 by design
+    assert not _warnings(caplog, "sdtw_gamma")
+
+
 def test_a_one_episode_dataset_warns_naming_it(tmp_path, caplog):
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
