@@ -110,8 +110,9 @@ class BehaviorTraces:
 
 def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims: list[int] | None, length: int,
                           normalize: str, gripper_dim: int | None = None, gripper_threshold: float = 0.0,
-                          min_length: int = 1) -> BehaviorTraces:
-    """Turn whole episodes into behaviors (split on gripper events when ``gripper_dim`` is set)."""
+                          min_length: int = 1, source: str = "") -> BehaviorTraces:
+    """Turn whole episodes into behaviors (split on gripper events when ``gripper_dim`` is set); ``source``: where
+    they were read (a dataset folder), named in errors."""
     traces, ep_idx, starts, gstarts, ends, modes = [], [], [], [], [], []
     names: dict[int, str] = {}
     named: dict[int, dict[str, list[int]]] = {}  # mode id -> name -> its episodes (two names: two modes merged?)
@@ -119,8 +120,11 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
         states = item[trace_key]
         check_finite(trace_key, states, f"episode {ep}")
         if len(states) < min_length:
-            raise ValueError(f"episode {ep} has {len(states)} frames; PDP needs at least {min_length} (its observation "
-                             "history, n_obs_steps)")
+            short = sorted(e for e, it in episodes.items() if len(it[trace_key]) < min_length)
+            raise ValueError(f"episode {ep} has {len(states)} frames{f' ({source})' if source else ''}; PDP needs at "
+                             f"least {min_length} (its observation history, n_obs_steps). Episodes this short: "
+                             f"{short[:10]}{' ...' if len(short) > 10 else ''}: leave them out (--dataset.episodes "
+                             f"lists the episodes to train on) or train with --policy.n_obs_steps={max(1, len(states))}")
         if "mode" in item:  # an episode-level label (meta/mode_labels.json) leaves the task string alone
             mode = int(item["mode"])
             names.setdefault(mode, item.get("mode_name") or str(mode))
@@ -327,7 +331,7 @@ def read_training_behaviors(config, root: str | Path, features: dict,
             check_finite(k, item[k], f"dataset {root}, episode {ep}")
     behaviors = build_behavior_traces(
         episodes, cfg.trace_key, cfg.trace_dims, cfg.trace_length, cfg.trace_normalize,
-        cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps,
+        cfg.segment_gripper_dim, cfg.segment_gripper_threshold, min_length=cfg.n_obs_steps, source=f"dataset {root}",
     )
     split = train_value(sys.argv, "--dataset.eval_split", ("dataset", "eval_split")) if running_lerobot_train(
         sys.argv) else None
@@ -403,11 +407,16 @@ def check_behaviors(behaviors: BehaviorTraces, root: str | Path, config) -> None
     length = {int(e): int(behaviors.end[behaviors.episode_index == e].max()) for e in np.unique(behaviors.episode_index)}
     short = [e for e, n in length.items() if n < config.horizon]
     if short:  # trains (the chunk's padding is masked), but fit_latent / teach refuse such a demonstration
-        logger.warning("%s: %d episode(s) are shorter than one action chunk (horizon %d frames): %s. PDP trains on "
-                       "them (each chunk padded past the episode's end), but a demonstration that short cannot be "
-                       "fitted or taught; record longer episodes or train with a shorter --policy.horizon", root,
-                       len(short), config.horizon, ", ".join(f"{e} ({length[e]} frames)" for e in short[:10])
-                       + (", ..." if len(short) > 10 else ""))
+        # LeRobot's sampler starts no window in an episode's last drop_n_last_frames frames: none in one that short
+        skipped = [e for e in short if length[e] <= config.drop_n_last_frames]
+        logger.warning("%s: %d episode(s) are shorter than one action chunk (horizon %d frames): %s. %s a "
+                       "demonstration that short cannot be fitted or taught; record longer episodes or train with a "
+                       "shorter --policy.horizon", root, len(short), config.horizon,
+                       ", ".join(f"{e} ({length[e]} frames)" for e in short[:10]) + (", ..." if len(short) > 10 else ""),
+                       f"LeRobot's sampler skips {len(skipped)} of them whole (no more frames than drop_n_last_frames="
+                       f"{config.drop_n_last_frames}): the denoiser never trains on them, though their latents join the "
+                       "latent space; the others train with each chunk padded past the episode's end; " if skipped else
+                       "PDP trains on them (each chunk padded past the episode's end), but")
 
 
 def warn_few_episodes(behaviors: BehaviorTraces, root: str | Path, beta_geo: float) -> None:

@@ -339,6 +339,11 @@ def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[in
         raise ValueError(f"{model_file} was trained on other inputs or outputs than this run gives it: {other}. Is "
                          "this the env (--env.type, --env.*) or robot the policy was trained on? Its features are "
                          f"in {where}")
+    changed = _changed_on_command_line(cfg, where)
+    if changed:  # --policy.<field>=... over a checkpoint: the networks built differ from the weights
+        raise ValueError(f"{', '.join(changed)} given on the command line change the networks' shapes, but the weights "
+                         f"of {model_file} were trained with the values in {where}; a checkpoint's network sizes cannot "
+                         "change when it is loaded: drop the flag(s), or train a new policy with them")
     encoder = sorted((int(k.split(".")[2]), v) for k, v in shapes.items()
                      if k.startswith("vae.encoder.") and k.endswith(".weight"))
     fields = []
@@ -352,6 +357,24 @@ def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[in
     raise ValueError(f"{model_file} does not match its config: {'; '.join(fields) or tensors}"
                      f"{f' ({tensors})' if fields else ''}. Was {CONFIG_NAME} edited? Use the config.json saved "
                      "with these weights")
+
+
+def _changed_on_command_line(cfg: Any, saved_config: Path) -> list[str]:
+    """``--policy.<field>=<value>`` flags of this command line that set a field to another value than the checkpoint's
+    config.json (``saved_config``) holds, as ``--policy.<field>=<value> (saved: <value>)``."""
+    from .lerobot_command import given_policy_fields
+
+    try:
+        saved = read_config_json(saved_config) if saved_config.is_file() else {}
+    except ValueError:
+        return []
+    out = []
+    for field in sorted(given_policy_fields()):
+        now = getattr(cfg, field, None)
+        was = saved.get(field)
+        if field in saved and (list(now) if isinstance(now, tuple) else now) != was:
+            out.append(f"--policy.{field}={now!r} (saved: {was!r})")
+    return out
 
 
 def _other_features(cfg: Any, saved_config: Path) -> str:

@@ -463,6 +463,16 @@ def test_an_edited_latent_dim_names_the_field(checkpoint, tmp_path):
         PDPPolicy.from_pretrained(ckpt)
 
 
+def test_a_network_size_given_on_the_command_line_names_the_flag(checkpoint, monkeypatch):
+    """``--policy.path=CKPT --policy.latent_dim=4``: the flag is named, not an edit of config.json."""
+    monkeypatch.setattr("sys.argv", ["lerobot-eval", f"--policy.path={checkpoint}", "--policy.latent_dim=4"])
+    cfg = PDPConfig.from_pretrained(checkpoint)
+    cfg.latent_dim = 4
+    with pytest.raises(ValueError, match=re.escape(f"--policy.latent_dim=4 (saved: 2) given on the command line change "
+                                                   f"the networks' shapes, but the weights of {checkpoint}")):
+        PDPPolicy.from_pretrained(checkpoint, config=cfg)
+
+
 def test_a_checkpoint_built_for_another_env_names_the_features(checkpoint):
     """lerobot-eval builds the policy's features from --env.type: an env the policy was not trained on is named as
     such (the features that differ), not as an edited config.json."""
@@ -576,10 +586,17 @@ def test_episodes_shorter_than_a_chunk_are_named(synthetic_meta, caplog):
         small_policy(synthetic_meta, dataset_episodes=[0, 1])
     assert not _warnings(caplog, "shorter than one action chunk")
     with caplog.at_level(logging.WARNING):
-        policy = small_policy(synthetic_meta, dataset_episodes=[0, 1], horizon=64, drop_n_last_frames=55)
+        policy = small_policy(synthetic_meta, dataset_episodes=[0, 1], horizon=64, drop_n_last_frames=7)
     (msg,) = _warnings(caplog, "shorter than one action chunk")
     lengths = policy.model.bank.end.tolist()
     assert f"2 episode(s) are shorter than one action chunk (horizon 64 frames): 0 ({lengths[0]} frames), 1 " in msg
+    assert "PDP trains on them (each chunk padded" in msg
+    caplog.clear()  # no longer than LeRobot's sampler drops at an episode's end: skipped whole, said so
+    with caplog.at_level(logging.WARNING):
+        small_policy(synthetic_meta, dataset_episodes=[0, 1], horizon=64, drop_n_last_frames=55)
+    (msg,) = _warnings(caplog, "shorter than one action chunk")
+    assert "LeRobot's sampler skips 2 of them whole (no more frames than drop_n_last_frames=55): the " \
+           "denoiser never trains on them" in msg
 
 
 def test_an_unknown_steer_mode_names_the_checkpoints_modes():

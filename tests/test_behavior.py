@@ -126,9 +126,11 @@ def test_nonfinite_state_names_episode():
 
 
 def test_short_episode_is_rejected():
-    eps = {2: {"observation.state": np.zeros((1, 2)), "task": ""}}
-    with pytest.raises(ValueError, match="episode 2 has 1 frames"):
-        build_behavior_traces(eps, "observation.state", None, 8, "none", min_length=2)
+    eps = {2: {"observation.state": np.zeros((1, 2)), "task": ""}, 3: {"observation.state": np.zeros((1, 2)), "task": ""}}
+    with pytest.raises(ValueError, match=r"episode 2 has 1 frames \(dataset data/x\); PDP needs at least 2 .*Episodes "
+                                         r"this short: \[2, 3\]: leave them out \(--dataset.episodes .* "
+                                         r"--policy.n_obs_steps=1"):
+        build_behavior_traces(eps, "observation.state", None, 8, "none", min_length=2, source="dataset data/x")
 
 
 def test_summed_rec_is_the_mean_times_a_traces_elements():
