@@ -81,11 +81,33 @@ def dataset_message(argv: list[str]) -> str | None:
     tracebacks below the missing file. Says what is missing and how a dataset is made. (Not lerobot-record's: its
     root is where it writes.)"""
     roots = [a.split("=", 1)[1] for a in argv if a.startswith("--dataset.root=")]
-    if not argv or Path(argv[0]).name != "lerobot-train" or not roots or Path(roots[-1], "meta", "info.json").is_file():
+    if not argv or Path(argv[0]).name != "lerobot-train" or not roots:
         return None
+    info = Path(roots[-1], "meta", "info.json")
+    if info.is_file():
+        return _missing_episodes_message(argv, roots[-1], info)
     return (f"no LeRobotDataset at --dataset.root={roots[-1]} (no meta/info.json there), so LeRobot looked for the "
             "--dataset.repo_id on the Hub instead; make the dataset first (lerobot-pdp make-dataset --out DIR, or "
             "lerobot-record) or fix the path")
+
+
+def _missing_episodes_message(argv: list[str], root: str, info: Path) -> str | None:
+    """``--dataset.episodes`` listing episodes the local dataset lacks: LeRobot, not finding their files, asks the
+    Hub for them (offline: ``OfflineModeIsEnabled``, a traceback that names neither the episodes nor the folder)."""
+    import json
+
+    from .lerobot_command import lerobot_train_episodes
+
+    try:
+        total = int(json.loads(info.read_text()).get("total_episodes") or 0)
+        episodes = lerobot_train_episodes(argv) or []
+    except (ValueError, OSError, TypeError):
+        return None
+    missing = [e for e in episodes if isinstance(e, int) and not 0 <= e < total]
+    if not missing:
+        return None
+    return (f"--dataset.episodes lists episode(s) {missing} that the dataset at --dataset.root={root} lacks (it has "
+            f"{total}: 0..{total - 1}), so LeRobot looked for them on the Hub instead; list episodes it has")
 
 
 def _hook(previous):

@@ -113,6 +113,22 @@ def test_a_run_on_a_dataset_root_that_holds_no_dataset_says_so(synthetic_meta, t
     assert "Traceback" not in proc.stderr
 
 
+def test_a_run_on_episodes_the_dataset_lacks_names_them(synthetic_meta, tmp_path):
+    """``--dataset.episodes`` with an episode the local dataset lacks: LeRobot asks the Hub for its files and ends
+    offline on ``OfflineModeIsEnabled``; said in one line naming the episodes and the folder (a real lerobot-train)."""
+    args = [lerobot_cli("lerobot-train"), "--policy.type=pdp", "--policy.push_to_hub=false",
+            "--dataset.repo_id=local/synthetic", f"--dataset.root={synthetic_meta.root}", "--dataset.episodes=[0,99]",
+            "--steps=1", "--batch_size=2", "--num_workers=0", "--wandb.enable=false", f"--output_dir={tmp_path / 'run'}"]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert proc.stderr.rstrip().splitlines()[-1] == (
+        f"lerobot-train: error: --dataset.episodes lists episode(s) [99] that the dataset at --dataset.root="
+        f"{synthetic_meta.root} lacks (it has 40: 0..39), so LeRobot looked for them on the Hub instead; list episodes "
+        "it has"), proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+
+
 def test_lerobot_train_ends_with_pdps_message(synthetic_meta, tmp_path):
     """A real ``lerobot-train`` whose --policy.trace_dims point past the state: PDP's message as the last line, exit
     status 1, no traceback; with LEROBOT_PDP_TRACEBACK=1 the traceback too."""
