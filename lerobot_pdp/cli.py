@@ -418,7 +418,7 @@ def cmd_search(args: argparse.Namespace) -> int:
     import lerobot_pdp.envs as envs
     from lerobot_pdp.adapted import search_checkpoint
     from lerobot_pdp.atomic import write_text_atomic
-    from lerobot_pdp.candidate_rollouts import env_camera_kwargs
+    from lerobot_pdp.candidate_rollouts import check_env_features, env_camera_kwargs
     from lerobot_pdp.envs.recording import check_waypoints, resolve_waypoints
     from lerobot_pdp.envs.scene import load_scene
     from lerobot_pdp.latent_search import LatentSearchError
@@ -439,6 +439,13 @@ def cmd_search(args: argparse.Namespace) -> int:
     cfg = _checkpoint_config(args.checkpoint)
     factory = functools.partial(gym.make, suite.gym_id, scene=scene, max_episode_steps=suite.max_episode_steps,
                                 disable_env_checker=True, **env_camera_kwargs(cfg))
+    probe = factory()  # a checkpoint of another env: said before the policy loads and the budget is planned
+    try:
+        check_env_features(cfg, probe)
+    except ValueError as e:
+        raise ValueError(f"--env {suite.name} does not match checkpoint {args.checkpoint}: {e}") from e
+    finally:
+        probe.close()
     try:
         res = search_checkpoint(args.checkpoint, factory, score, out=args.out, init=args.init, device=args.device,
                                 provenance=objective, budget=args.budget, method=args.method, seed=args.seed,

@@ -431,4 +431,6 @@ def test_cli_search_names_bad_input(checkpoint, tmp_path, capsys):
     assert "no such checkpoint folder" in capsys.readouterr().err
     assert cli(["search", str(checkpoint), "--env", "avoiding", "--budget", "1", "--rollouts-per-candidate", "1",
                 "--no-progress"]) == 2
-    assert "'observation.state' has shape (4,)" in capsys.readouterr().err
+    err = capsys.readouterr().err  # said before the policy loads: no budget warning first
+    assert f"--env avoiding does not match checkpoint {checkpoint}: the env's 'observation.state' has shape (4,)" in err
+    assert "budget" not in err
