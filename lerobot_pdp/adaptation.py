@@ -203,6 +203,46 @@ def judge_fit(model: PDPModel, config: PDPConfig, result: FitResult, windows: De
             "--policy.fit_noise=chunks, lerobot-pdp adapt --noise chunks) reached such routes on validation scenes")
 
 
+# how far (in normalised action units, the training actions spanning [-1, 1]) a demonstration's action may pass the
+# sampler's clip before fit_latent warns: on reach-around val3 a demonstration 0.15 past it failed every rollout
+# (the rollout lagged it 6 cm into the wall), demonstrations up to 0.08 past it succeeded in all of theirs
+UNREACHABLE_ACTION_MARGIN = 0.1
+
+
+def warn_unreachable_actions(config: PDPConfig, stats, demo: Demonstration, margin: float = UNREACHABLE_ACTION_MARGIN,
+                             what: str = "fit_latent") -> list[int]:
+    """Warn when ``demo`` commands actions the sampler cannot produce: each chunk is clipped to
+    ``clip_sample_range`` in normalised units (the training actions' range), so no latent, chunk noise or taught
+    mode makes the policy act past it, and a rollout of velocity-like actions falls behind the demonstration.
+    ``what``: who warns (``fit_latent``, ``teach``). Returns the offending action dims."""
+    from lerobot.utils.constants import ACTION
+
+    if not config.clip_sample or ACTION not in demo.arrays:
+        return []
+    raw = torch.as_tensor(demo.arrays[ACTION], dtype=torch.float32)
+    norm = stats.normalize_episode({ACTION: raw.numpy()})[ACTION]
+    bound = float(config.clip_sample_range)
+    excess = norm.abs() - bound
+    dims = [d for d in range(norm.shape[1]) if float(excess[:, d].max()) > margin]
+    if not dims:
+        return []
+    edge = stats.unnormalize(ACTION, torch.tensor([[-bound] * norm.shape[1], [bound] * norm.shape[1]])).cpu()
+    names = ((config.dataset_feature_names or {}).get(ACTION) or [])
+    parts = []
+    for d in dims:
+        name = f"{d} ({names[d]})" if d < len(names) else f"{d}"
+        parts.append(f"dim {name}: {int((excess[:, d] > 0).sum())} of {len(norm)} frames past it, up to "
+                     f"{float(raw[:, d].min()):.3g}..{float(raw[:, d].max()):.3g} against the producible "
+                     f"{float(edge[0, d]):.3g}..{float(edge[1, d]):.3g} ({float(norm[:, d].abs().max()):.2f} normalised)")
+    logger.warning(
+        "%s: the demonstration commands actions this policy cannot produce: its sampler clips every chunk to the "
+        "training actions' range (clip_sample_range=%g in normalised units); %s. No latent, chunk noise or taught "
+        "mode gets past the clip, so a rollout acts slower or shorter than the demonstration there and falls behind "
+        "its route. Record the demonstration within the training actions' range (slower, for velocity actions)",
+        what, bound, "; ".join(parts))
+    return dims
+
+
 def fit_provenance(episode: object, result: FitResult, config: PDPConfig, **settings: object) -> dict:
     """Where a fitted latent came from, as an adapted checkpoint keeps it (``adaptation.json``): the
     demonstration, the fit settings (``None`` = the config's default, filled in), the fit error and its

@@ -33,7 +33,7 @@ from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .adaptation import encode_demonstration, fit_provenance, fit_to_demonstration
+from .adaptation import encode_demonstration, fit_provenance, fit_to_demonstration, warn_unreachable_actions
 from .behavior_bank import dataset_behaviors
 from .candidate_rollouts import EnvFactory
 from .checkpoint import apply_adaptation, flatten_model_keys, load_weights, nest_model_keys, save_checkpoint
@@ -273,6 +273,7 @@ class PDPPolicy(PreTrainedPolicy):
         the other arguments: :func:`lerobot_pdp.adaptation.fit_to_demonstration`."""
         with torch.inference_mode(False), torch.enable_grad():  # z's gradients, also in LeRobot's inference_mode loop
             demo = self._demonstration(episode, segments, need_action=True, acting=activate)  # read, validate, split
+            warn_unreachable_actions(self.config, self.stats, demo)  # actions past the sampler's clip: named
             result = fit_to_demonstration(self.model, self.config, demo, self._demo_windows(demo), init=init,  # fit
                                           steps=steps, lr=lr, lam=lam, seed=seed, progress=progress,
                                           objective=objective, noise=noise, optimizer=optimizer)

@@ -38,7 +38,7 @@ import torch
 from lerobot.utils.constants import ACTION
 from torch import Tensor
 
-from .adaptation import demonstration_traces, encode_demonstration
+from .adaptation import demonstration_traces, encode_demonstration, warn_unreachable_actions
 from .behavior import UNLABELED, read_training_behaviors, training_behavior_keys
 from .chunk_windows import DemoWindows
 from .configuration_pdp import PDPConfig
@@ -141,6 +141,7 @@ def teach_new_mode(policy: Any, episode: Episode, training_data: str | Path | Tr
     episodes = check_training_data(policy, training_data) if prepared is None else None
     t0 = time.perf_counter()
     demo = read_demonstration(episode, cfg, policy.action_dim, "auto", need_action=True)
+    warn_unreachable_actions(cfg, policy.stats, demo, what="teach")  # a taught mode's chunks are clipped too
     demo_win = policy._demo_windows(demo)
     z_new = encode_demonstration(model, cfg, demo)  # continuous: the frozen encoder's mean per phase
     with torch.no_grad():

@@ -271,6 +271,25 @@ def test_a_recording_at_another_frame_rate_is_refused(policy, synthetic_meta, tm
     assert not f.exists()
 
 
+def test_a_demonstration_past_the_actions_the_sampler_makes_warns(policy, synthetic_dataset, caplog):
+    """The sampler clips each chunk to the training actions' range: a demonstration that commands faster actions
+    cannot be followed by any latent or chunk noise; the fit says so, naming the dim and both ranges."""
+    from lerobot_pdp.episodes import read_episodes
+
+    ep = read_episodes(synthetic_dataset, ["observation.state", "observation.environment_state", "action"], [0])[0]
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.adaptation"):
+        policy.fit_latent((synthetic_dataset, 0), steps=0, activate=False)
+    assert not _warnings(caplog, "cannot produce")
+    fast = {k: ep[k] for k in ("observation.state", "observation.environment_state")}
+    fast["action"] = ep["action"] * np.array([1.0, 3.0])  # dim 1 three times as fast
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.adaptation"):
+        policy.fit_latent(fast, steps=0, activate=False)
+    (msg,) = _warnings(caplog, "cannot produce")
+    assert re.search(r"fit_latent: the demonstration commands actions this policy cannot produce: its sampler clips "
+                     r"every chunk to the training actions' range \(clip_sample_range=1 in normalised units\); dim 1 "
+                     r"\(dy\): \d+ of \d+ frames past it", msg) and "dim 0" not in msg
+
+
 # ---- live steering: the file and lerobot-pdp steer
 
 
