@@ -13,7 +13,7 @@ Both fit with the checkpoint's own fitting settings plus ``--policy-flag`` overr
 outcome is one JSON file with both success rates; nothing is chosen from it.
 
     .venv/bin/python scripts/compare_deploy_paths.py --ckpt runs/.../pretrained_model --env reach-around \
-        --scene val3 --episodes 20 --out runs/deploy_paths [--policy-flag=--policy.fit_noise=chunks]
+        --scene val3 --episodes 20 --out runs/deploy_paths [--teleop-seed 0] [--policy-flag=--policy.fit_noise=chunks]
 """
 
 from __future__ import annotations
@@ -58,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
                          "the training routes; the test scenes 1-3 are the benchmark's)")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--fps", type=int, default=50)
+    ap.add_argument("--teleop-seed", type=int, default=0,
+                    help="the pdp_waypoints operator's seed (its speed and jitter along the way-points; default 0, "
+                         "the operator's own)")
     ap.add_argument("--out", type=Path, required=True, help="output folder (an earlier output of this script is replaced)")
     ap.add_argument("--policy-flag", action="append", default=[],
                     help="a --policy.* override given to both lerobot-rollout and lerobot-eval (repeatable)")
@@ -78,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     demo = out / "demo"
     seconds = {"record": _run(
         [_cli("lerobot-record"), "--robot.type=pdp_sim", *robot, "--teleop.type=pdp_waypoints",
-         "--teleop.waypoints=scene", f"--teleop.calibration_dir={out / 'cal'}", "--dataset.repo_id=local/demo",
+         "--teleop.waypoints=scene", f"--teleop.seed={args.teleop_seed}", f"--teleop.calibration_dir={out / 'cal'}",
+         "--dataset.repo_id=local/demo",
          f"--dataset.root={demo}", "--dataset.num_episodes=1", f"--dataset.fps={args.fps}",
          "--dataset.episode_time_s=30", "--dataset.reset_time_s=0.5", "--dataset.video=false",
          "--dataset.push_to_hub=false", "--play_sounds=false", "--display_data=false"], out / "record.log", env)}
@@ -102,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     rollout_rate = sum(bool(d["success"]) for d in lines) / len(lines)
     eval_rate = float(info["overall"]["pc_success"]) / 100
     res = {"checkpoint": os.path.relpath(args.ckpt.resolve(), Path.cwd()), "env": args.env, "scene": args.scene,
-           "episodes": args.episodes, "policy_flags": args.policy_flag,
+           "episodes": args.episodes, "teleop_seed": args.teleop_seed, "policy_flags": args.policy_flag,
            "lerobot_rollout": {"success": rollout_rate, "collided": sum(bool(d["collided"]) for d in lines) / len(lines)},
            "lerobot_eval": {"success": eval_rate}, "difference_points": round(100 * (rollout_rate - eval_rate), 1),
            "seconds": {k: round(v, 1) for k, v in seconds.items()}}
