@@ -114,7 +114,6 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
     """Turn whole episodes into behaviors (split on gripper events when ``gripper_dim`` is set); ``source``: where
     they were read (a dataset folder), named in errors."""
     traces, ep_idx, starts, gstarts, ends, modes = [], [], [], [], [], []
-    names: dict[int, str] = {}
     named: dict[int, dict[str, list[int]]] = {}  # mode id -> name -> its episodes (two names: two modes merged?)
     for ep, item in episodes.items():
         states = item[trace_key]
@@ -126,14 +125,12 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
                              f"{short[:10]}{' ...' if len(short) > 10 else ''}: leave them out (--dataset.episodes "
                              f"lists the episodes to train on) or train with --policy.n_obs_steps={max(1, len(states))}")
         if "mode" in item:  # an episode-level label (meta/mode_labels.json) leaves the task string alone
-            mode = int(item["mode"])
-            names.setdefault(mode, item.get("mode_name") or str(mode))
+            mode, name = int(item["mode"]), item.get("mode_name")
         elif isinstance(mode := parse_task_mode(item.get("task", "")), int):  # "mode <id>: <name>"
-            names.setdefault(mode, parse_task_name(item["task"]) or str(mode))
+            name = parse_task_name(item["task"])
         else:  # e.g. a language instruction: no label (modes can be discovered, see PDPPolicy.discover_modes)
             mode = UNLABELED
         if mode != UNLABELED:
-            name = item.get("mode_name") if "mode" in item else parse_task_name(item.get("task", ""))
             named.setdefault(mode, {}).setdefault(name or "", []).append(ep)
         segs = [(0, len(states))]
         if gripper_dim is not None:
@@ -145,12 +142,14 @@ def build_behavior_traces(episodes: dict[int, dict], trace_key: str, trace_dims:
             gstarts.append(item.get("from_index", 0) + a)
             ends.append(b)
             modes.append(mode)
+    names = {mode: next((n for n in by_name if n), str(mode)) for mode, by_name in named.items()}  # the first given
     for mode, by_name in named.items():
-        if len([n for n in by_name if n]) > 1:  # e.g. two recordings merged, each labelled from mode 0
+        given = {n: eps for n, eps in by_name.items() if n}
+        if len(given) > 1:  # e.g. two recordings merged, each labelled from mode 0
             logger.warning("mode %d has %d names: %s; PDP trains them as one mode named %r (one mean latent). If they "
                            "are different behaviours, give them different mode ids (lerobot-pdp label-modes)", mode,
-                           len(by_name), "; ".join(f"{n!r} (episodes {eps[:8]}{', ...' if len(eps) > 8 else ''})"
-                                                   for n, eps in by_name.items()), names[mode])
+                           len(given), "; ".join(f"{n!r} (episodes {eps[:8]}{', ...' if len(eps) > 8 else ''})"
+                                                 for n, eps in given.items()), names[mode])
     if gripper_dim is not None and len(traces) == len(episodes):  # asked for phases, and not one gripper event
         g = np.concatenate([np.asarray(item["action"])[:, gripper_dim] for item in episodes.values()])
         raise ValueError(f"segment_gripper_dim={gripper_dim}: no episode's gripper command (action[{gripper_dim}], "

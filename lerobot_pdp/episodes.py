@@ -355,41 +355,41 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
                              f"(horizon {min_frames})")
 
 
+def simulated_robot(robot_type: str | None) -> bool:
+    """This project's simulation (the ``pdp_sim`` robot, or ``make-dataset``'s ``pdp_<env>``): one env step per action
+    whatever the loop's pace, so a frame rate is no time scale there (``lerobot-rollout``'s episodic strategy even
+    labels its recordings with ``--dataset.fps``, 30 by default, while the loop runs at ``--fps``)."""
+    return str(robot_type or "").startswith("pdp_")
+
+
 def simulated_recording(info: dict) -> bool:
-    """A recording of this project's simulation (``pdp_sim``, or ``make-dataset``'s ``pdp_<env>``): one env step per
-    frame whatever its ``fps`` says (``lerobot-rollout``'s episodic strategy labels it with ``--dataset.fps``, 30 by
-    default, while the loop runs at ``--fps``), so its frame rate is no time scale to compare."""
-    robot = str(info.get("robot_type") or "")
-    return robot == "pdp_sim" or robot.startswith("pdp_")
+    """A recording (its ``meta/info.json``) of this project's simulation: :func:`simulated_robot`."""
+    return simulated_robot(info.get("robot_type"))
 
 
 def episode_first_tasks(root: str | Path) -> dict[int, str]:
     """Each episode's first task as the recording's episode metadata lists it (``meta/episodes``' ``tasks``, in the
     order LeRobot wrote them, which need not be the frames' order): the task LeRobot's ``--dataset.eval_split``
     groups an episode by. Empty where the metadata does not say."""
-    import pyarrow.parquet as pq
-
-    tasks: dict[int, str] = {}
-    for f in sorted((Path(root) / "meta" / "episodes").glob("**/*.parquet")):
-        try:
-            table = pq.read_table(f, columns=["episode_index", "tasks"]).to_pydict()
-        except Exception:  # noqa: BLE001 - other metadata: the frames' tasks stand in
-            return {}
-        for ep, listed in zip(table["episode_index"], table["tasks"], strict=True):
-            tasks[int(ep)] = str(listed[0]) if listed else ""
-    return tasks
+    return {ep: str(tasks[0]) if tasks else "" for ep, tasks in _episode_metadata(root, "tasks").items()}
 
 
 def _episode_length(root: Path, episode: int) -> int | None:
     """An episode's frame count from the recording's episode metadata (None where it does not say)."""
+    length = _episode_metadata(root, "length").get(int(episode))
+    return None if length is None else int(length)
+
+
+def _episode_metadata(root: str | Path, column: str) -> dict[int, Any]:
+    """One column of a recording's episode metadata (``meta/episodes/**.parquet``) by episode index; empty where a
+    file lacks it or cannot be read (the callers fall back to the frames)."""
     import pyarrow.parquet as pq
 
-    for f in sorted((root / "meta" / "episodes").glob("**/*.parquet")):
+    values: dict[int, Any] = {}
+    for f in sorted((Path(root) / "meta" / "episodes").glob("**/*.parquet")):
         try:
-            table = pq.read_table(f, columns=["episode_index", "length"]).to_pydict()
-        except Exception:  # noqa: BLE001 - other metadata: the fit's own check reads the frames
-            return None
-        for ep, length in zip(table["episode_index"], table["length"], strict=True):
-            if int(ep) == episode:
-                return int(length)
-    return None
+            table = pq.read_table(f, columns=["episode_index", column]).to_pydict()
+        except Exception:  # noqa: BLE001 - other metadata: the frames stand in
+            return {}
+        values.update((int(ep), v) for ep, v in zip(table["episode_index"], table[column], strict=True))
+    return values

@@ -16,12 +16,11 @@ import logging
 import sys
 from typing import Any
 
-from .episodes import order_problems
+from .episodes import order_problems, simulated_robot
 
 logger = logging.getLogger(__name__)
 
 CONTEXT_MODULE = "lerobot.rollout.context"
-SIMULATED = "pdp_sim"  # steps its env once per action whatever the loop's pace: --fps changes wall time only
 
 
 def check_robot_against_training_data(policy_config: Any, dataset_features: dict[str, dict], fps: float | None,
@@ -36,10 +35,16 @@ def check_robot_against_training_data(policy_config: Any, dataset_features: dict
         raise ValueError(f"the robot ({robot}) does not give its values as the policy was trained on them: "
                          + "; ".join(problems))
     trained_fps = getattr(policy_config, "dataset_fps", None)
-    if robot != SIMULATED and trained_fps and fps and abs(float(fps) - float(trained_fps)) > 1e-6:
+    if not simulated_robot(robot) and trained_fps and fps and abs(float(fps) - float(trained_fps)) > 1e-6:
         logger.warning("lerobot-rollout runs at --fps=%g, the policy's training data was recorded at %g fps: an action "
                        "is sent every 1/%g s, so the robot moves %.2fx as fast as demonstrated (--fps=%g runs it as "
                        "trained)", fps, trained_fps, fps, fps / trained_fps, trained_fps)
+
+
+def preprocessor_renames(preprocessor: Any) -> dict[str, str]:
+    """``--rename_map`` as the rollout's preprocessor applies it (its rename step's map; {} without one)."""
+    steps = getattr(preprocessor, "steps", [])
+    return next((s.rename_map for s in steps if isinstance(getattr(s, "rename_map", None), dict)), {})
 
 
 def _checking(original: Any) -> Any:
@@ -49,10 +54,9 @@ def _checking(original: Any) -> Any:
         if getattr(getattr(policy, "config", None), "type", None) == "pdp":
             wrapper = kwargs.get("robot_wrapper")
             robot = getattr(wrapper, "inner", wrapper)
-            steps = getattr(kwargs.get("preprocessor"), "steps", [])  # its rename step holds --rename_map
-            renames = next((s.rename_map for s in steps if isinstance(getattr(s, "rename_map", None), dict)), {})
             check_robot_against_training_data(policy.config, kwargs.get("dataset_features") or {}, kwargs.get("fps"),
-                                              str(getattr(robot, "name", type(robot).__name__)), renames)
+                                              str(getattr(robot, "name", type(robot).__name__)),
+                                              preprocessor_renames(kwargs.get("preprocessor")))
         return original(*args, **kwargs)
 
     create_inference_engine.pdp_checks_training_data = True

@@ -26,6 +26,7 @@ import sys
 from typing import Any
 
 from ..episodes import feature_problems, policy_shape
+from ..rollout_checks import preprocessor_renames
 from .hooks import split_environment_state, splitting_features, wrap_all, wrap_once
 from .live import LIVE
 
@@ -73,10 +74,8 @@ def _wrap_create_engine(original):
         ours = [r for r in _rollout_robots() if r is robot]
         policy = kwargs.get("policy")
         if ours and policy is not None:  # before the first action: a policy for another env fails here, clearly
-            steps = getattr(kwargs.get("preprocessor"), "steps", [])  # its rename step holds --rename_map
-            renames = next((s.rename_map for s in steps if isinstance(getattr(s, "rename_map", None), dict)), {})
             check_policy_inputs(getattr(policy, "config", None), kwargs.get("dataset_features") or {}, ours[0],
-                                renames)
+                                preprocessor_renames(kwargs.get("preprocessor")))
             if kwargs.get("hw_features"):  # what the RTC engine builds observations from: the same split
                 kwargs["hw_features"] = split_environment_state(kwargs["hw_features"], ours[0].state_keys,
                                                                 ours[0].env_state_keys)
@@ -112,8 +111,7 @@ def check_policy_inputs(policy_config: Any, dataset_features: dict[str, dict], r
     renames = rename_map or {}
     dataset_features = {renames.get(k, k): v for k, v in dataset_features.items()}
     inputs = getattr(policy_config, "input_features", None) or {}
-    problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features,
-                                getattr(policy_config, "dataset_feature_names", None))
+    problems = feature_problems({k: tuple(ft.shape) for k, ft in inputs.items()}, dataset_features)
     trace_key = getattr(policy_config, "trace_key", None)
     if trace_key is not None and trace_key not in inputs and trace_key not in dataset_features:
         problems.append(f"no trace key '{trace_key}' (PDP's behavior trace)")
