@@ -14,6 +14,8 @@ the pre/post-processors (reported separately as ``pipeline_median_ms``). Policie
 
 ``--device cuda`` times the same calls on a GPU (each call waits for the GPU before the clock stops) and adds
 ``pdp_eager``: PDP with its CUDA-graph replay switched off, i.e. the kernels launched one by one.
+``--profile`` (CUDA) adds, per policy, the kernels one new chunk launches and the summed time they run
+(``torch.profiler`` over 20 calls): a chunk far longer than its kernels waits on launches, not arithmetic.
 ``--compile`` adds ``pdp_compiled`` and ``dp_compiled``: each policy with its ``compile_model`` on (PDP: the
 denoiser's step fused by torch.compile, still replayed from PDP's graph on CUDA; DP: LeRobot's own
 ``torch.compile(unet, mode="reduce-overhead")``). Compilation happens in the warm-up calls.
@@ -87,6 +89,18 @@ def _new_chunk_call(policy, batch):
     return time.perf_counter() - t
 
 
+def _kernel_profile(policy, batch, calls: int = 20) -> dict:
+    """GPU operations (kernels, copies) per new chunk and their summed GPU time (ms), from ``torch.profiler`` over ``calls`` chunks."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            _new_chunk_call(policy, batch)
+    gpu = [e for e in prof.events() if e.device_type.name == "CUDA"]  # kernels, copies and memsets
+    return {"gpu_ops_per_chunk": round(len(gpu) / calls, 1),
+            "gpu_busy_ms_per_chunk": round(sum(e.device_time_total for e in gpu) / calls / 1e3, 3)}
+
+
 def _pipeline_call(policy, pre, post, obs):
     import torch
 
@@ -113,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu", help="torch device of every policy (cpu, cuda)")
     ap.add_argument("--compile", action="store_true",
                     help="also time pdp_compiled and dp_compiled (compile_model=True; compiles for ~1 min)")
+    ap.add_argument("--profile", action="store_true",
+                    help="CUDA: also count each policy's kernels per new chunk and their summed GPU time")
     args = ap.parse_args(argv)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -179,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
             "inference_steps": cfg.num_inference_steps, "horizon": cfg.horizon,
             "sampler": "DDIM" if name.startswith("pdp") else cfg.noise_scheduler_type, **env,
         }
+
+    if args.profile and args.device.startswith("cuda"):
+        for name, (policy, _, _) in small.items():
+            results[name].update(_kernel_profile(policy, batches[name]))
 
     if args.default_dp_calls > 0:
         policy, pre, _ = _build(DiffusionConfig(**common), meta)
