@@ -198,7 +198,9 @@ class FrozenDenoiser:
     def modulation(self, k: int | list[int] | Tensor, ctx: Context) -> Tensor:
         """Modulation rows at diffusion step(s) ``k``: an int -> [B, R]; a tensor of one step per chunk
         -> [B, R]; a list of S steps -> [S, B, R]."""
-        step = self.step[k] if not isinstance(k, list) else self.step[k][:, None]
+        # a list's rows by Python ints (views, one stack): indexing with the list would first build an index
+        # tensor on the host and copy it to the GPU, which a CUDA graph capture refuses (and which waits)
+        step = self.step[k] if not isinstance(k, list) else torch.stack([self.step[i] for i in k])[:, None]
         return ctx.base + step if ctx.gain is None else torch.addcmul(ctx.base, ctx.gain, step)
 
     def forward(self, sample: Tensor, mod: Tensor, unfold: bool = False) -> Tensor:

@@ -311,6 +311,35 @@ def test_sampler_fields_reach_the_policy(synthetic_meta):
         PDPConfig(device="cpu", timestep_spacing="linspace")
 
 
+def test_the_sampler_builds_no_tensor_from_host_data(synthetic_meta):
+    """A tensor made from Python data inside the sampler is, on a GPU, a copy from pageable host memory:
+    CUDA graph capture refuses it (the sampler then acts eagerly, ~6x slower per chunk) and it waits for the
+    GPU. Seen on the CPU as ``aten.lift_fresh`` among the ops the sampler dispatches, eager and compiled path."""
+    from policies import small_policy
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Ops(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.names: list[str] = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.names.append(str(func))
+            return func(*args, **(kwargs or {}))
+
+    p = small_policy(synthetic_meta, "cpu")
+    p.eval()
+    obs, z = torch.randn(1, p.model.denoiser.obs_cond_dim), torch.randn(1, p.config.latent_dim)
+    noise = torch.randn(1, p.config.horizon, p.action_dim)
+    n, fast = p.config.num_inference_steps, p.model.fast_denoiser
+    steps = p.model.noise_schedule.timesteps(n)  # the grid is built on the host once, before any capture
+    fast.frozen()  # weight constants: built before a capture too (PDPModel._generate_graphed)
+    with torch.no_grad(), Ops() as ops:
+        fast.contexts(obs, z, steps)  # the GPU sampler's eager part
+        p.model._denoise(noise, fast.sample_modulation(obs, z, steps), n)
+    assert "aten.addcmul.default" in ops.names and not [o for o in ops.names if "lift_fresh" in o]
+
+
 @pytest.mark.numerics
 def test_cpu_sampler_matches_a_float64_reference(synthetic_meta):
     """The CPU sampler (precomputed modulation through a TorchScript trace, float32) stays within 2e-5 of the
