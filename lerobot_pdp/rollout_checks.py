@@ -34,11 +34,20 @@ def check_robot_against_training_data(policy_config: Any, dataset_features: dict
     if problems:
         raise ValueError(f"the robot ({robot}) does not give its values as the policy was trained on them: "
                          + "; ".join(problems))
+    warn_other_fps(policy_config, fps, robot, "lerobot-rollout")
+
+
+def warn_other_fps(policy_config: Any, fps: float | None, robot: str, command: str) -> bool:
+    """Warn (and return True) when a control loop at ``fps`` drives a real robot with a policy whose training data
+    was recorded at another rate: the robot moves fps / dataset_fps as fast as demonstrated. Simulated robots step
+    once per action whatever the pace; checkpoints without ``dataset_fps`` are not checked."""
     trained_fps = getattr(policy_config, "dataset_fps", None)
-    if not simulated_robot(robot) and trained_fps and fps and abs(float(fps) - float(trained_fps)) > 1e-6:
-        logger.warning("lerobot-rollout runs at --fps=%g, the policy's training data was recorded at %g fps: an action "
-                       "is sent every 1/%g s, so the robot moves %.2fx as fast as demonstrated (--fps=%g runs it as "
-                       "trained)", fps, trained_fps, fps, fps / trained_fps, trained_fps)
+    if simulated_robot(robot) or not trained_fps or not fps or abs(float(fps) - float(trained_fps)) <= 1e-6:
+        return False
+    logger.warning("%s runs at --fps=%g, the policy's training data was recorded at %g fps: an action is sent every "
+                   "1/%g s, so the robot moves %.2fx as fast as demonstrated (--fps=%g runs it as trained)", command,
+                   fps, trained_fps, fps, fps / trained_fps, trained_fps)
+    return True
 
 
 def preprocessor_renames(preprocessor: Any) -> dict[str, str]:

@@ -407,6 +407,28 @@ def test_any_robot_is_checked_against_the_training_data_before_the_first_action(
                                         ordered_action_keys=[], task="", fps=10, device="cpu")
 
 
+def test_the_async_robot_client_warns_of_another_fps_when_it_can_read_the_checkpoint(tmp_path, caplog):
+    """LeRobot's async robot client serving PDP on a real robot at another --fps than the training data's warns,
+    as lerobot-rollout does; a checkpoint only the server can read (another machine's path) is not compared."""
+    from types import SimpleNamespace
+
+    from lerobot_pdp.robots import client_hooks
+
+    PDPConfig(device="cpu", dataset_fps=30.0).save_pretrained(tmp_path / "ckpt")
+    client = SimpleNamespace(pretrained_name_or_path=str(tmp_path / "ckpt"), fps=50,
+                             robot=SimpleNamespace(type="so101_follower"))
+    with caplog.at_level(logging.DEBUG, logger="lerobot_pdp"):
+        client_hooks._check_fps(client)
+        assert "the robot client runs at --fps=50, the policy's training data was recorded at 30 fps" in caplog.text
+        caplog.clear()
+        client_hooks._check_fps(SimpleNamespace(**{**vars(client), "fps": 30}))
+        client_hooks._check_fps(SimpleNamespace(**{**vars(client), "robot": SimpleNamespace(type="pdp_sim")}))
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+        client_hooks._check_fps(SimpleNamespace(**{**vars(client), "pretrained_name_or_path": str(tmp_path / "gone")}))
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert "frame rate not checked" in caplog.text
+
+
 def test_policy_input_check_names_a_missing_trace_key(tmp_path):
     robot = make_robot_from_config(PDPSimConfig(env="reach-around", calibration_dir=tmp_path, id="trace"))
     try:

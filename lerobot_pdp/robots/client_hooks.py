@@ -22,6 +22,8 @@ and has no notion of an episode. For a ``pdp_sim`` robot it drives, and only the
   it arrives before that clear (a fast server), the receiver's set is undone and the next observations, sent
   without it, can all be filtered by the server as too similar (a robot standing still: a stalled run). For
   ``pdp_sim`` the flag is set again when a chunk arrived while the observation was in flight;
+* a client serving PDP (any robot but ``pdp_sim``) at another ``--fps`` than the policy's training data was recorded
+  at is warned (when the checkpoint's config.json is readable on the client's machine);
 * a client serving PDP (any robot) that blends overlapping chunks (LeRobot's default ``weighted_average``) is
   warned, with the flag that executes each action from one chunk (``--aggregate_fn_name=latest_only``), and so is
   one that sends observations only from an empty queue (``--chunk_size_threshold=0``: frames a chunk apart);
@@ -135,6 +137,22 @@ class QueuedActions:
         logger.info("pdp_sim: new episode, %d queued action(s) of the last one dropped", dropped)
 
 
+def _check_fps(config: Any) -> None:
+    """The client's ``--fps`` against the rate the policy's training data was recorded at (a warning naming both),
+    when the checkpoint's config.json can be read on this machine; the server may load a path or repo this machine
+    lacks, and then there is nothing to compare with here."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from ..rollout_checks import warn_other_fps
+
+    try:
+        policy_config = PreTrainedConfig.from_pretrained(config.pretrained_name_or_path)
+    except (OSError, ValueError) as e:
+        logger.debug("frame rate not checked: %s not readable here (%s)", config.pretrained_name_or_path, e)
+        return
+    warn_other_fps(policy_config, config.fps, str(getattr(config.robot, "type", "")), "the robot client")
+
+
 def _wrap_client(original):
     class RobotClient(original):  # noqa: D101 - LeRobot's, with the robot told its client
         def __init__(self, *args: Any, **kwargs: Any):
@@ -149,6 +167,7 @@ def _wrap_client(original):
                     logger.warning(BLENDED, aggregation)
                 if self.config.chunk_size_threshold <= 0:
                     logger.warning(EMPTY_ONLY, self.config.chunk_size_threshold)
+                _check_fps(self.config)
                 from ..policy_server import CLIENT_REFUSED, PLANNING_FAILED
 
                 # a chunk PDP could not plan ends the run; a refusal at connect (another robot) names its reason
