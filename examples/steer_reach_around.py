@@ -9,10 +9,11 @@ as ``lerobot-eval`` runs them.
     lerobot-train --policy.type=pdp --policy.trace_dims='[0,1,2]' --policy.push_to_hub=false \
         --policy.optimizer_lr=1e-3 --policy.embedding_lr=1e-3 --dataset.repo_id=local/ra \
         --dataset.root=data/ra --output_dir=runs/pdp --steps=3000 --batch_size=64
-    # 2. one demonstration in scene 3 (a wall with a window no training mode passes through)
-    lerobot-pdp make-dataset --env reach-around --scene 3 --waypoints scene --episodes-per-mode 1 --out data/ra_s3
+    # 2. one demonstration in validation scene val3 (a wall whose window no training mode passes through)
+    lerobot-pdp make-dataset --env reach-around --scene val3 --waypoints scene --episodes-per-mode 1 --seed 1 \
+        --out data/ra_val3
     # 3. this script
-    python examples/steer_reach_around.py runs/pdp/checkpoints/last/pretrained_model data/ra_s3
+    python examples/steer_reach_around.py runs/pdp/checkpoints/last/pretrained_model data/ra_val3
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from lerobot_pdp import PDPPolicy
 register_third_party_plugins()  # what LeRobot's CLIs do first: the lab's envs (pdp_*) are a plugin beside PDP
 
 
-def success(policy: PDPPolicy, processors: tuple, scene: int, episodes: int, seed: int) -> float:
+def success(policy: PDPPolicy, processors: tuple, scene: int | str, episodes: int, seed: int) -> float:
     """Success % of ``episodes`` rollouts in ``scene`` under the policy's active latent, as lerobot-eval counts it."""
     env_cfg = make_env_config("pdp_reach_around", scene=scene, **camera_flags(policy))
     envs = make_env(env_cfg, n_envs=episodes)
@@ -63,10 +64,11 @@ def main(ckpt: str, demo_root: str) -> None:
     for mode, z in modes.items():
         policy.set_latent(z)
         print(f"scene 0, mode {mode} ({modes.names.get(mode, '')}): success {success(policy, processors, 0, 5, mode):.0f}%")
-    res = policy.fit_latent((demo_root, 0))  # weights frozen; only z moves, and the policy now acts under it
-    print(f"fitted z = {res.z.tolist()} from warm start {res.z_init.tolist()} (L_fit {res.losses[-1]:.4f})")
-    print(f"scene 3 after fitting: success {success(policy, processors, 3, 10, 0):.0f}%")
-
+    # weights frozen: z, then one sampler noise per chunk of the demonstration (no latent alone makes val3's route)
+    res = policy.fit_latent((demo_root, 0), noise="chunks")
+    print(f"fitted z = {res.z.tolist()} from warm start {res.z_init.tolist()} (L_fit {res.losses[-1]:.4f}), "
+          f"{len(res.noise)} chunk noises")
+    print(f"scene val3 after fitting: success {success(policy, processors, 'val3', 10, 0):.0f}%")
 
 if __name__ == "__main__":
     main(*sys.argv[1:3])
