@@ -12,6 +12,18 @@ from torch import Tensor, nn
 TIMESTEP_SPACINGS = ("even", "leading", "trailing")
 
 
+class PrefixGuide:
+    """An x0 edit pulling each step's predicted clean chunk towards ``target`` [B, horizon, A] by ``weight``
+    [1, horizon, 1] (``torch.lerp``): real-time chunking's prefix. Tensors, not a closure, so that a CUDA graph of
+    the sampler takes them as inputs and replays for every new prefix."""
+
+    def __init__(self, target: Tensor, weight: Tensor):
+        self.target, self.weight = target, weight
+
+    def __call__(self, x0: Tensor) -> Tensor:
+        return torch.lerp(x0, self.target, self.weight)
+
+
 class NoiseSchedule(nn.Module):
     """DDPM forward process over K steps and a deterministic DDIM sampler (eta = 0) on a sub-grid.
 

@@ -248,8 +248,8 @@ class FastDenoiser:
         self.net = net
         self.num_train_timesteps = num_train_timesteps
         self.sizes = modulation_sizes(net)
-        # (parameters, their versions, device, dtype) the FrozenDenoiser was built from, and it
-        self._frozen: tuple[list[Tensor], list[int], torch.device, torch.dtype, FrozenDenoiser] | None = None
+        # (parameters, their versions and storages, device, dtype) the FrozenDenoiser was built from, and it
+        self._frozen: tuple[list[Tensor], list[tuple[int, int]], torch.device, torch.dtype, FrozenDenoiser] | None = None
         self._param_dicts: list[dict] | None = None
         self._traced: dict[tuple, Callable] = {}
         # z's modulation terms of the last chunk: (FrozenDenoiser, inference mode, a copy of z, terms)
@@ -262,7 +262,9 @@ class FastDenoiser:
             self._param_dicts = [m._parameters for m in self.net.modules() if m._parameters]
         # checked per chunk, so kept cheap (~0.08 ms for 220 parameters; id() and tuple keys took 0.24 ms)
         params = [p for d in self._param_dicts for p in d.values() if p is not None]
-        versions = [p._version for p in params]
+        # the storage too: ``.to()`` there and back (or ``p.data = ...``) gives a parameter new memory under the same
+        # version, and a captured sampler graph, which reads the weights, would go on reading the freed memory
+        versions = [(p._version, p.data_ptr()) for p in params]
         old = self._frozen
         same = old is not None and len(params) == len(old[0]) and all(map(operator.is_, params, old[0]))
         if not same:  # parameters replaced by new objects (load_state_dict(assign=True)): a trace holds the old ones

@@ -32,7 +32,7 @@ def interpolate(z_a: Tensor, z_b: Tensor, n: int, path: str = "linear") -> Tenso
         raise ValueError(f"n must be an integer >= 2 (both endpoints), got {n!r}")
     if path not in ("linear", "elliptical"):
         raise ValueError(f"path must be 'linear' or 'elliptical', got {path!r}")
-    t = torch.linspace(0, 1, n).view(-1, *([1] * z_a.dim()))
+    t = torch.linspace(0, 1, n, device=z_a.device).view(-1, *([1] * z_a.dim()))  # latents on a GPU too
     line = (1 - t) * z_a + t * z_b
     if path == "linear" or z_a.dim() == 0 or z_a.shape[-1] < 2:
         return line

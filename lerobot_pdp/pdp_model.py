@@ -22,7 +22,7 @@ from .configuration_pdp import PDPConfig, linear_beta_end
 from .console import latent_text
 from .cuda_graphs import GraphCache, TrainGraphs
 from .denoiser import FiLMUnet1d
-from .diffusion import NoiseSchedule, diffusion_loss
+from .diffusion import NoiseSchedule, PrefixGuide, diffusion_loss
 from .distributed import world
 from .fast_inference import FastDenoiser
 from .observation_encoder import ObservationEncoder
@@ -288,23 +288,23 @@ class PDPModel(nn.Module):
     def generate(self, obs_cond: Tensor, z: Tensor, noise: Tensor | None = None,
                  generator: torch.Generator | None = None, guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """Denoise action chunks [B, horizon, A] (normalised) for conditions ``obs_cond`` [B, C], ``z`` [B, d_z];
-        ``guide`` edits each step's predicted clean chunk (:meth:`NoiseSchedule.sample`; eager kernels then)."""
+        ``guide`` edits each step's predicted clean chunk (:meth:`NoiseSchedule.sample`); on CUDA a
+        :class:`PrefixGuide` is replayed from the sampler's graph, any other edit runs eagerly."""
         b = obs_cond.shape[0]
         if noise is None:
             noise = torch.randn(b, self.config.horizon, self.action_dim, device=obs_cond.device,
                                 generator=generator)
         n = self.config.num_inference_steps
         z, noise = z.to(obs_cond), noise.to(obs_cond)  # a caller's CPU latent or noise for a policy on a GPU
-        if guide is not None:
-            return self._sample(obs_cond, z, noise, n, guide)
-        if obs_cond.device.type == "cuda" and self._cuda_graphs:
+        graphable = guide is None or isinstance(guide, PrefixGuide)  # another x0 edit: eager kernels
+        if obs_cond.device.type == "cuda" and self._cuda_graphs and graphable:
             try:
-                return self._generate_graphed(obs_cond, z, noise, n)
+                return self._generate_graphed(obs_cond, z, noise, n, guide)
             except RuntimeError as e:  # pragma: no cover - depends on the driver and torch build
                 logger.warning("CUDA graph capture of the sampler failed (%r); acting eagerly", e)
                 self._cuda_graphs = False
                 self._graphs.clear()
-        return self._sample(obs_cond, z, noise, n)
+        return self._sample(obs_cond, z, noise, n, guide)
 
     def _sample(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int,
                 guide: Callable[[Tensor], Tensor] | None = None) -> Tensor:
@@ -345,15 +345,20 @@ class PDPModel(nn.Module):
         state["_compiled_fns"] = {}  # compiled code is rebuilt on demand and does not pickle
         return state
 
-    def _generate_graphed(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int) -> Tensor:
-        """:meth:`_sample` replayed from a CUDA graph, captured per input shape and sampler steps.
+    def _generate_graphed(self, obs_cond: Tensor, z: Tensor, noise: Tensor, n: int,
+                          guide: PrefixGuide | None = None) -> Tensor:
+        """:meth:`_sample` replayed from a CUDA graph, captured per input shape, sampler steps and whether a
+        prefix guides it (its target and weights are inputs: one graph serves every prefix).
 
         Recaptured when the weights change (the graph reads the weight constants of the capture, and
         ``FastDenoiser.frozen`` returns a new object after an optimizer step, ``load_state_dict`` or ``.to``).
         """
         consts = self.fast_denoiser.frozen()
-        key = (tuple(obs_cond.shape), tuple(z.shape), tuple(noise.shape), n, obs_cond.dtype, obs_cond.device,
+        inputs = (obs_cond, z, noise) if guide is None else (obs_cond, z, noise, guide.target, guide.weight)
+        key = (tuple(tuple(x.shape) for x in inputs), n, obs_cond.dtype, obs_cond.device,
                torch.is_inference_mode_enabled())
-        call = self._graphs.get(key, consts, lambda o, zz, x: self._sample(o, zz, x, n),
-                                (obs_cond, z, noise))
-        return call(obs_cond, z, noise)
+
+        def sample(o: Tensor, zz: Tensor, x: Tensor, *prefix: Tensor) -> Tensor:
+            return self._sample(o, zz, x, n, PrefixGuide(*prefix) if prefix else None)
+
+        return self._graphs.get(key, consts, sample, inputs)(*inputs)

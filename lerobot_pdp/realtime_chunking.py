@@ -46,7 +46,7 @@ actions executed since the observation (the engine's ``notify_observation`` anno
 each executed action (its gripper phases and its step in the episode). It is set on
 LeRobot's engine module when a PDP policy is prepared for RTC, so an engine started later in the same process, for
 any policy, builds it too (``lerobot-rollout`` runs one policy per process).
-On CUDA a guided chunk runs eagerly, not from the captured sampler graph.
+On CUDA a guided chunk is replayed from the sampler's captured graph too, the prefix's target and weights its inputs.
 
 When the engine gives up (LeRobot's engine retries a failed chunk, e.g. PDP's ``FloatingPointError`` for a
 non-finite action, and after 10 in a row logs "Fatal error in RTC thread" and ends the run as finished),
@@ -70,6 +70,7 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from torch import Tensor
 
+from .diffusion import PrefixGuide
 from .pdp_model import check_finite_actions
 
 logger = logging.getLogger(__name__)
@@ -441,7 +442,7 @@ def check_rtc_steering(policy: Any, engine: str = RTC_ENGINE, way_out: str = RTC
 
 
 def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_size: int,
-                 rtc: RTCConfig | None = None) -> Callable[[Tensor], Tensor] | None:
+                 rtc: RTCConfig | None = None) -> PrefixGuide | None:
     """The x0 edit imposing the previous chunk's unexecuted actions on a new chunk (None: nothing to impose).
 
     ``left_over`` [T, A] or [B, T, A], normalised, first row = the action for the chunk's observation step (with
@@ -465,11 +466,7 @@ def prefix_guide(policy: Any, left_over: Tensor, inference_delay: int, batch_siz
     w[0, start:, 0] = weights.to(device)
     target = torch.zeros(batch_size, cfg.horizon, policy.action_dim, device=device)
     target[:, start : start + length] = prefix[:, :length].to(device=device, dtype=target.dtype)
-
-    def guide(x0: Tensor) -> Tensor:
-        return torch.lerp(x0, target, w)
-
-    return guide
+    return PrefixGuide(target, w)
 
 
 def _remembering_errors(chunk: Callable[..., Tensor]) -> Callable[..., Tensor]:

@@ -104,6 +104,32 @@ def test_graphed_sampler_matches_eager_and_follows_weight_updates(synthetic_meta
     torch.testing.assert_close(out, p.model._sample(obs, z + 1.0, noise, n), atol=1e-5, rtol=1e-5)
 
 
+def test_a_real_time_chunking_prefix_replays_from_the_sampler_graph(synthetic_meta):
+    """A chunk guided towards the previous chunk's actions (real-time chunking, the policy server's carried
+    actions) is replayed from a captured graph whose inputs are the prefix's target and weights: the eager
+    guided chunk, without a host sync, and another prefix through the same graph."""
+    from lerobot_pdp.diffusion import PrefixGuide
+
+    p = small_policy(synthetic_meta, "cuda")
+    p.eval()
+    obs, z, noise = _sampler_inputs(p, 2, seed=3)
+    n = p.config.num_inference_steps
+    weight = torch.linspace(1, 0, p.config.horizon, device="cuda")[None, :, None]
+    prefix = PrefixGuide(torch.randn_like(noise), weight)
+    for _ in range(2):  # capture, then replay
+        torch.testing.assert_close(p.generate(obs, z, noise=noise, guide=prefix),
+                                   p.model._sample(obs, z, noise, n, prefix), atol=1e-5, rtol=1e-5)
+    assert len(p.model._graphs._calls) == 1
+    other = PrefixGuide(torch.randn_like(noise), weight.flip(1))
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        got = p.generate(obs, z, noise=noise, guide=other)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    torch.testing.assert_close(got, p.model._sample(obs, z, noise, n, other), atol=1e-5, rtol=1e-5)
+    assert len(p.model._graphs._calls) == 1
+
+
 def test_gpu_sampler_matches_a_float64_reference(synthetic_meta):
     """The GPU sampler (precomputed modulation, PyTorch's cuDNN convolutions) against the same sampler run in
     float64. cuDNN's float32 algorithms differ by GPU and version (on an H200: 3.3e-5 from float64 after 20

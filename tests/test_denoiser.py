@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from lerobot_pdp.denoiser import FiLMUnet1d, LatentFiLM, NoiseSchedule
+from lerobot_pdp.diffusion import PrefixGuide
 from lerobot_pdp.fast_inference import FastDenoiser, FrozenDenoiser
 
 
@@ -334,10 +335,27 @@ def test_the_sampler_builds_no_tensor_from_host_data(synthetic_meta):
     n, fast = p.config.num_inference_steps, p.model.fast_denoiser
     steps = p.model.noise_schedule.timesteps(n)  # the grid is built on the host once, before any capture
     fast.frozen()  # weight constants: built before a capture too (PDPModel._generate_graphed)
+    prefix = PrefixGuide(torch.zeros_like(noise), torch.linspace(1, 0, p.config.horizon)[None, :, None])
+    with torch.no_grad():
+        p.model._sample(obs, z, noise, n, prefix)  # builds the CPU trace
     with torch.no_grad(), Ops() as ops:
         fast.contexts(obs, z, steps)  # the GPU sampler's eager part
         p.model._denoise(noise, fast.sample_modulation(obs, z, steps), n)
-    assert "aten.addcmul.default" in ops.names and not [o for o in ops.names if "lift_fresh" in o]
+        p.model._sample(obs, z, noise, n, prefix)  # a real-time chunking prefix: graphed on a GPU too
+    assert "aten.addcmul.default" in ops.names and "aten.lerp.Tensor" in ops.names
+    assert not [o for o in ops.names if "lift_fresh" in o]
+
+
+def test_sampler_constants_follow_new_parameter_storage():
+    """Weights moved there and back (``.to()``, ``p.data = ...``) keep their parameter objects and versions but
+    get new memory: the sampler's constants, which own its captured CUDA graph, are rebuilt, so that the graph is
+    captured anew instead of reading freed memory."""
+    net = FiLMUnet1d(2, 8, 2, "film", (16, 32))
+    fast = FastDenoiser(net, 100)
+    before = fast.frozen()
+    net.double()
+    net.float()
+    assert fast.frozen() is not before and fast.frozen() is fast.frozen()
 
 
 @pytest.mark.numerics
@@ -364,3 +382,25 @@ def test_cpu_sampler_matches_a_float64_reference(synthetic_meta):
     assert want.dtype == torch.float64
     got = p.model._sample(obs, z, noise, n)
     assert got.dtype == torch.float32 and 0 < (got.double() - want).abs().max().item() <= 2e-5
+
+
+def test_the_training_graphs_key_follows_reassigned_and_moved_tensors(synthetic_meta):
+    """The captured training step is keyed by where the model's parameters and buffers live: a buffer
+    reassigned (new behaviors in the bank), a parameter frozen or the weights moved give another key (captured
+    anew on a GPU), the same model untouched the same one."""
+    from policies import small_policy
+
+    from lerobot_pdp.cuda_graphs import TrainGraphs
+
+    model = small_policy(synthetic_meta).model
+    graphs = TrainGraphs()
+    key = graphs._storage(model)
+    assert graphs._storage(model) == key and len(key) == len(list(model.parameters())) + len(list(model.buffers()))
+    model.bank.traces = model.bank.traces.clone()
+    assert graphs._storage(model) != key
+    key = graphs._storage(model)
+    next(model.denoiser.parameters()).requires_grad_(False)
+    assert graphs._storage(model) != key
+    key = graphs._storage(model)
+    model.double()
+    assert graphs._storage(model) != key

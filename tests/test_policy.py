@@ -116,6 +116,24 @@ def test_select_action_and_steering_api(synthetic_meta):
 
 
 
+def test_interpolation_stays_on_the_latents_device():
+    """Latents read from a policy on a GPU (behavior_latents, current_latent) are interpolated there: no step of
+    the path is made on the host. Seen on a CPU with 'meta' tensors, which refuse to mix with host tensors as
+    CUDA tensors do (the finiteness check's reads are answered)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Answering(TorchDispatchMode):  # a GPU answers a scalar read; a meta tensor has no value to give
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func is torch.ops.aten._local_scalar_dense.default:
+                return True
+            return func(*args, **(kwargs or {}))
+
+    with Answering():
+        a, b = torch.zeros(2, device="meta"), torch.ones(2, device="meta")
+        for path in ("linear", "elliptical"):
+            assert PDPPolicy.interpolate(a, b, 5, path).is_meta
+
+
 def test_elliptical_interpolation_goes_around_the_map():
     """The elliptical sweep is an arc around the origin: it visits the clusters between its ends."""
     a, b = torch.tensor([2.0, 0.0]), torch.tensor([0.0, 2.0])
