@@ -66,6 +66,9 @@ class FitCancelled(RuntimeError):
 
 
 _CANCEL = threading.local()  # per thread: the event that stops the fits it runs
+# set when the process ends (a server's Ctrl-C): every cancellable fit, on any thread, stops at its next step; a
+# start-up fit a client's connect started on a gRPC worker thread would otherwise hold the exit until it ran out
+ENDING = threading.Event()
 
 
 @contextmanager
@@ -82,7 +85,7 @@ def cancellable(stop: threading.Event) -> Iterator[None]:
 
 def _check_cancelled() -> None:
     stop = getattr(_CANCEL, "stop", None)
-    if stop is not None and stop.is_set():
+    if stop is not None and (stop.is_set() or ENDING.is_set()):
         raise FitCancelled("the fit was cancelled")
 
 

@@ -375,10 +375,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     check_policy_options(overrides)
     admit_pdp(server, overrides)
     from .cli_errors import ending_on_signals
+    from .latent_fitting import ENDING
 
     config = draccus.parse(PolicyServerConfig, args=args)
     with ending_on_signals("lerobot_pdp.policy_server"):  # Ctrl-C / SIGTERM: one line, not grpc's traceback
-        server.serve(config)
+        try:
+            server.serve(config)
+        finally:  # a start-up fit running on a gRPC thread (a client connecting) stops: the exit waits for that thread
+            ENDING.set()
 
 
 if __name__ == "__main__":

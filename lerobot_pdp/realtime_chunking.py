@@ -97,6 +97,10 @@ class ConsumedDelayQueue(ActionQueue):
 
     def __init__(self, cfg: RTCConfig) -> None:
         super().__init__(cfg)
+        # reentrant: merge checks, under the lock, that no clear() (a new episode) came while its chunk was generated
+        self.lock = threading.RLock()
+        self.cleared = 0  # clear() calls: a chunk started before the last one belongs to the episode that ended
+        self._chunk_cleared = 0  # ``cleared`` when the pending chunk was started (get_action_index)
         self.executed = 0
         self.executed_at_observation: int | None = None  # None: no observation announced
         self._chunk_from: int | None = None  # ``executed`` at the observation the pending chunk comes from
@@ -144,12 +148,25 @@ class ConsumedDelayQueue(ActionQueue):
         return action
 
     def clear(self) -> None:
-        super().clear()
-        with self.lock:  # a new episode: nothing executed belongs to its chunks
+        with self.lock:  # a new episode: nothing executed belongs to its chunks, nor does a chunk in flight
+            super().clear()
             self._last_original = None
+            self.cleared += 1
+
+    def merge(self, original_actions: Tensor, processed_actions: Tensor, real_delay: int,
+              action_index_before_inference: int | None = None) -> None:
+        """LeRobot's merge, but a chunk started before the last :meth:`clear` (the engine's ``reset()`` at a new
+        episode, which does not wait for its thread) is dropped: PDP's own check (:func:`rtc_chunk`) ends when the
+        chunk is returned, and the engine merges it after postprocessing it."""
+        with self.lock:
+            if action_index_before_inference is not None and self._chunk_cleared != self.cleared:
+                logger.debug("PDP under RTC: a chunk started before the episode's reset is dropped")
+                return
+            super().merge(original_actions, processed_actions, real_delay, action_index_before_inference)
 
     def get_action_index(self) -> int:
         with self.lock:  # the engine's thread, as it starts a chunk from the observation it just read
+            self._chunk_cleared = self.cleared
             seen = self.executed_at_observation
             self._chunk_from = self.executed if seen is None else seen
             return self.last_index

@@ -145,7 +145,8 @@ def start_up_fit(policy: Any, episode: tuple[Any, int], steps: int | None = None
         try:
             res = policy.fit_latent(episode, steps=steps, progress=True)  # a bar: with chunk noises, a minute on a CPU
         except FitCancelled:
-            stopped = KeyboardInterrupt(f"{caught[0]} during the start-up fit to {episode[0]} episode {episode[1]}, "
+            why = caught[0] if caught else "the process ending"  # off the main thread: no handler of ours
+            stopped = KeyboardInterrupt(f"{why} during the start-up fit to {episode[0]} episode {episode[1]}, "
                                         f"{time.perf_counter() - t0:.1f} s in: stopped before any control loop started "
                                         "(no robot connected)")
             stopped.said_by_pdp = True  # one line in LeRobot's commands (cli_errors)

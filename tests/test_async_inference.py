@@ -709,6 +709,34 @@ def test_a_chunk_planned_before_the_scene_reset_is_dropped(client_module, tmp_pa
     assert client.action_queue.qsize() == 8 and client._pdp_chunks == 3
 
 
+def test_a_scene_reset_waits_for_a_chunk_being_checked_and_queued(client_module, tmp_path):
+    """The receiver checks a chunk against the last scene reset, then LeRobot queues it; a reset on the control
+    thread between the two would clear the queue and then get the ended episode's chunk: it waits instead, and
+    drops the chunk with the rest."""
+    import threading
+
+    from lerobot.async_inference.helpers import TimedAction
+
+    client = client_module.RobotClient(_client_config(_free_port(), tmp_path))
+    dt = client.config.environment_dt
+    checked, check = threading.Event(), client._planned_before_reset
+
+    def preempted_after_the_check(first):
+        planned_before = check(first)
+        checked.set()
+        time.sleep(0.2)  # the receiver loses the core right after its check
+        return planned_before
+
+    client._planned_before_reset = preempted_after_the_check
+    old = [TimedAction(timestamp=time.time() + (i + 1) * dt, timestep=5 + i, action=torch.zeros(2)) for i in range(8)]
+    receiver = threading.Thread(target=client._aggregate_action_queues, args=(old, client.config.aggregate_fn))
+    receiver.start()
+    assert checked.wait(5)
+    client.robot._engine.reset()  # the control thread: a new episode
+    receiver.join(5)
+    assert client.action_queue.qsize() == 0
+
+
 def test_a_client_that_cannot_reach_a_server_exits_with_status_1(client_module, tmp_path):
     """LeRobot's entry point returns (status 0) when the client could not start; with pdp_sim it exits 1 and
     says why."""

@@ -172,6 +172,23 @@ def test_a_new_chunk_continues_from_its_observations_step(read_before_the_steps_
     assert float(q.get()[0]) == 103.0  # step 4
 
 
+def test_a_chunk_started_before_a_new_episode_is_not_merged_into_it():
+    """LeRobot's engine merges a chunk after PDP returned it, and its reset() at a new episode (pdp_sim, the
+    episodic strategy) does not wait for the engine's thread: a chunk started from the ended episode's observation
+    and merged after the reset is dropped, not executed at the new episode's start; one started after it is merged."""
+    from lerobot_pdp.realtime_chunking import ConsumedDelayQueue
+
+    q = ConsumedDelayQueue(RTCConfig())
+    old, new = torch.zeros(8, 1), torch.ones(8, 1)
+    index = q.get_action_index()  # the engine starts a chunk in the episode that ends
+    q.clear()  # engine.reset(): a new episode
+    q.merge(old, old, 0, index)
+    assert q.qsize() == 0
+    index = q.get_action_index()
+    q.merge(new, new, 0, index)
+    assert q.qsize() == 8 and float(q.get()[0]) == 1.0
+
+
 def test_with_fitted_noises_the_engine_replans_at_their_steps_only():
     """Fitted chunk noise j belongs to the demonstration's frames from j * n_action_steps: while noises are replayed,
     the queue lets the engine start a chunk only at the observations of steps 0, 8, 16, ..., once each, whatever

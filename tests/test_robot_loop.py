@@ -602,6 +602,37 @@ def test_a_signal_during_the_start_up_fit_stops_it_before_any_control_loop(synth
         timer.cancel()
         signal.signal(signal.SIGTERM, previous)
 
+def test_a_start_up_fit_off_the_main_thread_stops_when_the_process_ends(synthetic_meta):
+    """PDP's policy server loads the policy (and runs its start-up fit) on a gRPC worker thread, where no signal
+    handler of PDP's can be installed: the server ending (Ctrl-C, SIGTERM) stops that fit at its next step instead of
+    the process waiting for it to run out; the load ends saying why."""
+    from lerobot_pdp.latent_fitting import ENDING
+    from lerobot_pdp.steering import start_up_fit
+
+    p = small_policy(synthetic_meta, fit_steps=100_000)
+    outcome: list[BaseException] = []
+
+    def load():
+        try:
+            start_up_fit(p, (synthetic_meta.root, 2))
+        except BaseException as e:  # noqa: BLE001 - what the worker thread would see
+            outcome.append(e)
+
+    worker = threading.Thread(target=load)
+    t0 = time.perf_counter()
+    worker.start()
+    time.sleep(1.0)
+    ENDING.set()  # what policy_server.main does as serve() ends
+    try:
+        worker.join(60)
+    finally:
+        ENDING.clear()
+    assert not worker.is_alive() and time.perf_counter() - t0 < 60
+    assert len(outcome) == 1 and isinstance(outcome[0], KeyboardInterrupt)
+    assert re.match(r"the process ending during the start-up fit to .* episode 2", str(outcome[0]))
+    assert len(p.active_latent) == 0
+
+
 def test_steering_flags_given_together_say_which_one_wins(synthetic_meta, caplog):
     """steer_latent, steer_mode and steer_dataset_root left together (an old flag on the command line): one acts, by
     the documented order, and a warning names the ones ignored (a start-up fit dropped silently before)."""

@@ -129,7 +129,8 @@ class QueuedActions:
         self.episode_mark = EPISODE_MARK  # the key under which the robot's observations carry their env episode
 
     def reset(self) -> None:
-        with self.client.action_queue_lock:
+        # after a chunk being checked and queued (_aggregate_action_queues), never between the two
+        with self.client._pdp_reset_lock, self.client.action_queue_lock:
             self.client._pdp_reset_at = time.time()  # the clock of the observations' timestamps
             dropped = self.client.action_queue.qsize()
             self.client.action_queue.queue.clear()
@@ -160,6 +161,7 @@ def _wrap_client(original):
             self._pdp_sim = _ours(self.robot)
             self._pdp_chunks = 0  # chunks received, counted before LeRobot's receiver sets must_go
             self._pdp_reset_at: float | None = None  # when the robot last reset its scene (QueuedActions)
+            self._pdp_reset_lock = threading.Lock()  # a scene reset and a chunk's check-and-queue exclude each other
             self._pdp_unsent_since: float | None = None
             if self.config.policy_type == "pdp":  # any robot serving PDP
                 aggregation = getattr(self.config, "aggregate_fn_name", PDP_AGGREGATION)
@@ -203,10 +205,11 @@ def _wrap_client(original):
             return sent
 
         def _aggregate_action_queues(self, incoming_actions: list, *args: Any, **kwargs: Any):
-            if self._pdp_sim and incoming_actions and self._planned_before_reset(incoming_actions[0]):
-                logger.info("pdp_sim: a chunk planned in the episode that ended arrived after it: dropped")
-            else:
-                super()._aggregate_action_queues(incoming_actions, *args, **kwargs)
+            with self._pdp_reset_lock:  # a scene reset between the check and LeRobot's queueing would get the chunk
+                if self._pdp_sim and incoming_actions and self._planned_before_reset(incoming_actions[0]):
+                    logger.info("pdp_sim: a chunk planned in the episode that ended arrived after it: dropped")
+                else:
+                    super()._aggregate_action_queues(incoming_actions, *args, **kwargs)
             self._pdp_chunks += 1  # LeRobot's receiver sets must_go right after this
 
         def _planned_before_reset(self, first: Any) -> bool:
