@@ -168,8 +168,9 @@ def stopped_by_signals(stop: threading.Event) -> Iterator[list[str]]:
     if threading.current_thread() is not threading.main_thread():
         yield caught
         return
-    signals = (signal.SIGINT, signal.SIGTERM)
-    before = {s: signal.getsignal(s) for s in signals}
+    # a handler installed from C reads as None and could not be put back: that signal is left alone (ours would stay
+    # after the block and swallow every later Ctrl-C)
+    before = {s: h for s in (signal.SIGINT, signal.SIGTERM) if (h := signal.getsignal(s)) is not None}
 
     def handler(signum: int, frame: Any) -> None:
         caught.append(signal.Signals(signum).name)
@@ -178,14 +179,13 @@ def stopped_by_signals(stop: threading.Event) -> Iterator[list[str]]:
         if callable(previous) and previous is not signal.default_int_handler:  # LeRobot's: its shutdown event set
             previous(signum, frame)
 
-    for s in signals:
+    for s in before:
         signal.signal(s, handler)
     try:
         yield caught
     finally:
         for s, h in before.items():
-            if h is not None:  # None: a handler not installed from Python, which cannot be put back
-                signal.signal(s, h)
+            signal.signal(s, h)
 
 # (engine, way out, whether it reports the executed actions and each chunk's step) of a caller that replans at its
 # own pace, set while it loads the policy: LeRobot's async policy server (policy_server.py) sets it; lerobot-rollout's

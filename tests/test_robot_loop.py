@@ -602,6 +602,20 @@ def test_a_signal_during_the_start_up_fit_stops_it_before_any_control_loop(synth
         timer.cancel()
         signal.signal(signal.SIGTERM, previous)
 
+def test_a_signal_handler_installed_from_c_is_left_alone_during_a_fit(monkeypatch):
+    """A handler Python cannot read (installed from C: getsignal says None) could not be put back after the fit;
+    replacing it would leave PDP's handler in place for good, swallowing every later Ctrl-C: it is not replaced."""
+    from lerobot_pdp.steering import stopped_by_signals
+
+    read, install, installed = signal.getsignal, signal.signal, []
+    monkeypatch.setattr(signal, "getsignal", lambda s: None if s == signal.SIGTERM else read(s))
+    monkeypatch.setattr(signal, "signal", lambda s, h: installed.append(s) or install(s, h))
+    previous = read(signal.SIGINT)
+    with stopped_by_signals(threading.Event()):
+        assert read(signal.SIGINT) is not previous  # PDP's, for the fit
+    assert signal.SIGTERM not in installed and read(signal.SIGINT) is previous
+
+
 def test_a_start_up_fit_off_the_main_thread_stops_when_the_process_ends(synthetic_meta):
     """PDP's policy server loads the policy (and runs its start-up fit) on a gRPC worker thread, where no signal
     handler of PDP's can be installed: the server ending (Ctrl-C, SIGTERM) stops that fit at its next step instead of
