@@ -335,7 +335,10 @@ class FastDenoiser:
 
         try:
             with warnings.catch_warnings(), torch.no_grad():
-                warnings.simplefilter("ignore")  # jit's DeprecationWarning and TracerWarnings
+                # jit's own warnings only: the filters are process-wide, and another thread's warnings in the
+                # meantime (a fit beside the control loop) must still be seen
+                warnings.filterwarnings("ignore", message=r".*torch\.jit\.trace", category=DeprecationWarning)
+                warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
                 return torch.jit.trace(_Modulated(self.net), (sample, *context), check_trace=False)
         except Exception as e:  # pragma: no cover - depends on the torch build
             warnings.warn(f"TorchScript tracing of the denoiser failed ({e!r}); using eager inference",

@@ -404,3 +404,24 @@ def test_the_training_graphs_key_follows_reassigned_and_moved_tensors(synthetic_
     key = graphs._storage(model)
     model.double()
     assert graphs._storage(model) != key
+
+
+def test_tracing_the_denoiser_hides_only_jits_own_warnings(monkeypatch):
+    """The CPU sampler's first chunk traces the denoiser and silences TorchScript's deprecation notices; warnings
+    filters are process-wide, so anything else warned meanwhile (a fit in another thread) is still seen."""
+    import warnings
+
+    net = FiLMUnet1d(2, 8, 2, "film", (16, 32))
+    fast = FastDenoiser(net, 100)
+    trace = torch.jit.trace
+
+    def tracing_while_another_thread_warns(*args, **kwargs):
+        warnings.warn("a fit's warning, meanwhile", UserWarning, stacklevel=1)
+        return trace(*args, **kwargs)
+
+    monkeypatch.setattr(torch.jit, "trace", tracing_while_another_thread_warns)
+    context = fast.contexts(torch.randn(1, 8), torch.randn(1, 2), [3])[0]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        fast.run(torch.randn(1, 16, 2), context)
+    assert [str(w.message) for w in seen] == ["a fit's warning, meanwhile"]
