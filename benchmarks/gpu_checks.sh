@@ -28,7 +28,9 @@ runs() { [[ " $STEPS " == *" $1 "* ]]; }
 log "start $(date -u +%FT%TZ), commit $(git rev-parse --short HEAD 2>/dev/null), steps: $STEPS"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv >> "$S" 2>&1
 REACH=$OUT/reach
+MADE=0
 if [ ! -d "$REACH" ]; then
+  MADE=1
   timeout 120 $PY -m lerobot_pdp.cli make-dataset --env reach-around --out "$REACH" --scene 0 --episodes-per-mode 10 \
     --seed 0 --no-progress > "$OUT/logs/dataset.log" 2>&1 || { log "dataset failed"; tail -5 "$OUT/logs/dataset.log" >> "$S"; exit 1; }
 fi
@@ -69,5 +71,5 @@ if runs cpu; then
     --log-freq 25 --num-workers 8 --dataset "$REACH" > "$OUT/train_cpu_b64.jsonl" 2> "$OUT/logs/train_cpu.err"
   log "cpu rc=$?"; head -1 "$OUT/train_cpu_b64.jsonl" >> "$S"
 fi
-rm -rf "$REACH"
+[ "$MADE" = 1 ] && rm -rf "$REACH"  # a dataset that was there before stays
 log done

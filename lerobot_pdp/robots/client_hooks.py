@@ -144,14 +144,18 @@ def _check_fps(config: Any) -> None:
     lacks, and then there is nothing to compare with here."""
     from lerobot.configs.policies import PreTrainedConfig
 
+    from ..episodes import simulated_robot
     from ..rollout_checks import warn_other_fps
 
+    robot = str(getattr(config.robot, "type", ""))
+    if simulated_robot(robot):  # one env step per action whatever the pace: nothing to compare, nothing to read
+        return
     try:
         policy_config = PreTrainedConfig.from_pretrained(config.pretrained_name_or_path)
     except (OSError, ValueError) as e:
         logger.debug("frame rate not checked: %s not readable here (%s)", config.pretrained_name_or_path, e)
         return
-    warn_other_fps(policy_config, config.fps, str(getattr(config.robot, "type", "")), "the robot client")
+    warn_other_fps(policy_config, config.fps, robot, "the robot client")
 
 
 def _wrap_client(original):
