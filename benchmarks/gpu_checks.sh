@@ -7,6 +7,7 @@
 #
 #   bash benchmarks/gpu_checks.sh OUT_DIR [DEADLINE_S]      # default deadline 1500 s
 #   STEPS="tests select train cameras cpu" bash benchmarks/gpu_checks.sh OUT_DIR   # a subset, in that order
+#   TRAIN_BATCHES="256" CAMERA_BATCHES="64" ...                                  # batch sizes (default 64 256)
 #
 # Run from the repository root, in an environment where `import lerobot_pdp` and `lerobot-train` work and
 # torch sees a GPU. USE_FLAX=0 USE_TF=0 keep diffusers from importing JAX/TensorFlow (~20 s per process).
@@ -14,6 +15,8 @@ set -o pipefail
 OUT=${1:?usage: gpu_checks.sh OUT_DIR [DEADLINE_S]}
 DL=${2:-1500}
 STEPS=${STEPS:-"select train tests cameras cpu"}
+TRAIN_BATCHES=${TRAIN_BATCHES:-"64 256"}
+CAMERA_BATCHES=${CAMERA_BATCHES:-"64 256"}
 PY=${PYTHON:-python3}
 export USE_FLAX=0 USE_TF=0 PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TQDM_DISABLE=1
 mkdir -p "$OUT/logs"
@@ -25,7 +28,7 @@ log() { echo "[$(el)s] $*" | tee -a "$S"; }
 cap() { local left=$(( DL - $(el) - 10 )); [ "$left" -lt "$1" ] && echo "$left" || echo "$1"; }
 runs() { [[ " $STEPS " == *" $1 "* ]]; }
 
-log "start $(date -u +%FT%TZ), commit $(git rev-parse --short HEAD 2>/dev/null), steps: $STEPS"
+log "start $(date -u +%FT%TZ), commit $(git rev-parse --short HEAD 2>/dev/null), steps: $STEPS (train B=$TRAIN_BATCHES, cameras B=$CAMERA_BATCHES)"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv >> "$S" 2>&1
 REACH=$OUT/reach
 MADE=0
@@ -42,7 +45,7 @@ if runs select; then
   log "select rc=$?"; tail -1 "$OUT/select_cuda.jsonl" >> "$S"
 fi
 if runs train; then
-  for bs in 64 256; do
+  for bs in $TRAIN_BATCHES; do
     t=$(cap 200); log "lerobot-train pdp, dp on cuda, B=$bs (cap ${t}s)"
     timeout -k 5 "$t" $PY benchmarks/bench_train_device.py --devices cuda --policies pdp dp --batch-sizes "$bs" \
       --steps 250 --log-freq 25 --num-workers 8 --dataset "$REACH" --logs "$OUT/logs/train_b$bs" \
@@ -57,7 +60,7 @@ if runs tests; then
   log "tests rc=$?"; grep -E "^(PASSED|FAILED|ERROR)|passed|failed" "$OUT/cuda_tests.log" | tail -25 >> "$S"
 fi
 if runs cameras; then
-  for bs in 64 256; do
+  for bs in $CAMERA_BATCHES; do
     t=$(cap 120); log "training steps, 0-2 cameras, B=$bs (cap ${t}s)"
     cams="0 1 2"; [ "$bs" = 256 ] && cams="0"
     timeout -k 5 "$t" $PY benchmarks/bench_cameras.py --device cuda --threads 4 --cameras $cams --calls 20 \

@@ -28,6 +28,10 @@ class CapturedCall:
     are copied into static buffers the graph reads; the output is a fresh copy of the graph's output.
     """
 
+    # "thread_local": another thread's CUDA work during a capture (a live-steering fit beside the control loop
+    # allocating memory) neither invalidates the capture nor fails itself, as torch's default "global" makes it
+    capture_error_mode = "thread_local"
+
     def __init__(self, fn: Callable[..., Tensor], inputs: tuple[Tensor, ...], warmup: int = 2):
         self.inputs = tuple(x.detach().clone() for x in inputs)
         # warm-up on a side stream (cuBLAS handles and workspaces must exist before capture)
@@ -38,7 +42,7 @@ class CapturedCall:
                 fn(*self.inputs)
         torch.cuda.current_stream(self.inputs[0].device).wait_stream(stream)
         self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
+        with torch.cuda.graph(self.graph, capture_error_mode=self.capture_error_mode):
             self.output = fn(*self.inputs)
 
     def __call__(self, *inputs: Tensor) -> Tensor:

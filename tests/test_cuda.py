@@ -130,6 +130,27 @@ def test_a_real_time_chunking_prefix_replays_from_the_sampler_graph(synthetic_me
     assert len(p.model._graphs._calls) == 1
 
 
+def test_a_background_fit_beside_sampler_captures(synthetic_meta):
+    """Live steering fits a latent in a background thread while the control loop acts: graph captures of new
+    sampler shapes during the fit neither fail (the sampler would act eagerly from then on) nor fail the fit
+    (its memory allocations are another thread's work during a capture)."""
+    from lerobot_pdp.steering import BackgroundFit
+
+    p = small_policy(synthetic_meta, "cuda")
+    p.eval()
+    n = p.config.num_inference_steps
+    fit = BackgroundFit(p, synthetic_meta.root, 3, steps=300)
+    captures = 0
+    while not fit.done() or captures < 4:
+        obs, z, noise = _sampler_inputs(p, 1 + captures % 6, seed=captures)  # a new shape: captured anew
+        torch.testing.assert_close(p.generate(obs, z, noise=noise), p.model._sample(obs, z, noise, n),
+                                   atol=1e-5, rtol=1e-5)
+        captures += 1
+    assert fit.wait(60) and fit.error is None, fit.error
+    assert torch.isfinite(fit.result.z).all() and len(fit.result.losses) == 300
+    assert p.model._cuda_graphs, "a capture failed during the fit: the sampler fell back to eager kernels"
+
+
 def test_gpu_sampler_matches_a_float64_reference(synthetic_meta):
     """The GPU sampler (precomputed modulation, PyTorch's cuDNN convolutions) against the same sampler run in
     float64. cuDNN's float32 algorithms differ by GPU and version (on an H200: 3.3e-5 from float64 after 20
