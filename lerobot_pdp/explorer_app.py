@@ -1,7 +1,8 @@
 """The explorer's web page: :class:`~lerobot_pdp.explorer.Explorer`'s panels wired into a Gradio app.
 
 Only wiring lives here (what each control calls, what it updates); the work is in ``explorer.py``. Each event
-is also a named API endpoint (``/pick``, ``/select``, ``/interpolate``, ``/fit``, ``/landscape``, ``/save``), so
+is also a named API endpoint (``/pick``, ``/select``, ``/interpolate``, ``/fit``, ``/landscape``, ``/save``; and
+``/stop_landscape``, which stops the caller's own landscape), so
 the app can be driven by ``gradio_client`` as well as by a person. Per-visitor state (the selected latent, the
 fitted mark, the drawn path, the map's pixel geometry) is kept in ``gr.State``.
 
@@ -27,7 +28,11 @@ USER_ERRORS = (ValueError, KeyError, FileNotFoundError, FileExistsError, Runtime
 def build_app(explorer: Explorer) -> Any:
     """The explorer as a ``gr.Blocks`` app, queued, not launched (``app.launch()``; a Space runs it as is)."""
     gr = import_gradio()
-    stopping = threading.Event()  # the page's "stop" for a landscape being computed
+    # each visitor's "stop" for its landscape (by Gradio's session hash): one visitor's stop is not another's
+    stops: dict[str, threading.Event] = {}
+
+    def stop_of(request: Any) -> threading.Event:
+        return stops.setdefault(getattr(request, "session_hash", None) or "", threading.Event())
 
     def _message(e: Exception) -> str:
         message = str(e.args[0] if isinstance(e, KeyError) and e.args else e)
@@ -169,18 +174,38 @@ def build_app(explorer: Explorer) -> Any:
             return show({**state, "fit": asdict(mark), "path": None, "dataset": str(dataset), "episode": int(episode)},
                         selection)
 
-        def landscape(grid_n, rollouts, progress=gr.Progress()):  # noqa: B008 (how Gradio asks for a progress bar)
-            stopping.clear()
+        def landscape(grid_n, rollouts, request, progress=gr.Progress(), fresh=True):  # noqa: B008 (Gradio's way)
+            """``fresh``: a stop from before this call is forgotten (a client's call); the page forgets it at
+            the click instead, so that a stop while the landscape waits its turn stops it too."""
+            stopping = stop_of(request)
+            if fresh:
+                stopping.clear()
 
             def report(fraction: float, what: str) -> None:  # between batches of rollouts: where a stop takes effect
                 if stopping.is_set():
                     raise RuntimeError("the landscape was stopped; nothing was cached")
                 progress(fraction, desc=what)
 
-            land = explorer.landscape(grid_n, rollouts, progress=report)
+            try:
+                land = explorer.landscape(grid_n, rollouts, progress=report)
+            finally:
+                stopping.clear()  # a stop that came after the last batch does not stop the next landscape
             note = (f"{'read from the cache' if land.from_cache else 'computed and cached'}: `{land.cache.name}`; "
                     f"mean success {land.success.mean():.0%}")
             return explorer.landscape_image(land), note
+
+        def page_landscape(grid_n, rollouts, request, progress=gr.Progress()):  # noqa: B008
+            return landscape(grid_n, rollouts, request, progress, fresh=False)
+
+        def stop_landscape(request) -> None:
+            """Stop the caller's landscape (being computed, or on the page waiting its turn) at its next batch."""
+            stop_of(request).set()
+
+        def forget_stop(request) -> None:
+            stop_of(request).clear()
+
+        for fn in (landscape, page_landscape, stop_landscape, forget_stop):  # Gradio passes the request by this (lazy) class
+            fn.__annotations__ = {"request": gr.Request}
 
         def save(out, state):
             if not state.get("selection"):
@@ -199,9 +224,10 @@ def build_app(explorer: Explorer) -> Any:
         fit_btn.click(on_page(fit, at_summary, len(outputs)), [demo_box, demo_episode, fit_steps, state], outputs,
                       api_name=False)
         if explorer.has_env:
-            land_btn.click(on_page(landscape, 1, 2), [grid, land_rollouts], [land_img, land_note], api_name=False)
+            land_btn.click(forget_stop, None, None, queue=False, api_name=False).then(
+                on_page(page_landscape, 1, 2), [grid, land_rollouts], [land_img, land_note], api_name=False)
             # outside the queue: the landscape it stops holds the app's one turn
-            land_stop.click(stopping.set, None, None, queue=False, api_name=False)
+            land_stop.click(stop_landscape, None, None, queue=False, api_name=False)
         save_btn.click(on_page(save, 0, 1), [out_box, state], [save_note], api_name=False)
         # the endpoints a client calls (hidden buttons: the page uses the twins above)
         api = {"pick": (pick, [px, py, state], outputs), "select": (select, [latent_box, state], outputs),
@@ -212,6 +238,9 @@ def build_app(explorer: Explorer) -> Any:
             api["landscape"] = (landscape, [grid, land_rollouts], [land_img, land_note])
         for name, (fn, inputs, outs) in api.items():
             gr.Button(name, visible=False).click(user_errors(fn), inputs, outs, api_name=name)
+        if explorer.has_env:  # outside the queue, as the page's stop button
+            gr.Button("stop_landscape", visible=False).click(stop_landscape, None, None, queue=False,
+                                                             api_name="stop_landscape")
     app.queue(default_concurrency_limit=1)  # one policy: requests take turns
     return app
 

@@ -423,6 +423,43 @@ def test_the_app_through_gradio_client(served, explorer, made, tmp_path):
         client.predict(str(data), 2, -5, api_name="/fit")
 
 
+def test_a_visitors_stop_ends_its_own_landscape_not_anothers(served, explorer, monkeypatch):
+    """Two visitors (two gradio_client sessions): B's stop while A's landscape is computed leaves A's to finish;
+    A's own stop ends it. The first progress report of each landscape waits for the test to have sent the stop
+    (the rollouts are real; only their report is held), so the stop lands while the landscape runs."""
+    import threading
+
+    from gradio_client import Client
+
+    started, go = threading.Event(), threading.Event()
+    run_latents = explorer.run_latents
+
+    def held(latents, n, progress=None):
+        def report(fraction, what):
+            if not started.is_set():
+                started.set()
+                assert go.wait(60), "the test never released the landscape"
+            progress(fraction, what)  # raises when this visitor's stop is set
+        return run_latents(latents, n, report)
+
+    monkeypatch.setattr(explorer, "run_latents", held)
+    a, b = Client(served, verbose=False), Client(served, verbose=False)
+    for stopper, grid, stopped in ((b, 6, False), (a, 7, True)):  # grids no other test computed: not cached
+        started.clear(), go.clear()
+        job = a.submit(grid, 1, api_name="/landscape")
+        assert started.wait(60), "the landscape did not start"
+        stopper.predict(api_name="/stop_landscape")  # outside the queue: answered while the landscape runs
+        go.set()
+        if stopped:
+            with pytest.raises(Exception, match="the landscape was stopped"):
+                job.result(timeout=120)
+        else:
+            _, note = job.result(timeout=120)
+            assert "computed and cached" in note
+    _, note = a.predict(7, 1, api_name="/landscape")  # A's stop ended one landscape, not the next
+    assert "computed and cached" in note
+
+
 # ------------------------------------------------------------------------------------------------ a real browser
 
 
