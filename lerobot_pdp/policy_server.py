@@ -197,7 +197,8 @@ def with_policy_options(original: Callable, overrides: list[str]) -> Callable:
 
             if overrides:
                 kwargs["config"] = PreTrainedConfig.from_pretrained(path, cli_overrides=list(overrides))
-                logger.info("PDP config of %s with %s", path, " ".join(overrides))
+                logger.info("PDP config of %s with %s", path,  # as the user typed them
+                            " ".join("--policy." + o[2:] for o in overrides))
             with paced_caller(PACED_ENGINE, PACED_WAY_OUT, reports_executed=True):  # phases follow; noises by step
                 policy = cls.from_pretrained(path, **kwargs)
             if policy.config.segment_gripper_dim is not None:
@@ -377,6 +378,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     from .cli_errors import ending_on_signals
     from .latent_fitting import ENDING
 
+    if any(a in ("-h", "--help") for a in args):  # draccus lists the server's options; PDP's come from here
+        print("PDP's policy server: LeRobot's options below, and any --policy.<field>=<value> of PDPConfig (e.g. "
+              "--policy.steer_mode=1, --policy.steer_dataset_root=DEMO --policy.steer_episode_index=0, "
+              "--policy.steer_file=steer.json), applied to the checkpoint a client asks for (docs/deploy.md, "
+              "'Asynchronous inference').\n")
     config = draccus.parse(PolicyServerConfig, args=args)
     with ending_on_signals("lerobot_pdp.policy_server"):  # Ctrl-C / SIGTERM: one line, not grpc's traceback
         try:

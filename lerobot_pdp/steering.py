@@ -392,8 +392,9 @@ class SteerFile:
                            "with a fresh steering file, to act under it", self.path, policy.config.inference_latent,
                            self._loaded)
         else:
-            logger.info("steering file %s: %s -> latent %s%s", self.path, request, latent_text(z),
-                        self._overriding(at_start))
+            to = (f"latent {latent_text(z)}" if z is not None else  # --default: the policy's own choice per chunk
+                  f"the default latent (inference_latent={policy.config.inference_latent!r})")
+            logger.info("steering file %s: %s -> %s%s", self.path, request, to, self._overriding(at_start))
         self._loaded = None
         return True
 

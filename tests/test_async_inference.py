@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import subprocess
@@ -196,13 +197,15 @@ def test_the_server_admits_pdp_and_passes_the_environment_state(server_module):
         server.raw_observation_to_observation({k: v for k, v in raw.items() if k != "oz"}, features, {})
 
 
-def test_the_server_loads_pdp_with_its_policy_options_and_replays_chunk_noises(server_module, tmp_path):
+def test_the_server_loads_pdp_with_its_policy_options_and_replays_chunk_noises(server_module, tmp_path, caplog):
     from lerobot_pdp.steering import write_steering
 
     server = server_module
     steer = tmp_path / "steer.json"
     policy_server.admit_pdp(server, ["--steer_mode=1", f"--steer_file={steer}"])
-    policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.policy_server"):
+        policy = server.get_policy_class("pdp").from_pretrained(str(CHECKPOINTS / "trained"))
+    assert f"with --policy.steer_mode=1 --policy.steer_file={steer}" in caplog.text  # the options as typed
     modes = policy.mode_latents()
     torch.testing.assert_close(policy.active_latent, modes[1].reshape(1, -1))
     write_steering(steer, {"mode": 2})  # live steering of the served policy: read before the next chunk
@@ -468,6 +471,14 @@ def test_a_bad_policy_option_stops_the_server_before_it_listens(option, said):
     assert server_args == ["--port=8080"]
     with pytest.raises(SystemExit, match=r"lerobot_pdp.policy_server: bad --policy.\* option \(" + said):
         policy_server.check_policy_options(overrides)
+
+
+def test_the_servers_help_names_the_policy_options(capsys):
+    with pytest.raises(SystemExit) as done:
+        policy_server.main(["--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "--policy.<field>=<value> of PDPConfig" in out and "--port" in out  # PDP's options, then LeRobot's
 
 
 def test_a_client_of_another_robot_is_refused_at_connect(synthetic_meta):

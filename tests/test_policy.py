@@ -818,9 +818,10 @@ def test_a_steering_file_is_read_when_the_checkpoint_loads(synthetic_meta, tmp_p
     adapted._steer_file.poll(adapted)
     caplog.clear()
     write_steering(steer, {"latent": None})
-    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.steering"):
         adapted._steer_file.poll(adapted)
     assert "back to the default latent" not in caplog.text
+    assert "-> the default latent (inference_latent='episode')" in caplog.text and "latent None" not in caplog.text
 
 def test_non_finite_weights_losses_and_actions_are_refused_by_name(synthetic_meta, tmp_path):
     """A NaN checkpoint does not load, a training step whose loss goes NaN stops naming the term, and a
