@@ -30,7 +30,7 @@ from .checkpoint import (
     write_adaptation,
 )
 from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
-from .configuration_pdp import PDPConfig
+from .configuration_pdp import STEERING_FIELDS, PDPConfig
 from .demonstration import Episode, check_recording_exists
 from .latent_search import SearchResult
 from .model_card import checkpoint_card
@@ -59,7 +59,8 @@ def adapt_checkpoint(base: str | Path, episode: Episode, out: str | Path, noise:
     result = policy.fit_latent(episode, steps=steps, lr=lr, seed=seed, noise=noise, progress=True)
     logger.info("fitted in %.1f s: latent %s, error ratio %s", time.perf_counter() - t0, result.z.tolist(),
                 "n/a" if result.error_ratio is None else f"{result.error_ratio:.2f}")
-    policy.steering.provenance = {**policy.steering.provenance, "base_checkpoint": str(base.resolve())}
+    policy.steering.provenance = {**policy.steering.provenance,  # a re-adapted checkpoint names the base it came from
+                                  "base_checkpoint": _origin(base) or str(base.resolve())}
     write_adapted_checkpoint(base, policy, out, _card_section(policy.steering.provenance, result))
     return out
 
@@ -105,8 +106,7 @@ def search_checkpoint(base: str | Path, env_factory: EnvFactory, score: str | Sc
 
 
 # the config fields load_base_policy sets for its load alone (a checkpoint written from that policy restores them)
-LOAD_ONLY_FIELDS = ("device", "use_adaptation", "steer_latent", "steer_mode", "steer_dataset_root",
-                    "steer_episode_index", "steer_file")
+LOAD_ONLY_FIELDS = ("device", "use_adaptation", *STEERING_FIELDS)
 
 
 def load_base_policy(base: Path, device: str = "cpu") -> Any:
@@ -130,7 +130,7 @@ def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: s
                 continue
             (shutil.copytree if f.is_dir() else shutil.copy2)(f, tmp / f.name)
         write_adaptation(policy.steering, tmp)
-        _acting_adapted(tmp / "config.json")
+        _acting_adapted(tmp / "config.json", base)
         text = checkpoint_card(base)
         if (base / ADAPTATION_INFO).is_file():  # a re-adapted checkpoint: its earlier section goes
             text = text.split(f"\n{CARD_HEADING}\n")[0]
@@ -138,13 +138,19 @@ def write_adapted_checkpoint(base: Path, policy: Any, out: Path, card_section: s
         move_into_place(tmp, Path(out))
 
 
-def _acting_adapted(config: Path) -> None:
+def _acting_adapted(config: Path, base: Path) -> None:
     """An adapted checkpoint acts under its adaptation: ``use_adaptation`` false in the base's config.json (as a
-    taught checkpoint of an earlier release saved it) would load it silently unadapted."""
+    taught checkpoint of an earlier release saved it) would load it silently unadapted, and the base's ``steer_*``
+    fields (run at every load) would override it, or fit again to their recording."""
     cfg = read_config_json(config)
-    if cfg.get("use_adaptation", True) is not True:
-        cfg["use_adaptation"] = True
-        config.write_text(json.dumps(cfg, indent=4) + "\n")
+    steering = {f: cfg[f] for f in STEERING_FIELDS if cfg.get(f) is not None}
+    if cfg.get("use_adaptation", True) is True and not steering:
+        return
+    if steering:
+        logger.warning("%s's config.json steers it as it loads (%s): the adapted checkpoint is written without that, "
+                       "to act under its adaptation", base, ", ".join(f"{k}={v!r}" for k, v in steering.items()))
+    cfg.update(use_adaptation=True, **dict.fromkeys(steering))
+    config.write_text(json.dumps(cfg, indent=4) + "\n")
 
 
 def _check_folders(base: Path, out: str | Path | None) -> None:

@@ -15,6 +15,7 @@ the date). Loading it makes the policy act adapted from the first action.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -40,7 +41,7 @@ from .checkpoint_files import (
     read_config_json,
     read_weight_shapes,
 )
-from .configuration_pdp import apply_legacy_defaults
+from .configuration_pdp import STEERING_FIELDS, apply_legacy_defaults
 from .console import latent_text
 from .lerobot_command import given_policy_fields
 from .taught_demos import TAUGHT_DEMOS, TEACHING_INFO, write_taught_demos, write_teachings
@@ -65,7 +66,7 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     fresh = not any(save_directory.iterdir())
     try:
         with staging_dir(save_directory, prefix=".pdp-save-") as tmp:
-            policy.config._save_pretrained(tmp)
+            saved_config(policy)._save_pretrained(tmp)
             if state_dict is None:
                 save_model_as_safetensor(policy, str(tmp / SAFETENSORS_SINGLE_FILE))
             else:
@@ -91,6 +92,23 @@ def save_checkpoint(policy: Any, save_directory: str | Path, state_dict: dict[st
     finally:  # a failed save into a folder it made leaves none (a folder the caller had stays)
         if made and save_directory.exists() and not any(save_directory.iterdir()):
             save_directory.rmdir()
+
+
+def saved_config(policy: Any) -> Any:
+    """The config a checkpoint of ``policy`` is written with. A policy acting under a steering state saves that state
+    as its adaptation, so the ``steer_*`` fields that set it are not saved with it: every load would run them again
+    over the adaptation (a fit to a recording by a path relative to wherever it ran, a mode over a fitted latent);
+    and ``use_adaptation`` is true, so the adaptation acts. Otherwise (a training run's flags) the config as it is."""
+    cfg = policy.config
+    if not policy.steering.active:
+        return cfg
+    spent = {f: None for f in STEERING_FIELDS if getattr(cfg, f) is not None}
+    if not spent and cfg.use_adaptation:
+        return cfg
+    if spent:
+        logger.info("saved with the active latent as its adaptation, without %s (run at load, they would redo or "
+                    "override it)", ", ".join(f"{f}={getattr(cfg, f)!r}" for f in spent))
+    return dataclasses.replace(cfg, **spent, use_adaptation=True)
 
 
 def write_processors(policy: Any, tmp: Path, save_directory: Path) -> None:

@@ -24,6 +24,9 @@ LATENT_TYPES = ("continuous", "onehot")
 INFERENCE_LATENTS = ("episode", "prior", "zero")
 TRACE_NORMALIZE = ("none", "start", "endpoints")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")  # torch.compile
+# the fields that steer a checkpoint as it loads (instructions run once by from_pretrained, not properties of the
+# weights): a checkpoint saved while acting under their result keeps that result as its adaptation instead
+STEERING_FIELDS = ("steer_latent", "steer_mode", "steer_dataset_root", "steer_episode_index", "steer_file")
 
 logger = logging.getLogger(__name__)
 

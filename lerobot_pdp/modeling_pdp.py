@@ -54,7 +54,7 @@ from .paced_chunks import is_one_frame, paced_history
 from .pdp_model import PDPModel, check_finite_actions, read_loss_terms
 from .processor_pdp import CameraFrameCheck, VectorSizeCheck  # noqa: F401  (registered: checkpoints name them)
 from .realtime_chunking import prepare_rtc, rtc_chunk
-from .steering import SteerFile, apply_config_steering
+from .steering import apply_config_steering, config_steer_file
 from .steering_state import Steering
 from .taught_demos import read_taught_demos
 from .teaching import TeachResult, TrainingRehearsal, teach_new_mode
@@ -86,7 +86,7 @@ class PDPPolicy(PreTrainedPolicy):
         self.register_state_dict_post_hook(flatten_model_keys)  # the first release's keys ("vae.*", "behavior_traces")
         self.register_load_state_dict_pre_hook(nest_model_keys)
         self.steering = Steering(cfg.latent_dim, cfg)  # what the next chunk is conditioned on: steering_state.py
-        self._steer_file = SteerFile(cfg.steer_file) if cfg.steer_file else None
+        self._steer_file = config_steer_file(cfg, training=dataset_meta is not None)  # None: no file, or training
         self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)
         self.reset()  # the observation/action queues (self._queues), the steering state
 
@@ -98,7 +98,7 @@ class PDPPolicy(PreTrainedPolicy):
         policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
         apply_adaptation(policy, pretrained_name_or_path, **kwargs)
         read_taught_demos(policy, pretrained_name_or_path, **kwargs)  # rehearsed if it is taught again
-        policy.apply_config_steering()
+        policy.apply_config_steering(training=kwargs.get("dataset_meta") is not None)  # not in lerobot-train
         return policy
 
     @classmethod
@@ -223,10 +223,10 @@ class PDPPolicy(PreTrainedPolicy):
         """When a row of ``z`` lies far from every training latent: :meth:`BehaviorBank.outlier`."""
         return self.model.bank.outlier(self.model.vae, z)
 
-    def apply_config_steering(self) -> None:
+    def apply_config_steering(self, training: bool = False) -> None:
         """Apply the config's ``steer_*`` fields (how ``lerobot-eval`` / ``lerobot-rollout`` steer a checkpoint;
         :meth:`from_pretrained` calls it): :func:`lerobot_pdp.steering.apply_config_steering`."""
-        apply_config_steering(self)
+        apply_config_steering(self, training)
 
     def mode_latents(self) -> ModeLatents:
         """Per-mode mean latent (one per phase for segmented policies); without mode labels, the discovered modes

@@ -39,6 +39,7 @@ from typing import Any
 
 import torch
 
+from .configuration_pdp import STEERING_FIELDS
 from .console import latent_text
 from .latent_fitting import FitCancelled, cancellable
 from .lerobot_command import rollout_with_rtc
@@ -93,11 +94,27 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
     raise AssertionError("unreachable: check_request admits one of REQUEST_KEYS")
 
 
-def apply_config_steering(policy: Any) -> None:
+def config_steer_file(cfg: Any, training: bool) -> SteerFile | None:
+    """The steering file of ``--policy.steer_file`` (None without one). A policy built to train (``lerobot-train``
+    passes its dataset) is not steered: its ``steer_*`` fields are said once, as they go into every checkpoint's
+    config.json and steer each later load of it (a fit to a recording again at every load)."""
+    given = {f: getattr(cfg, f) for f in STEERING_FIELDS if getattr(cfg, f) is not None}
+    if training and given:
+        logger.warning("steering given to a training run (%s): PDP does not steer training or its evaluations; the "
+                       "checkpoints' config.json keeps it and every load of them is steered so. To steer a trained "
+                       "checkpoint, give --policy.steer_* when loading it (lerobot-eval, lerobot-rollout)",
+                       ", ".join(f"{k}={v!r}" for k, v in given.items()))
+    return SteerFile(cfg.steer_file) if cfg.steer_file and not training else None
+
+
+def apply_config_steering(policy: Any, training: bool = False) -> None:
     """Apply ``policy``'s config steering fields, the steering of a checkpoint loaded by ``lerobot-eval`` /
     ``lerobot-rollout``: ``steer_latent``, else ``steer_mode`` (that mode's mean latent), else
     ``steer_dataset_root`` + ``steer_episode_index`` (a fit to that episode, run now, not in the control loop); then
-    a request already in ``steer_file`` (:meth:`SteerFile.start`)."""
+    a request already in ``steer_file`` (:meth:`SteerFile.start`). Nothing when loaded to train
+    (:func:`config_steer_file` said so)."""
+    if training:
+        return
     cfg = policy.config
     # what the policy acts under once loaded, named when a steering file's `--default` request drops it
     loaded = "the adapted checkpoint's latent" if len(policy.steering.latent) else None

@@ -22,7 +22,7 @@ from pathlib import Path
 from .atomic import move_into_place, staging_dir
 from .checkpoint import ADAPTATION_INFO, ADAPTATION_TENSORS, CARD_HEADING
 from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
-from .configuration_pdp import PDPConfig
+from .configuration_pdp import STEERING_FIELDS, PDPConfig
 from .console import latent_text
 from .demonstration import Demonstration, Episode, check_demonstration, check_recording_exists
 from .model_card import checkpoint_card
@@ -136,8 +136,12 @@ def _teach_and_write(base: Path, lessons: list[tuple[Episode, str | None, dict |
             policy.model.bank.teachings[result.mode]["demonstration"] = demo_record
     policy.eval()
     saved = PDPConfig.from_pretrained(base)  # written as the base's: use_adaptation=False would hide a later adaptation
+    steering = {f: getattr(saved, f) for f in STEERING_FIELDS if getattr(saved, f) is not None}
+    if steering:  # run at every load, they would steer the taught checkpoint past its new mode (or fit again)
+        logger.warning("%s's config.json steers it as it loads (%s): the taught checkpoint is written without that; "
+                       "steer it when loading it", base, ", ".join(f"{k}={v!r}" for k, v in steering.items()))
     for field in LOAD_ONLY_FIELDS:
-        setattr(policy.config, field, getattr(saved, field))
+        setattr(policy.config, field, None if field in STEERING_FIELDS else getattr(saved, field))
     with staging_dir(out, prefix=".pdp-teach-") as tmp:
         for f in base.iterdir():
             if f.name not in _REWRITTEN:

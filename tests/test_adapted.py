@@ -105,6 +105,54 @@ def test_set_latent_and_steering_fields_travel_with_the_checkpoint(synthetic_met
         assert (tmp_path / "b" / f.name).read_bytes() == f.read_bytes(), f.name
 
 
+def test_a_checkpoint_saved_after_load_time_steering_keeps_the_result_not_the_instruction(synthetic_meta, tmp_path,
+                                                                                         caplog):
+    """Loaded with --policy.steer_dataset_root (a start-up fit) and saved: the fitted latent is its adaptation and
+    the steer_* fields are not saved, so the checkpoint, moved and without the recording, loads as it was saved
+    instead of fitting again (or not finding the recording). An adapted checkpoint of a base whose config steers it
+    acts under its adaptation; a policy built to train is not steered, and says so."""
+    import dataclasses
+
+    from lerobot.policies.factory import make_policy
+
+    from lerobot_pdp.adapted import adapt_checkpoint
+    from lerobot_pdp.configuration_pdp import STEERING_FIELDS
+
+    p = small_policy(synthetic_meta)
+    p.save_pretrained(tmp_path / "ckpt")
+    shutil.copytree(synthetic_meta.root, tmp_path / "demo")
+    cfg = dataclasses.replace(p.config, steer_dataset_root=str(tmp_path / "demo"), steer_episode_index=2, fit_steps=2,
+                              use_adaptation=False)
+    q = PDPPolicy.from_pretrained(tmp_path / "ckpt", config=cfg)
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.checkpoint"):
+        q.save_pretrained(tmp_path / "saved")
+    assert f"without steer_dataset_root='{tmp_path / 'demo'}', steer_episode_index=2" in caplog.text
+    saved = json.loads((tmp_path / "saved" / "config.json").read_text())
+    assert all(saved[f] is None for f in STEERING_FIELDS) and saved["use_adaptation"] is True
+    shutil.rmtree(tmp_path / "demo")
+    shutil.move(tmp_path / "saved", tmp_path / "moved")
+    assert torch.equal(PDPPolicy.from_pretrained(tmp_path / "moved").active_latent, q.active_latent)
+
+    mode = sorted(p.mode_latents())[1]
+    p.config.steer_mode = mode  # a base whose config.json steers every load of it (lerobot-train --policy.steer_mode)
+    p.save_pretrained(tmp_path / "steered")
+    assert json.loads((tmp_path / "steered" / "config.json").read_text())["steer_mode"] == mode  # kept: not acted on
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.adapted"):
+        adapt_checkpoint(tmp_path / "steered", (synthetic_meta.root, 2), tmp_path / "adapted", steps=2)
+    assert f"steers it as it loads (steer_mode={mode})" in caplog.text
+    fitted = json.loads((tmp_path / "adapted" / ADAPTATION_INFO).read_text())["latent"]
+    assert PDPPolicy.from_pretrained(tmp_path / "adapted").active_latent.tolist() == fitted  # not mode's latent
+
+    cfg = PDPPolicy.from_pretrained(tmp_path / "steered").config
+    cfg.pretrained_path = tmp_path / "steered"  # lerobot-train --policy.path=steered (fine-tuning)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
+        trained = make_policy(cfg, ds_meta=synthetic_meta)
+    assert len(trained.active_latent) == 0
+    assert f"steering given to a training run (steer_mode={mode}): PDP does not steer training" in caplog.text
+
+
 def test_an_adaptation_of_phase_latents_saved_on_a_policy_without_phases_still_loads(synthetic_meta, tmp_path,
                                                                                      caplog):
     """Saved before several latents were refused on a policy without phases: it loads, acting under the first
@@ -203,7 +251,7 @@ def test_lerobot_pdp_adapt_writes_a_complete_adapted_checkpoint(synthetic_meta, 
                 "--out", str(tmp_path / "twice")]) == 0
     twice = json.loads((tmp_path / "twice" / ADAPTATION_INFO).read_text())
     assert twice["demonstration"]["episode"] == 1 and twice["noise_chunks"] == 0
-    assert twice["base_checkpoint"] == str(out.resolve())
+    assert twice["base_checkpoint"] == str(base.resolve())  # the base of the adapted checkpoint adapted again
     assert (tmp_path / "twice" / "README.md").read_text().count("## Adaptation") == 1
     assert filecmp.cmp(out / "model.safetensors", tmp_path / "twice" / "model.safetensors", shallow=False)
     # a base without a model card (lerobot-train writes one only when it pushes) gets PDP's card with the section

@@ -135,7 +135,9 @@ def test_teaching_again_rehearses_the_mode_taught_before(synthetic_meta, caplog)
 
 def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, capsys):
     base = tmp_path / "base"
-    small_policy(synthetic_meta).save_pretrained(base)
+    p = small_policy(synthetic_meta)
+    p.config.steer_dataset_root = str(tmp_path / "gone")  # a base whose config.json fits at every load (not taught on)
+    p.save_pretrained(base)
     demo_root = tmp_path / "demo"
     _write_demo(demo_root, new_route())
     code = cli(["teach", str(base), "--demo", str(demo_root), "--data", str(synthetic_meta.root), "--steps", "2",
@@ -144,6 +146,7 @@ def test_taught_checkpoint_loads_with_its_new_mode(synthetic_meta, tmp_path, cap
     info = json.loads((tmp_path / "taught" / TEACHING_INFO).read_text())
     assert info["mode"] == 4 and info["settings"]["steps"] == 2 and info["demonstration"]["episode"] == 0
     assert info["training_data"] == str(synthetic_meta.root.resolve())
+    assert json.loads((tmp_path / "taught" / "config.json").read_text())["steer_dataset_root"] is None
     card = (tmp_path / "taught" / "README.md").read_text()  # the base had no card (as lerobot-train leaves it)
     assert "Parameterized Diffusion Policy" in card and "## Taught mode" in card and "far right" in card
 
