@@ -399,7 +399,7 @@ class BehaviorBank(nn.Module):
 
     # ------------------------------------------------------------------ modes
 
-    def mode_latents(self, vae: TrajectoryVAE) -> ModeLatents:
+    def mode_latents(self, vae: TrajectoryVAE, k: int | None = None) -> ModeLatents:
         """Per-mode mean latent (mean of its training behaviors' encoder means).
 
         Mode ids are the training episodes' labels (task strings ``"mode <id>: <name>"`` or
@@ -407,6 +407,7 @@ class BehaviorBank(nn.Module):
         discovered by clustering the training episodes (:meth:`discover_modes`; ids are then cluster ids, and a
         warning says so). With gripper-segmented behaviors (several per episode) each mode gets one mean per
         phase, [n_phases, d_z], which ``set_latent`` uses in order as the phases advance (paper Eq. 12).
+        ``k``: without labels, the number of modes to discover (None: found by :meth:`discover_modes`).
         """
         if len(self.mode) == 0:
             raise ValueError("mode_latents() needs the training behaviors: build the policy with dataset_meta "
@@ -415,12 +416,12 @@ class BehaviorBank(nn.Module):
             z = self.latents(vae)
         if not self.labelled():
             try:
-                found = self.discover_modes(vae)
-            except ValueError as e:  # too few episodes to cluster: mode_latents has no k to pass
+                found = self.discover_modes(vae, k=k)
+            except ValueError as e:  # too few episodes to cluster: no k passed
                 raise ValueError(f"mode_latents(): the training episodes carry no mode labels, and finding their modes "
                                  f"failed: {str(e).split('; pass k')[0]}. Label them (`lerobot-pdp label-modes DATASET`, "
-                                 "then train), or choose the number of modes: policy.discover_modes(k=K).means (its "
-                                 "ids: `lerobot-pdp latent-map CKPT --k K`)") from e
+                                 "then train), or choose the number of modes: policy.mode_latents(k=K) (its ids: "
+                                 "`lerobot-pdp latent-map CKPT --k K`)") from e
             logger.warning("the training episodes carry no mode labels: mode_latents() returns the %d modes "
                            "discovered by clustering their behavior traces (policy.discover_modes(); ids are cluster "
                            "ids, see `lerobot-pdp latent-map`)%s", found.k,

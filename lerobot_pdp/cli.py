@@ -651,6 +651,9 @@ def add_explore_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--share", choices=("true", "false"), default="false",
                    help="also a public Gradio share link (default false)")
     p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
+    p.add_argument("--k", type=_int_in(1), default=None,
+                   help="without mode labels: the number of modes to group the training episodes in (default: found "
+                   "by policy.discover_modes(); one per episode below six episodes; labels, where the data has them, win)")
     p.set_defaults(func=cmd_explore)
 
 
@@ -689,7 +692,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
             raise RuntimeError(f"port {args.port} is not free ({e.strerror}): another explorer or program holds "
                                "it; give another with --port") from None
     explorer = Explorer(args.checkpoint, env=args.env, scene=args.scene, rollouts=args.rollouts,
-                        max_steps=args.max_steps, cache_dir=args.cache_dir, dataset=args.dataset, device=args.device)
+                        max_steps=args.max_steps, cache_dir=args.cache_dir, dataset=args.dataset, device=args.device,
+                        k=args.k)
     print(f"explorer on {args.checkpoint}: http://127.0.0.1:{args.port} (Ctrl-C stops it)")
     launch(explorer, port=args.port, share=args.share == "true")
     return 0

@@ -36,7 +36,7 @@ from .candidate_rollouts import CandidateRollouts, check_env_features, env_camer
 from .checkpoint import ADAPTATION_INFO, card_section
 from .checkpoint_files import read_config_json, require_checkpoint_files, require_new_folder
 from .demonstration import check_recording, recording_info
-from .latent_map import LatentMap, latent_map_figure
+from .latent_map import LatentMap, groups_k, latent_map_figure
 from .outcome_scores import Outcome
 from .steer_requests import mode_key
 from .steering_state import Steering
@@ -46,6 +46,7 @@ MAP_DPI = 80  # the map's pixels: a click's coordinates are read in them
 MAP_WIDEN_SPANS = 2.0  # a mark off the training latents widens the map's view by at most this many spans each side
 LANDSCAPE_MAX_ROLLOUTS = 1024  # rollouts one landscape request may run (grid^2 x rollouts); Python: limit=None
 LANDSCAPE_VERSION = 1  # bump when what a cached landscape holds changes
+DECODER_MAX_DIMS = 8  # action dimensions the decoder's view draws, one row each
 Progress = Callable[[float, str], None]  # fraction done, what is running (gr.Progress is one)
 
 
@@ -132,7 +133,7 @@ class Explorer:
 
     def __init__(self, checkpoint: str | Path, env: str | None = None, scene: str | int = "0",
                  rollouts: int = 8, max_steps: int | None = None, cache_dir: str | Path | None = None,
-                 dataset: str | Path | None = None, device: str = "cpu", seed: int = 0):
+                 dataset: str | Path | None = None, device: str = "cpu", seed: int = 0, k: int | None = None):
         self.checkpoint = Path(checkpoint)
         check_checkpoint_folder(self.checkpoint)
         if dataset is not None:  # a bad argument is refused now, not at the first click
@@ -151,9 +152,10 @@ class Explorer:
         self.max_steps = max_steps
         if env is not None:
             self._set_env(env, scene, max_steps)
-        self.map: LatentMap = latent_map_figure(self.policy, title=f"{self.checkpoint.name}: latent map")
+        k = groups_k(self.policy, None if self.policy.model.bank.labelled() else k)  # None: found (or labels)
+        self.map: LatentMap = latent_map_figure(self.policy, k, title=f"{self.checkpoint.name}: latent map")
         self.map.axes.set_title(self.map.axes.get_title() + "\nclick a point: the policy's behavior there", fontsize=9)
-        self.modes = self.policy.mode_latents()
+        self.modes = self.policy.mode_latents(k)
         self.map.figure.set_dpi(MAP_DPI)
         self.map.figure.canvas.draw()
         self._limits = (self.map.axes.get_xlim(), self.map.axes.get_ylim())  # the map stays put between clicks
@@ -452,8 +454,9 @@ class Explorer:
             chunks = self.policy.generate(cond, zs, generator=g)
             chunks = self.policy.stats.unnormalize(ACTION, chunks).cpu().numpy().reshape(len(at), samples, *chunks.shape[1:])
             recorded = self.policy.stats.unnormalize(ACTION, windows.actions[at]).cpu().numpy()
-        dims = min(chunks.shape[-1], 4)
-        fig = Figure(figsize=(2.6 * len(at), 1.7 * dims + 0.6))
+        dims = min(chunks.shape[-1], DECODER_MAX_DIMS)  # an arm's joints and gripper: 7
+        names = (self.policy.config.dataset_feature_names or {}).get(ACTION) or []
+        fig = Figure(figsize=(2.6 * len(at), 1.5 * dims + 0.6))
         axes = fig.subplots(dims, len(at), squeeze=False, sharex=True)
         for c, t in enumerate(at):
             for d in range(dims):
@@ -464,12 +467,13 @@ class Explorer:
                             label="sampled at z" if s == 0 else None)
                 ax.tick_params(labelsize=6)
                 if c == 0:
-                    ax.set_ylabel(f"action[{d}]", fontsize=8)
+                    ax.set_ylabel(names[d] if d < len(names) else f"action[{d}]", fontsize=8)
                 if d == 0:
                     ax.set_title(f"frame {t}", fontsize=8)
         axes[0][0].legend(fontsize=6)
+        more = f"; the first {dims} of {chunks.shape[-1]} action dimensions" if dims < chunks.shape[-1] else ""
         fig.suptitle(f"decoder's view of z = {np.round(z, 3).tolist()}: action chunks at frames of episode {episode} "
-                     f"of {root.name} ({why})", fontsize=9)
+                     f"of {root.name} ({why}{more})", fontsize=9)
         fig.tight_layout()
         return _pixels(fig)
 
@@ -477,7 +481,7 @@ class Explorer:
 
     def landscape_key(self, grid: int, rollouts: int) -> dict[str, Any]:
         """What a cached landscape depends on: the checkpoint's weights, the env, scene, grid and rollouts."""
-        self._need_env("the success landscape")
+        self._need_env("success landscapes")
         return {"version": LANDSCAPE_VERSION, "checkpoint": file_digest(self.checkpoint / "model.safetensors"),
                 "env": self.suite.name, "scene": self.scene.to_dict(), "max_steps": self.max_steps,
                 "grid": grid, "rollouts": rollouts, "seed": self.seed, "box": self.box().tolist()}

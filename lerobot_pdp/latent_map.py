@@ -8,6 +8,7 @@ works: the traces and labels are stored in it.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,9 @@ import numpy as np  # noqa: E402
 
 from .atomic import write_figure_atomic  # noqa: E402
 from .console import counted  # noqa: E402
+from .modes import MIN_CLUSTER_SIZE  # noqa: E402
+
+logger = logging.getLogger(__name__)
 
 MAX_PANELS = 24  # trace panels drawn; more modes are listed in the title
 UNLABELLED = -1  # group of the behaviors without a mode label (behavior.UNLABELED), drawn in grey
@@ -82,12 +86,28 @@ def draw_latent_map(policy, out_png: str | Path, k: int | None = None, title: st
     return out_png
 
 
+def groups_k(policy, k: int | None) -> int | None:
+    """How many groups the unlabelled training episodes are drawn in (the explorer's modes too): ``k``; None when
+    there are labels or enough episodes to find the modes in; with fewer (a small robot dataset), one group per
+    episode, said once: a map that refused them would show nothing."""
+    bank = policy.model.bank
+    if k is not None or bank.labelled() or len(bank.mode) == 0:
+        return k
+    n = len(np.unique(policy.behavior_table()["episode"][~bank.is_taught().cpu().numpy()]))
+    if n >= 2 * MIN_CLUSTER_SIZE:
+        return None
+    logger.warning("%s without mode labels: too few to find modes in (%d or more; --k K groups them); each episode "
+                   "is a group of its own", counted(n, "training episode"), 2 * MIN_CLUSTER_SIZE)
+    return n
+
+
 def latent_map_figure(policy, k: int | None = None, title: str | None = None) -> LatentMap:
     """``policy``'s latent map as a figure (the caller closes it); ``k`` fixes the number of discovered clusters."""
     table = policy.behavior_table()
     z, episode, mode = table["z"], table["episode"], table["mode"]
     if len(z) == 0:
         raise ValueError("the policy has no training behaviors (a checkpoint trained with lerobot-train has them)")
+    k = groups_k(policy, k)
     bank = policy.model.bank
     taught = bank.is_taught().cpu().numpy()
     mode_names = policy.config.mode_names or {}

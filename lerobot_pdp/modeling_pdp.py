@@ -228,10 +228,10 @@ class PDPPolicy(PreTrainedPolicy):
         :meth:`from_pretrained` calls it): :func:`lerobot_pdp.steering.apply_config_steering`."""
         apply_config_steering(self, training)
 
-    def mode_latents(self) -> ModeLatents:
-        """Per-mode mean latent (one per phase for segmented policies); without mode labels, the discovered modes
-        with a warning. See :meth:`lerobot_pdp.behavior_bank.BehaviorBank.mode_latents`."""
-        return self.model.bank.mode_latents(self.model.vae)
+    def mode_latents(self, k: int | None = None) -> ModeLatents:
+        """Per-mode mean latent (one per phase for segmented policies); without mode labels, the ``k`` (None: found)
+        discovered modes with a warning. See :meth:`lerobot_pdp.behavior_bank.BehaviorBank.mode_latents`."""
+        return self.model.bank.mode_latents(self.model.vae, k)
 
     def discover_modes(self, k: int | None = None, max_k: int | None = None, seed: int = 0,
                        space: str = "traces") -> DiscoveredModes:

@@ -393,10 +393,13 @@ def test_training_says_what_its_behavior_bank_holds(synthetic_meta, caplog):
     assert "1 episode(s) without a label" in bank_summary(dataclasses.replace(t, mode=np.array([0, 1, -1])))
 
 
-def test_mode_latents_of_too_few_unlabelled_episodes_say_how_to_get_modes(tmp_path):
-    """Four unlabelled episodes are too few to find modes: mode_latents() (which has no k) says to label them or
-    to choose k with discover_modes, which then works."""
+def test_mode_latents_of_too_few_unlabelled_episodes_say_how_to_get_modes(tmp_path, caplog):
+    """Four unlabelled episodes are too few to find modes: mode_latents() says to label them or to choose k, which
+    then works; the latent map and the explorer show them all the same, one group per episode (said), or in k."""
     from policies import small_policy
+
+    from lerobot_pdp.explorer import Explorer
+    from lerobot_pdp.latent_map import latent_map_figure
 
     from synthetic import write_dataset
 
@@ -404,6 +407,14 @@ def test_mode_latents_of_too_few_unlabelled_episodes_say_how_to_get_modes(tmp_pa
     policy = small_policy(_meta(root))
     with pytest.raises(ValueError, match=r"mode_latents\(\): the training episodes carry no mode labels, and finding "
                                          r"their modes failed: finding the modes needs at least 6 training episodes "
-                                         r".*got 4\. Label them \(`lerobot-pdp label-modes DATASET`.*discover_modes\(k=K\)"):
+                                         r".*got 4\. Label them \(`lerobot-pdp label-modes DATASET`.*mode_latents\(k=K\)"):
         policy.mode_latents()
-    assert len(policy.discover_modes(k=2).means) == 2
+    assert len(policy.discover_modes(k=2).means) == 2 and len(policy.mode_latents(k=2)) == 2
+    with caplog.at_level(logging.WARNING, logger="lerobot_pdp.latent_map"):
+        drawn = latent_map_figure(policy)
+    drawn.figure.clf()
+    assert "4 training episodes without mode labels: too few to find modes in (6 or more; --k K groups them)" \
+        in caplog.text
+    policy.save_pretrained(tmp_path / "ckpt")
+    assert sorted(Explorer(tmp_path / "ckpt", dataset=root).modes) == [0, 1, 2, 3]  # one mode per episode
+    assert sorted(Explorer(tmp_path / "ckpt", dataset=root, k=2).modes) == [0, 1]
