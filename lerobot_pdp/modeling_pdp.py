@@ -86,7 +86,7 @@ class PDPPolicy(PreTrainedPolicy):
         self.register_state_dict_post_hook(flatten_model_keys)  # the first release's keys ("vae.*", "behavior_traces")
         self.register_load_state_dict_pre_hook(nest_model_keys)
         self.steering = Steering(cfg.latent_dim, cfg)  # what the next chunk is conditioned on: steering_state.py
-        self._steer_file = config_steer_file(cfg, training=dataset_meta is not None)  # None: no file, or training
+        self._steer_file = config_steer_file(cfg, training=dataset_meta is not None)  # None: no file
         self._train_steps = 0  # training steps of this process (named when a loss term goes non-finite)
         self.reset()  # the observation/action queues (self._queues), the steering state
 

@@ -129,7 +129,7 @@ def with_input_check(original: Callable) -> Callable:
     """Wrap LeRobot's ``PolicyServer.SendPolicyInstructions``: the features a robot client of PDP sends must be the
     ones the checkpoint was trained on (its config.json, read first), else the request fails (gRPC
     ``FAILED_PRECONDITION``, details beginning with :data:`CLIENT_REFUSED`, naming each difference) and the client
-    ends at connect. Checked before LeRobot loads anything: the policy, its start-up fit and the features a client
+    ends at connect; so it does, naming the error, when loading the policy fails. Checked before LeRobot loads anything: the policy, its start-up fit and the features a client
     already running is served with stay as they were (a robot of another env would otherwise get no action, the
     server failing at every chunk, and wait for good)."""
 
@@ -151,6 +151,16 @@ def with_input_check(original: Callable) -> Callable:
 
                 logger.error("refused the robot client %s: %s", context.peer(), e)
                 context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{CLIENT_REFUSED}: {e}")
+            try:
+                return original(self, request, context)
+            except Exception as e:  # noqa: BLE001 - a load that fails (a bad --policy.* option, a missing recording):
+                import grpc  # the client names it, not gRPC's "Exception calling application" dump
+
+                said = e.args[0] if isinstance(e, KeyError) and e.args else e
+                logger.exception("could not load %s for the robot client %s", specs.pretrained_name_or_path,
+                                 context.peer())
+                context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{CLIENT_REFUSED}: loading "
+                              f"{specs.pretrained_name_or_path} failed ({type(e).__name__}: {said})")
         return original(self, request, context)
 
     return SendPolicyInstructions

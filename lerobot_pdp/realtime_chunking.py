@@ -295,10 +295,14 @@ def prepare_rtc(policy: Any) -> None:
     ``rtc_consumed_delay`` have the engine build its queue as :class:`ConsumedDelayQueue` (which also reports the
     executed actions: PDP's gripper phases and chunk noises follow them); refuse steering RTC cannot honour (now,
     and in live requests of ``steer_file``)."""
-    logger.info("PDP under RTC: this run holds each new chunk to the last one over its first %d actions "
-                "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place about "
-                "20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
-                RECOMMENDED_EXECUTION_HORIZON)
+    if getattr(policy.config.rtc_config, "enabled", True):
+        logger.info("PDP under RTC: this run holds each new chunk to the last one over its first %d actions "
+                    "(--inference.rtc.execution_horizon); %d is recommended: LeRobot's default 10 cost pick-place "
+                    "about 20 points against sync (docs/deploy.md)", policy.config.rtc_config.execution_horizon,
+                    RECOMMENDED_EXECUTION_HORIZON)
+    else:  # LeRobot's engine then appends each chunk as it comes (--inference.rtc.enabled=false)
+        logger.info("PDP under RTC's engine with --inference.rtc.enabled=false: new chunks are planned in the "
+                    "background and appended, nothing held to the last one")
     cfg = policy.config
     keep_history = cfg.rtc_observation_history and cfg.n_obs_steps > 1
     policy._rtc_observations = PublishedObservations(cfg.n_obs_steps, keep_history)

@@ -96,15 +96,15 @@ def apply_steering(policy: Any, request: dict[str, Any], base: str | Path | None
 
 def config_steer_file(cfg: Any, training: bool) -> SteerFile | None:
     """The steering file of ``--policy.steer_file`` (None without one). A policy built to train (``lerobot-train``
-    passes its dataset) is not steered: its ``steer_*`` fields are said once, as they go into every checkpoint's
-    config.json and steer each later load of it (a fit to a recording again at every load)."""
+    passes its dataset) is not steered as it loads: its ``steer_*`` fields are said once, as they go into every
+    checkpoint's config.json and steer each later load of it (a fit to a recording again at every load)."""
     given = {f: getattr(cfg, f) for f in STEERING_FIELDS if getattr(cfg, f) is not None}
     if training and given:
-        logger.warning("steering given to a training run (%s): PDP does not steer training or its evaluations; the "
+        logger.warning("steering given to a training run (%s): PDP does not steer the policy it trains; the "
                        "checkpoints' config.json keeps it and every load of them is steered so. To steer a trained "
                        "checkpoint, give --policy.steer_* when loading it (lerobot-eval, lerobot-rollout)",
                        ", ".join(f"{k}={v!r}" for k, v in given.items()))
-    return SteerFile(cfg.steer_file) if cfg.steer_file and not training else None
+    return SteerFile(cfg.steer_file) if cfg.steer_file else None
 
 
 def apply_config_steering(policy: Any, training: bool = False) -> None:

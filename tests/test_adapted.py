@@ -150,7 +150,7 @@ def test_a_checkpoint_saved_after_load_time_steering_keeps_the_result_not_the_in
     with caplog.at_level(logging.WARNING, logger="lerobot_pdp.steering"):
         trained = make_policy(cfg, ds_meta=synthetic_meta)
     assert len(trained.active_latent) == 0
-    assert f"steering given to a training run (steer_mode={mode}): PDP does not steer training" in caplog.text
+    assert f"steering given to a training run (steer_mode={mode}): PDP does not steer the policy it trains" in caplog.text
 
 
 def test_an_adaptation_of_phase_latents_saved_on_a_policy_without_phases_still_loads(synthetic_meta, tmp_path,

@@ -644,6 +644,18 @@ def test_a_refused_client_leaves_the_one_being_served_alone(server_module, clien
             served.stop()
 
 
+def test_a_policy_the_server_cannot_load_is_named_by_the_client(server_module, client_module, tmp_path):
+    """A load that fails on the server (here a --policy.steer_mode the checkpoint has no mode of) ends the client at
+    connect naming the error, not with "no server listening, or it refused the policy"."""
+    from lerobot_pdp.policy_server import CLIENT_REFUSED
+
+    with _serving(server_module, ["--steer_mode=99"]) as (_, port, _, _):
+        client = client_module.RobotClient(_client_config(port, tmp_path))
+        assert not client.start()
+    assert client_hooks.FAILURES[0].startswith(f"{CLIENT_REFUSED}: loading ")
+    assert "failed (KeyError: steer_mode 99 is not a mode of this checkpoint" in client_hooks.FAILURES[0]
+
+
 def test_a_chunk_that_arrives_before_the_must_go_flag_is_cleared_does_not_stall_the_run(
         server_module, client_module, tmp_path):
     """LeRobot's control loop clears "must go" after sending a must-go observation; the chunk answering it can

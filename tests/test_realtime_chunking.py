@@ -1,6 +1,7 @@
 """PDP under LeRobot's real-time chunking engine (``lerobot-rollout --inference.type=rtc``): the call shape the
 engine checks, the prefix imposed on a new chunk, the engine's zero padding, what is refused."""
 
+import logging
 import threading
 
 import numpy as np
@@ -84,9 +85,12 @@ def test_the_engines_zero_padding_is_not_taken_for_actions(synthetic_meta):
                                                                prev_chunk_left_over=None))
 
 
-def test_rtc_disabled_appends_chunks_without_a_prefix(synthetic_meta):
-    """``--inference.rtc.enabled=false``: the engine appends chunks to its queue; nothing is imposed."""
-    p = _rtc_policy(synthetic_meta, enabled=False)
+def test_rtc_disabled_appends_chunks_without_a_prefix(synthetic_meta, caplog):
+    """``--inference.rtc.enabled=false``: the engine appends chunks to its queue; nothing is imposed (and the
+    start-up line says so, not that chunks are held)."""
+    with caplog.at_level(logging.INFO, logger="lerobot_pdp.realtime_chunking"):
+        p = _rtc_policy(synthetic_meta, enabled=False)
+    assert "appended, nothing held to the last one" in caplog.text and "holds each new chunk" not in caplog.text
     noise = _noise(p)
     prefix = torch.ones(5, p.action_dim) * 0.5
     torch.testing.assert_close(
