@@ -529,8 +529,10 @@ class PDPConfig(ActionChunkConfigMixin, PreTrainedConfig):
                              "Resize them when recording, or set --policy.resize_shape")
         size = self.resize_shape or next(iter(shapes.values()))[1:]
         if self.crop_shape is not None and (self.crop_shape[0] > size[0] or self.crop_shape[1] > size[1]):
-            raise ValueError(f"crop_shape {tuple(self.crop_shape)} does not fit in the images "
-                             f"({'resized to ' if self.resize_shape else ''}{tuple(size)})")
+            raise ValueError(f"crop_shape {tuple(self.crop_shape)} does not fit in the images of "
+                             f"{', '.join(repr(k) for k in shapes)} "
+                             f"({'resized to ' if self.resize_shape else ''}{tuple(size)}): give a smaller "
+                             "--policy.crop_shape, or none")
 
     @property
     def condition_features(self) -> dict[str, PolicyFeature]:

@@ -208,7 +208,8 @@ def test_cameras_of_different_shapes_are_refused():
         cfg.validate_features()
     cfg.input_features[SIDE] = PolicyFeature(FeatureType.VISUAL, (3, 48, 48))
     cfg.crop_shape = (56, 56)
-    with pytest.raises(ValueError, match=r"crop_shape \(56, 56\) does not fit"):
+    with pytest.raises(ValueError, match=r"crop_shape \(56, 56\) does not fit in the images of "
+                                         r"'observation.images.top', 'observation.images.side' \(\(48, 48\)\)"):
         cfg.validate_features()
 
 
