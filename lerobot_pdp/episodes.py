@@ -221,8 +221,8 @@ def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, d
         if ft is None:
             camera = key.startswith("observation.images.")  # name what is there in its place
             alike = [k for k in features if k.startswith("observation.") and k.startswith("observation.images.") == camera]
-            problems.append(f"lacks '{key}' (it has {'cameras' if camera else 'observations'} "
-                            f"{', '.join(map(repr, alike)) or 'none'})")
+            kind = "camera" if camera else "observation"
+            problems.append(f"lacks '{key}' (it has {f'{kind}s ' + ', '.join(map(repr, alike)) if alike else f'no {kind}'})")
             continue
         got = policy_shape(ft)
         if got != tuple(shape):
@@ -347,7 +347,9 @@ def check_recording(root: str | Path, episode: int, required: dict[str, tuple[in
         problems.append(f"it was recorded at {recorded_fps:g} fps, the policy's training data at {fps:g} fps (each "
                         f"action spans another time: record at {fps:g} fps, --dataset.fps={fps:g})")
     if problems:
-        raise ValueError(f"{what} {root} does not match the checkpoint: " + "; ".join(problems) + f". {advice}")
+        cameras = "observation.images." in " ".join(problems)  # which recording flags set a camera's name and size
+        raise ValueError(f"{what} {root} does not match the checkpoint: " + "; ".join(problems) + f". {advice}"
+                         + (" (pdp_sim: --robot.camera_names, --robot.camera_size)" if cameras else ""))
     if min_frames is not None:
         length = _episode_length(root, int(episode))
         if length is not None and length < min_frames:

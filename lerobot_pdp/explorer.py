@@ -47,6 +47,7 @@ MAP_WIDEN_SPANS = 2.0  # a mark off the training latents widens the map's view b
 LANDSCAPE_MAX_ROLLOUTS = 1024  # rollouts one landscape request may run (grid^2 x rollouts); Python: limit=None
 LANDSCAPE_VERSION = 1  # bump when what a cached landscape holds changes
 DECODER_MAX_DIMS = 8  # action dimensions the decoder's view draws, one row each
+WINDOW_CACHE_SIZE = 8  # recorded episodes the decoder's view keeps encoded (clicks near other modes meet others)
 Progress = Callable[[float, str], None]  # fraction done, what is running (gr.Progress is one)
 
 
@@ -148,6 +149,7 @@ class Explorer:
         self._training_data = _training_dataset(self.checkpoint)
         self.dataset = Path(dataset) if dataset is not None else self._training_data
         self._lock = threading.RLock()  # Gradio serves requests from threads; the policy acts for one at a time
+        self._window_cache: dict[tuple, Any] = {}  # (recording, episode, its info.json mtime) -> its windows
         self.suite = self.scene = None
         self.max_steps = max_steps
         if env is not None:
@@ -174,13 +176,15 @@ class Explorer:
         kwargs = env_camera_kwargs(self.policy.config)
         self.env_factory = lambda: gym.make(self.suite.gym_id, scene=self.scene, max_episode_steps=self.max_steps,
                                             disable_env_checker=True, **kwargs)
-        probe = self.env_factory()
+        probe = None
         try:
+            probe = self.env_factory()  # a camera the env lacks: the checkpoint is another env's, said so
             check_env_features(self.policy.config, probe)
         except ValueError as e:
             raise ValueError(f"--env {self.suite.name} does not match checkpoint {self.checkpoint}: {e}") from e
         finally:
-            probe.close()
+            if probe is not None:
+                probe.close()
         self.processors = self._processors()
 
     def _processors(self) -> tuple:
@@ -446,7 +450,7 @@ class Explorer:
             episode, why = self.decoder_episode(z, dataset)
         root, episode = _check_episode(source, episode)
         with self._lock:
-            windows = self.policy.demo_windows((root, episode))
+            windows = self._windows(root, episode)
             at = np.linspace(0, len(windows.obs_cond) - 1, max(1, frames)).round().astype(int)
             cond = windows.obs_cond[at].repeat_interleave(samples, 0)
             g = torch.Generator(device=cond.device).manual_seed(self.seed)
@@ -476,6 +480,17 @@ class Explorer:
                      f"of {root.name} ({why}{more})", fontsize=9)
         fig.tight_layout()
         return _pixels(fig)
+
+    def _windows(self, root: Path, episode: int) -> Any:
+        """A recorded episode's windows, read and encoded once (the weights are frozen): each click of the decoder's
+        view would otherwise decode and encode the whole episode again (seconds for a camera episode)."""
+        info = root / "meta" / "info.json"  # a folder recorded again is read again
+        key = (str(root.resolve()), episode, info.stat().st_mtime_ns if info.is_file() else None)
+        if key not in self._window_cache:
+            if len(self._window_cache) >= WINDOW_CACHE_SIZE:
+                self._window_cache.pop(next(iter(self._window_cache)))
+            self._window_cache[key] = self.policy.demo_windows((root, episode))
+        return self._window_cache[key]
 
     # ------------------------------------------------------------------ landscape and saving
 

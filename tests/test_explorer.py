@@ -292,11 +292,19 @@ def test_a_camera_checkpoint_rolls_out_with_its_camera(tmp_path, monkeypatch):
     from lerobot_pdp.explorer import Explorer
 
     monkeypatch.setenv("SVT_LOG", "1")  # the AV1 encoder's configuration log, per episode: errors only
-    ckpt, data = saved_steerable_checkpoint(tmp_path, camera="top")
+    ckpt, data = saved_steerable_checkpoint(tmp_path, camera="oblique")
     ex = Explorer(ckpt, env="reach-around", rollouts=1, max_steps=10, cache_dir=tmp_path / "cache", dataset=data)
-    assert "observation.images.top" in ex.policy.config.input_features
+    assert "observation.images.oblique" in ex.policy.config.input_features
     assert len(ex.rollout(ex.mode_latent(0)).outcomes) == 1
-    assert ex.decoder_view(ex.mode_latent(0), frames=1, samples=1).ndim == 3
+    read = []  # the decoder's view reads and encodes a recorded episode once, not at every click
+    demo_windows = ex.policy.demo_windows
+    monkeypatch.setattr(ex.policy, "demo_windows", lambda *a, **k: (read.append(a), demo_windows(*a, **k))[1])
+    for _ in range(2):
+        assert ex.decoder_view(ex.mode_latent(0), frames=1, samples=1, episode=0).ndim == 3
+    assert len(read) == 1
+    # another env, one without the checkpoint's camera: named as another env's checkpoint, not as a bad camera alone
+    with pytest.raises(ValueError, match=rf"--env avoiding does not match checkpoint {ckpt}: .*unknown camera 'oblique'"):
+        Explorer(ckpt, env="avoiding", rollouts=1, max_steps=10, cache_dir=tmp_path / "cache")
 
 
 def test_explore_on_a_taken_port_names_the_port_before_loading(made, capsys, tmp_path):

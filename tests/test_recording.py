@@ -199,3 +199,13 @@ def test_cli_make_and_plot(tmp_path, capsys):
     assert "unknown env 'reach-arond'" in capsys.readouterr().err  # a typo, not "recorded in another env"
     rc = cli_main(["make-dataset", "--env", "reach-around", "--out", str(out), "--no-progress"])
     assert rc == 2 and "already exists" in capsys.readouterr().err
+
+
+def test_a_recording_without_the_policys_camera_names_it_and_the_recording_flags(synthetic_meta):
+    from lerobot_pdp.demonstration import check_recording
+
+    need = {"observation.state": (2,), "observation.environment_state": (2,), "observation.images.top": (3, 40, 40),
+            "action": (2,)}
+    with pytest.raises(ValueError, match=r"lacks 'observation.images.top' \(it has no camera\)\. Record with the "
+                                         r"robot/env .* \(pdp_sim: --robot.camera_names, --robot.camera_size\)"):
+        check_recording(synthetic_meta.root, 0, need)
