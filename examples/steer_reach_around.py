@@ -66,7 +66,8 @@ def main(ckpt: str, demo_root: str) -> None:
         print(f"scene 0, mode {mode} ({modes.names.get(mode, '')}): success {success(policy, processors, 0, 5, mode):.0f}%")
     # weights frozen: z, then one sampler noise per chunk of the demonstration (no latent alone makes val3's route)
     res = policy.fit_latent((demo_root, 0), noise="chunks")
-    print(f"fitted z = {res.z.tolist()} from warm start {res.z_init.tolist()} (L_fit {res.losses[-1]:.4f}), "
+    print(f"fitted z = {[round(v, 4) for v in res.z.tolist()]} from warm start "
+          f"{[round(v, 4) for v in res.z_init.tolist()]} (L_fit {res.losses[-1]:.4f}), "
           f"{len(res.noise)} chunk noises")
     print(f"scene val3 after fitting: success {success(policy, processors, 'val3', 10, 0):.0f}%")
 

@@ -291,7 +291,7 @@ def cmd_steer(args: argparse.Namespace) -> int:
     elif "mode" in request and target.modes is None:
         note = (f" (mode not checked: {args.policy_path} has no mode labels; its modes are the clusters the policy "
                 "discovers when it loads, shown by lerobot-pdp latent-map)")
-    print(f"wrote {args.file}: {request}{note}")
+    print(f"wrote {args.file}: {json.dumps(request)}{note}")  # as the file holds it
     return 0
 
 

@@ -249,5 +249,5 @@ def launch(explorer: Explorer, port: int | None = None, share: bool = False, blo
     """Build and serve the app on ``127.0.0.1:port`` (None: a free port); ``block=False`` returns at once."""
     app = build_app(explorer)
     app.launch(server_name="127.0.0.1", server_port=port, share=share, prevent_thread_lock=not block,
-               show_error=True, quiet=not block)
+               show_error=True, quiet=True)  # Gradio's own lines advise launch(share=True): the CLI says --share
     return app

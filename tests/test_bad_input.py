@@ -311,8 +311,10 @@ def test_steer_cli_refuses_bad_requests_before_writing(checkpoint, synthetic_met
     assert json.loads(f.read_text()) == {"latent": [1.0, 2.0]}
     assert lerobot_pdp(["steer", str(f), "--latent", "1", "2", "3"]) == 2  # no checkpoint: the file's latent size
     assert f"has 3 values; expected 2 (the size of the latent already in {f}" in capsys.readouterr().err
+    capsys.readouterr()
     assert lerobot_pdp(["steer", str(f), "--mode", "left-wide", "--policy-path", str(checkpoint)]) == 0
     assert json.loads(f.read_text()) == {"mode": "left-wide"}
+    assert f'wrote {f}: {{"mode": "left-wide"}}' in capsys.readouterr().out  # what the file holds, as JSON
     with pytest.raises(ValueError, match="non-finite"):
         write_steering(f, {"latent": [float("nan"), 0.0]})
     assert json.loads(f.read_text()) == {"mode": "left-wide"}  # strict JSON, never NaN
