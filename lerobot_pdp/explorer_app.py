@@ -248,6 +248,8 @@ def build_app(explorer: Explorer) -> Any:
 def launch(explorer: Explorer, port: int | None = None, share: bool = False, block: bool = True) -> Any:
     """Build and serve the app on ``127.0.0.1:port`` (None: a free port); ``block=False`` returns at once."""
     app = build_app(explorer)
+    # Gradio's own lines: with share, the public link; without, advice to call launch(share=True) (on the command
+    # line that is --share true, so they are left out)
     app.launch(server_name="127.0.0.1", server_port=port, share=share, prevent_thread_lock=not block,
-               show_error=True, quiet=True)  # Gradio's own lines advise launch(share=True): the CLI says --share
+               show_error=True, quiet=not (block and share))
     return app
