@@ -353,7 +353,7 @@ def check_weight_shapes(policy: Any, model_file: str, shapes: dict[str, tuple[in
         return
     cfg, where = policy.config, Path(model_file).with_name(CONFIG_NAME)
     other = _other_features(cfg, where)
-    if other:  # the features come from --env.type (lerobot-eval), the robot (lerobot-rollout) or the data (lerobot-train)
+    if other:  # features from --env.type (lerobot-eval), the robot (lerobot-rollout) or the data (lerobot-train)
         raise ValueError(f"{model_file} was trained on other inputs or outputs than this run gives it: {other}. Is "
                          "this the env (--env.type, --env.*), robot or dataset (--dataset.*: fine-tuning) the policy "
                          f"was trained on? Its features are in {where}")

@@ -652,8 +652,9 @@ def add_explore_parser(sub: argparse._SubParsersAction) -> None:
                    help="also a public Gradio share link (default false)")
     p.add_argument("--device", default="cpu", help="torch device to act on (default cpu)")
     p.add_argument("--k", type=_int_in(1), default=None,
-                   help="without mode labels: the number of modes to group the training episodes in (default: found "
-                   "by policy.discover_modes(); one per episode below six episodes; labels, where the data has them, win)")
+                   help="without mode labels: the number of modes to group the training episodes in (default: "
+                   "found by policy.discover_modes(); one per episode below six episodes); labels, where the data "
+                   "has them, win")
     p.set_defaults(func=cmd_explore)
 
 

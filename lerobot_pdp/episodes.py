@@ -222,7 +222,8 @@ def feature_problems(required: dict[str, tuple[int, ...]], features: dict[str, d
             camera = key.startswith("observation.images.")  # name what is there in its place
             alike = [k for k in features if k.startswith("observation.") and k.startswith("observation.images.") == camera]
             kind = "camera" if camera else "observation"
-            problems.append(f"lacks '{key}' (it has {f'{kind}s ' + ', '.join(map(repr, alike)) if alike else f'no {kind}'})")
+            there = f"{kind}s {', '.join(map(repr, alike))}" if alike else f"no {kind}"
+            problems.append(f"lacks '{key}' (it has {there})")
             continue
         got = policy_shape(ft)
         if got != tuple(shape):

@@ -204,8 +204,8 @@ def build_app(explorer: Explorer) -> Any:
         def forget_stop(request) -> None:
             stop_of(request).clear()
 
-        for fn in (landscape, page_landscape, stop_landscape, forget_stop):  # Gradio passes the request by this (lazy) class
-            fn.__annotations__ = {"request": gr.Request}
+        for fn in (landscape, page_landscape, stop_landscape, forget_stop):  # Gradio passes the request by
+            fn.__annotations__ = {"request": gr.Request}                       # this class (imported lazily)
 
         def save(out, state):
             if not state.get("selection"):

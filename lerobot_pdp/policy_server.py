@@ -129,9 +129,10 @@ def with_input_check(original: Callable) -> Callable:
     """Wrap LeRobot's ``PolicyServer.SendPolicyInstructions``: the features a robot client of PDP sends must be the
     ones the checkpoint was trained on (its config.json, read first), else the request fails (gRPC
     ``FAILED_PRECONDITION``, details beginning with :data:`CLIENT_REFUSED`, naming each difference) and the client
-    ends at connect; so it does, naming the error, when loading the policy fails. Checked before LeRobot loads anything: the policy, its start-up fit and the features a client
-    already running is served with stay as they were (a robot of another env would otherwise get no action, the
-    server failing at every chunk, and wait for good)."""
+    ends at connect (so it does, naming the error, when loading the policy fails). Checked before LeRobot loads
+    anything: the policy, its start-up fit and the features a client already running is served with stay as they
+    were (a robot of another env would otherwise get no action, the server failing at every chunk, and wait for
+    good)."""
 
     @functools.wraps(original)
     def SendPolicyInstructions(self: Any, request: Any, context: Any):  # noqa: N802 - LeRobot's gRPC method
