@@ -12,11 +12,13 @@ policies' runs are untouched; checkpoints without these fields are not checked.
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import sys
+from pathlib import Path
 from typing import Any
 
-from .episodes import order_problems, simulated_robot
+from .episodes import feature_problems, order_problems, simulated_robot
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +50,60 @@ def warn_other_fps(policy_config: Any, fps: float | None, robot: str, command: s
                    "1/%g s, so the robot moves %.2fx as fast as demonstrated (--fps=%g runs it as trained)", command,
                    fps, trained_fps, fps, fps / trained_fps, trained_fps)
     return True
+
+
+def rollout_config(max_depth: int = 16) -> Any:
+    """The ``RolloutConfig`` of the ``lerobot-rollout`` run building this policy (``build_rollout_context``'s
+    ``cfg``, found up the call stack), or None outside one."""
+    frame = sys._getframe(1)
+    for _ in range(max_depth):
+        if frame is None:
+            return None
+        if frame.f_code.co_name == "build_rollout_context" and frame.f_globals.get("__name__") == CONTEXT_MODULE:
+            return frame.f_locals.get("cfg")
+        frame = frame.f_back
+    return None
+
+
+def robot_cameras(robot_config: Any) -> dict[str, dict] | None:
+    """The cameras a robot config will give, as dataset features ((H, W, 3)), read before the robot connects:
+    ``pdp_sim``'s ``camera_names`` / ``camera_size``, or LeRobot's ``cameras`` (each with its width and height);
+    None when the config does not say."""
+    names, size = getattr(robot_config, "camera_names", None), getattr(robot_config, "camera_size", None)
+    if names is not None and size is not None:
+        return {f"observation.images.{n}": {"dtype": "video", "shape": (size[0], size[1], 3)} for n in names}
+    cams = getattr(robot_config, "cameras", None)
+    if isinstance(cams, dict) and all(getattr(c, "width", None) and getattr(c, "height", None) for c in cams.values()):
+        return {f"observation.images.{n}": {"dtype": "video", "shape": (c.height, c.width, 3)} for n, c in cams.items()}
+    return None
+
+
+def check_rollout_cameras(policy_config: Any) -> None:
+    """Under ``lerobot-rollout``, before a start-up fit: the robot's cameras (from its config; LeRobot connects it
+    after loading the policy) must be the policy's, else the fit's seconds to minutes end in that refusal anyway.
+    Not checked under ``--rename_map`` or where the robot's config does not say (the full check comes later)."""
+    cfg = rollout_config()
+    need = {k: tuple(ft.shape) for k, ft in (getattr(policy_config, "image_features", None) or {}).items()}
+    if cfg is None or not need or getattr(cfg, "rename_map", None) or _saved_renames(cfg):
+        return
+    have = robot_cameras(getattr(cfg, "robot", None))
+    problems = [] if have is None else feature_problems(need, have)
+    if problems:
+        robot = getattr(getattr(cfg, "robot", None), "type", "the robot")
+        raise ValueError(f"the robot ({robot}) does not give the cameras the policy needs: {'; '.join(problems)}; "
+                         "refused before the start-up fit (its cameras: --robot.camera_names / --robot.camera_size "
+                         "for pdp_sim, --robot.cameras otherwise)")
+
+
+def _saved_renames(cfg: Any) -> bool:
+    """Whether the checkpoint's own preprocessor renames features (a training run's ``--rename_map``), or cannot be
+    read here: then the robot's camera names are not the policy's, and only the later check can tell."""
+    path = getattr(getattr(cfg, "policy", None), "pretrained_path", None)
+    try:
+        steps = json.loads((Path(path) / "policy_preprocessor.json").read_text())["steps"]
+        return any((step.get("config") or {}).get("rename_map") for step in steps)
+    except (OSError, TypeError, ValueError, KeyError, AttributeError):
+        return True
 
 
 def preprocessor_renames(preprocessor: Any) -> dict[str, str]:

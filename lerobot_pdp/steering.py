@@ -44,6 +44,7 @@ from .console import latent_text
 from .latent_fitting import FitCancelled, cancellable
 from .lerobot_command import rollout_with_rtc
 from .realtime_chunking import RTC_ENGINE, RTC_WAY_OUT
+from .rollout_checks import check_rollout_cameras
 from .steer_requests import (  # noqa: F401  (re-exported: the requests' checks and writer live there)
     REQUEST_KEYS,
     SteerTarget,
@@ -153,6 +154,7 @@ def start_up_fit(policy: Any, episode: tuple[Any, int], steps: int | None = None
     starts, with a progress bar: ``--policy.steer_dataset_root`` and a ``dataset`` request already in the steering file
     when the policy loads."""
     refuse_paced_fit(policy, episode)  # refused after the fit otherwise (seconds to minutes)
+    check_rollout_cameras(policy.config)  # so is a robot without the policy's cameras (lerobot-rollout)
     cfg = policy.config
     noises = " and one sampler noise per chunk" if cfg.fit_noise == "chunks" else ""
     logger.info("fitting the latent%s to %s episode %d before the control loop starts", noises, *episode)

@@ -932,6 +932,29 @@ modeling.rtc_chunk = poisoned
 
 
 @pytest.mark.slow
+def test_a_robot_without_the_policys_camera_is_refused_before_the_start_up_fit(tmp_path):
+    """The real ``lerobot-rollout`` of a camera checkpoint with a start-up fit, on a robot configured without that
+    camera: refused from the robot's config before the fit (LeRobot connects the robot after loading the policy,
+    which used to fit for seconds to minutes and then refuse), naming the camera and the flags."""
+    from conftest import lerobot_cli
+    from policies import saved_steerable_checkpoint
+
+    ckpt, data = saved_steerable_checkpoint(tmp_path, camera="top")
+    env = {**os.environ, **CLI_ENV, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([lerobot_cli("lerobot-rollout"), "--strategy.type=base", f"--policy.path={ckpt}",
+                           "--policy.device=cpu", f"--policy.steer_dataset_root={data}", "--policy.steer_episode_index=0",
+                           "--robot.type=pdp_sim", "--robot.env=reach-around", "--robot.scene=0", "--robot.episodes=1",
+                           f"--robot.calibration_dir={tmp_path / 'cal'}", "--fps=50", "--duration=60",
+                           "--return_to_initial_position=false", "--play_sounds=false"],
+                          capture_output=True, text=True, timeout=300, env=env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0, out[-3000:]
+    assert "does not give the cameras the policy needs: lacks 'observation.images.top' (it has no camera); refused " \
+           "before the start-up fit" in out, out[-3000:]
+    assert "fitting the latent" not in out and "Connecting robot" not in out
+
+
+@pytest.mark.slow
 def test_lerobot_rollout_with_rtc_exits_1_when_pdp_cannot_plan(untrained_reach_around, tmp_path):
     """The real ``lerobot-rollout --inference.type=rtc``, a weight turned NaN mid-run (injected by a
     ``sitecustomize`` on the child's path): the engine gives up, LeRobot's teardown disconnects the robot, and the
