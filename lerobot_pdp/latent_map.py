@@ -93,7 +93,7 @@ def groups_k(policy, k: int | None) -> int | None:
     bank = policy.model.bank
     if k is not None or bank.labelled() or len(bank.mode) == 0:
         return k
-    n = len(np.unique(policy.behavior_table()["episode"][~bank.is_taught().cpu().numpy()]))
+    n = len(bank.episode[~bank.is_taught()].unique())  # the bank's episodes: no encoding needed
     if n >= 2 * MIN_CLUSTER_SIZE:
         return None
     logger.warning("%s without mode labels: too few to find modes in (%d or more; --k K groups them); each episode "

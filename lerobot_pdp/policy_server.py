@@ -138,6 +138,8 @@ def with_input_check(original: Callable) -> Callable:
     def SendPolicyInstructions(self: Any, request: Any, context: Any):  # noqa: N802 - LeRobot's gRPC method
         import pickle
 
+        import grpc
+
         specs = pickle.loads(request.data)  # nosec - LeRobot's own message, which its server unpickles too
         if getattr(specs, "policy_type", None) == SERVED:
             from lerobot.configs.policies import PreTrainedConfig
@@ -148,15 +150,11 @@ def with_input_check(original: Callable) -> Callable:
                 config = PreTrainedConfig.from_pretrained(specs.pretrained_name_or_path)
                 check_client_features(config, {rename.get(k, k): v for k, v in features.items()})
             except ValueError as e:
-                import grpc
-
                 logger.error("refused the robot client %s: %s", context.peer(), e)
                 context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{CLIENT_REFUSED}: {e}")
             try:
                 return original(self, request, context)
-            except Exception as e:  # noqa: BLE001 - a load that fails (a bad --policy.* option, a missing recording):
-                import grpc  # the client names it, not gRPC's "Exception calling application" dump
-
+            except Exception as e:  # noqa: BLE001 - a failed load (bad --policy.* option, no recording): named
                 said = e.args[0] if isinstance(e, KeyError) and e.args else e
                 logger.exception("could not load %s for the robot client %s", specs.pretrained_name_or_path,
                                  context.peer())

@@ -52,15 +52,16 @@ def warn_other_fps(policy_config: Any, fps: float | None, robot: str, command: s
     return True
 
 
-def rollout_config(max_depth: int = 16) -> Any:
-    """The ``RolloutConfig`` of the ``lerobot-rollout`` run building this policy (``build_rollout_context``'s
-    ``cfg``, found up the call stack), or None outside one."""
+def rollout_context_locals(max_depth: int = 16) -> dict[str, Any] | None:
+    """The locals of ``lerobot.rollout.context.build_rollout_context`` when it is up the call stack (within
+    ``max_depth`` frames of the caller: its ``cfg`` is the run's ``RolloutConfig``), else None. Precise where a
+    ``sys.modules`` test is not: a test process may have imported LeRobot's rollout package without running it."""
     frame = sys._getframe(1)
     for _ in range(max_depth):
         if frame is None:
             return None
         if frame.f_code.co_name == "build_rollout_context" and frame.f_globals.get("__name__") == CONTEXT_MODULE:
-            return frame.f_locals.get("cfg")
+            return frame.f_locals
         frame = frame.f_back
     return None
 
@@ -82,7 +83,7 @@ def check_rollout_cameras(policy_config: Any) -> None:
     """Under ``lerobot-rollout``, before a start-up fit: the robot's cameras (from its config; LeRobot connects it
     after loading the policy) must be the policy's, else the fit's seconds to minutes end in that refusal anyway.
     Not checked under ``--rename_map`` or where the robot's config does not say (the full check comes later)."""
-    cfg = rollout_config()
+    cfg = (rollout_context_locals() or {}).get("cfg")
     need = {k: tuple(ft.shape) for k, ft in (getattr(policy_config, "image_features", None) or {}).items()}
     if cfg is None or not need or getattr(cfg, "rename_map", None) or _saved_renames(cfg):
         return

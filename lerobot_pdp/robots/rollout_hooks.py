@@ -26,28 +26,17 @@ import sys
 from typing import Any
 
 from ..episodes import feature_problems, policy_shape
-from ..rollout_checks import preprocessor_renames
+from ..rollout_checks import CONTEXT_MODULE, preprocessor_renames, rollout_context_locals
 from .hooks import split_environment_state, splitting_features, wrap_all, wrap_once
 from .live import LIVE
 
-CONTEXT_MODULE = "lerobot.rollout.context"
 EPISODIC_MODULE = "lerobot.rollout.strategies.episodic"
 
 
 def building_rollout_context(max_depth: int = 12) -> bool:
-    """True when called (within ``max_depth`` frames) from ``lerobot.rollout.context.build_rollout_context``.
-
-    Precise where a ``sys.modules`` test is not: a test process may have imported LeRobot's rollout
-    package without running it.
-    """
-    frame = sys._getframe(1)
-    for _ in range(max_depth):
-        if frame is None:
-            return False
-        if frame.f_code.co_name == "build_rollout_context" and frame.f_globals.get("__name__") == CONTEXT_MODULE:
-            return True
-        frame = frame.f_back
-    return False
+    """True when called (within ``max_depth`` frames) from ``lerobot.rollout.context.build_rollout_context``
+    (:func:`lerobot_pdp.rollout_checks.rollout_context_locals`, one frame up from here)."""
+    return rollout_context_locals(max_depth + 1) is not None
 
 
 def install() -> bool:
